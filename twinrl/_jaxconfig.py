@@ -1,0 +1,38 @@
+"""JAX settings twinrl applies on import: the persistent compilation cache.
+
+Compiling a gradient through contacts takes tens of seconds; the cache makes the second run of any
+command (and the test suite) skip it. It lives in ``$TWINRL_CACHE_DIR`` if set, else
+``$XDG_CACHE_HOME/twinrl/jax`` (``~/.cache/twinrl/jax``). ``TWINRL_CACHE_DIR=off`` disables it.
+A cache directory the user already configured for JAX (``JAX_COMPILATION_CACHE_DIR``) is left alone.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+
+
+def cache_dir() -> Path | None:
+    env = os.environ.get("TWINRL_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in ("", "0", "off", "none", "false") else Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "twinrl" / "jax"
+
+
+def enable_compilation_cache() -> Path | None:
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return Path(os.environ["JAX_COMPILATION_CACHE_DIR"])
+    path = cache_dir()
+    if path is None:
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # read-only home: run without a cache rather than fail
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path

@@ -1,0 +1,12 @@
+"""Differentiable physics: MJX with a reverse-differentiable constraint solve.
+
+``Sim`` (MJCF compiled for MJX; ``step``/``rollout``), ``PhysParams`` (identifiable parameters),
+``solver`` (fixed-iteration solve), ``gradients`` (truncation, clipping, NaN guard),
+``gradcheck`` (reverse mode against central finite differences).
+"""
+
+from twinrl.physics.params import PhysParams
+from twinrl.physics.scenes import SCENES, scene_path
+from twinrl.physics.sim import MJCFError, Sim, Trajectory, load_mjcf
+
+__all__ = ["Sim", "PhysParams", "Trajectory", "MJCFError", "load_mjcf", "SCENES", "scene_path"]

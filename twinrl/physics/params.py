@@ -1,0 +1,168 @@
+"""Identifiable physical parameters as a pytree, applied to an ``mjx.Model``.
+
+``PhysParams`` holds the quantities Real2Sim fits and Learn@Sim randomises: per-body mass (the
+body's rotational inertia is scaled with it, so the mass distribution keeps its shape), per-dof
+damping, armature and friction loss, per-geom sliding friction, per-actuator gain and bias, and
+gravity. Values are physical (kg, N s/m, ...), so a table of them reads as a robot's datasheet.
+
+Optimisers work on the *unconstrained* form (``unconstrain`` / ``constrain``): strictly positive
+fields (mass, friction, gain) through ``log``, non-negative fields (damping, armature, friction
+loss) through a softplus, real fields (bias, gravity) as they are. So a gradient step can never
+produce a negative mass. Building a ``PhysParams`` with concrete values that are negative or not
+finite raises ``ValueError`` naming the field and index.
+
+Caveat inherited from MJX: friction-loss constraint rows exist only for dofs whose friction loss
+is non-zero in the MJCF; on the other dofs ``frictionloss`` has no effect (and zero gradient).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+__all__ = ["PhysParams", "POSITIVE", "NONNEGATIVE", "REAL"]
+
+POSITIVE = ("mass", "friction", "gain")
+NONNEGATIVE = ("damping", "armature", "frictionloss")
+REAL = ("bias", "gravity")
+# Floor for non-negative fields in unconstrained form (softplus^-1 of 0 is -inf).
+_SOFTPLUS_FLOOR = 1e-9
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysParams:
+    """Identifiable parameters of an MJCF model (shapes for a model with nbody, nv, ngeom, nu)."""
+
+    mass: jax.Array
+    """Mass of every body except the world body, kg, shape (nbody-1,), > 0."""
+    damping: jax.Array
+    """Joint damping per dof, shape (nv,), >= 0."""
+    armature: jax.Array
+    """Rotor inertia added to the mass matrix diagonal per dof, shape (nv,), >= 0."""
+    frictionloss: jax.Array
+    """Coulomb (dry) friction per dof, shape (nv,), >= 0."""
+    friction: jax.Array
+    """Sliding friction coefficient per geom, shape (ngeom,), > 0."""
+    gain: jax.Array
+    """Actuator gain (``gainprm[0]``), shape (nu,), > 0."""
+    bias: jax.Array
+    """Actuator bias (``biasprm[0:3]``: constant, * length, * velocity), shape (nu, 3)."""
+    gravity: jax.Array
+    """Gravity vector, m/s^2, shape (3,)."""
+
+    def __post_init__(self):
+        for name in POSITIVE + NONNEGATIVE + REAL:
+            _check(name, getattr(self, name))
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_model(cls, model: mujoco.MjModel, dtype=None) -> "PhysParams":
+        """The nominal parameters written in an MJCF (compiled ``mujoco.MjModel``)."""
+        dtype = dtype or (jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+        a = lambda x: jnp.asarray(np.array(x, dtype=np.float64), dtype=dtype)
+        return cls(
+            mass=a(model.body_mass[1:]),
+            damping=a(model.dof_damping),
+            armature=a(model.dof_armature),
+            frictionloss=a(model.dof_frictionloss),
+            friction=a(model.geom_friction[:, 0]),
+            gain=a(model.actuator_gainprm[:, 0]),
+            bias=a(model.actuator_biasprm[:, :3]),
+            gravity=a(model.opt.gravity),
+        )
+
+    def replace(self, **fields) -> "PhysParams":
+        return dataclasses.replace(self, **fields)
+
+    def scaled(self, **factors) -> "PhysParams":
+        """A copy with fields multiplied by factors, e.g. ``p.scaled(mass=1.2, damping=0.5)``."""
+        return self.replace(**{k: getattr(self, k) * v for k, v in factors.items()})
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {f.name: np.asarray(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    # ------------------------------------------------------------------ application
+    def apply(self, m):
+        """Return ``m`` (an ``mjx.Model``) with these parameters written in. Differentiable."""
+        nominal_mass = m.body_mass[1:]
+        ratio = self.mass / jnp.where(nominal_mass > 0, nominal_mass, 1.0)
+        return m.tree_replace({
+            "body_mass": m.body_mass.at[1:].set(self.mass),
+            "body_inertia": m.body_inertia.at[1:].multiply(ratio[:, None]),
+            "dof_damping": self.damping,
+            "dof_armature": self.armature,
+            "dof_frictionloss": self.frictionloss,
+            "geom_friction": m.geom_friction.at[:, 0].set(self.friction),
+            "actuator_gainprm": m.actuator_gainprm.at[:, 0].set(self.gain),
+            "actuator_biasprm": m.actuator_biasprm.at[:, :3].set(self.bias),
+            "opt.gravity": self.gravity,
+        })
+
+    # ------------------------------------------------------------------ reparameterisation
+    def unconstrain(self) -> dict[str, jax.Array]:
+        """Unconstrained coordinates: log for positive, softplus^-1 for non-negative fields."""
+        out = {}
+        for name in POSITIVE:
+            out[name] = jnp.log(getattr(self, name))
+        for name in NONNEGATIVE:
+            x = jnp.maximum(getattr(self, name), _SOFTPLUS_FLOOR)
+            out[name] = x + jnp.log(-jnp.expm1(-x))  # softplus^-1, stable for small and large x
+        for name in REAL:
+            out[name] = getattr(self, name)
+        return out
+
+    @classmethod
+    def constrain(cls, raw: Mapping[str, jax.Array]) -> "PhysParams":
+        """Inverse of ``unconstrain``; any real input gives valid parameters."""
+        fields = {}
+        for name in POSITIVE:
+            fields[name] = jnp.exp(raw[name])
+        for name in NONNEGATIVE:
+            fields[name] = jax.nn.softplus(raw[name])
+        for name in REAL:
+            fields[name] = raw[name]
+        return cls(**fields)
+
+
+_FIELDS = tuple(f.name for f in dataclasses.fields(PhysParams))
+
+
+def _flatten(p: PhysParams):
+    return [(jax.tree_util.GetAttrKey(k), getattr(p, k)) for k in _FIELDS], None
+
+
+def _unflatten(_, leaves) -> PhysParams:
+    # JAX rebuilds PhysParams-shaped trees of gradients, tangents and sentinels: those are not
+    # physical values, so they bypass the validation done by the constructor.
+    p = object.__new__(PhysParams)
+    for k, v in zip(_FIELDS, leaves):
+        object.__setattr__(p, k, v)
+    return p
+
+
+jax.tree_util.register_pytree_with_keys(PhysParams, _flatten, _unflatten)
+
+
+def _check(name: str, value) -> None:
+    """Reject negative or non-finite concrete values; tracers (inside jit) pass through."""
+    if isinstance(value, jax.core.Tracer) or not hasattr(value, "shape"):
+        return
+    try:
+        v = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return  # not numeric (e.g. a sentinel used by tree utilities)
+    bad = ~np.isfinite(v)
+    if bad.any():
+        raise ValueError(f"PhysParams.{name} has a non-finite value at index "
+                         f"{tuple(int(i) for i in np.argwhere(bad)[0])}: {v[bad][0]}")
+    if name in POSITIVE and (v <= 0).any():
+        i = tuple(int(i) for i in np.argwhere(v <= 0)[0])
+        raise ValueError(f"PhysParams.{name} must be > 0, got {v[i]} at index {i}")
+    if name in NONNEGATIVE and (v < 0).any():
+        i = tuple(int(i) for i in np.argwhere(v < 0)[0])
+        raise ValueError(f"PhysParams.{name} must be >= 0, got {v[i]} at index {i}")

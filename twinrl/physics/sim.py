@@ -1,0 +1,188 @@
+"""``Sim``: an MJCF compiled for MJX, stepped and rolled out as pure JAX functions.
+
+``Sim`` is a plain Python object that holds the compiled model; its methods are pure functions of
+pytrees (``mjx.Data``, action arrays, ``PhysParams``), so they can be jitted, vmapped and
+differentiated. Every step goes through ``twinrl.physics.solver.step`` (fixed-iteration
+constraint solve) so reverse-mode gradients exist through contacts and joint limits; its
+forward results equal stock ``mjx.step`` (``Sim.stock_step`` is kept for comparison).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from twinrl.physics import solver
+from twinrl.physics.params import PhysParams
+from twinrl.physics.scenes import SCENES, scene_path
+
+__all__ = ["Sim", "Trajectory", "MJCFError", "load_mjcf"]
+
+
+class MJCFError(ValueError):
+    """An MJCF that is missing, unreadable or that MuJoCo rejects."""
+
+
+def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
+    """Compile an MJCF given as a bundled scene name, a file path, or an XML string."""
+    text = str(mjcf)
+    if isinstance(mjcf, str) and text in SCENES:
+        path = scene_path(text)
+    elif isinstance(mjcf, str) and text.lstrip().startswith("<"):
+        try:
+            return mujoco.MjModel.from_xml_string(text)
+        except ValueError as e:
+            raise MJCFError(f"malformed MJCF string: {_first_line(e)}") from None
+    else:
+        path = Path(mjcf)
+    if not path.exists():
+        raise MJCFError(f"MJCF file not found: {path} (bundled scenes: {', '.join(SCENES)})")
+    if path.is_dir():
+        raise MJCFError(f"MJCF path is a directory, not a file: {path}")
+    try:
+        return mujoco.MjModel.from_xml_path(str(path))
+    except ValueError as e:
+        raise MJCFError(f"malformed MJCF {path}: {_first_line(e)}") from None
+
+
+def _first_line(e: Exception) -> str:
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    return " ".join(lines[:3]) if lines else type(e).__name__
+
+
+class Trajectory(NamedTuple):
+    """Per-step physics state of a rollout; leading axis is time (state *after* each step)."""
+
+    qpos: jax.Array
+    qvel: jax.Array
+    n_active: jax.Array
+    """Number of constraint rows carrying force at each step (0 = contact/limit free)."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Sim:
+    """An MJCF compiled for MJX.
+
+    Args:
+      mjcf: bundled scene name, MJCF path or XML string.
+      frame_skip: physics steps per control step.
+      iterations: constraint-solver iterations (default: the MJCF's ``<option iterations>``).
+        The differentiable solve always runs this many (no-ops after convergence), so keep it
+        small; MuJoCo's default of 100 is far more than small scenes need.
+      ls_iterations: line-search iterations (default: the MJCF's).
+    """
+
+    mj_model: mujoco.MjModel
+    model: mjx.Model
+    frame_skip: int = 1
+    name: str = "mjcf"
+
+    @classmethod
+    def load(cls, mjcf, *, frame_skip: int = 1, iterations: int | None = None,
+             ls_iterations: int | None = None, name: str | None = None) -> "Sim":
+        if frame_skip < 1:
+            raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
+        mj_model = load_mjcf(mjcf)
+        if iterations is not None:
+            mj_model.opt.iterations = int(iterations)
+        if ls_iterations is not None:
+            mj_model.opt.ls_iterations = int(ls_iterations)
+        if name is None:
+            name = str(mjcf) if (isinstance(mjcf, str) and mjcf in SCENES) else (
+                Path(str(mjcf)).stem if not str(mjcf).lstrip().startswith("<") else "mjcf")
+        return cls(mj_model=mj_model, model=mjx.put_model(mj_model), frame_skip=frame_skip,
+                   name=name)
+
+    # ------------------------------------------------------------------ shapes
+    @property
+    def nq(self) -> int: return self.mj_model.nq
+    @property
+    def nv(self) -> int: return self.mj_model.nv
+    @property
+    def nu(self) -> int: return self.mj_model.nu
+    @property
+    def dt(self) -> float:
+        """Control period: timestep * frame_skip."""
+        return float(self.mj_model.opt.timestep) * self.frame_skip
+
+    @property
+    def ctrl_range(self) -> np.ndarray:
+        """(nu, 2) lower/upper control bounds (+-inf where unlimited)."""
+        r = np.array(self.mj_model.actuator_ctrlrange, dtype=np.float64)
+        lim = np.array(self.mj_model.actuator_ctrllimited, dtype=bool)
+        r[~lim] = [-np.inf, np.inf]
+        return r
+
+    def default_params(self) -> PhysParams:
+        return PhysParams.from_model(self.mj_model)
+
+    # ------------------------------------------------------------------ state
+    def init(self, qpos=None, qvel=None) -> mjx.Data:
+        """A fresh ``mjx.Data`` at ``qpos``/``qvel`` (default: the model's ``qpos0``, rest)."""
+        d = mjx.make_data(self.model)
+        if qpos is not None:
+            d = d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype).reshape(self.nq))
+        if qvel is not None:
+            d = d.replace(qvel=jnp.asarray(qvel, d.qvel.dtype).reshape(self.nv))
+        return d
+
+    def model_with(self, params: PhysParams | None) -> mjx.Model:
+        return self.model if params is None else params.apply(self.model)
+
+    # ------------------------------------------------------------------ dynamics
+    def step(self, data: mjx.Data, action: jax.Array, params: PhysParams | None = None,
+             *, iterations: int | None = None) -> mjx.Data:
+        """One control step (``frame_skip`` physics steps) with ``ctrl = action``."""
+        m = self.model_with(params)
+        d = data.replace(ctrl=jnp.asarray(action, data.ctrl.dtype).reshape(self.nu))
+        if self.frame_skip == 1:
+            return solver.step(m, d, iterations)
+        d, _ = jax.lax.scan(lambda d, _: (solver.step(m, d, iterations), None), d, None,
+                            length=self.frame_skip)
+        return d
+
+    def stock_step(self, data: mjx.Data, action: jax.Array,
+                   params: PhysParams | None = None) -> mjx.Data:
+        """The same control step through stock ``mjx.step`` (forward only, not reverse-AD-able)."""
+        m = self.model_with(params)
+        d = data.replace(ctrl=jnp.asarray(action, data.ctrl.dtype).reshape(self.nu))
+        for _ in range(self.frame_skip):
+            d = mjx.step(m, d)
+        return d
+
+    def rollout(self, data: mjx.Data, actions: jax.Array, params: PhysParams | None = None,
+                *, truncate: int | None = None,
+                step_fn: Callable | None = None) -> tuple[mjx.Data, Trajectory]:
+        """Open-loop rollout (``lax.scan``) of ``actions`` (T, nu) from ``data``.
+
+        Args:
+          truncate: if set, stop gradients through the state every ``truncate`` steps
+            (truncated backpropagation through time; see ``twinrl.physics.gradients``).
+          step_fn: alternative ``(data, action, params) -> data`` (e.g. ``stock_step``).
+        Returns:
+          final ``mjx.Data`` and the ``Trajectory`` of states after each step.
+        """
+        step = step_fn or self.step
+        T = actions.shape[0]
+
+        def body(d, xs):
+            t, a = xs
+            if truncate:
+                d = jax.lax.cond(t % truncate == 0, jax.lax.stop_gradient, lambda x: x, d)
+            d = step(d, a, params)
+            return d, Trajectory(d.qpos, d.qvel, _n_active(d))
+
+        return jax.lax.scan(body, data, (jnp.arange(T), actions))
+
+
+def _n_active(d: mjx.Data) -> jax.Array:
+    f = d._impl.efc_force
+    return jnp.sum(f != 0) if f.size else jnp.zeros((), jnp.int32)

@@ -1,0 +1,156 @@
+"""Constraint solve with a fixed iteration count, so reverse-mode AD works through contacts.
+
+Stock MJX (``mujoco.mjx._src.solver.solve``, pinned mujoco-mjx 3.17.0) runs its outer
+Newton/CG loop in ``jax.lax.while_loop``; ``jax.grad`` of anything downstream of an active
+constraint then fails with "Reverse-mode differentiation does not work for lax.while_loop"
+(upstream mujoco issue #2259). Here the same loop body runs inside ``lax.scan`` for exactly
+``m.opt.iterations`` steps and turns into a no-op once the stock convergence test says done,
+so the forward result is the stock result bit for bit (tested in ``tests/physics/test_solver.py``)
+and the reverse pass exists.
+
+Backward NaN. Once a solve has converged, the search direction is ~0 and the line search
+divides by its own curvature ``deriv_1`` (a ~0 number, floored at mjMINVAL): the body's
+partial derivatives are then huge or infinite. The no-op branch of ``lax.cond`` discards that
+value, but where ``cond`` is lowered to ``select`` (under ``vmap``) the cotangent of the
+untaken branch is 0, and 0 * inf = NaN. We therefore feed the body a *safe* context when the
+solve is done (the "double where" trick): the discarded computation then stays finite.
+
+We reuse the stock building blocks (``Context``, ``_linesearch``, ``_update_constraint``,
+``_update_gradient``) of the pinned version rather than copying them, and replace only the loop.
+``forward`` and ``step`` mirror ``mujoco.mjx._src.forward`` with this solve swapped in.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+from mujoco.mjx._src import forward as _fwd
+from mujoco.mjx._src import math as _math
+from mujoco.mjx._src import scan as _scan
+from mujoco.mjx._src import sensor as _sensor
+from mujoco.mjx._src import solver as _stock
+from mujoco.mjx._src.types import DisableBit, IntegratorType, SolverType
+
+__all__ = ["solve", "forward", "step"]
+
+
+def _done(m, d, ctx) -> jax.Array:
+    """The stock convergence test (``solve.cond`` negated), without the iteration cap."""
+    improvement = _stock._rescale(m, d, ctx.prev_cost - ctx.cost)
+    gradient = _stock._rescale(m, d, _math.norm(ctx.grad))
+    return (improvement < m.opt.tolerance) | (gradient < m.opt.tolerance)
+
+
+def _iterate(m, d, ctx):
+    """One stock solver iteration: line search, constraint update, new search direction."""
+    ctx = _stock._linesearch(m, d, ctx)
+    prev_grad, prev_mgrad = ctx.grad, ctx.Mgrad
+    ctx = _stock._update_constraint(m, d, ctx)
+    ctx = _stock._update_gradient(m, d, ctx)
+    if m.opt.solver == SolverType.NEWTON:
+        search = -ctx.Mgrad
+    else:  # Polak-Ribiere conjugate gradient, as in the stock solver
+        beta = jnp.dot(ctx.grad, ctx.Mgrad - prev_mgrad)
+        beta = beta / jnp.maximum(mujoco.mjMINVAL, jnp.dot(prev_grad, prev_mgrad))
+        search = -ctx.Mgrad + jnp.maximum(0, beta) * ctx.search
+    return ctx.replace(search=search, solver_niter=ctx.solver_niter + 1)
+
+
+def _safe(ctx):
+    """A context on which one more iteration is finite with finite derivatives.
+
+    Only the search direction matters: a unit direction gives the line search a curvature
+    bounded away from zero. The result of that iteration is always discarded.
+    """
+    search = jnp.zeros_like(ctx.search).at[..., 0].set(1.0) if ctx.search.size else ctx.search
+    return ctx.replace(search=search)
+
+
+def solve(m, d, iterations: int | None = None):
+    """Constraint solve equal to stock MJX's, differentiable in reverse mode.
+
+    Args:
+      m: ``mjx.Model`` (JAX implementation).
+      d: ``mjx.Data`` after ``fwd_acceleration`` (``qacc_smooth`` set).
+      iterations: fixed outer iteration count; defaults to ``m.opt.iterations``.
+
+    Returns:
+      ``d`` with ``qacc``, ``qfrc_constraint`` and ``efc_force`` set.
+    """
+    n_iter = int(m.opt.iterations if iterations is None else iterations)
+    if n_iter < 1:
+        raise ValueError(f"solver iterations must be >= 1, got {n_iter}")
+
+    qacc = d.qacc_smooth
+    if not m.opt.disableflags & DisableBit.WARMSTART:
+        warm = _stock.Context.create(m, d.replace(qacc=d.qacc_warmstart), grad=False)
+        smth = _stock.Context.create(m, d.replace(qacc=d.qacc_smooth), grad=False)
+        qacc = jnp.where(warm.cost < smth.cost, d.qacc_warmstart, d.qacc_smooth)
+    d = d.replace(qacc=qacc)
+    ctx = _stock.Context.create(m, d)
+
+    if n_iter == 1:  # the stock solver runs the body once, unconditionally
+        ctx = _iterate(m, d, ctx)
+    else:
+        def body(ctx, _):
+            done = _done(m, d, ctx)
+            # Double where: the discarded branch must see finite inputs (module docstring).
+            ctx_in = jax.tree_util.tree_map(
+                lambda safe, x: jnp.where(done, safe, x), _safe(ctx), ctx)
+            new = jax.lax.cond(done, lambda c: c, lambda c: _iterate(m, d, c), ctx_in)
+            ctx = jax.tree_util.tree_map(lambda old, nw: jnp.where(done, old, nw), ctx, new)
+            return ctx, None
+
+        ctx, _ = jax.lax.scan(body, ctx, None, length=n_iter)
+
+    return d.tree_replace({
+        "qfrc_constraint": ctx.qfrc_constraint,
+        "qacc": ctx.qacc,
+        "_impl.efc_force": ctx.efc_force,
+    })
+
+
+def forward(m, d, iterations: int | None = None):
+    """``mjx.forward`` with the differentiable solve."""
+    d = _fwd.fwd_position(m, d)
+    d = _sensor.sensor_pos(m, d)
+    d = _fwd.fwd_velocity(m, d)
+    d = _sensor.sensor_vel(m, d)
+    d = _fwd.fwd_actuation(m, d)
+    d = _fwd.fwd_acceleration(m, d)
+    if d._impl.efc_J.size == 0:
+        return d.replace(qacc=d.qacc_smooth)
+    d = solve(m, d, iterations)
+    return _sensor.sensor_acc(m, d)
+
+
+def _rk4(m, d, iterations):
+    """Classic RK4 as in stock MJX, with every stage using our ``forward``."""
+    a, b = _fwd._RK4_A, _fwd._RK4_B
+    c = jnp.tril(a).sum(axis=0)
+    times = d.time + c * m.opt.timestep
+    d0 = d
+    qvel, qacc, act_dot = (b[0] * d.qvel, b[0] * d.qacc, b[0] * d.act_dot)
+    kqvel = d.qvel
+    integrate = lambda *args: _fwd._integrate_pos(*args, dt=m.opt.timestep)
+    for i in range(3):
+        kqpos = _scan.flat(m, integrate, "jqv", "q", m.jnt_type, d0.qpos, a[i, i] * kqvel)
+        kact = d0.act + a[i, i] * d.act_dot * m.opt.timestep
+        kqvel = d0.qvel + a[i, i] * d.qacc * m.opt.timestep
+        d = forward(m, d.replace(qpos=kqpos, qvel=kqvel, act=kact, time=times[i]), iterations)
+        qvel, qacc, act_dot = qvel + b[i + 1] * kqvel, qacc + b[i + 1] * d.qacc, act_dot + b[i + 1] * d.act_dot
+    d = d.replace(qpos=d0.qpos, qvel=d0.qvel, act=d0.act, time=d0.time)
+    return _fwd._advance(m, d, act_dot, qacc, qvel)
+
+
+def step(m, d, iterations: int | None = None):
+    """``mjx.step`` with the differentiable solve (Euler, implicitfast or RK4 integrator)."""
+    d = forward(m, d, iterations)
+    if m.opt.integrator == IntegratorType.EULER:
+        return _fwd.euler(m, d)
+    if m.opt.integrator == IntegratorType.IMPLICITFAST:
+        return _fwd.implicit(m, d)
+    if m.opt.integrator == IntegratorType.RK4:
+        return _rk4(m, d, iterations)
+    raise NotImplementedError(f"integrator {m.opt.integrator} is not supported by MJX")
