@@ -1,0 +1,242 @@
+"""The functional task API: ``Env`` and ``State``, compatible with Brax's.
+
+A task is a ``Sim`` (an MJCF compiled for MJX) plus what turns physics into a learning problem:
+the reset distribution, the observation, the action bounds, a smooth reward made of named terms,
+the episode length, the cameras, and the spec of how its real twin differs (``PerturbationSpec``).
+``Env`` subclasses ``brax.envs.base.Env`` and its ``State`` *is* Brax's ``State``, so Brax's
+wrappers (``brax.envs.wrappers.training.wrap``) and trainers (``brax.training.agents.ppo``) take
+our tasks unmodified; the ``pipeline_state`` is the ``mjx.Data``.
+
+Everything here is a pure function of pytrees: ``reset(rng)`` and ``step(state, action)`` jit,
+vmap and differentiate end to end (the physics through ``twinrl.physics.solver``'s
+fixed-iteration constraint solve, the reward because every term is smooth). This is what
+first-order methods need (PODS, Sec. 3; SHAC, Sec. 4: gradients of the return w.r.t. actions).
+
+The task-specific hooks are written on ``(qpos, qvel)`` rather than on ``mjx.Data``, so the real
+twin (``twinrl.real.twin``, MuJoCo C engine, NumPy state) evaluates *the same* observation and
+reward functions as the simulator.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import ClassVar, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs import base as brax_base
+
+from twinrl.physics import PhysParams, Sim
+
+__all__ = ["Env", "State", "TaskConfig", "PerturbationSpec", "tolerance", "replace_config"]
+
+State = brax_base.State
+"""Brax's environment state: ``pipeline_state`` (``mjx.Data``), ``obs``, ``reward``, ``done``,
+``metrics`` (``reward/<term>`` per reward term) and ``info`` (left to wrappers)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskConfig:
+    """Fields every task has; tasks subclass this with their own (each with a docstring)."""
+
+    episode_length: int = 250
+    """Control steps per episode (the trainer's ``episode_length``; the real twin truncates here)."""
+    frame_skip: int = 2
+    """Physics steps of the scene's timestep per control step (control period = dt * frame_skip)."""
+
+    def __post_init__(self):
+        if int(self.episode_length) < 1:
+            raise ValueError(f"episode_length must be >= 1, got {self.episode_length}")
+        if int(self.frame_skip) < 1:
+            raise ValueError(f"frame_skip must be >= 1, got {self.frame_skip}")
+
+
+def replace_config(config: TaskConfig, **overrides) -> TaskConfig:
+    """``dataclasses.replace`` that names an unknown override and the allowed ones."""
+    allowed = {f.name for f in dataclasses.fields(config)}
+    unknown = sorted(set(overrides) - allowed)
+    if unknown:
+        raise TypeError(f"unknown config field(s) {', '.join(unknown)} for "
+                        f"{type(config).__name__}; allowed: {', '.join(sorted(allowed))}")
+    return dataclasses.replace(config, **overrides)
+
+
+@dataclasses.dataclass(frozen=True)
+class PerturbationSpec:
+    """How a task's real twin may differ from its simulator: the *distribution* a hidden
+    ``twinrl.real.perturbation.Perturbation`` is drawn from. Ranges are (low, high); scale factors
+    are drawn log-uniformly per element, additive extras uniformly."""
+
+    mass_scale: tuple[float, float] = (0.85, 1.2)
+    """Per-body mass factor (rotational inertia scales with it)."""
+    damping_scale: tuple[float, float] = (0.7, 1.5)
+    """Per-dof joint damping factor."""
+    friction_scale: tuple[float, float] = (0.8, 1.25)
+    """Per-geom sliding friction factor."""
+    gain_scale: tuple[float, float] = (0.85, 1.1)
+    """Per-actuator gain factor (motor constant)."""
+    extra_damping: tuple[tuple[str, float, float], ...] = ()
+    """``(joint name, low, high)``: damping added to that joint (N s/m or N m s/rad)."""
+    extra_frictionloss: tuple[tuple[str, float, float], ...] = ()
+    """``(joint name, low, high)``: dry friction added to that joint; an *unmodeled* effect when the
+    simulator's MJCF has none (MJX then has no friction-loss row for it at all)."""
+    latency_steps: tuple[int, ...] = (0, 1)
+    """Action latency in control steps, drawn uniformly from these choices."""
+    obs_noise_std: tuple[float, float] = (0.0, 0.01)
+    """Standard deviation of Gaussian observation noise, drawn uniformly from this range."""
+    camera_pos_std: float = 0.02
+    """Standard deviation (m) of each axis of the cameras' true position offset."""
+    camera_rot_std: float = 0.03
+    """Standard deviation (rad) of each component of the cameras' true rotation offset
+    (axis-angle, in the camera frame)."""
+
+
+def tolerance(x: jax.Array, margin: float, value_at_margin: float = 0.1,
+              axis: int | None = None) -> jax.Array:
+    """Smooth bump in (0, 1]: 1 at ``x = 0``, ``value_at_margin`` at ``|x| = margin`` (Gaussian).
+
+    The Gaussian case of dm_control's ``rewards.tolerance`` with ``bounds=(0, 0)``, chosen because
+    it is smooth everywhere, so its gradient never vanishes on a plateau or jumps at a bound.
+    With ``axis``, ``|x|`` is the Euclidean norm along that axis (taken squared, so the gradient
+    at ``x = 0`` is finite, unlike that of ``jnp.linalg.norm``).
+    """
+    scale = np.sqrt(-2.0 * np.log(value_at_margin)) / margin
+    sq = jnp.square(x) if axis is None else jnp.sum(jnp.square(x), axis=axis)
+    return jnp.exp(-0.5 * sq * scale**2)
+
+
+class Env(brax_base.Env):
+    """A task on a ``Sim``: Brax-compatible, jit/vmap/grad-able.
+
+    Subclasses set ``scene``, ``cameras``, ``reward_terms_names`` and implement ``initial_state``,
+    ``observe`` and ``reward_terms`` (and ``combine`` if the terms are not simply multiplied).
+
+    Args:
+      config: the task's config (default: ``default_config()``).
+      params: physical parameters the simulator runs with (default: the MJCF's nominal values);
+        pass identified ones after Real2Sim, or randomised ones for domain randomisation.
+    """
+
+    scene: ClassVar[str]
+    """Bundled scene name (``twinrl/physics/scenes/<scene>.xml``)."""
+    cameras: ClassVar[tuple[str, ...]]
+    """Named cameras of the scene, first one the default view."""
+    reward_term_names: ClassVar[tuple[str, ...]]
+    """Names of the reward terms, logged as ``metrics['reward/<name>']``."""
+    perturbation_spec: ClassVar[PerturbationSpec] = PerturbationSpec()
+    """How the real twin of this task differs (the default ``Perturbation`` is drawn from it)."""
+    Config: ClassVar[type[TaskConfig]] = TaskConfig
+
+    def __init__(self, config: TaskConfig | None = None, params: PhysParams | None = None,
+                 name: str | None = None):
+        config = self.default_config() if config is None else config
+        if not isinstance(config, self.Config):
+            raise TypeError(f"config must be a {self.Config.__name__}, got {type(config).__name__}")
+        self.config = config
+        self.name = name or type(self).__name__
+        self.sim = Sim.load(self.scene, frame_skip=int(config.frame_skip), name=self.scene)
+        self.params = params
+        r = self.sim.ctrl_range
+        if not np.all(np.isfinite(r)):
+            raise ValueError(f"scene {self.scene!r}: every actuator needs a ctrlrange, got {r}")
+        self._ctrl_lo = jnp.asarray(r[:, 0], jnp.float32)
+        self._ctrl_hi = jnp.asarray(r[:, 1], jnp.float32)
+
+    @classmethod
+    def default_config(cls) -> TaskConfig:
+        return cls.Config()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, config={self.config!r})"
+
+    # ------------------------------------------------------------------ task hooks
+    @abc.abstractmethod
+    def initial_state(self, rng: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The reset distribution: ``(qpos, qvel)`` drawn with ``rng``."""
+
+    @abc.abstractmethod
+    def observe(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+        """The observation vector of a state (noise-free; the real twin adds its own noise)."""
+
+    @abc.abstractmethod
+    def reward_terms(self, qpos: jax.Array, qvel: jax.Array,
+                     action: jax.Array) -> dict[str, jax.Array]:
+        """Smooth reward terms, each in [0, 1], of the state reached by ``action`` in [-1, 1]."""
+
+    def combine(self, terms: Mapping[str, jax.Array]) -> jax.Array:
+        """The reward from its terms: their product (so per-step reward is in [0, 1])."""
+        r = jnp.ones(())
+        for k in self.reward_term_names:
+            r = r * terms[k]
+        return r
+
+    def reward(self, qpos, qvel, action) -> tuple[jax.Array, dict[str, jax.Array]]:
+        terms = self.reward_terms(qpos, qvel, action)
+        return self.combine(terms), terms
+
+    def action_to_ctrl(self, action: jax.Array) -> jax.Array:
+        """Map an action in [-1, 1] (clipped) affinely onto the actuators' ``ctrlrange``."""
+        a = jnp.clip(action, -1.0, 1.0)
+        return self._ctrl_lo + 0.5 * (a + 1.0) * (self._ctrl_hi - self._ctrl_lo)
+
+    # ------------------------------------------------------------------ Brax API
+    def reset(self, rng: jax.Array) -> State:
+        qpos, qvel = self.initial_state(rng)
+        data = self.sim.init(qpos, qvel)
+        zero = jnp.zeros(())
+        return State(
+            pipeline_state=data,
+            obs=self.observe(data.qpos, data.qvel),
+            reward=zero,
+            done=zero,
+            metrics={f"reward/{k}": zero for k in self.reward_term_names},
+            info={},
+        )
+
+    def step(self, state: State, action: jax.Array) -> State:
+        action = jnp.asarray(action, jnp.float32).reshape(self.action_size)
+        data = self.sim.step(state.pipeline_state, self.action_to_ctrl(action), self.params)
+        reward, terms = self.reward(data.qpos, data.qvel, action)
+        # A diverged simulation ends the episode instead of feeding NaN to the learner.
+        finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
+        done = jnp.where(finite, state.done, 1.0)
+        metrics = dict(state.metrics)
+        metrics.update({f"reward/{k}": v for k, v in terms.items()})
+        return state.replace(pipeline_state=data, obs=self.observe(data.qpos, data.qvel),
+                             reward=reward, done=done, metrics=metrics)
+
+    def unroll(self, state: State, actions: jax.Array) -> tuple[State, jax.Array]:
+        """Open-loop rollout of ``actions`` (T, action_size) with ``lax.scan``.
+
+        Returns the final state and the (T,) rewards; ``jax.grad`` of ``rewards.sum()`` w.r.t.
+        ``actions`` is the first-order policy gradient of PODS/SHAC.
+        """
+        def body(s, a):
+            s = self.step(s, a)
+            return s, s.reward
+        return jax.lax.scan(body, state, actions)
+
+    @property
+    def observation_size(self) -> int:
+        shape = jax.eval_shape(self.reset, jax.ShapeDtypeStruct((2,), jnp.uint32)).obs.shape
+        return int(shape[-1])
+
+    @property
+    def action_size(self) -> int:
+        return self.sim.nu
+
+    @property
+    def backend(self) -> str:
+        return "mjx"
+
+    @property
+    def dt(self) -> float:
+        """Control period in seconds."""
+        return self.sim.dt
+
+    @property
+    def episode_length(self) -> int:
+        return int(self.config.episode_length)
+

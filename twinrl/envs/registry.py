@@ -1,0 +1,76 @@
+"""The task registry: ``names()``, ``make(name, **overrides)``, ``make_real(name, seed=...)``.
+
+A task name maps to an ``Env`` class and its default config (``cartpole_balance`` and
+``cartpole_swingup`` share a class and differ in config), in the style of MuJoCo Playground's
+``default_config()`` plus flat overrides. Configs are frozen dataclasses, so no instance can
+change another's defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+from twinrl.envs.base import Env, TaskConfig, replace_config
+from twinrl.envs.cartpole import Cartpole, CartpoleConfig
+from twinrl.envs.pendulum import PendulumSwingup
+from twinrl.envs.push import Push
+from twinrl.physics import PhysParams
+
+__all__ = ["names", "make", "make_real", "default_config", "TASKS"]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Entry:
+    env_class: type[Env]
+    config: Callable[[], TaskConfig]
+
+
+TASKS: dict[str, _Entry] = {
+    "pendulum_swingup": _Entry(PendulumSwingup, PendulumSwingup.default_config),
+    "cartpole_balance": _Entry(Cartpole, lambda: CartpoleConfig(swingup=False)),
+    "cartpole_swingup": _Entry(Cartpole, lambda: CartpoleConfig(swingup=True)),
+    "push": _Entry(Push, Push.default_config),
+}
+
+
+def names() -> tuple[str, ...]:
+    """Registered task names."""
+    return tuple(TASKS)
+
+
+def _entry(name: str) -> _Entry:
+    if name not in TASKS:
+        raise ValueError(f"unknown task {name!r}; registered tasks are {', '.join(TASKS)}")
+    return TASKS[name]
+
+
+def default_config(name: str) -> TaskConfig:
+    """The default config of task ``name`` (a fresh frozen dataclass)."""
+    return _entry(name).config()
+
+
+def make(name: str, *, params: PhysParams | None = None, **overrides: Any) -> Env:
+    """The simulated task ``name`` with config fields overridden, e.g.
+    ``make("cartpole_swingup", episode_length=100)``; ``params`` sets its physical parameters."""
+    e = _entry(name)
+    return e.env_class(replace_config(e.config(), **overrides), params=params, name=name)
+
+
+def make_real(name: str, *, seed: int = 0, perturbation: Any = None, **kwargs: Any):
+    """The real twin of task ``name`` (``twinrl.real.twin.RealTwin``, a ``gymnasium.Env``).
+
+    Args:
+      seed: selects the hidden perturbation (when ``perturbation`` is None) and the default
+        episode seed.
+      perturbation: a ``twinrl.real.perturbation.Perturbation`` (``Perturbation.none()`` for an
+        exact twin); default: drawn from the task's ``perturbation_spec`` with ``seed``.
+      kwargs: passed to ``RealTwin`` (``render_mode``, ``width``, ``height``, config overrides
+        as ``config={...}``, engine settings).
+    """
+    # Imported here: ``real`` sits above ``envs`` in the module map (ARCHITECTURE.md), so the
+    # registry only reaches up to it when a real twin is asked for.
+    from twinrl.real.twin import RealTwin
+
+    _entry(name)
+    return RealTwin(name, seed=seed, perturbation=perturbation, **kwargs)
