@@ -515,7 +515,7 @@ def _array(
         raise ValueError(f"{name} has shape {a.shape}; expected {shape}")
     if not np.can_cast(a.dtype, dtype, casting=casting):
         raise ValueError(f"{name} has dtype {a.dtype}; expected {dtype} (or a dtype that converts {casting})")
-    a = np.ascontiguousarray(a, dtype=dtype)
+    a = np.asarray(a, dtype=dtype, order="C")  # not ascontiguousarray: it makes 0-d arrays 1-d
     if finite and a.dtype.kind == "f" and not np.isfinite(a).all():
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
         raise ValueError(f"{name} is not finite at index {bad} (value {a[bad]}); NaN and inf are not recorded")
