@@ -1,13 +1,14 @@
 """A deterministic fake collector that the kill test runs in a subprocess and SIGKILLs.
 
 ``python _collector.py DIR SYNC CHUNK_SIZE`` continues the dataset in DIR forever, printing
-``start <episode id>`` once the writer is open and then, after every ``add`` has returned, the number
-of completed ``add`` calls (flushed, so the count the test reads is never ahead of the dataset).
+``start <episode id>`` once the writer is open and then, after every ``add`` has returned, the
+number of completed ``add`` calls (flushed, so the count the test reads is never ahead of the
+dataset).
 
 Every transition is a pure function of (episode id, step), so the test can check each recorded
-transition's content without talking to the collector. Only numpy and the dataset module (loaded from
-its file) are imported: importing the ``twinrl`` package would import jax, and twenty start-ups of
-that would dominate the test.
+transition's content without talking to the collector. Only numpy and the dataset module (loaded
+from its file) are imported: importing the ``twinrl`` package would import jax, and twenty
+start-ups of that would dominate the test.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""Tests of ``twinrl.real.dataset``: round trips, input validation, damage, and SIGKILL at random moments.
+"""Tests of ``twinrl.real.dataset``: round trips, bad input, damage, SIGKILL at random moments.
 
-The transitions come from ``_collector.transition`` (a pure function of episode id and step), the same
-fake environment the kill test's subprocess records, so every test can check content exactly.
+The transitions come from ``_collector.transition`` (a pure function of episode id and step), the
+same fake environment the kill test's subprocess records, so every test can check content exactly.
 """
 
 from __future__ import annotations
@@ -64,13 +64,18 @@ def write_episode(writer: DatasetWriter, images: bool = True) -> None:
 
 def assert_matches_collector(ds: Dataset, images: bool = True, start: int = 0) -> None:
     """Every transition in ``ds`` (from ``start``) is exactly what the collector wrote for it."""
-    keys = list(zip(ds.episode_id[start:].tolist(), ds.step[start:].tolist()))
+    keys = list(zip(ds.episode_id[start:].tolist(), ds.step[start:].tolist(), strict=True))
     if not keys:
         return
     want = [collector.transition(ep, t) for ep, t in keys]
     for field in ("obs", "action", "next_obs", "reward", "terminated", "truncated"):
-        np.testing.assert_array_equal(getattr(ds, field)[start:], np.array([w[field] for w in want]), err_msg=field)
-    assert ds.info[start:] == [{k: v.item() if isinstance(v, np.generic) else v for k, v in w["info"].items()} for w in want]
+        np.testing.assert_array_equal(
+            getattr(ds, field)[start:], np.array([w[field] for w in want]), err_msg=field
+        )
+    assert ds.info[start:] == [
+        {k: v.item() if isinstance(v, np.generic) else v for k, v in w["info"].items()}
+        for w in want
+    ]
     if images:
         for key in collector.IMAGE_SHAPES:
             expected = np.stack([w["images"][key] for w in want])
@@ -93,7 +98,7 @@ def record_spans(data: bytes) -> list[tuple[int, int]]:
 
 
 def transitions(ds: Dataset) -> list[tuple[int, int]]:
-    return list(zip(ds.episode_id.tolist(), ds.step.tolist()))
+    return list(zip(ds.episode_id.tolist(), ds.step.tolist(), strict=True))
 
 
 # -------------------------------------------------------------------------------------------------
@@ -102,7 +107,9 @@ def transitions(ds: Dataset) -> list[tuple[int, int]]:
 
 def test_round_trip_without_images_keeps_episode_boundaries(tmp_path):
     path = tmp_path / "ds"
-    with open_writer(path, images=False, metadata={"seed": np.int64(7), "robot": "cartpole-1"}) as w:
+    with open_writer(
+        path, images=False, metadata={"seed": np.int64(7), "robot": "cartpole-1"}
+    ) as w:
         for _ in range(N_EPISODES):
             write_episode(w, images=False)
         w.add(**step_args(N_EPISODES, 0, images=False))  # closed mid-episode: stays incomplete
@@ -127,7 +134,11 @@ def test_round_trip_without_images_keeps_episode_boundaries(tmp_path):
     assert episodes[0].terminated[-1] and not episodes[0].truncated[-1]
     assert episodes[1].truncated[-1] and not episodes[1].terminated[-1]
     # Ended by end_episode(): neither flag set, still complete.
-    assert not episodes[2].terminated.any() and not episodes[2].truncated.any() and episodes[2].complete
+    assert (
+        not episodes[2].terminated.any()
+        and not episodes[2].truncated.any()
+        and episodes[2].complete
+    )
     assert not episodes[-1].complete
 
 
@@ -149,13 +160,17 @@ def test_round_trip_with_images_across_chunk_rotation(tmp_path):
     assert ds.images["depth"].dtype == np.float32 and ds.images["segmentation"].dtype == np.int32
     assert_matches_collector(ds)
     ep = list(ds.episodes())[3]
-    np.testing.assert_array_equal(ep.images["depth"], ds.images["depth"][ds.episode_starts[3] : ds.episode_ends[3]])
+    np.testing.assert_array_equal(
+        ep.images["depth"], ds.images["depth"][ds.episode_starts[3] : ds.episode_ends[3]]
+    )
 
 
 def test_camera_suffixed_image_keys(tmp_path):
     path = tmp_path / "ds"
     rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
-    with DatasetWriter(path, env="fake", obs_shape=(), action_shape=(1,), image_shapes={"rgb/wrist": (2, 3, 3)}) as w:
+    with DatasetWriter(
+        path, env="fake", obs_shape=(), action_shape=(1,), image_shapes={"rgb/wrist": (2, 3, 3)}
+    ) as w:
         w.add(1.0, [2.0], 0.0, 2.0, True, False, images={"rgb/wrist": rgb})
     ds = read(path)
     assert ds.obs.shape == (1,) and ds.obs[0] == 1.0
@@ -176,7 +191,10 @@ def test_reopening_continues_episode_ids_in_a_new_chunk(tmp_path):
     assert [e.id for e in ds.episodes()] == [0, 1, 2, 3]
     assert ds.episode_complete.tolist() == [True, False, True, True]
     assert_matches_collector(ds)
-    assert {p.name for p in path.glob("chunk-*")} == {"chunk-00000-00000.twr", "chunk-00001-00000.twr"}
+    assert {p.name for p in path.glob("chunk-*")} == {
+        "chunk-00000-00000.twr",
+        "chunk-00001-00000.twr",
+    }
     assert ds.meta["metadata"] == {"run": 1}
 
 
@@ -194,7 +212,10 @@ def test_reopening_with_different_settings_is_refused(tmp_path, change, field):
     path = tmp_path / "ds"
     with open_writer(path, metadata={"run": 1}) as w:
         write_episode(w)
-    kw = dict(env="fake", obs_shape=(3,), action_shape=(2,), image_shapes=collector.IMAGE_SHAPES) | change
+    kw = (
+        dict(env="fake", obs_shape=(3,), action_shape=(2,), image_shapes=collector.IMAGE_SHAPES)
+        | change
+    )
     with pytest.raises(ValueError, match=field):
         DatasetWriter(path, **kw)
     assert len(read(path)) == LENGTHS[0]
@@ -226,9 +247,15 @@ BAD_INPUTS = {
     "obs shape": (lambda a: a.update(obs=np.zeros(4)), r"obs has shape \(4,\); expected \(3,\)"),
     "action shape": (lambda a: a.update(action=np.zeros((2, 1))), "action has shape"),
     "next_obs shape": (lambda a: a.update(next_obs=np.zeros(2)), "next_obs has shape"),
-    "obs NaN": (lambda a: a.update(obs=np.array([0.0, np.nan, 1.0])), r"obs is not finite at index \(1,\)"),
+    "obs NaN": (
+        lambda a: a.update(obs=np.array([0.0, np.nan, 1.0])),
+        r"obs is not finite at index \(1,\)",
+    ),
     "action inf": (lambda a: a.update(action=np.array([np.inf, 0.0])), "action is not finite"),
-    "next_obs NaN": (lambda a: a.update(next_obs=np.array([np.nan, 0.0, 0.0])), "next_obs is not finite"),
+    "next_obs NaN": (
+        lambda a: a.update(next_obs=np.array([np.nan, 0.0, 0.0])),
+        "next_obs is not finite",
+    ),
     "reward NaN": (lambda a: a.update(reward=float("nan")), "reward=nan"),
     "reward inf": (lambda a: a.update(reward=np.float32(np.inf)), "reward=inf"),
     "reward vector": (lambda a: a.update(reward=np.ones(2)), "reward="),
@@ -239,7 +266,10 @@ BAD_INPUTS = {
     "info key": (lambda a: a.update(info={1: 2}), "info has key 1"),
     "info list": (lambda a: a.update(info=[1]), "info has type list"),
     "rgb float": (_bad_rgb, r"images\['rgb'\] has dtype float32"),
-    "depth shape": (lambda a: a["images"].update(depth=np.zeros((4, 5), np.float32)), r"images\['depth'\] has shape"),
+    "depth shape": (
+        lambda a: a["images"].update(depth=np.zeros((4, 5), np.float32)),
+        r"images\['depth'\] has shape",
+    ),
     "missing image": (_missing_depth, "images has keys"),
     "no images": (lambda a: a.pop("images"), "images has keys"),
 }
@@ -288,7 +318,17 @@ def test_writer_refuses_a_directory_that_is_not_a_dataset(tmp_path):
     (tmp_path / "notes.txt").write_text("mine")
     with pytest.raises(ValueError, match="not a twinrl dataset"):
         open_writer(tmp_path)
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".lock", "notes.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]  # left untouched
+
+
+def test_writer_starts_over_a_directory_left_by_a_kill_before_meta_json(tmp_path):
+    path = tmp_path / "ds"
+    path.mkdir()
+    (path / ".lock").touch()
+    (path / "meta.json.tmp").write_text('{"format": "twinrl.re')  # killed mid-write
+    with open_writer(path) as w:
+        write_episode(w)
+    assert len(read(path)) == LENGTHS[0]
 
 
 def test_writer_is_unusable_after_close(tmp_path):
@@ -430,7 +470,9 @@ def _wait_for_start(out: Path, proc: subprocess.Popen, err: Path) -> int:
             assert first.startswith("start "), first
             return int(first.split()[1])
         if proc.poll() is not None:
-            pytest.fail(f"collector exited with {proc.returncode} before starting: {err.read_text()}")
+            pytest.fail(
+                f"collector exited with {proc.returncode} before starting: {err.read_text()}"
+            )
         time.sleep(0.005)
     pytest.fail("collector did not start within 30 s")
 
@@ -438,7 +480,11 @@ def _wait_for_start(out: Path, proc: subprocess.Popen, err: Path) -> int:
 def test_sigkill_at_random_moments_loses_at_most_the_transition_in_flight(tmp_path):
     rng = np.random.default_rng(1234)
     root = tmp_path / "killed"
-    syncs = ("transition", "episode", "none")  # a kill (not a power cut) must be survived in every mode
+    syncs = (
+        "transition",
+        "episode",
+        "none",
+    )  # a kill (not a power cut) must be survived in every mode
     total, session_last_episode, stats = 0, [], []
     for kill in range(20):
         out, err = tmp_path / f"out-{kill}.txt", tmp_path / f"err-{kill}.txt"
@@ -456,12 +502,16 @@ def test_sigkill_at_random_moments_loses_at_most_the_transition_in_flight(tmp_pa
             proc.wait()
         assert proc.returncode == -signal.SIGKILL, err.read_text()
 
-        lines = out.read_text().split("\n")[1:-1]  # after "start", only lines the collector finished
+        lines = out.read_text().split("\n")[
+            1:-1
+        ]  # after "start", only lines the collector finished
         reported = int(lines[-1]) if lines else 0
         ds = read(root)  # strict: a killed writer leaves no damage, only a torn tail
         recorded = len(ds) - total
         assert reported <= recorded <= reported + 1, (kill, reported, recorded)
-        assert (ds.episode_id[:total] < first_episode).all() and (ds.episode_id[total:] >= first_episode).all()
+        assert (ds.episode_id[:total] < first_episode).all() and (
+            ds.episode_id[total:] >= first_episode
+        ).all()
         assert_matches_collector(ds, start=total)  # earlier sessions are checked again at the end
         if recorded:
             session_last_episode.append(int(ds.episode_id[-1]))
@@ -477,6 +527,9 @@ def test_sigkill_at_random_moments_loses_at_most_the_transition_in_flight(tmp_pa
     print("\nkill: (completed adds reported, transitions recorded, killed mid-episode)")
     print(stats)
     recorded_per_kill = [r for _, r, _ in stats]
-    print(f"recorded per kill min {min(recorded_per_kill)} max {max(recorded_per_kill)}, total {total}")
+    print(
+        f"recorded per kill: min {min(recorded_per_kill)}, max {max(recorded_per_kill)}; "
+        f"total {total}"
+    )
     assert total > 0 and sum(mid for _, _, mid in stats) > 0
     assert_matches_collector(read(root))

@@ -2,13 +2,14 @@
 
 What it is for
 --------------
-Everything the loop learns about the real system comes from transitions recorded on it: sysid fits
-``PhysParams`` to them, visual real2sim fits cameras and objects to their images, sim2real trains the
-residual policy and refits the hybrid dynamics on them (ARCHITECTURE.md, "The loop, as data"). Real
-rollouts are the expensive resource, and a collection run can die at any moment (e-stop, OOM killer,
-a pre-empted job, SIGKILL). So every transition is made durable *as it happens*: a process killed
-mid-episode leaves a readable dataset that has lost at most the transition being written, and
-``DatasetWriter`` on the same directory continues it (``twinrl collect --resume``).
+Everything the loop learns about the real system comes from transitions recorded on it: sysid
+fits ``PhysParams`` to them, visual real2sim fits cameras and objects to their images, sim2real
+trains the residual policy and refits the hybrid dynamics on them (ARCHITECTURE.md, "The loop, as
+data"). Real rollouts are the expensive resource, and a collection run can die at any moment
+(e-stop, OOM killer, a pre-empted job, SIGKILL). So every transition is made durable *as it
+happens*: a process killed mid-episode leaves a readable dataset that has lost at most the
+transition being written, and ``DatasetWriter`` on the same directory continues it
+(``twinrl collect --resume``).
 
 Format, and why
 ---------------
@@ -21,8 +22,8 @@ A dataset is a directory::
 
 A chunk is an 8-byte file magic followed by self-delimiting records::
 
-    prefix, 28 bytes little-endian:
-        b"TRec" | header length u32 | body length u64 | header crc32 | body crc32 | crc32 of the above
+    prefix, 28 bytes little-endian: b"TRec" | header length u32 | body length u64
+                                    | header crc32 | body crc32 | crc32 of these 24 bytes
     header: UTF-8 JSON (kind, episode, step, time, reward, flags, info, array names/dtypes/shapes)
     body:   raw little-endian bytes of the arrays (obs, action, next_obs, images), in header order
 
@@ -33,24 +34,24 @@ Why this rather than the alternatives:
   survives SIGKILL in every ``sync`` mode; ``sync`` only decides when ``os.fsync`` also makes it
   survive power loss (every transition, every episode end, or never). Bytes once written are never
   touched again, so a crash can only leave a torn tail.
-* **Self-delimiting and checksummed.** The prefix's own CRC makes the lengths trustworthy; the header
-  and body CRCs catch torn or flipped bytes. A torn tail is recognised and dropped; a damaged record
-  in the middle is skipped and the reader resynchronises on the next valid prefix, so every intact
-  transition is still returned.
+* **Self-delimiting and checksummed.** The prefix's own CRC makes the lengths trustworthy; the
+  header and body CRCs catch torn or flipped bytes. A torn tail is recognised and dropped; a
+  damaged record in the middle is skipped and the reader resynchronises on the next valid prefix,
+  so every intact transition is still returned.
 * **"Closed" and "killed" are told apart.** A chunk is renamed from ``.twr.open`` to ``.twr`` only
   after its footer (its record count) is written. A torn tail in an ``.open`` chunk is the expected
   trace of a killed writer and is not an error; a ``.twr`` chunk without its footer, or whose count
   disagrees, was damaged afterwards and is reported, naming the file.
 * **Chunks** bound the memory a reader needs per file and what one bad file can cost; every writer
   session starts a new chunk, so a resumed run never appends behind a torn tail.
-* **No new dependency, no pickle.** JSON plus raw arrays, readable from any language. HDF5 (h5py, and
-  Minari's default storage) updates its metadata in place, so a writer killed mid-flush can leave
-  the whole file unreadable; ``.npz`` is a zip whose directory is written last, at close.
+* **No new dependency, no pickle.** JSON plus raw arrays, readable from any language. HDF5 (h5py,
+  and Minari's default storage) updates its metadata in place, so a writer killed mid-flush can
+  leave the whole file unreadable; ``.npz`` is a zip whose directory is written last, at close.
 
-Episodes: an ``add`` with ``terminated`` or ``truncated`` ends the episode, ``end_episode()`` ends it
-without either (an ``end`` marker record). An episode is *complete* when its steps run 0..n-1 without
-a gap and it was ended; the episode a killed or closed writer left open is returned, flagged
-incomplete.
+Episodes: an ``add`` with ``terminated`` or ``truncated`` ends the episode, ``end_episode()`` ends
+it without either (an ``end`` marker record). An episode is *complete* when its steps run 0..n-1
+without a gap and it was ended; the episode a killed or closed writer left open is returned,
+flagged incomplete.
 """
 
 from __future__ import annotations
@@ -125,7 +126,8 @@ class DatasetWriter:
             "depth": (64, 64), "segmentation": (64, 64)}``; keys are ``rgb``/``depth``/
             ``segmentation``, optionally ``kind/camera`` (``"rgb/wrist"``). Stored dtypes are
             ``IMAGE_DTYPES``: uint8 RGB, float32 depth, int32 segmentation.
-        metadata: free-form JSON-serialisable dict stored in ``meta.json`` (numpy scalars converted).
+        metadata: free-form JSON-serialisable dict stored in ``meta.json`` (numpy scalars are
+            converted).
             Written once; continuing a dataset with different metadata is an error (pass None).
         obs_dtype, action_dtype: stored dtypes (float64 default: the MuJoCo engine's precision,
             which sysid on real data wants to keep).
@@ -154,7 +156,11 @@ class DatasetWriter:
     ):
         if sync not in _SYNC_MODES:
             raise ValueError(f"sync={sync!r}; expected one of {', '.join(_SYNC_MODES)}")
-        if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        if (
+            isinstance(chunk_size, bool)
+            or not isinstance(chunk_size, (int, np.integer))
+            or chunk_size < 1
+        ):
             raise ValueError(f"chunk_size={chunk_size!r}; expected an integer >= 1")
         if not isinstance(env, str) or not env:
             raise ValueError(f"env={env!r}; expected a non-empty environment name")
@@ -167,12 +173,16 @@ class DatasetWriter:
             "image_shapes": _image_shapes(image_shapes or {}),
         }
         if metadata is not None and not isinstance(metadata, Mapping):
-            raise ValueError(f"metadata has type {type(metadata).__name__}; expected a dict or None")
+            raise ValueError(
+                f"metadata has type {type(metadata).__name__}; expected a dict or None"
+            )
         user_meta = None if metadata is None else _json_safe(dict(metadata), "metadata")
 
         self.path = Path(path)
         self.sync: Sync = sync
         self.chunk_size = int(chunk_size)
+        # Checked before the lock file is created, which would litter someone else's directory.
+        _refuse_foreign_directory(self.path)
         self.path.mkdir(parents=True, exist_ok=True)
         self._lock_fd: int | None = _lock(self.path)
         try:
@@ -227,8 +237,12 @@ class DatasetWriter:
         """
         self._check_open()
         obs_a = _array("obs", obs, self._obs_shape, self._obs_dtype, "same_kind", finite=True)
-        action_a = _array("action", action, self._action_shape, self._action_dtype, "same_kind", finite=True)
-        next_a = _array("next_obs", next_obs, self._obs_shape, self._obs_dtype, "same_kind", finite=True)
+        action_a = _array(
+            "action", action, self._action_shape, self._action_dtype, "same_kind", finite=True
+        )
+        next_a = _array(
+            "next_obs", next_obs, self._obs_shape, self._obs_dtype, "same_kind", finite=True
+        )
         reward_f = _finite_scalar("reward", reward)
         term = _flag("terminated", terminated)
         trunc = _flag("truncated", truncated)
@@ -271,7 +285,9 @@ class DatasetWriter:
         self._check_open()
         if self._step == 0:
             return
-        self._write(_encode_record({"kind": "end", "episode": self._episode, "steps": self._step}, []))
+        self._write(
+            _encode_record({"kind": "end", "episode": self._episode, "steps": self._step}, [])
+        )
         self._chunk_records += 1
         if self.sync != "none":
             os.fsync(self._fd)
@@ -313,7 +329,8 @@ class DatasetWriter:
         given = dict(images or {})
         if set(given) != set(self._image_shapes):
             raise ValueError(
-                f"images has keys {sorted(given)}; this dataset records {sorted(self._image_shapes)} "
+                f"images has keys {sorted(given)}; this dataset records "
+                f"{sorted(self._image_shapes)} "
                 f"(image_shapes in {self.path / META_FILE})"
             )
         out = {}
@@ -321,7 +338,9 @@ class DatasetWriter:
             kind = key.split("/", 1)[0]
             # RGB must already be uint8: silently casting float images in [0, 1] would store zeros.
             casting = "safe" if kind == "rgb" else "same_kind"
-            out[key] = _array(f"images[{key!r}]", given[key], self._image_shapes[key], IMAGE_DTYPES[kind], casting)
+            out[key] = _array(
+                f"images[{key!r}]", given[key], self._image_shapes[key], IMAGE_DTYPES[kind], casting
+            )
         return out
 
     def _start_chunk(self) -> None:
@@ -329,8 +348,10 @@ class DatasetWriter:
             self._close_chunk()
         name = f"chunk-{self.session:05d}-{self._chunk_index:05d}.twr.open"
         self._chunk_path = self.path / name
-        # O_APPEND: after a failed write is cut off by ftruncate, the next write lands at the new end.
-        self._fd = os.open(self._chunk_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o644)
+        # O_APPEND: after a failed write is cut off by ftruncate, the next one lands at the new end.
+        self._fd = os.open(
+            self._chunk_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o644
+        )
         self._offset = 0
         self._chunk_steps = 0
         self._chunk_records = 0
@@ -372,15 +393,19 @@ class DatasetWriter:
 def _lock(root: Path) -> int:
     fd = os.open(root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        # flock is released by the kernel when the holder dies, so a killed writer never blocks --resume.
+        # The kernel releases flock when the holder dies, so a killed writer never blocks --resume.
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as e:
         os.close(fd)
-        raise DatasetError(f"{root} is being written by another DatasetWriter ({root / LOCK_FILE} is locked)") from e
+        raise DatasetError(
+            f"{root} is being written by another DatasetWriter ({root / LOCK_FILE} is locked)"
+        ) from e
     return fd
 
 
-def _open_or_create_meta(root: Path, wanted: dict[str, Any], user_meta: dict[str, Any] | None) -> dict[str, Any]:
+def _open_or_create_meta(
+    root: Path, wanted: dict[str, Any], user_meta: dict[str, Any] | None
+) -> dict[str, Any]:
     meta_path = root / META_FILE
     if meta_path.exists():
         meta = _read_meta(root)
@@ -396,6 +421,21 @@ def _open_or_create_meta(root: Path, wanted: dict[str, Any], user_meta: dict[str
                 "pass metadata=None to continue this dataset"
             )
         return meta
+    _refuse_foreign_directory(root)
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        **wanted,
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "metadata": user_meta or {},
+    }
+    _write_json_atomic(meta_path, meta)
+    return meta
+
+
+def _refuse_foreign_directory(root: Path) -> None:
+    if not root.is_dir() or (root / META_FILE).exists():
+        return
     ours = {LOCK_FILE, META_FILE + ".tmp"}  # leftovers of a writer killed before meta.json existed
     foreign = sorted(p.name for p in root.iterdir() if p.name not in ours)
     if foreign:
@@ -403,15 +443,6 @@ def _open_or_create_meta(root: Path, wanted: dict[str, Any], user_meta: dict[str
             f"{root} is not empty and has no {META_FILE}, so it is not a twinrl dataset "
             f"(found {', '.join(foreign[:5])}); choose a new or empty directory"
         )
-    meta = {
-        "format": FORMAT,
-        "version": VERSION,
-        **wanted,
-        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "metadata": user_meta or {},
-    }
-    _write_json_atomic(meta_path, meta)
-    return meta
 
 
 def _resume_point(root: Path) -> tuple[int, int]:
@@ -425,7 +456,11 @@ def _resume_point(root: Path) -> tuple[int, int]:
             data = file.read_bytes()
         except OSError:
             continue
-        ids = [h["episode"] for _, h, _ in _scan_chunk(file, data, not is_open, []) if isinstance(h.get("episode"), int)]
+        ids = [
+            h["episode"]
+            for _, h, _ in _scan_chunk(file, data, not is_open, [])
+            if isinstance(h.get("episode"), int)
+        ]
         if ids:
             return session, max(ids) + 1
     return session, 0
@@ -456,7 +491,9 @@ def _encode_record(header: dict[str, Any], arrays: list[tuple[str, np.ndarray]])
         header = {**header, "arrays": [[name, a.dtype.str, list(a.shape)] for name, a in arrays]}
     hbytes = json.dumps(header, separators=(",", ":")).encode("utf-8")
     body = b"".join(a.tobytes() for _, a in arrays)
-    prefix = _PREFIX.pack(RECORD_MAGIC, len(hbytes), len(body), zlib.crc32(hbytes), zlib.crc32(body))
+    prefix = _PREFIX.pack(
+        RECORD_MAGIC, len(hbytes), len(body), zlib.crc32(hbytes), zlib.crc32(body)
+    )
     return prefix + _PREFIX_CRC.pack(zlib.crc32(prefix)) + hbytes + body
 
 
@@ -505,7 +542,12 @@ def _image_shapes(image_shapes: Mapping[str, Sequence[int]]) -> dict[str, list[i
 
 
 def _array(
-    name: str, value: Any, shape: tuple[int, ...], dtype: np.dtype, casting: str, finite: bool = False
+    name: str,
+    value: Any,
+    shape: tuple[int, ...],
+    dtype: np.dtype,
+    casting: str,
+    finite: bool = False,
 ) -> np.ndarray:
     try:
         a = np.asarray(value)
@@ -514,11 +556,15 @@ def _array(
     if a.shape != shape:
         raise ValueError(f"{name} has shape {a.shape}; expected {shape}")
     if not np.can_cast(a.dtype, dtype, casting=casting):
-        raise ValueError(f"{name} has dtype {a.dtype}; expected {dtype} (or a dtype that converts {casting})")
+        raise ValueError(
+            f"{name} has dtype {a.dtype}; expected {dtype} (or a dtype that converts {casting})"
+        )
     a = np.asarray(a, dtype=dtype, order="C")  # not ascontiguousarray: it makes 0-d arrays 1-d
     if finite and a.dtype.kind == "f" and not np.isfinite(a).all():
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
-        raise ValueError(f"{name} is not finite at index {bad} (value {a[bad]}); NaN and inf are not recorded")
+        raise ValueError(
+            f"{name} is not finite at index {bad} (value {a[bad]}); NaN and inf are not recorded"
+        )
     return a
 
 
@@ -552,7 +598,9 @@ def _json_safe(value: Any, where: str) -> Any:
         for k, v in value.items():
             if not isinstance(k, str):
                 # json.dumps would turn the key into a string, so it would not read back as written.
-                raise ValueError(f"{where} has key {k!r} of type {type(k).__name__}; keys must be str")
+                raise ValueError(
+                    f"{where} has key {k!r} of type {type(k).__name__}; keys must be str"
+                )
             out[k] = _json_safe(v, f"{where}[{k!r}]")
         return out
     if isinstance(value, (list, tuple)):
@@ -574,7 +622,7 @@ class Episode:
     id: int
     """Episode id (unique in the dataset, increasing in recording order)."""
     complete: bool
-    """Steps 0..n-1 all present and the episode was ended (terminal, truncated or ``end_episode``)."""
+    """Steps 0..n-1 all present and the episode ended (terminated, truncated or ``end_episode``)."""
     obs: np.ndarray
     action: np.ndarray
     reward: np.ndarray
@@ -596,7 +644,8 @@ class Episode:
 class Dataset:
     """Transitions read back from a dataset directory, in recording order, as numpy arrays.
 
-    Transitions of one episode are contiguous: episode ``i`` is ``episode_starts[i]:episode_ends[i]``.
+    Transitions of one episode are contiguous: episode ``i`` is
+    ``episode_starts[i]:episode_ends[i]``.
     """
 
     path: Path
@@ -643,7 +692,9 @@ class Dataset:
 
     def episodes(self) -> Iterator[Episode]:
         """Yields each episode as views into this dataset's arrays."""
-        for i, (a, b) in enumerate(zip(self.episode_starts.tolist(), self.episode_ends.tolist())):
+        for i, (a, b) in enumerate(
+            zip(self.episode_starts.tolist(), self.episode_ends.tolist(), strict=True)
+        ):
             yield Episode(
                 id=int(self.episode_id[a]),
                 complete=bool(self.episode_complete[i]),
@@ -678,8 +729,14 @@ def read(path: str | os.PathLike[str], strict: bool = True) -> Dataset:
     obs_shape, action_shape = tuple(meta["obs_shape"]), tuple(meta["action_shape"])
     obs_dtype, action_dtype = np.dtype(meta["obs_dtype"]), np.dtype(meta["action_dtype"])
     image_shapes = {k: tuple(v) for k, v in meta["image_shapes"].items()}
-    expected = {"obs": (obs_dtype, obs_shape), "action": (action_dtype, action_shape), "next_obs": (obs_dtype, obs_shape)}
-    expected |= {f"images/{k}": (IMAGE_DTYPES[k.split("/", 1)[0]], s) for k, s in image_shapes.items()}
+    expected = {
+        "obs": (obs_dtype, obs_shape),
+        "action": (action_dtype, action_shape),
+        "next_obs": (obs_dtype, obs_shape),
+    }
+    expected |= {
+        f"images/{k}": (IMAGE_DTYPES[k.split("/", 1)[0]], s) for k, s in image_shapes.items()
+    }
 
     problems: list[str] = []
     chunks = _list_chunks(root)
@@ -697,7 +754,9 @@ def read(path: str | os.PathLike[str], strict: bool = True) -> Dataset:
             where = f"{file}: record at offset {offset}"
             kind = header.get("kind")
             if kind == "end":
-                if isinstance(header.get("episode"), int) and not isinstance(header["episode"], bool):
+                if isinstance(header.get("episode"), int) and not isinstance(
+                    header["episode"], bool
+                ):
                     ended.add(header["episode"])
                 else:
                     problems.append(f"{where}: end marker without an episode id; skipped")
@@ -754,10 +813,14 @@ def _read_meta(root: Path) -> dict[str, Any]:
         raise DatasetError(f"no dataset at {root}: {meta_path} does not exist") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise DatasetError(f"{meta_path} is unreadable: {e}") from e
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise DatasetError(f"{meta_path} is not a {FORMAT} meta file (format={meta.get('format') if isinstance(meta, dict) else None!r})")
+    found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+    if found != FORMAT:
+        raise DatasetError(f"{meta_path} is not a {FORMAT} meta file (format={found!r})")
     if meta.get("version") != VERSION:
-        raise DatasetError(f"{meta_path} has format version {meta.get('version')!r}; this reader knows version {VERSION}")
+        raise DatasetError(
+            f"{meta_path} has format version {meta.get('version')!r}; "
+            f"this reader knows version {VERSION}"
+        )
     missing = [k for k in (*_META_KEYS, "metadata") if k not in meta]
     if missing:
         raise DatasetError(f"{meta_path} lacks {', '.join(missing)}")
@@ -782,7 +845,9 @@ def _list_chunks(root: Path) -> list[tuple[int, int, bool, Path]]:
     return sorted(out)
 
 
-def _check_chunk_sequence(root: Path, chunks: list[tuple[int, int, bool, Path]], problems: list[str]) -> None:
+def _check_chunk_sequence(
+    root: Path, chunks: list[tuple[int, int, bool, Path]], problems: list[str]
+) -> None:
     # A writer numbers its chunks 0, 1, 2, ...; a gap means a chunk file was deleted or renamed.
     by_session: dict[int, list[int]] = {}
     for session, index, _, _ in chunks:
@@ -842,29 +907,41 @@ def _scan_chunk(
 
     while pos < len(data):
         if footer is not None:
-            problems.append(f"{file}: {len(data) - pos} unexpected bytes after the footer at offset {pos}")
+            problems.append(
+                f"{file}: {len(data) - pos} unexpected bytes after the footer at offset {pos}"
+            )
             break
         remaining = len(data) - pos
-        if remaining < PREFIX_SIZE and RECORD_MAGIC.startswith(data[pos : pos + min(remaining, len(RECORD_MAGIC))]):
+        if remaining < PREFIX_SIZE and RECORD_MAGIC.startswith(
+            data[pos : pos + min(remaining, len(RECORD_MAGIC))]
+        ):
             torn(pos, f"the file ends {remaining} bytes into the record header at offset {pos}")
             break
         prefix = _read_prefix(data, pos)
         if prefix is None:
             nxt = _resync(data, pos + 1)
-            problems.append(f"{file}: damaged record header at offset {pos}; skipped {nxt - pos} bytes")
+            problems.append(
+                f"{file}: damaged record header at offset {pos}; skipped {nxt - pos} bytes"
+            )
             pos = nxt
             continue
         hlen, blen, hcrc, bcrc = prefix
         start = pos + PREFIX_SIZE
         end = start + hlen + blen
         if end > len(data):
-            torn(pos, f"the record at offset {pos} needs {end - pos} bytes, the file ends after {remaining}")
+            torn(
+                pos,
+                f"the record at offset {pos} needs {end - pos} bytes, "
+                f"the file ends after {remaining}",
+            )
             break
         hbytes = data[start : start + hlen]
         body = view[start + hlen : end]
         if zlib.crc32(hbytes) != hcrc or zlib.crc32(body) != bcrc:
             part = "header" if zlib.crc32(hbytes) != hcrc else "body"
-            problems.append(f"{file}: record at offset {pos} fails its {part} checksum (damaged); skipped")
+            problems.append(
+                f"{file}: record at offset {pos} fails its {part} checksum (damaged); skipped"
+            )
             pos = end
             continue
         try:
@@ -872,7 +949,9 @@ def _scan_chunk(
             if not isinstance(header, dict):
                 raise ValueError("header is not a JSON object")
         except (UnicodeDecodeError, ValueError) as e:
-            problems.append(f"{file}: record at offset {pos} has an unreadable header ({e}); skipped")
+            problems.append(
+                f"{file}: record at offset {pos} has an unreadable header ({e}); skipped"
+            )
             pos = end
             continue
         if header.get("kind") == "footer":
@@ -885,13 +964,23 @@ def _scan_chunk(
         if closed:
             problems.append(f"{file}: no footer: the closed chunk was truncated")
     elif footer.get("records") != len(records):
-        problems.append(f"{file}: footer counts {footer.get('records')!r} records, {len(records)} are intact")
+        problems.append(
+            f"{file}: footer counts {footer.get('records')!r} records, {len(records)} are intact"
+        )
     return records
 
 
 def _check_step_header(h: dict[str, Any]) -> None:
-    for key, types in (("episode", int), ("step", int), ("time", (int, float)), ("reward", (int, float)),
-                       ("terminated", bool), ("truncated", bool), ("info", dict), ("arrays", list)):
+    for key, types in (
+        ("episode", int),
+        ("step", int),
+        ("time", (int, float)),
+        ("reward", (int, float)),
+        ("terminated", bool),
+        ("truncated", bool),
+        ("info", dict),
+        ("arrays", list),
+    ):
         if not isinstance(h.get(key), types) or (types is int and isinstance(h[key], bool)):
             raise ValueError(f"field {key!r} is missing or malformed ({h.get(key)!r})")
 
@@ -909,7 +998,9 @@ def _decode_arrays(
             raise ValueError(f"malformed array entry {entry!r}") from e
         if name not in expected or expected[name] != (dtype, shape):
             want = expected.get(name)
-            raise ValueError(f"array {name!r} {dtype_str}{list(shape)} does not match meta.json ({want})")
+            raise ValueError(
+                f"array {name!r} {dtype_str}{list(shape)} does not match meta.json ({want})"
+            )
         count = math.prod(shape)
         if offset + count * dtype.itemsize > len(body):
             raise ValueError(f"array {name!r} runs past the end of the record")
@@ -918,7 +1009,9 @@ def _decode_arrays(
     if set(out) != set(expected):
         raise ValueError(f"arrays {sorted(set(expected) - set(out))} missing")
     if offset != len(body):
-        raise ValueError(f"{len(body) - offset} bytes of the record body are not described by its header")
+        raise ValueError(
+            f"{len(body) - offset} bytes of the record body are not described by its header"
+        )
     return out
 
 
