@@ -223,6 +223,21 @@ def test_reopening_with_different_settings_is_refused(tmp_path, change, field):
         assert w.episode_id == 1
 
 
+def test_a_dataset_reads_while_it_is_written(tmp_path, monkeypatch):
+    import twinrl.real.dataset as module
+
+    path = tmp_path / "ds"
+    with open_writer(path) as w:
+        write_episode(w)
+        w.add(**step_args(1, 0))
+        ds = read(path)
+        assert len(ds) == LENGTHS[0] + 1 and ds.episode_complete.tolist() == [True, False]
+        listing = module._list_chunks(path)
+    # The writer renamed the chunk closed between a reader's listing and its read.
+    monkeypatch.setattr(module, "_list_chunks", lambda root: listing)
+    assert len(read(path)) == LENGTHS[0] + 1
+
+
 def test_a_second_writer_on_the_same_dataset_is_refused(tmp_path):
     path = tmp_path / "ds"
     with open_writer(path):

@@ -746,7 +746,14 @@ def read(path: str | os.PathLike[str], strict: bool = True) -> Dataset:
     ended: set[int] = set()
     for _, _, is_open, file in chunks:
         try:
-            data = file.read_bytes()
+            try:
+                data = file.read_bytes()
+            except FileNotFoundError:
+                if not is_open:
+                    raise
+                # A live writer closed this chunk after we listed the directory: read it closed.
+                file, is_open = file.with_name(file.name[: -len(".open")]), False
+                data = file.read_bytes()
         except OSError as e:
             problems.append(f"{file}: cannot be read ({e})")
             continue
