@@ -1,0 +1,184 @@
+"""``Perturbation``: the hidden difference between a task's simulator and its real twin.
+
+The real twin (``twinrl.real.twin``) stands in for a physical robot, so it must differ from the
+simulator the way a robot differs from its model: wrong masses, damping, friction and motor
+constants (what Real2Sim's ``sysid`` identifies), effects the simulator does not model at all
+(rail friction on the cartpole, as in the Hybrid Differentiable Simulation study), action latency,
+sensor noise, and a camera mounted slightly off its nominal pose (what ``real2sim.visual`` fits).
+One ``Perturbation`` is a concrete draw of all of these; each task's ``PerturbationSpec``
+(``twinrl.envs.base``) is the distribution it is drawn from.
+
+A perturbation is hidden from learning: the real twin applies it and reveals it only through
+``RealTwin.oracle()``, for evaluation (tests grep the package so nothing else calls it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import mujoco
+import numpy as np
+
+from twinrl.envs.base import Env, PerturbationSpec
+
+__all__ = ["Perturbation"]
+
+_SCALES = ("mass_scale", "damping_scale", "friction_scale", "gain_scale")
+_EXTRAS = ("extra_damping", "extra_frictionloss")
+
+
+@dataclasses.dataclass(frozen=True)
+class Perturbation:
+    """A concrete real-twin perturbation. Empty tuples mean "unchanged" (factor 1, extra 0)."""
+
+    mass_scale: tuple[float, ...] = ()
+    """Factor per body except the world body (nbody-1,); rotational inertia scales with it."""
+    damping_scale: tuple[float, ...] = ()
+    """Factor on joint damping per dof (nv,)."""
+    friction_scale: tuple[float, ...] = ()
+    """Factor on sliding friction per geom (ngeom,)."""
+    gain_scale: tuple[float, ...] = ()
+    """Factor on actuator gain per actuator (nu,)."""
+    extra_damping: tuple[float, ...] = ()
+    """Damping added per dof (nv,), after scaling."""
+    extra_frictionloss: tuple[float, ...] = ()
+    """Dry friction added per dof (nv,): unmodeled where the simulator's MJCF has none."""
+    latency_steps: int = 0
+    """Control steps between an action being sent and being applied (zeros before the first)."""
+    obs_noise_std: float = 0.0
+    """Standard deviation of the Gaussian noise added to every observation component."""
+    camera_pos_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Offset (m) of every camera's true position from its nominal one, in its parent frame."""
+    camera_rot_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Rotation (axis-angle, rad, camera frame) of every camera's true orientation from nominal."""
+
+    def __post_init__(self):
+        for name in _SCALES + _EXTRAS:
+            v = np.asarray(getattr(self, name), dtype=np.float64)
+            bad = ~np.isfinite(v) | ((v <= 0) if name in _SCALES else (v < 0))
+            if v.ndim != 1 or bad.any():
+                where = int(np.flatnonzero(bad)[0]) if v.ndim == 1 else 0
+                raise ValueError(
+                    f"Perturbation.{name} must be a flat tuple of "
+                    f"{'positive' if name in _SCALES else 'non-negative'} finite "
+                    f"numbers; got {getattr(self, name)!r} (index {where})"
+                )
+            object.__setattr__(self, name, tuple(float(x) for x in v))
+        if int(self.latency_steps) != self.latency_steps or self.latency_steps < 0:
+            raise ValueError(
+                f"Perturbation.latency_steps must be an integer >= 0, got {self.latency_steps!r}"
+            )
+        object.__setattr__(self, "latency_steps", int(self.latency_steps))
+        if not (math.isfinite(self.obs_noise_std) and self.obs_noise_std >= 0):
+            raise ValueError(
+                f"Perturbation.obs_noise_std must be finite and >= 0, got {self.obs_noise_std!r}"
+            )
+        for name in ("camera_pos_offset", "camera_rot_offset"):
+            v = np.asarray(getattr(self, name), dtype=np.float64)
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise ValueError(
+                    f"Perturbation.{name} must be 3 finite numbers, got {getattr(self, name)!r}"
+                )
+            object.__setattr__(self, name, tuple(float(x) for x in v))
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def none(cls) -> "Perturbation":
+        """No perturbation: the real twin's physics is the simulator's (up to the engines)."""
+        return cls()
+
+    @classmethod
+    def sample(cls, task: str | Env, rng: int | np.random.Generator) -> "Perturbation":
+        """A draw from the task's ``perturbation_spec`` (the default real twin of that task).
+
+        Args:
+          task: a registered task name or an ``Env``.
+          rng: a seed or a ``numpy.random.Generator``; the same seed gives the same draw.
+        """
+        if isinstance(task, str):
+            from twinrl.envs import make
+
+            task = make(task)
+        if not isinstance(task, Env):
+            raise TypeError(f"task must be a task name or a twinrl.envs.Env, got {task!r}")
+        rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        spec: PerturbationSpec = task.perturbation_spec
+        m = task.sim.mj_model
+
+        def log_uniform(lo_hi, n):
+            lo, hi = lo_hi
+            if not 0 < lo <= hi:
+                raise ValueError(
+                    f"{type(task).__name__}.perturbation_spec: scale range must "
+                    f"satisfy 0 < low <= high, got {lo_hi}"
+                )
+            return tuple(np.exp(rng.uniform(np.log(lo), np.log(hi), size=n)))
+
+        def per_joint(items, what):
+            out = np.zeros(m.nv)
+            for joint, lo, hi in items:
+                jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, joint)
+                if jid < 0:
+                    raise ValueError(
+                        f"{type(task).__name__}.perturbation_spec.{what}: scene "
+                        f"{task.scene!r} has no joint {joint!r}"
+                    )
+                out[m.jnt_dofadr[jid]] += rng.uniform(lo, hi)
+            return tuple(out)
+
+        return cls(
+            mass_scale=log_uniform(spec.mass_scale, m.nbody - 1),
+            damping_scale=log_uniform(spec.damping_scale, m.nv),
+            friction_scale=log_uniform(spec.friction_scale, m.ngeom),
+            gain_scale=log_uniform(spec.gain_scale, m.nu),
+            extra_damping=per_joint(spec.extra_damping, "extra_damping"),
+            extra_frictionloss=per_joint(spec.extra_frictionloss, "extra_frictionloss"),
+            latency_steps=int(rng.choice(np.asarray(spec.latency_steps))),
+            obs_noise_std=float(rng.uniform(*spec.obs_noise_std)),
+            camera_pos_offset=tuple(rng.normal(0.0, spec.camera_pos_std, size=3)),
+            camera_rot_offset=tuple(rng.normal(0.0, spec.camera_rot_std, size=3)),
+        )
+
+    def is_none(self) -> bool:
+        """True when applying this perturbation changes nothing."""
+        return (
+            all(x == 1.0 for k in _SCALES for x in getattr(self, k))
+            and all(x == 0.0 for k in _EXTRAS for x in getattr(self, k))
+            and self.latency_steps == 0
+            and self.obs_noise_std == 0.0
+            and not any(self.camera_pos_offset)
+            and not any(self.camera_rot_offset)
+        )
+
+    # ------------------------------------------------------------------ application
+    def apply(self, model: mujoco.MjModel) -> None:
+        """Write this perturbation into ``model`` (a ``mujoco.MjModel``, modified in place)."""
+
+        def vec(name, n, default):
+            v = getattr(self, name)
+            if not v:
+                return np.full(n, default)
+            if len(v) != n:
+                raise ValueError(f"Perturbation.{name} has {len(v)} entries; this model needs {n}")
+            return np.asarray(v)
+
+        ms = vec("mass_scale", model.nbody - 1, 1.0)
+        model.body_mass[1:] *= ms
+        model.body_inertia[1:] *= ms[:, None]
+        model.dof_damping[:] = model.dof_damping * vec("damping_scale", model.nv, 1.0) + vec(
+            "extra_damping", model.nv, 0.0
+        )
+        model.dof_frictionloss[:] += vec("extra_frictionloss", model.nv, 0.0)
+        model.geom_friction[:, 0] *= vec("friction_scale", model.ngeom, 1.0)
+        model.actuator_gainprm[:, 0] *= vec("gain_scale", model.nu, 1.0)
+        rot = np.asarray(self.camera_rot_offset)
+        angle = float(np.linalg.norm(rot))
+        dq = np.array([1.0, 0.0, 0.0, 0.0])
+        if angle > 0:
+            mujoco.mju_axisAngle2Quat(dq, rot / angle, angle)
+        for c in range(model.ncam):
+            model.cam_pos[c] += np.asarray(self.camera_pos_offset)
+            q = np.empty(4)
+            mujoco.mju_mulQuat(q, model.cam_quat[c].copy(), dq)  # dq in the camera's own frame
+            model.cam_quat[c] = q

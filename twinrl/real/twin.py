@@ -1,0 +1,461 @@
+"""``RealTwin``: a task's stand-in for the physical robot, as a ``gymnasium.Env``.
+
+The loop (ARCHITECTURE.md) needs a "real" system whose dynamics and camera the simulator does not
+know exactly. ``RealTwin`` is the same task (same reset distribution, observation and reward
+functions, from ``twinrl.envs``) run on a *different engine*: the MuJoCo C engine (``mj_step``,
+float64, implicit-fast integration, 50 solver iterations by default) instead of MJX with a
+fixed-iteration solve, with a hidden ``Perturbation`` applied: scaled masses, damping, friction and
+motor gain, unmodeled extras (rail friction on the cartpole), action latency, Gaussian observation
+noise, and cameras mounted off their nominal poses. So Real2Sim has something to identify and
+Sim2Real has a gap to close (the "reality gap" of SAM-RL, Sec. 3, and of the Hybrid
+Differentiable Simulation study's cartpole).
+
+Images come from ``mujoco.Renderer`` headless (``MUJOCO_GL=egl``; OSMesa if EGL cannot start):
+RGB, depth in metres (linear, distance along the camera's viewing axis; background pixels hold
+the far-plane distance) and segmentation (geom id per pixel, -1 for background), seen from the
+cameras' *true* (offset) poses.
+
+What is hidden stays hidden: the perturbation, the true parameters and the true state are
+returned only by ``oracle()``, for evaluation. Learning code must not call it (a test greps the
+package, allowing only ``twinrl/real/`` and the evaluation/report modules).
+
+``render_episode`` writes PNGs (RGB, depth, segmentation) and an MP4 of an episode, of the
+simulator or the real twin, for the ``twinrl render`` command.
+"""
+
+from __future__ import annotations
+
+import os
+
+# Headless OpenGL for mujoco.Renderer. MuJoCo reads MUJOCO_GL when it is first imported, so this
+# only takes effect if nothing imported mujoco before; ``_select_gl_backend`` covers the rest.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import collections  # noqa: E402
+import copy  # noqa: E402
+import dataclasses  # noqa: E402
+import importlib  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any, Mapping, Sequence  # noqa: E402
+
+import gymnasium as gym  # noqa: E402
+import jax  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from twinrl.envs import Env, make  # noqa: E402
+from twinrl.physics import PhysParams, load_mjcf  # noqa: E402
+from twinrl.real.perturbation import Perturbation  # noqa: E402
+
+__all__ = ["RealTwin", "Oracle", "CameraRenderer", "render_episode", "IMAGE_KINDS"]
+
+IMAGE_KINDS = ("rgb", "depth", "segmentation")
+_INTEGRATORS = {
+    "euler": mujoco.mjtIntegrator.mjINT_EULER,
+    "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
+    "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
+    "rk4": mujoco.mjtIntegrator.mjINT_RK4,
+}
+
+
+# ---------------------------------------------------------------------- rendering
+def _select_gl_backend() -> str:
+    """Make ``mujoco.Renderer`` use a headless backend: EGL, else OSMesa.
+
+    If ``MUJOCO_GL`` was unset or ``egl`` when mujoco was imported, MuJoCo chose GLFW (needs a
+    display) or EGL; we probe EGL, then OSMesa, and point MuJoCo's context class at the first
+    that starts (what setting ``MUJOCO_GL`` before the import would have done). Any other value
+    the user chose is respected.
+    """
+    from mujoco.rendering.classic import gl_context
+
+    requested = getattr(gl_context, "_MUJOCO_GL", "")
+    if requested not in ("", "egl"):
+        return requested
+    errors = []
+    for backend in ("egl", "osmesa"):
+        try:
+            cls = importlib.import_module(f"mujoco.{backend}").GLContext
+            probe = cls(1, 1)
+            probe.free()
+        except Exception as e:  # noqa: BLE001 - any failure means "try the next backend"
+            errors.append(f"{backend}: {type(e).__name__}: {e}")
+            continue
+        gl_context.GLContext = cls
+        os.environ["MUJOCO_GL"] = backend
+        return backend
+    raise RuntimeError(
+        "no headless OpenGL backend for mujoco.Renderer could start ("
+        + "; ".join(errors)
+        + "); install EGL or OSMesa libraries"
+    )
+
+
+class CameraRenderer:
+    """RGB, metric depth and geom segmentation of a ``mujoco.MjModel`` from its named cameras."""
+
+    def __init__(self, model: mujoco.MjModel, width: int = 320, height: int = 240):
+        offw, offh = model.vis.global_.offwidth, model.vis.global_.offheight
+        if not (0 < width <= offw and 0 < height <= offh):
+            raise ValueError(
+                f"image size {width}x{height} must be positive and within the "
+                f"model's offscreen buffer {offw}x{offh}"
+            )
+        self.backend = _select_gl_backend()
+        self.model = model
+        self._renderer = mujoco.Renderer(model, height, width)
+
+    def images(
+        self, data: mujoco.MjData, camera: str | int, kinds: Sequence[str] = IMAGE_KINDS
+    ) -> dict[str, np.ndarray]:
+        """``rgb`` (H, W, 3) uint8, ``depth`` (H, W) float32 metres, ``segmentation`` (H, W)
+        int32 geom ids (-1: no geom) of ``data`` seen from ``camera``."""
+        unknown = set(kinds) - set(IMAGE_KINDS)
+        if unknown:
+            raise ValueError(f"unknown image kind(s) {sorted(unknown)}; allowed: {IMAGE_KINDS}")
+        if (
+            isinstance(camera, str)
+            and mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera) < 0
+        ):
+            raise ValueError(
+                f"camera {camera!r} is not in the scene; cameras: "
+                f"{[self.model.camera(i).name for i in range(self.model.ncam)]}"
+            )
+        r, out = self._renderer, {}
+        for kind in kinds:
+            r.disable_depth_rendering()
+            r.disable_segmentation_rendering()
+            if kind == "depth":
+                r.enable_depth_rendering()
+            elif kind == "segmentation":
+                r.enable_segmentation_rendering()
+            r.update_scene(data, camera=camera)
+            img = r.render()
+            if kind == "depth":
+                img = img.astype(np.float32)
+            elif kind == "segmentation":
+                img = np.where(img[..., 1] == mujoco.mjtObj.mjOBJ_GEOM, img[..., 0], -1)
+                img = img.astype(np.int32)
+            out[kind] = img.copy()
+        r.disable_depth_rendering()
+        r.disable_segmentation_rendering()
+        return out
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+# ---------------------------------------------------------------------- the real twin
+@dataclasses.dataclass(frozen=True)
+class Oracle:
+    """What the real twin hides, for evaluation only (see ``RealTwin.oracle``)."""
+
+    perturbation: Perturbation
+    params: PhysParams
+    """The true physical parameters (the simulator's ``PhysParams`` fields, perturbed)."""
+    model: mujoco.MjModel
+    """A copy of the real twin's model (true parameters and camera poses, engine settings)."""
+    qpos: np.ndarray
+    """The true (noise-free) state now."""
+    qvel: np.ndarray
+
+
+class RealTwin(gym.Env):
+    """A registered task on the MuJoCo C engine with a hidden perturbation.
+
+    Args:
+      task: registered task name (``twinrl.envs.names()``).
+      seed: picks the hidden perturbation (unless given) and seeds episodes until ``reset`` is
+        given a seed of its own.
+      perturbation: the ``Perturbation`` to apply; default ``Perturbation.sample(task, seed)``;
+        ``Perturbation.none()`` makes the twin match the simulator up to the engines.
+      render_mode: ``None`` or ``"rgb_array"`` (``render()`` returns the default camera's RGB).
+      width, height: image size of ``render``/``render_images``.
+      config: task config overrides (as for ``twinrl.envs.make``).
+      integrator: MuJoCo integrator of the real engine (``implicitfast``, ``rk4``, ``euler``,
+        ``implicit``).
+      iterations: constraint-solver iterations of the real engine (MuJoCo C stops at convergence).
+      substeps: real physics steps per simulator physics step (the real timestep is the scene's
+        divided by this).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(
+        self,
+        task: str,
+        *,
+        seed: int = 0,
+        perturbation: Perturbation | None = None,
+        render_mode: str | None = None,
+        width: int = 320,
+        height: int = 240,
+        config: Mapping[str, Any] | None = None,
+        integrator: str = "implicitfast",
+        iterations: int = 50,
+        substeps: int = 1,
+    ):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if integrator not in _INTEGRATORS:
+            raise ValueError(f"integrator must be one of {list(_INTEGRATORS)}, got {integrator!r}")
+        if int(substeps) < 1 or int(iterations) < 1:
+            raise ValueError(f"substeps and iterations must be >= 1, got {substeps}, {iterations}")
+        self.task: Env = make(task, **dict(config or {}))
+        self.task_name = task
+        self.seed = int(seed)
+        rngs = np.random.SeedSequence(self.seed).spawn(2)
+        if perturbation is None:
+            perturbation = Perturbation.sample(self.task, np.random.default_rng(rngs[0]))
+        if not isinstance(perturbation, Perturbation):
+            raise TypeError(f"perturbation must be a Perturbation or None, got {perturbation!r}")
+        self._perturbation = perturbation
+
+        model = load_mjcf(self.task.scene)
+        model.opt.integrator = _INTEGRATORS[integrator]
+        model.opt.iterations = int(iterations)
+        model.opt.ls_iterations = max(int(model.opt.ls_iterations), int(iterations))
+        model.opt.timestep = model.opt.timestep / int(substeps)
+        perturbation.apply(model)
+        self._model = model
+        self._data = mujoco.MjData(model)
+        self._n_physics = int(self.task.config.frame_skip) * int(substeps)
+
+        # The task's own functions (JAX, jitted once) so sim and real observe and reward alike.
+        self._initial_state = jax.jit(self.task.initial_state)
+        self._observe = jax.jit(self.task.observe)
+        self._reward = jax.jit(self.task.reward)
+        self._to_ctrl = jax.jit(self.task.action_to_ctrl)
+
+        nu = self.task.action_size
+        obs_size = self.task.observation_size
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (nu,), np.float32)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_size,), np.float32)
+        self.render_mode = render_mode
+        self.metadata = {**type(self).metadata, "render_fps": int(round(1.0 / self.task.dt))}
+        self.width, self.height = int(width), int(height)
+        self.camera = self.task.cameras[0]
+        self._renderer: CameraRenderer | None = None
+        self._np_random = np.random.default_rng(rngs[1])
+        self._pending: collections.deque = collections.deque()
+        self._t = 0
+
+    # ------------------------------------------------------------------ gymnasium API
+    @property
+    def dt(self) -> float:
+        return self.task.dt
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        key = jax.random.PRNGKey(int(self.np_random.integers(0, 2**31 - 1)))
+        qpos, qvel = (np.asarray(x, np.float64) for x in self._initial_state(key))
+        options = dict(options or {})
+        for name, default in (("qpos", qpos), ("qvel", qvel)):
+            if name in options:  # start from a given state (e.g. a simulator's, to compare)
+                v = np.asarray(options.pop(name), np.float64)
+                if v.shape != default.shape or not np.all(np.isfinite(v)):
+                    raise ValueError(
+                        f"options[{name!r}] must be {default.shape} finite numbers, got {v!r}"
+                    )
+                qpos, qvel = (v, qvel) if name == "qpos" else (qpos, v)
+        if options:
+            raise ValueError(f"unknown reset option(s) {sorted(options)}; allowed: qpos, qvel")
+        mujoco.mj_resetData(self._model, self._data)
+        self._data.qpos[:] = qpos
+        self._data.qvel[:] = qvel
+        mujoco.mj_forward(self._model, self._data)
+        zero = np.zeros(self.action_space.shape, np.float32)
+        self._pending = collections.deque([zero] * self._perturbation.latency_steps)
+        self._t = 0
+        return self._observation(), {}
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float32)
+        if a.shape != self.action_space.shape or not np.all(np.isfinite(a)):
+            raise ValueError(
+                f"action must be {self.action_space.shape} finite numbers in [-1, 1],"
+                f" got {action!r}"
+            )
+        a = np.clip(a, -1.0, 1.0)
+        self._pending.append(a)
+        applied = self._pending.popleft()
+        self._data.ctrl[:] = np.asarray(self._to_ctrl(applied), np.float64)
+        for _ in range(self._n_physics):
+            mujoco.mj_step(self._model, self._data)
+        self._t += 1
+        d = self._data
+        reward, terms = self._reward(d.qpos, d.qvel, a)
+        terminated = not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel)))
+        truncated = self._t >= self.task.episode_length
+        info = {f"reward/{k}": float(v) for k, v in terms.items()}
+        return self._observation(), float(reward), bool(terminated), bool(truncated), info
+
+    def _observation(self) -> np.ndarray:
+        obs = np.asarray(self._observe(self._data.qpos, self._data.qvel), np.float32)
+        std = self._perturbation.obs_noise_std
+        if std > 0:
+            obs = obs + self.np_random.normal(0.0, std, size=obs.shape).astype(np.float32)
+        return obs
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("RealTwin.render() called without render_mode='rgb_array'")
+            return None
+        return self.render_images(kinds=("rgb",))["rgb"]
+
+    def render_images(
+        self, camera: str | None = None, kinds: Sequence[str] = IMAGE_KINDS
+    ) -> dict[str, np.ndarray]:
+        """RGB, depth (m) and segmentation (geom ids) from ``camera``'s true (offset) pose."""
+        if self._renderer is None:
+            self._renderer = CameraRenderer(self._model, self.width, self.height)
+        return self._renderer.images(self._data, camera or self.camera, kinds)
+
+    def nominal_camera(self, camera: str | None = None) -> dict[str, np.ndarray | float]:
+        """A camera's *nominal* pose (from the task's MJCF) and intrinsics: ``pos`` (3,) and
+        ``xmat`` (3, 3) in the world frame, ``fovy`` (deg), ``width``, ``height``."""
+        m = self.task.sim.mj_model
+        d = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_camlight(m, d)
+        cid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, camera or self.camera)
+        if cid < 0:
+            raise ValueError(f"camera {camera!r} is not in scene {self.task.scene!r}")
+        return {
+            "pos": d.cam_xpos[cid].copy(),
+            "xmat": d.cam_xmat[cid].reshape(3, 3).copy(),
+            "fovy": float(m.cam_fovy[cid]),
+            "width": self.width,
+            "height": self.height,
+        }
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # ------------------------------------------------------------------ evaluation only
+    def oracle(self) -> Oracle:
+        """The hidden truth: perturbation, true parameters, true model and state. For evaluation
+        and tests only; learning code must not call this (enforced by a test)."""
+        return Oracle(
+            perturbation=self._perturbation,
+            params=PhysParams.from_model(self._model),
+            model=copy.deepcopy(self._model),
+            qpos=self._data.qpos.copy(),
+            qvel=self._data.qvel.copy(),
+        )
+
+
+# ---------------------------------------------------------------------- episodes to files
+def _smooth_actions(steps: int, nu: int, dt: float, seed: int) -> np.ndarray:
+    """Open-loop demo actions: a sum of two slow sines per actuator, random phases from seed."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(steps)[:, None] * dt
+    f = rng.uniform(0.3, 1.0, size=(2, nu))
+    ph = rng.uniform(0, 2 * np.pi, size=(2, nu))
+    return (
+        0.6 * np.sin(2 * np.pi * f[0] * t + ph[0]) + 0.4 * np.sin(2 * np.pi * f[1] * t + ph[1])
+    ).astype(np.float32)
+
+
+def _colorize_depth(depth: np.ndarray, far: float) -> np.ndarray:
+    import matplotlib
+
+    valid = depth < 0.999 * far
+    lo, hi = (depth[valid].min(), depth[valid].max()) if valid.any() else (0.0, 1.0)
+    x = np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1)
+    rgb = (matplotlib.colormaps["viridis"](x)[..., :3] * 255).astype(np.uint8)
+    rgb[~valid] = 0
+    return rgb
+
+
+def _colorize_segmentation(seg: np.ndarray) -> np.ndarray:
+    palette = (np.random.default_rng(0).uniform(60, 255, size=(256, 3))).astype(np.uint8)
+    rgb = palette[np.mod(seg, 256)]
+    rgb[seg < 0] = 0
+    return rgb
+
+
+def render_episode(
+    name: str,
+    real: bool = True,
+    seed: int = 0,
+    out_dir: str | os.PathLike = ".",
+    steps: int = 100,
+    width: int = 320,
+    height: int = 240,
+    camera: str | None = None,
+) -> dict[str, Path]:
+    """Roll out smooth open-loop actions (from ``seed``) on task ``name`` and write images.
+
+    ``real=True`` runs the real twin (default perturbation for ``seed``, camera at its true,
+    offset pose); ``real=False`` the MJX simulator, rendered at the nominal camera pose.
+    Writes ``<name>_<real|sim>_{rgb,depth,segmentation}.png`` (last frame; depth colour-mapped
+    near=yellow, far=purple, background black; segmentation one colour per geom) and
+    ``<name>_<real|sim>.mp4`` (``.gif`` if no ffmpeg). Returns those paths by kind
+    (``rgb``, ``depth``, ``segmentation``, ``video``).
+    """
+    import imageio.v2 as imageio
+
+    if int(steps) < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    twin = RealTwin(
+        name,
+        seed=seed,
+        perturbation=None if real else Perturbation.none(),
+        width=width,
+        height=height,
+    )
+    actions = _smooth_actions(int(steps), twin.action_space.shape[0], twin.dt, seed)
+    frames: list[np.ndarray] = []
+    try:
+        if real:
+            twin.reset(seed=seed)
+            for a in actions:
+                twin.step(a)
+                frames.append(twin.render_images(camera, ("rgb",))["rgb"])
+        else:
+            env = twin.task
+            state = jax.jit(env.reset)(jax.random.PRNGKey(seed))
+            step = jax.jit(env.step)
+            m = env.sim.mj_model
+            d = mujoco.MjData(m)
+            renderer = CameraRenderer(m, width, height)
+            try:
+                for a in actions:
+                    state = step(state, a)
+                    d.qpos[:] = np.asarray(state.pipeline_state.qpos)
+                    d.qvel[:] = np.asarray(state.pipeline_state.qvel)
+                    mujoco.mj_forward(m, d)
+                    frames.append(renderer.images(d, camera or twin.camera, ("rgb",))["rgb"])
+                last = renderer.images(d, camera or twin.camera)
+            finally:
+                renderer.close()
+        if real:
+            last = twin.render_images(camera)
+    finally:
+        twin.close()
+
+    tag = f"{name}_{'real' if real else 'sim'}"
+    far = float(twin._model.vis.map.zfar * twin._model.stat.extent)
+    paths = {
+        "rgb": out / f"{tag}_rgb.png",
+        "depth": out / f"{tag}_depth.png",
+        "segmentation": out / f"{tag}_segmentation.png",
+    }
+    imageio.imwrite(paths["rgb"], last["rgb"])
+    imageio.imwrite(paths["depth"], _colorize_depth(last["depth"], far))
+    imageio.imwrite(paths["segmentation"], _colorize_segmentation(last["segmentation"]))
+    fps = int(round(1.0 / twin.dt))
+    try:
+        paths["video"] = out / f"{tag}.mp4"
+        imageio.mimsave(paths["video"], frames, fps=fps, macro_block_size=1)
+    except Exception:  # noqa: BLE001 - no ffmpeg backend: fall back to GIF
+        paths["video"] = out / f"{tag}.gif"
+        imageio.mimsave(paths["video"], frames, duration=1000.0 / fps)
+    return paths
