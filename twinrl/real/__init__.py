@@ -2,8 +2,22 @@
 
 ``dataset``: ``DatasetWriter`` (append-only, SIGKILL-safe recording of transitions and images) and
 ``read`` (arrays and episode boundaries back, with damage reported per file).
+``twin``: ``RealTwin`` (a task on the MuJoCo C engine with a hidden ``Perturbation``, RGB-D and
+segmentation camera) and ``render_episode``; ``perturbation``: ``Perturbation``. Those two load
+lazily (they import JAX, MuJoCo and Brax), so recording and reading datasets stays light.
 """
 
 from twinrl.real.dataset import Dataset, DatasetError, DatasetWriter, Episode, read
 
 __all__ = ["Dataset", "DatasetError", "DatasetWriter", "Episode", "read"]
+
+_LAZY = {"RealTwin": "twinrl.real.twin", "render_episode": "twinrl.real.twin",
+         "Perturbation": "twinrl.real.perturbation"}
+__all__ += list(_LAZY)
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'twinrl.real' has no attribute {name!r}")

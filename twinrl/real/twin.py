@@ -351,14 +351,12 @@ class RealTwin(gym.Env):
 
 # ---------------------------------------------------------------------- episodes to files
 def _smooth_actions(steps: int, nu: int, dt: float, seed: int) -> np.ndarray:
-    """Open-loop demo actions: a sum of two slow sines per actuator, random phases from seed."""
-    rng = np.random.default_rng(seed)
+    """Open-loop demo actions: ``0.8 cos(2 pi f t)`` per actuator, ``f`` in [0.4, 0.9] Hz from
+    ``seed``. A cosine starting at its peak has a zero-mean integral, so a cart or pusher driven
+    by it oscillates in view instead of drifting off."""
+    f = np.random.default_rng(seed).uniform(0.4, 0.9, size=nu)
     t = np.arange(steps)[:, None] * dt
-    f = rng.uniform(0.3, 1.0, size=(2, nu))
-    ph = rng.uniform(0, 2 * np.pi, size=(2, nu))
-    return (
-        0.6 * np.sin(2 * np.pi * f[0] * t + ph[0]) + 0.4 * np.sin(2 * np.pi * f[1] * t + ph[1])
-    ).astype(np.float32)
+    return (0.8 * np.cos(2 * np.pi * f * t)).astype(np.float32)
 
 
 def _colorize_depth(depth: np.ndarray, far: float) -> np.ndarray:
