@@ -3,5 +3,6 @@
 from twinrl import _jaxconfig
 
 _jaxconfig.enable_compilation_cache()
+_jaxconfig.import_mjx_quietly()
 
 __version__ = "0.1.0"

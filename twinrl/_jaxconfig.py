@@ -1,4 +1,4 @@
-"""JAX settings twinrl applies on import: the persistent compilation cache.
+"""Settings twinrl applies on import: the persistent compilation cache, a quiet MJX import.
 
 Compiling a gradient through contacts takes tens of seconds; the cache makes the second run of any
 command (and the test suite) skip it. It lives in ``$TWINRL_CACHE_DIR`` if set, else
@@ -8,10 +8,31 @@ A cache directory the user already configured for JAX (``JAX_COMPILATION_CACHE_D
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import sys
 from pathlib import Path
 
 import jax
+
+
+def import_mjx_quietly() -> None:
+    """Import ``mujoco.mjx`` without its unconditional "Failed to import warp" prints.
+
+    mujoco-mjx 3.17 prints two lines to stdout on import when the optional Warp backend is absent
+    (CPU installs always). They would pollute every command's output and any JSON printed on stdout.
+    Other output of the import is passed through.
+    """
+    if "mujoco.mjx" in sys.modules:
+        return
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        import mujoco.mjx  # noqa: F401
+    rest = [ln for ln in buf.getvalue().splitlines()
+            if ln.strip() and not ln.startswith(("Failed to import warp", "Failed to import mujoco_warp"))]
+    if rest:
+        print("\n".join(rest))
 
 
 def cache_dir() -> Path | None:

@@ -2,9 +2,10 @@
 
 ``Sim`` is a plain Python object that holds the compiled model; its methods are pure functions of
 pytrees (``mjx.Data``, action arrays, ``PhysParams``), so they can be jitted, vmapped and
-differentiated. Every step goes through ``twinrl.physics.solver.step`` (fixed-iteration
-constraint solve) so reverse-mode gradients exist through contacts and joint limits; its
-forward results equal stock ``mjx.step`` (``Sim.stock_step`` is kept for comparison).
+differentiated. Every step goes through ``twinrl.physics.integrator.step`` (fixed-iteration
+constraint solve, gradient-correct rotation update) so reverse-mode gradients exist through
+contacts and joint limits; its forward results equal stock ``mjx.step`` (``Sim.stock_step`` is
+kept for comparison).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from twinrl.physics import solver
+from twinrl.physics import gradients, integrator
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, scene_path
 
@@ -43,6 +44,9 @@ def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
             raise MJCFError(f"malformed MJCF string: {_first_line(e)}") from None
     else:
         path = Path(mjcf)
+        if not path.exists() and path.suffix.lower() != ".xml" and len(path.parts) == 1:
+            raise MJCFError(f"unknown scene {text!r}: bundled scenes are {', '.join(SCENES)}; "
+                            "or give the path of an MJCF file")
     if not path.exists():
         raise MJCFError(f"MJCF file not found: {path} (bundled scenes: {', '.join(SCENES)})")
     if path.is_dir():
@@ -64,7 +68,8 @@ class Trajectory(NamedTuple):
     qpos: jax.Array
     qvel: jax.Array
     n_active: jax.Array
-    """Number of constraint rows carrying force at each step (0 = contact/limit free)."""
+    """Limit and contact rows carrying force at each step (0 = free of limits and contacts);
+    equality and friction-loss rows are not counted."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -144,8 +149,8 @@ class Sim:
         m = self.model_with(params)
         d = data.replace(ctrl=jnp.asarray(action, data.ctrl.dtype).reshape(self.nu))
         if self.frame_skip == 1:
-            return solver.step(m, d, iterations)
-        d, _ = jax.lax.scan(lambda d, _: (solver.step(m, d, iterations), None), d, None,
+            return integrator.step(m, d, iterations)
+        d, _ = jax.lax.scan(lambda d, _: (integrator.step(m, d, iterations), None), d, None,
                             length=self.frame_skip)
         return d
 
@@ -175,8 +180,7 @@ class Sim:
 
         def body(d, xs):
             t, a = xs
-            if truncate:
-                d = jax.lax.cond(t % truncate == 0, jax.lax.stop_gradient, lambda x: x, d)
+            d = gradients.truncate(d, t, truncate)
             d = step(d, a, params)
             return d, Trajectory(d.qpos, d.qvel, _n_active(d))
 
@@ -184,5 +188,5 @@ class Sim:
 
 
 def _n_active(d: mjx.Data) -> jax.Array:
-    f = d._impl.efc_force
+    f = d._impl.efc_force[d._impl.ne + d._impl.nf:]
     return jnp.sum(f != 0) if f.size else jnp.zeros((), jnp.int32)

@@ -17,7 +17,8 @@ solve is done (the "double where" trick): the discarded computation then stays f
 
 We reuse the stock building blocks (``Context``, ``_linesearch``, ``_update_constraint``,
 ``_update_gradient``) of the pinned version rather than copying them, and replace only the loop.
-``forward`` and ``step`` mirror ``mujoco.mjx._src.forward`` with this solve swapped in.
+``forward`` mirrors ``mujoco.mjx._src.forward.forward`` with this solve swapped in; time stepping
+is in ``twinrl.physics.integrator``.
 """
 
 from __future__ import annotations
@@ -27,12 +28,11 @@ import jax.numpy as jnp
 import mujoco
 from mujoco.mjx._src import forward as _fwd
 from mujoco.mjx._src import math as _math
-from mujoco.mjx._src import scan as _scan
 from mujoco.mjx._src import sensor as _sensor
 from mujoco.mjx._src import solver as _stock
-from mujoco.mjx._src.types import DisableBit, IntegratorType, SolverType
+from mujoco.mjx._src.types import DisableBit, SolverType
 
-__all__ = ["solve", "forward", "step"]
+__all__ = ["solve", "forward"]
 
 
 def _done(m, d, ctx) -> jax.Array:
@@ -123,34 +123,3 @@ def forward(m, d, iterations: int | None = None):
         return d.replace(qacc=d.qacc_smooth)
     d = solve(m, d, iterations)
     return _sensor.sensor_acc(m, d)
-
-
-def _rk4(m, d, iterations):
-    """Classic RK4 as in stock MJX, with every stage using our ``forward``."""
-    a, b = _fwd._RK4_A, _fwd._RK4_B
-    c = jnp.tril(a).sum(axis=0)
-    times = d.time + c * m.opt.timestep
-    d0 = d
-    qvel, qacc, act_dot = (b[0] * d.qvel, b[0] * d.qacc, b[0] * d.act_dot)
-    kqvel = d.qvel
-    integrate = lambda *args: _fwd._integrate_pos(*args, dt=m.opt.timestep)
-    for i in range(3):
-        kqpos = _scan.flat(m, integrate, "jqv", "q", m.jnt_type, d0.qpos, a[i, i] * kqvel)
-        kact = d0.act + a[i, i] * d.act_dot * m.opt.timestep
-        kqvel = d0.qvel + a[i, i] * d.qacc * m.opt.timestep
-        d = forward(m, d.replace(qpos=kqpos, qvel=kqvel, act=kact, time=times[i]), iterations)
-        qvel, qacc, act_dot = qvel + b[i + 1] * kqvel, qacc + b[i + 1] * d.qacc, act_dot + b[i + 1] * d.act_dot
-    d = d.replace(qpos=d0.qpos, qvel=d0.qvel, act=d0.act, time=d0.time)
-    return _fwd._advance(m, d, act_dot, qacc, qvel)
-
-
-def step(m, d, iterations: int | None = None):
-    """``mjx.step`` with the differentiable solve (Euler, implicitfast or RK4 integrator)."""
-    d = forward(m, d, iterations)
-    if m.opt.integrator == IntegratorType.EULER:
-        return _fwd.euler(m, d)
-    if m.opt.integrator == IntegratorType.IMPLICITFAST:
-        return _fwd.implicit(m, d)
-    if m.opt.integrator == IntegratorType.RK4:
-        return _rk4(m, d, iterations)
-    raise NotImplementedError(f"integrator {m.opt.integrator} is not supported by MJX")

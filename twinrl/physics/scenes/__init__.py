@@ -3,7 +3,7 @@
 Each scenario starts where a rollout visits both constraint-free and constrained steps, so a
 gradient check exercises the solve's forward and backward in both regimes:
 - ``cartpole``: smooth (no constraints at all);
-- ``pendulum``: swings into its joint limit and back out;
+- ``pendulum``: swings freely over the top and round into its joint limit;
 - ``push``: the box drops onto the floor, the pusher touches it, pushes, and pulls away;
 - ``peg_in_hole``: the peg starts in free space above the hole, then touches walls and floor.
 """
@@ -59,8 +59,8 @@ def scenario(name: str, nq: int, nv: int, nu: int, qpos0: np.ndarray, horizon: i
         qpos[:] = [0.0, 0.3]
         qvel[:] = [0.2, -0.5]
     elif name == "pendulum":
-        qpos[:] = [3.55]          # 220 deg limit = 3.84 rad: hits it in a few steps
-        qvel[:] = [4.0]
+        qpos[:] = [-2.9]          # short of upright, swinging over the top
+        qvel[:] = [-3.0]          # into the -220 deg limit (-3.84 rad): free first, then limited
     elif name == "push":
         qpos[2] = 0.15            # box x (free joint at qpos[2:9])
         qpos[4] = 0.07            # dropped from 2 cm above the floor

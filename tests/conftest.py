@@ -1,0 +1,21 @@
+"""Shared test settings.
+
+JAX compiles dominate the suite's time: fixtures that build simulators and jitted functions are
+module-scoped, and the persistent compilation cache (``twinrl._jaxconfig``) is on.
+"""
+
+import os
+
+os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+
+import twinrl  # noqa: E402,F401  (compilation cache, quiet MJX import)
+
+
+@pytest.fixture(scope="module")
+def x64():
+    """Float64 for the whole module (finite-difference checks are noise in float32)."""
+    with jax.enable_x64(True):
+        yield

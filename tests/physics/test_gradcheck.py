@@ -1,0 +1,42 @@
+"""gradcheck: reverse mode vs float64 central differences on every bundled scene."""
+
+import jax
+import numpy as np
+import pytest
+
+from twinrl.physics import SCENES, Sim
+from twinrl.physics.gradcheck import classify, gradcheck
+
+# Shorter than `twinrl gradcheck`'s defaults (100; 50 for peg_in_hole) to keep the suite fast, but
+# long enough that each constrained scene has both free and constrained steps (asserted below).
+HORIZON = {"cartpole": 40, "pendulum": 40, "push": 30, "peg_in_hole": 40}
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_gradcheck_passes_in_float64(x64, name):
+    with jax.enable_x64(True):
+        r = gradcheck(Sim.load(name), horizon=HORIZON[name])
+    assert r.dtype == "float64"
+    assert r.nan_count == 0
+    assert r.failures == [], r.failures[:5]
+    assert r.max_rel_error <= 1e-4
+    # most entries must be judged, not waved through as kinks
+    assert r.count("resolved") >= 0.5 * len(r.rows)
+    assert r.count("kink") <= 0.1 * len(r.rows)
+    if name != "cartpole":
+        assert r.constrained_steps > 0 and r.free_steps > 0
+    groups = {g["group"] for g in r.groups}
+    assert {"actions", "qpos", "qvel", "params.mass", "params.damping", "params.friction",
+            "params.gain", "params.gravity"} <= groups
+
+
+def test_classify_catches_wrong_gradients_and_kinks():
+    fd = np.array([1.0, 1.0, 1e-9, 1.0, 1.0])
+    fd4 = fd.copy()
+    fwd, bwd = fd.copy(), fd.copy()
+    fwd[4], bwd[4] = 1.5, 0.5          # symmetric kink: central differences agree, sides don't
+    g = np.array([1.0 + 1e-6, 1.01, 1e-9 + 1e-12, 1.0 + np.nan, 3.0])
+    rounding = np.full(5, 1e-10)
+    status, ok, rel, _ = classify(g, fd, fd4, fwd, bwd, rounding, rtol=1e-4)
+    assert list(status) == ["resolved", "resolved", "noise", "resolved", "kink"]
+    assert list(ok) == [True, False, True, False, True]

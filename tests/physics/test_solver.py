@@ -1,0 +1,94 @@
+"""The fixed-iteration solve: same forward results as stock MJX, reverse mode that works."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from mujoco.mjx._src import math as mjx_math
+
+from twinrl.physics import SCENES, Sim
+from twinrl.physics.integrator import quat_integrate
+from twinrl.physics.scenes import scenario
+
+
+@pytest.fixture(scope="module")
+def sims(x64):
+    return {name: Sim.load(name) for name in SCENES}
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_forward_equals_stock_mjx_over_200_steps(sims, name):
+    with jax.enable_x64(True):
+        sim = sims[name]
+        sc = scenario(name, sim.nq, sim.nv, sim.nu, sim.mj_model.qpos0, horizon=200)
+        d0, actions = sim.init(sc.qpos, sc.qvel), jnp.asarray(sc.actions)
+        ours = jax.jit(lambda d, a: sim.rollout(d, a)[1])(d0, actions)
+        stock = jax.jit(lambda d, a: sim.rollout(d, a, step_fn=sim.stock_step)[1])(d0, actions)
+        assert ours.qpos.dtype == jnp.float64
+        assert float(jnp.max(jnp.abs(ours.qpos - stock.qpos))) <= 1e-6
+        assert float(jnp.max(jnp.abs(ours.qvel - stock.qvel))) <= 1e-5
+        if name != "cartpole":  # the scenario must exercise the solve
+            assert int((ours.n_active > 0).sum()) > 0
+
+
+def test_stock_mjx_cannot_reverse_differentiate_through_contacts(sims):
+    # The reason twinrl.physics.solver exists (upstream mujoco issue #2259).
+    with jax.enable_x64(True):
+        sim = sims["push"]
+        d0 = sim.init()
+
+        def loss(a):
+            return jnp.sum(sim.stock_step(d0, a).qpos)
+
+        with pytest.raises(ValueError, match="while_loop"):
+            jax.grad(loss)(jnp.zeros(sim.nu))
+        assert np.isfinite(np.asarray(jax.grad(lambda a: jnp.sum(sim.step(d0, a).qpos))(
+            jnp.zeros(sim.nu)))).all()
+
+
+def test_quat_integrate_matches_stock_and_has_the_right_derivative_at_rest(x64):
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(0)
+        q = jnp.asarray(rng.normal(size=4))
+        q = q / jnp.linalg.norm(q)
+        for w in [rng.normal(size=3), np.zeros(3), 1e-5 * rng.normal(size=3)]:
+            w = jnp.asarray(w)
+            np.testing.assert_allclose(quat_integrate(q, w, 0.01),
+                                       mjx_math.quat_integrate(q, w, 0.01), atol=1e-12)
+        # At w = 0 the new orientation moves by dt/2 * (q ⊗ [0, e_i]) per unit of w_i.
+        jac = jax.jacfwd(quat_integrate, argnums=1)(q, jnp.zeros(3), 0.01)
+        h = 1e-7
+        fd = jnp.stack([(quat_integrate(q, h * e, 0.01) - quat_integrate(q, -h * e, 0.01)) / (2 * h)
+                        for e in jnp.eye(3)], axis=1)
+        np.testing.assert_allclose(jac, fd, atol=1e-8)
+        assert float(jnp.abs(jac).max()) > 1e-3  # stock MJX gives exactly 0 here
+        assert float(jnp.abs(jax.jacfwd(mjx_math.quat_integrate, argnums=1)(
+            q, jnp.zeros(3), 0.01)).max()) == 0.0
+
+
+@pytest.mark.parametrize("name", ["pendulum", "push", "peg_in_hole"])
+def test_no_nonfinite_gradient_float32_vmapped_with_and_without_contacts(name):
+    # float32 and vmap (lax.cond lowered to select) is where a solve's backward can produce NaN.
+    sim = Sim.load(name)
+    q = np.array(sim.mj_model.qpos0)
+    if name == "push":
+        q[2], q[4] = 0.3, 0.05  # box at rest on the floor, pusher far: contacts, no motion
+    states = [(q, np.zeros(sim.nv)), (q, 0.3 * np.ones(sim.nv))]
+    if name == "pendulum":
+        states.append((np.array([-3.8]), np.array([-2.0])))  # into the limit
+    if name == "peg_in_hole":
+        states.append((np.array([0.0, 0.05]), np.zeros(2)))  # free space above the hole
+    qp = jnp.asarray(np.stack([s[0] for s in states]), jnp.float32)
+    qv = jnp.asarray(np.stack([s[1] for s in states]), jnp.float32)
+    acts = jnp.zeros((len(states), 25, sim.nu)).at[1:].set(0.3)
+    p0 = sim.default_params()
+
+    def loss(a, qpos, qvel, params):
+        _, tr = sim.rollout(sim.init(qpos, qvel), a, params)
+        return jnp.sum(tr.qpos ** 2) + jnp.sum(tr.qvel ** 2)
+
+    grads = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1, 2, 3)),
+                             in_axes=(0, 0, 0, None)))(acts, qp, qv, p0)
+    leaves = jax.tree_util.tree_leaves(grads)
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
+    assert float(jnp.abs(grads[0]).max()) > 0  # actions matter
