@@ -409,6 +409,7 @@ def render_episode(
         width=width,
         height=height,
     )
+    camera = camera or twin.camera
     actions = _smooth_actions(int(steps), twin.action_space.shape[0], twin.dt, seed)
     frames: list[np.ndarray] = []
     try:
@@ -417,10 +418,10 @@ def render_episode(
             for a in actions:
                 twin.step(a)
                 frames.append(twin.render_images(camera, ("rgb",))["rgb"])
-        else:
+            last = twin.render_images(camera)
+        else:  # the simulator's states, drawn with the nominal model
             env = twin.task
-            state = jax.jit(env.reset)(jax.random.PRNGKey(seed))
-            step = jax.jit(env.step)
+            state, step = jax.jit(env.reset)(jax.random.PRNGKey(seed)), jax.jit(env.step)
             m = env.sim.mj_model
             d = mujoco.MjData(m)
             renderer = CameraRenderer(m, width, height)
@@ -428,14 +429,11 @@ def render_episode(
                 for a in actions:
                     state = step(state, a)
                     d.qpos[:] = np.asarray(state.pipeline_state.qpos)
-                    d.qvel[:] = np.asarray(state.pipeline_state.qvel)
                     mujoco.mj_forward(m, d)
-                    frames.append(renderer.images(d, camera or twin.camera, ("rgb",))["rgb"])
-                last = renderer.images(d, camera or twin.camera)
+                    frames.append(renderer.images(d, camera, ("rgb",))["rgb"])
+                last = renderer.images(d, camera)
             finally:
                 renderer.close()
-        if real:
-            last = twin.render_images(camera)
     finally:
         twin.close()
 
