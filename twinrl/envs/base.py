@@ -30,7 +30,8 @@ from brax.envs import base as brax_base
 
 from twinrl.physics import PhysParams, Sim
 
-__all__ = ["Env", "State", "TaskConfig", "PerturbationSpec", "tolerance", "replace_config"]
+__all__ = ["Env", "State", "TaskConfig", "PerturbationSpec", "tolerance", "small_control",
+           "replace_config"]
 
 State = brax_base.State
 """Brax's environment state: ``pipeline_state`` (``mjx.Data``), ``obs``, ``reward``, ``done``,
@@ -107,10 +108,17 @@ def tolerance(x: jax.Array, margin: float, value_at_margin: float = 0.1,
     return jnp.exp(-0.5 * sq * scale**2)
 
 
+def small_control(action: jax.Array) -> jax.Array:
+    """dm_control's smooth control term: ``(4 + 1 - mean(a^2)) / 5``, in [0.8, 1] for a in [-1, 1].
+
+    Multiplied into a reward it costs effort without ever zeroing the reward."""
+    return (5.0 - jnp.mean(jnp.square(jnp.clip(action, -1.0, 1.0)))) / 5.0
+
+
 class Env(brax_base.Env):
     """A task on a ``Sim``: Brax-compatible, jit/vmap/grad-able.
 
-    Subclasses set ``scene``, ``cameras``, ``reward_terms_names`` and implement ``initial_state``,
+    Subclasses set ``scene``, ``cameras``, ``reward_term_names``, ``perturbation_spec`` and implement ``initial_state``,
     ``observe`` and ``reward_terms`` (and ``combine`` if the terms are not simply multiplied).
 
     Args:

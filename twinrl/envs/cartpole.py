@@ -27,7 +27,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from twinrl.envs.base import Env, PerturbationSpec, TaskConfig, tolerance
+from twinrl.envs.base import Env, PerturbationSpec, TaskConfig, small_control, tolerance
 
 __all__ = ["Cartpole", "CartpoleConfig"]
 
@@ -88,6 +88,6 @@ class Cartpole(Env):
         return {
             "upright": 0.5 * (jnp.cos(qpos[1]) + 1.0),
             "centered": 0.5 * (1.0 + tolerance(qpos[0], c.center_margin, 0.1)),
-            "small_control": (4.0 + (1.0 - jnp.mean(jnp.square(jnp.clip(action, -1, 1))))) / 5.0,
+            "small_control": small_control(action),
             "small_velocity": 0.5 * (1.0 + tolerance(qvel[1], c.velocity_margin, 0.1)),
         }

@@ -20,7 +20,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from twinrl.envs.base import Env, PerturbationSpec, TaskConfig, tolerance
+from twinrl.envs.base import Env, PerturbationSpec, TaskConfig, small_control, tolerance
 
 __all__ = ["PendulumSwingup", "PendulumSwingupConfig"]
 
@@ -67,8 +67,8 @@ class PendulumSwingup(Env):
         return jnp.stack([jnp.cos(th), jnp.sin(th), thd, th / jnp.pi]).astype(jnp.float32)
 
     def reward_terms(self, qpos, qvel, action):
-        upright = 0.5 * (1.0 - jnp.cos(qpos[0]))
-        small_control = (4.0 + (1.0 - jnp.mean(jnp.square(jnp.clip(action, -1, 1))))) / 5.0
-        small_velocity = 0.5 * (1.0 + tolerance(qvel[0], self.config.velocity_margin, 0.1))
-        return {"upright": upright, "small_control": small_control,
-                "small_velocity": small_velocity}
+        return {
+            "upright": 0.5 * (1.0 - jnp.cos(qpos[0])),
+            "small_control": small_control(action),
+            "small_velocity": 0.5 * (1.0 + tolerance(qvel[0], self.config.velocity_margin, 0.1)),
+        }

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.envs.base import Env, PerturbationSpec, TaskConfig, tolerance
+from twinrl.envs.base import Env, PerturbationSpec, TaskConfig, small_control, tolerance
 
 __all__ = ["Push", "PushConfig"]
 
@@ -99,7 +99,7 @@ class Push(Env):
         return {
             "near_goal": tolerance(box - self.goal, c.goal_margin, 0.1, axis=-1),
             "reach": tolerance(qpos[0:2] - box, c.reach_margin, 0.1, axis=-1),
-            "small_control": (4.0 + (1.0 - jnp.mean(jnp.square(jnp.clip(action, -1, 1))))) / 5.0,
+            "small_control": small_control(action),
         }
 
     def combine(self, terms):
