@@ -42,8 +42,7 @@ def test_stock_mjx_cannot_reverse_differentiate_through_contacts(sims):
 
         with pytest.raises(ValueError, match="while_loop"):
             jax.grad(loss)(jnp.zeros(sim.nu))
-        assert np.isfinite(np.asarray(jax.grad(lambda a: jnp.sum(sim.step(d0, a).qpos))(
-            jnp.zeros(sim.nu)))).all()
+        # (ours differentiates the same step: see test_gradcheck.py)
 
 
 def test_quat_integrate_matches_stock_and_has_the_right_derivative_at_rest(x64):
