@@ -105,6 +105,172 @@ def _cmd_gradcheck(args) -> int:
     return 0 if all(s["passed"] for s in results) else 1
 
 
+# ---------------------------------------------------------------------------------- envs
+def _envs_parser(sub) -> None:
+    p = sub.add_parser("envs", help="list the registered tasks and what their real twins perturb",
+                       description="A table of registered tasks: observation and action sizes, "
+                                   "contacts, cameras, and how each real twin differs.")
+    _common(p, "runs/envs")
+    p.set_defaults(func=_cmd_envs)
+
+
+def _has_contacts(mj_model) -> bool:
+    """Whether any two geoms of different bodies can collide (contype/conaffinity)."""
+    import itertools
+
+    for i, j in itertools.combinations(range(mj_model.ngeom), 2):
+        bi, bj = mj_model.geom_bodyid[i], mj_model.geom_bodyid[j]
+        if bi == bj or (bi == 0 and bj == 0):
+            continue
+        if (mj_model.geom_contype[i] & mj_model.geom_conaffinity[j]) or (
+                mj_model.geom_contype[j] & mj_model.geom_conaffinity[i]):
+            return True
+    return False
+
+
+def _perturbs(spec) -> str:
+    parts = [f"mass x{spec.mass_scale[0]:g}-{spec.mass_scale[1]:g}",
+             f"damping x{spec.damping_scale[0]:g}-{spec.damping_scale[1]:g}",
+             f"friction x{spec.friction_scale[0]:g}-{spec.friction_scale[1]:g}",
+             f"gain x{spec.gain_scale[0]:g}-{spec.gain_scale[1]:g}"]
+    parts += [f"+damping {j} {lo:g}-{hi:g}" for j, lo, hi in spec.extra_damping]
+    parts += [f"+frictionloss {j} {lo:g}-{hi:g} (unmodeled)" for j, lo, hi in spec.extra_frictionloss]
+    parts += [f"latency {set(spec.latency_steps)} steps",
+              f"obs noise <= {spec.obs_noise_std[1]:g}",
+              f"camera offset sd {spec.camera_pos_std * 100:g} cm / {spec.camera_rot_std:g} rad"]
+    return ", ".join(parts)
+
+
+def _cmd_envs(args) -> int:
+    from twinrl import envs, report
+
+    rows = []
+    for name in envs.names():
+        env = envs.make(name)
+        rows.append({"name": name, "obs_dim": env.observation_size, "action_dim": env.action_size,
+                     "dt": env.dt, "episode_length": env.episode_length,
+                     "contacts": _has_contacts(env.sim.mj_model), "cameras": list(env.cameras),
+                     "reward_terms": list(env.reward_term_names),
+                     "real_twin_perturbs": _perturbs(env.perturbation_spec)})
+    report.print_table("twinrl tasks", ["name", "obs", "act", "dt", "steps", "contacts",
+                                        "cameras", "real twin perturbs"],
+                       [[r["name"], r["obs_dim"], r["action_dim"], r["dt"], r["episode_length"],
+                         "yes" if r["contacts"] else "no", ",".join(r["cameras"]),
+                         r["real_twin_perturbs"]] for r in rows])
+    report.write_json(args.out / "summary.json", {"tasks": rows})
+    return 0
+
+
+# ---------------------------------------------------------------------------------- collect
+def _collect_parser(sub) -> None:
+    p = sub.add_parser(
+        "collect", help="record episodes of a real twin into a durable dataset",
+        description="Run a policy on a task's real twin and record every transition as it "
+                    "happens (a killed run keeps everything but the transition in flight; run "
+                    "again on the same --out to append more episodes).")
+    p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
+    p.add_argument("--episodes", type=int, required=True, help="episodes to record")
+    p.add_argument("--policy", default="random",
+                   help="'random' (uniform in the action box) or 'zero'; trained checkpoints "
+                        "arrive with `twinrl train`")
+    p.add_argument("--images", action="store_true",
+                   help="also record RGB, depth and segmentation of the default camera")
+    p.add_argument("--size", type=int, nargs=2, default=(64, 64), metavar=("W", "H"),
+                   help="image size with --images (default 64 64)")
+    _common(p, "runs/collect")
+    p.set_defaults(func=_cmd_collect)
+
+
+def _cmd_collect(args) -> int:
+    import numpy as np
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from twinrl import envs, report
+    from twinrl.real.dataset import DatasetWriter
+
+    if args.env not in envs.names():
+        raise UsageError(f"unknown task {args.env!r}; registered tasks are {', '.join(envs.names())}")
+    if args.episodes < 1:
+        raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.policy not in ("random", "zero"):
+        raise UsageError(f"--policy must be 'random' or 'zero' (checkpoint policies come with "
+                         f"`twinrl train`), got {args.policy!r}")
+    w, h = args.size
+    twin = envs.make_real(args.env, seed=args.seed, width=w, height=h)
+    obs, _ = twin.reset(seed=args.seed)
+    rng = np.random.default_rng(args.seed)
+    act_shape = twin.action_space.shape
+    image_shapes = None
+    if args.images:
+        image_shapes = {"rgb": (h, w, 3), "depth": (h, w), "segmentation": (h, w)}
+    writer = DatasetWriter(args.out / "dataset", env=args.env, obs_shape=obs.shape,
+                           action_shape=act_shape, image_shapes=image_shapes,
+                           obs_dtype=np.float32, action_dtype=np.float32,
+                           metadata=None)
+    returns, steps = [], 0
+    first_episode = writer.episode_id
+    columns = [TextColumn("[bold]collect"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("episodes  return {task.fields[ret]}"), TimeElapsedColumn()]
+    with writer, Progress(*columns, console=report.console) as bar:
+        task = bar.add_task("collect", total=args.episodes, ret="-")
+        for ep in range(args.episodes):
+            if ep:
+                obs, _ = twin.reset(seed=args.seed + ep)
+            ret, done = 0.0, False
+            while not done:
+                a = (rng.uniform(-1, 1, act_shape) if args.policy == "random"
+                     else np.zeros(act_shape)).astype(np.float32)
+                nxt, r, term, trunc, info = twin.step(a)
+                images = (twin.render_images(twin.camera, ("rgb", "depth", "segmentation"))
+                          if args.images else None)
+                writer.add(obs, a, r, nxt, term, trunc,
+                           info={k: v for k, v in info.items() if np.isscalar(v)}, images=images)
+                obs, ret, steps, done = nxt, ret + float(r), steps + 1, term or trunc
+            returns.append(ret)
+            bar.update(task, advance=1, ret=f"{ret:.2f}")
+    summary = {"env": args.env, "policy": args.policy, "seed": args.seed,
+               "episodes": args.episodes, "first_episode_id": first_episode, "steps": steps,
+               "returns": returns, "mean_return": float(np.mean(returns)),
+               "dataset": str(args.out / "dataset")}
+    report.print_table(f"collected {args.env}", ["episodes", "steps", "mean return", "min", "max"],
+                       [[args.episodes, steps, float(np.mean(returns)), float(np.min(returns)),
+                         float(np.max(returns))]])
+    report.write_json(args.out / "summary.json", summary)
+    return 0
+
+
+# ---------------------------------------------------------------------------------- render
+def _render_parser(sub) -> None:
+    p = sub.add_parser("render", help="render a task (sim or real twin) to PNGs and a video",
+                       description="RGB, depth and segmentation PNGs of the last frame and a "
+                                   "video of an open-loop episode of smooth random actions.")
+    p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
+    p.add_argument("--real", action="store_true",
+                   help="the real twin (hidden perturbation, camera at its true offset pose)")
+    p.add_argument("--steps", type=int, default=100, help="episode steps (default 100)")
+    p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"))
+    p.add_argument("--camera", default=None, help="camera name (default: the task's first)")
+    _common(p, "runs/render")
+    p.set_defaults(func=_cmd_render)
+
+
+def _cmd_render(args) -> int:
+    from twinrl import envs, report
+    from twinrl.real.twin import render_episode
+
+    if args.env not in envs.names():
+        raise UsageError(f"unknown task {args.env!r}; registered tasks are {', '.join(envs.names())}")
+    with report.console.status(f"rendering {args.env} ({'real twin' if args.real else 'sim'})..."):
+        paths = render_episode(args.env, real=args.real, seed=args.seed, out_dir=args.out,
+                               steps=args.steps, width=args.size[0], height=args.size[1],
+                               camera=args.camera)
+    report.print_table(f"render {args.env}", ["kind", "file"], [[k, str(v)] for k, v in paths.items()])
+    report.write_json(args.out / "summary.json", {"env": args.env, "real": args.real,
+                                                  "seed": args.seed, "steps": args.steps,
+                                                  "files": {k: str(v) for k, v in paths.items()}})
+    return 0
+
+
 # ---------------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -112,6 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Robot learning through differentiable digital twins "
                     "(Real2Sim -> Learn@Sim -> Sim2Real).")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _envs_parser(sub)
+    _collect_parser(sub)
+    _render_parser(sub)
     _gradcheck_parser(sub)
     return parser
 
@@ -122,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return args.func(args)
-    except (UsageError, MJCFError) as e:
+    except (UsageError, MJCFError, FileNotFoundError) as e:
         print(f"twinrl {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

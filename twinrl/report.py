@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -19,7 +20,9 @@ from rich.table import Table
 
 __all__ = ["to_jsonable", "write_json", "print_table", "console"]
 
-console = Console(stderr=False, highlight=False)
+# Not a terminal (CI logs, pipes): rich would wrap tables at 80 columns; logs can be wide.
+console = Console(stderr=False, highlight=False,
+                  width=None if sys.stdout.isatty() else 160)
 
 
 def to_jsonable(x: Any) -> Any:
