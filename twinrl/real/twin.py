@@ -392,7 +392,7 @@ def render_episode(
     ``real=True`` runs the real twin (default perturbation for ``seed``, camera at its true,
     offset pose); ``real=False`` the MJX simulator, rendered at the nominal camera pose.
     Writes ``<name>_<real|sim>_{rgb,depth,segmentation}.png`` (last frame; depth colour-mapped
-    near=yellow, far=purple, background black; segmentation one colour per geom) and
+    viridis, near=purple, far=yellow, background black; segmentation one colour per geom) and
     ``<name>_<real|sim>.mp4`` (``.gif`` if no ffmpeg). Returns those paths by kind
     (``rgb``, ``depth``, ``segmentation``, ``video``).
     """
