@@ -1,0 +1,289 @@
+"""Trajectory optimisation: improve an action sequence with the analytic gradient of its return.
+
+This is the inner step of PODS (Mora et al., "PODS: Policy Optimization via Differentiable
+Simulation", ICML 2021, Sec. 4): every rollout's actions ``a`` (T x m) are improved with the
+derivative of their return ``V(a)`` through the simulator, the improved actions are kept only if a
+line search finds a better return, and the policy is then regressed onto them (``learn.pods``).
+HDS and learning from demonstrations reuse the same step.
+
+Two update directions (PODS Sec. 4.1 and 4.2):
+
+- **first order**: ``a + alpha * dV/da``;
+- **second order (Gauss–Newton)**: ``a + alpha * H^-1 dV/da``. With the states ``s_t(a)`` of the
+  rollout and the per-step reward ``r(s_t, a_t)``, ``V = sum_t r(s_t, a_t)``. Linearising the
+  dynamics, ``z_t = (s_t, a_t) ~ z_t(a0) + Z_t (a - a0)`` with ``Z_t = [ds_t/da ; da_t/da]``
+  ((n + m) x T m), so the second-order model of the *cost* ``-V`` is
+  ``H = sum_t Z_t^T (-d^2 r / dz^2)_t Z_t``, i.e. ``(ds/da)^T (-d^2V/ds^2) (ds/da) - d^2V/da^2`` plus
+  the state-action cross terms; the curvature of the dynamics (second derivatives of ``s(a)``) is
+  what Gauss–Newton drops. We work with the cost so that ``H`` should be positive definite; each
+  per-step ``-d^2 r/dz^2`` is projected onto the positive semi-definite cone (eigenvalues clipped
+  at 0: a reward that is locally convex, such as the pendulum's ``(1 - cos th) / 2`` near hanging,
+  would otherwise make Newton walk *downhill*), and Levenberg–Marquardt damping ``lambda I`` makes
+  the (T m) x (T m) system positive definite, solved by Cholesky for any action dimension m. (The
+  research code that PODS grew from inverted an explicit Hessian and worked only for m = 1.)
+
+A line search evaluates ``alpha_k = step_size * 2^-k``, k = 0..K-1, in one vmapped call on the
+clipped candidates ``clip(a + alpha_k d, low, high)`` and takes the best of those whose return is
+*strictly* higher than the current one; if none is, the actions are kept (``accepted = False``).
+A non-finite gradient, Hessian or direction takes no step and is flagged (``nonfinite``).
+
+The problem is given as two pure functions, so that the states the Gauss–Newton step needs are
+explicit: ``rollout_fn(actions (T, m)) -> states (T, n)`` (the state *after* each action) and
+``reward_fn(state (n,), action (m,)) -> scalar``; ``env_problem(env, state)`` builds them for a
+``twinrl.envs.Env`` from a start ``State`` (inside a jit, so one compile serves every start state).
+Everything is a pure, jit/vmap-able function of arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from twinrl.physics.gradients import all_finite, global_norm
+
+__all__ = ["TrajoptConfig", "TrajoptResult", "RolloutFn", "RewardFn", "env_problem",
+           "trajectory_return", "line_search", "first_order_direction", "gauss_newton_direction",
+           "improve", "optimize"]
+
+RolloutFn = Callable[[jax.Array], jax.Array]
+"""``actions (T, m) -> states (T, n)``: the state after each action, differentiable."""
+RewardFn = Callable[[jax.Array, jax.Array], jax.Array]
+"""``(state (n,), action (m,)) -> reward ()``: twice differentiable for the second order."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TrajoptConfig:
+    """How one improvement step of an action sequence is taken."""
+
+    order: int = 1
+    """1: gradient ascent direction ``dV/da``; 2: Gauss–Newton direction ``H^-1 dV/da``."""
+    step_size: float = 1.0
+    """``alpha0``, the largest step the line search tries (first order: in action units per unit
+    of gradient; second order: 1 is the full Gauss–Newton step)."""
+    line_search_steps: int = 8
+    """K: step sizes ``step_size * 2^-k`` for k = 0..K-1, all evaluated in one vmapped call
+    (each costs one rollout of T steps)."""
+    regularization: float = 1e-3
+    """Levenberg–Marquardt damping ``lambda`` added to the Gauss–Newton matrix's diagonal
+    (second order only); larger is more cautious, closer to a scaled gradient step."""
+    max_grad_norm: float | None = None
+    """If set, the gradient is scaled to at most this global norm before the direction is formed
+    (for the second order this scales the Newton step by the same factor)."""
+    action_low: float = -1.0
+    """Lower action bound; every candidate is clipped to it."""
+    action_high: float = 1.0
+    """Upper action bound; every candidate is clipped to it."""
+
+    def __post_init__(self):
+        if self.order not in (1, 2):
+            raise ValueError(f"order must be 1 (gradient) or 2 (Gauss-Newton), got {self.order!r}")
+        if not self.step_size > 0:
+            raise ValueError(f"step_size must be > 0, got {self.step_size}")
+        if int(self.line_search_steps) < 1 or int(self.line_search_steps) != self.line_search_steps:
+            raise ValueError(f"line_search_steps must be an integer >= 1, "
+                             f"got {self.line_search_steps}")
+        if not self.regularization >= 0:
+            raise ValueError(f"regularization must be >= 0, got {self.regularization}")
+        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
+            raise ValueError(f"max_grad_norm must be > 0 or None, got {self.max_grad_norm}")
+        if not self.action_low < self.action_high:
+            raise ValueError(f"action_low must be < action_high, got "
+                             f"[{self.action_low}, {self.action_high}]")
+
+    @property
+    def alphas(self) -> jax.Array:
+        """The line search's step sizes, largest first."""
+        return self.step_size * 0.5 ** jnp.arange(int(self.line_search_steps), dtype=jnp.float32)
+
+
+class TrajoptResult(NamedTuple):
+    """One improvement step's outcome (all arrays; stacked over iterations by ``optimize``)."""
+
+    actions: jax.Array
+    """The new actions (T, m): improved if ``accepted``, else the input unchanged."""
+    value: jax.Array
+    """Return of ``actions`` (``>= old_value`` always)."""
+    old_value: jax.Array
+    """Return of the input actions."""
+    alpha: jax.Array
+    """Accepted step size (0 when not accepted)."""
+    accepted: jax.Array
+    """Whether a step size improved the return."""
+    grad_norm: jax.Array
+    """Global norm of ``dV/da`` before any clipping (NaN/inf when non-finite)."""
+    nonfinite: jax.Array
+    """1 when the gradient, Hessian or direction held a NaN/inf and no step was taken, else 0."""
+    env_steps: jax.Array
+    """Simulated steps spent: T for the differentiated rollout (its tangents or cotangents ride on
+    that one pass, and it also gives ``old_value``) + T per line-search candidate."""
+
+
+# --------------------------------------------------------------------------- problem builders
+def env_problem(env, state) -> tuple[RolloutFn, RewardFn]:
+    """``(rollout_fn, reward_fn)`` of a ``twinrl.envs.Env`` from the start ``State``.
+
+    The state vector is ``concat(qpos, qvel)`` after each control step, simulated exactly as
+    ``env.step`` does (``env.action_to_ctrl``, ``env.params``), and the reward is ``env.reward``,
+    so ``trajectory_return`` equals ``env.unroll(state, actions)[1].sum()``. Call it inside a jit
+    with the state as an argument, so one compile serves every start state.
+    """
+    nq = env.sim.nq
+    data0 = state.pipeline_state
+
+    def rollout_fn(actions):
+        ctrl = jax.vmap(env.action_to_ctrl)(actions)
+        _, traj = env.sim.rollout(data0, ctrl, env.params)
+        return jnp.concatenate([traj.qpos, traj.qvel], axis=-1)
+
+    def reward_fn(s, a):
+        return env.reward(s[:nq], s[nq:], a)[0]
+
+    return rollout_fn, reward_fn
+
+
+def _check(actions, states=None, rewards=None):
+    if actions.ndim != 2:
+        raise ValueError(f"actions must have shape (T, m), got {actions.shape}")
+    if states is not None and (states.ndim != 2 or states.shape[0] != actions.shape[0]):
+        raise ValueError(f"rollout_fn must return states of shape (T={actions.shape[0]}, n), "
+                         f"got {states.shape}")
+    if rewards is not None and rewards.shape != (actions.shape[0],):
+        raise ValueError(f"reward_fn must return a scalar per (state, action), got shape "
+                         f"{rewards.shape[1:]}")
+
+
+def trajectory_return(rollout_fn: RolloutFn, reward_fn: RewardFn, actions: jax.Array) -> jax.Array:
+    """``V(a) = sum_t reward_fn(s_t(a), a_t)``."""
+    states = rollout_fn(actions)
+    rewards = jax.vmap(reward_fn)(states, actions)
+    _check(actions, states, rewards)
+    return jnp.sum(rewards)
+
+
+# --------------------------------------------------------------------------- directions
+def first_order_direction(rollout_fn, reward_fn, actions):
+    """``(V(a), dV/da, dV/da)``: the gradient is its own ascent direction (PODS Sec. 4.1)."""
+    value, grad = jax.value_and_grad(lambda a: trajectory_return(rollout_fn, reward_fn, a))(actions)
+    return value, grad, lambda g: g
+
+
+def gauss_newton_direction(rollout_fn, reward_fn, actions, regularization: float):
+    """``(V(a), dV/da, solve)`` with ``solve(g) = H^-1 g``, H the damped Gauss–Newton matrix of
+    ``-V`` (module docstring; PODS Sec. 4.2) over all T m actions jointly, any m.
+
+    ``ds/da`` comes from ``jax.jacfwd`` of the rollout (T m tangents on one forward pass: cheaper
+    than T n reverse passes when m < n, the usual case for robots).
+    """
+    T, m = actions.shape
+    jac, states = jax.jacfwd(lambda a: (rollout_fn(a),) * 2, has_aux=True)(actions)
+    _check(actions, states)
+    n = states.shape[1]
+    ds_da = jac.reshape(T, n, T * m)
+    # da_t/da selects action t from the flattened sequence.
+    da_da = jnp.eye(T * m, dtype=ds_da.dtype).reshape(T, m, T * m)
+    Z = jnp.concatenate([ds_da, da_da], axis=1)                       # (T, n + m, T m)
+
+    def r_z(z):
+        return reward_fn(z[:n], z[n:])
+
+    zs = jnp.concatenate([states, actions.astype(states.dtype)], axis=1)
+    rewards, dr = jax.vmap(jax.value_and_grad(r_z))(zs)                # (T,), (T, n + m)
+    _check(actions, states, rewards)
+    d2r = jax.vmap(jax.hessian(r_z))(zs)                               # (T, n + m, n + m)
+    grad = jnp.einsum("tz,tzk->k", dr, Z).reshape(T, m)
+    # Per-step cost curvature projected onto the PSD cone: the GN matrix is then PSD and the
+    # damped system has a Cholesky factor; negative curvature of the cost is no model to trust.
+    w, U = jnp.linalg.eigh(-0.5 * (d2r + jnp.swapaxes(d2r, 1, 2)))
+    cost_curv = jnp.einsum("tij,tj,tkj->tik", U, jnp.maximum(w, 0.0), U)
+    H = jnp.einsum("tzi,tzy,tyj->ij", Z, cost_curv, Z)
+    H = H + regularization * jnp.eye(T * m, dtype=H.dtype)
+    chol = jax.scipy.linalg.cho_factor(H, lower=True)
+    finite_H = all_finite(H)
+
+    def solve(g):
+        d = jax.scipy.linalg.cho_solve(chol, g.reshape(T * m)).reshape(T, m)
+        # A NaN Hessian poisons the direction; report it via the direction's finiteness.
+        return jnp.where(finite_H, d, jnp.nan)
+
+    return jnp.sum(rewards), grad, solve
+
+
+# --------------------------------------------------------------------------- line search
+def line_search(rollout_fn, reward_fn, actions, direction, old_value, config: TrajoptConfig):
+    """Best strictly improving candidate among ``clip(a + alpha_k d)``; else the input.
+
+    All K candidates are simulated in one vmapped call, so taking the best of them (rather than
+    the first improving one, as sequential backtracking would) costs nothing extra.
+    Returns ``(actions, value, alpha, accepted)``.
+    """
+    alphas = config.alphas.astype(actions.dtype)
+    cands = jnp.clip(actions[None] + alphas[:, None, None] * direction[None],
+                     config.action_low, config.action_high)
+    values = jax.vmap(lambda a: trajectory_return(rollout_fn, reward_fn, a))(cands)
+    values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
+    k = jnp.argmax(values)
+    accepted = values[k] > old_value
+    new_actions = jnp.where(accepted, cands[k], actions)
+    new_value = jnp.where(accepted, values[k], old_value)
+    return new_actions, new_value, jnp.where(accepted, alphas[k], 0.0), accepted
+
+
+# --------------------------------------------------------------------------- the step
+def improve(rollout_fn: RolloutFn, reward_fn: RewardFn, actions: jax.Array,
+            config: TrajoptConfig) -> TrajoptResult:
+    """One PODS improvement step of ``actions`` (T, m): direction, hygiene, line search.
+
+    Jit it with the functions and config closed over, e.g.
+    ``jax.jit(lambda s, a: improve(*env_problem(env, s), a, config))``.
+    """
+    if not isinstance(config, TrajoptConfig):
+        raise TypeError(f"config must be a TrajoptConfig, got {type(config).__name__}")
+    actions = jnp.asarray(actions)
+    if not jnp.issubdtype(actions.dtype, jnp.floating):
+        raise TypeError(f"actions must be floating point, got dtype {actions.dtype}")
+    _check(actions)
+    T = actions.shape[0]
+    if config.order == 1:
+        old_value, grad, solve = first_order_direction(rollout_fn, reward_fn, actions)
+    else:
+        old_value, grad, solve = gauss_newton_direction(rollout_fn, reward_fn, actions,
+                                                        config.regularization)
+    grad_norm = global_norm(grad)
+    g = grad
+    if config.max_grad_norm is not None:
+        g = g * jnp.where(grad_norm > config.max_grad_norm,
+                          config.max_grad_norm / jnp.maximum(grad_norm, 1e-30), 1.0)
+    direction = solve(g)
+    ok = all_finite(direction) & jnp.isfinite(old_value)
+    # where(), not multiplication: 0 * NaN is NaN.
+    direction = jnp.where(ok, direction, 0.0)
+    new_actions, value, alpha, accepted = line_search(rollout_fn, reward_fn, actions, direction,
+                                                      old_value, config)
+    accepted = accepted & ok
+    new_actions = jnp.where(accepted, new_actions, actions)
+    value = jnp.where(accepted, value, old_value)
+    steps = T * (1 + int(config.line_search_steps))
+    return TrajoptResult(actions=new_actions, value=value, old_value=old_value,
+                         alpha=jnp.where(accepted, alpha, 0.0), accepted=accepted,
+                         grad_norm=grad_norm, nonfinite=(~ok).astype(jnp.int32),
+                         env_steps=jnp.asarray(steps, jnp.int32))
+
+
+def optimize(rollout_fn: RolloutFn, reward_fn: RewardFn, actions: jax.Array,
+             config: TrajoptConfig, iterations: int) -> tuple[jax.Array, TrajoptResult]:
+    """``iterations`` improvement steps in one ``lax.scan``.
+
+    Returns the final actions and the per-iteration ``TrajoptResult``s stacked on a leading axis
+    (``history.env_steps.sum()`` is the total simulation cost).
+    """
+    if int(iterations) < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+
+    def body(a, _):
+        res = improve(rollout_fn, reward_fn, a, config)
+        return res.actions, res
+
+    return jax.lax.scan(body, jnp.asarray(actions), None, length=int(iterations))
