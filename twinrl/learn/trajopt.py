@@ -158,6 +158,7 @@ def _check(actions, states=None, rewards=None):
 def trajectory_return(rollout_fn: RolloutFn, reward_fn: RewardFn, actions: jax.Array) -> jax.Array:
     """``V(a) = sum_t reward_fn(s_t(a), a_t)``."""
     states = rollout_fn(actions)
+    _check(actions, states)
     rewards = jax.vmap(reward_fn)(states, actions)
     _check(actions, states, rewards)
     return jnp.sum(rewards)

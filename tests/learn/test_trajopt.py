@@ -1,0 +1,197 @@
+"""``twinrl.learn.trajopt``: exactness on a linear-quadratic problem, monotone improvement on real
+tasks (pendulum, and push with a 2-D action through contacts), and the non-finite guard.
+
+Compiles dominate: each MJX test jits one ``optimize`` (a ``lax.scan`` of a few steps) per order,
+with short horizons.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from twinrl import envs
+from twinrl.learn import trajopt
+from twinrl.learn.trajopt import TrajoptConfig, env_problem, improve, optimize
+
+# ----------------------------------------------------------------------------- linear-quadratic
+T_LQ, N_LQ, M_LQ = 6, 3, 2
+
+
+def _lq():
+    rng = np.random.default_rng(0)
+    A = np.eye(N_LQ) + 0.1 * rng.standard_normal((N_LQ, N_LQ))
+    B = 0.5 * rng.standard_normal((N_LQ, M_LQ))
+    Q = np.diag([1.0, 0.5, 2.0])
+    R = np.diag([0.3, 0.1])
+    s0 = np.array([0.4, -0.3, 0.2])
+    return A, B, Q, R, s0
+
+
+def _lq_problem(nan_reward=False):
+    A, B, Q, R, s0 = (jnp.asarray(x) for x in _lq())
+
+    def rollout_fn(actions):
+        def body(s, a):
+            s = A @ s + B @ a
+            return s, s
+        return jax.lax.scan(body, s0.astype(actions.dtype), actions)[1]
+
+    def reward_fn(s, a):
+        r = -(s @ Q @ s + a @ R @ a)
+        if nan_reward:
+            # finite value, NaN gradient: d sqrt(x)/dx = inf at 0, times d(0 * s)/ds = 0
+            r = r - jnp.sqrt(0.0 * s[0])
+        return r
+
+    return rollout_fn, reward_fn
+
+
+def _lq_optimum():
+    """Closed form: s = S0 + G a, so V = -(s'Qs + a'Ra) is maximised by
+    (G'QG + R) a = -G'Q S0 over the stacked sequences."""
+    A, B, Q, R, s0 = _lq()
+    G = np.zeros((T_LQ * N_LQ, T_LQ * M_LQ))
+    S0 = np.zeros(T_LQ * N_LQ)
+    for t in range(T_LQ):
+        S0[t * N_LQ:(t + 1) * N_LQ] = np.linalg.matrix_power(A, t + 1) @ s0
+        for k in range(t + 1):
+            G[t * N_LQ:(t + 1) * N_LQ, k * M_LQ:(k + 1) * M_LQ] = (
+                np.linalg.matrix_power(A, t - k) @ B)
+    Qb = np.kron(np.eye(T_LQ), Q)
+    Rb = np.kron(np.eye(T_LQ), R)
+    a = np.linalg.solve(G.T @ Qb @ G + Rb, -G.T @ Qb @ S0)
+    s = S0 + G @ a
+    return a.reshape(T_LQ, M_LQ), -(s @ Qb @ s + a @ Rb @ a)
+
+
+def test_gauss_newton_full_step_reaches_the_lq_optimum():
+    a_star, v_star = _lq_optimum()
+    assert np.abs(a_star).max() < 1.0  # inside the bounds, so clipping plays no part
+    with jax.enable_x64(True):
+        rollout_fn, reward_fn = _lq_problem()
+        cfg = TrajoptConfig(order=2, step_size=1.0, line_search_steps=4, regularization=1e-9)
+        a0 = jnp.zeros((T_LQ, M_LQ), jnp.float64)
+        res = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, cfg))(a0)
+        assert bool(res.accepted)
+        assert float(res.alpha) == 1.0  # the full Gauss-Newton step is the best on the line
+        np.testing.assert_allclose(res.actions, a_star, atol=1e-6)
+        np.testing.assert_allclose(res.value, v_star, rtol=1e-9)
+        assert int(res.env_steps) == T_LQ * (1 + 4)
+        assert int(res.nonfinite) == 0
+
+
+def test_first_order_improves_monotonically_towards_the_lq_optimum():
+    a_star, v_star = _lq_optimum()
+    with jax.enable_x64(True):
+        rollout_fn, reward_fn = _lq_problem()
+        cfg = TrajoptConfig(order=1, step_size=0.5, line_search_steps=6)
+        a0 = jnp.full((T_LQ, M_LQ), 0.5, jnp.float64)
+        v0 = float(trajopt.trajectory_return(rollout_fn, reward_fn, a0))
+        a, hist = jax.jit(lambda a: optimize(rollout_fn, reward_fn, a, cfg, 30))(a0)
+    values = np.concatenate([[v0], np.asarray(hist.value)])
+    assert np.all(np.diff(values) >= 0), values
+    assert np.all(np.asarray(hist.accepted)[:5])  # far from the optimum every step improves
+    np.testing.assert_allclose(np.asarray(hist.old_value)[1:], np.asarray(hist.value)[:-1])
+    assert v_star - values[-1] < 0.05 * (v_star - v0)
+    assert values[-1] <= v_star + 1e-12
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_nonfinite_gradient_takes_no_step_and_is_counted(order):
+    rollout_fn, reward_fn = _lq_problem(nan_reward=True)
+    cfg = TrajoptConfig(order=order)
+    a0 = jnp.full((T_LQ, M_LQ), 0.3, jnp.float32)
+    _, hist = jax.jit(lambda a: optimize(rollout_fn, reward_fn, a, cfg, 2))(a0)
+    assert np.asarray(hist.nonfinite).tolist() == [1, 1]
+    assert not np.any(np.asarray(hist.accepted))
+    np.testing.assert_array_equal(hist.actions[-1], a0)
+    np.testing.assert_array_equal(hist.value, hist.old_value)
+    assert np.all(np.isfinite(np.asarray(hist.value)))
+    assert not np.all(np.isfinite(np.asarray(hist.grad_norm)))
+
+
+def test_clipping_bounds_and_config_errors():
+    rollout_fn, reward_fn = _lq_problem()
+    # a huge step: every candidate leaves [-1, 1] before clipping
+    cfg = TrajoptConfig(order=1, step_size=1e3, line_search_steps=2, max_grad_norm=1.0)
+    res = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, cfg))(jnp.zeros((T_LQ, M_LQ)))
+    assert np.abs(np.asarray(res.actions)).max() <= 1.0
+    assert float(res.value) >= float(res.old_value)
+    for bad, word in [(dict(order=3), "order"), (dict(step_size=0.0), "step_size"),
+                      (dict(line_search_steps=0), "line_search_steps"),
+                      (dict(regularization=-1.0), "regularization"),
+                      (dict(max_grad_norm=0.0), "max_grad_norm"),
+                      (dict(action_low=1.0, action_high=-1.0), "action_low")]:
+        with pytest.raises(ValueError, match=word):
+            TrajoptConfig(**bad)
+    with pytest.raises(ValueError, match="actions must have shape"):
+        improve(rollout_fn, reward_fn, jnp.zeros(T_LQ), TrajoptConfig())
+    with pytest.raises(ValueError, match="rollout_fn must return"):
+        improve(lambda a: rollout_fn(a)[:-1], reward_fn, jnp.zeros((T_LQ, M_LQ)), TrajoptConfig())
+
+
+# ----------------------------------------------------------------------------- MJX tasks
+def _run_task(env, state, a0, cfg, iterations):
+    fn = jax.jit(lambda s, a: optimize(*env_problem(env, s), a, cfg, iterations))
+    return fn(state, a0)
+
+
+def _assert_never_worse(hist, v0):
+    values = np.concatenate([[v0], np.asarray(hist.value)])
+    assert np.all(np.isfinite(values)), values
+    assert np.all(np.diff(values) >= 0), values
+    # each step starts where the last one ended, and a rejected step keeps the value
+    np.testing.assert_allclose(np.asarray(hist.old_value), values[:-1], rtol=1e-5)
+    acc = np.asarray(hist.accepted)
+    assert np.all(np.asarray(hist.alpha)[~acc] == 0)
+    return values
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    env = envs.make("pendulum_swingup")
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    a0 = 0.3 * jax.random.uniform(jax.random.PRNGKey(1), (30, env.action_size), minval=-1.0,
+                                  maxval=1.0)
+    return env, state, a0
+
+
+def test_env_problem_return_equals_the_env_unroll(pendulum):
+    env, state, a0 = pendulum
+    v = jax.jit(lambda s, a: trajopt.trajectory_return(*env_problem(env, s), a))(state, a0)
+    _, rewards = jax.jit(env.unroll)(state, a0)
+    np.testing.assert_allclose(v, rewards.sum(), rtol=1e-5)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_pendulum_iterations_increase_the_return(order, pendulum):
+    env, state, a0 = pendulum
+    cfg = TrajoptConfig(order=order, step_size=1.0 if order == 2 else 0.5, line_search_steps=6,
+                        regularization=1e-2)
+    a, hist = _run_task(env, state, a0, cfg, 4)
+    v0 = float(jax.jit(lambda s, a: trajopt.trajectory_return(*env_problem(env, s), a))(state, a0))
+    values = _assert_never_worse(hist, v0)
+    assert values[-1] > v0 + 1e-3, values
+    assert a.shape == a0.shape and np.abs(np.asarray(a)).max() <= 1.0
+    assert int(np.asarray(hist.env_steps).sum()) == 4 * 30 * (1 + 6)
+    assert not np.any(np.asarray(hist.nonfinite))
+
+
+def test_push_gauss_newton_with_a_2d_action():
+    env = envs.make("push")
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    T = 15
+    assert env.action_size == 2
+    # push towards the box (+x) so the contact is part of the rollout
+    a0 = jnp.tile(jnp.array([0.6, 0.0]), (T, 1)) + 0.1 * jax.random.normal(
+        jax.random.PRNGKey(2), (T, 2))
+    cfg = TrajoptConfig(order=2, line_search_steps=5, regularization=1e-2)
+    v0 = float(jax.jit(lambda s, a: trajopt.trajectory_return(*env_problem(env, s), a))(state, a0))
+    a, hist = _run_task(env, state, a0, cfg, 2)
+    assert a.shape == (T, 2) and hist.actions.shape == (2, T, 2)
+    assert np.all(np.isfinite(np.asarray(a)))
+    assert np.abs(np.asarray(a)).max() <= 1.0
+    _assert_never_worse(hist, v0)
+    assert not np.any(np.asarray(hist.nonfinite))
+    assert np.all(np.isfinite(np.asarray(hist.grad_norm)))
