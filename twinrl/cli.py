@@ -20,6 +20,13 @@ class UsageError(Exception):
     """Bad input named in one line, no traceback."""
 
 
+def _check_task(name: str) -> None:
+    from twinrl import envs
+
+    if name not in envs.names():
+        raise UsageError(f"unknown task {name!r}; registered tasks are {', '.join(envs.names())}")
+
+
 def _common(p: argparse.ArgumentParser, out_default: str) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", type=Path, default=Path(out_default),
@@ -188,8 +195,7 @@ def _cmd_collect(args) -> int:
     from twinrl import envs, report
     from twinrl.real.dataset import DatasetWriter
 
-    if args.env not in envs.names():
-        raise UsageError(f"unknown task {args.env!r}; registered tasks are {', '.join(envs.names())}")
+    _check_task(args.env)
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
     if args.policy not in ("random", "zero"):
@@ -258,8 +264,7 @@ def _cmd_render(args) -> int:
     from twinrl import envs, report
     from twinrl.real.twin import render_episode
 
-    if args.env not in envs.names():
-        raise UsageError(f"unknown task {args.env!r}; registered tasks are {', '.join(envs.names())}")
+    _check_task(args.env)
     with report.console.status(f"rendering {args.env} ({'real twin' if args.real else 'sim'})..."):
         paths = render_episode(args.env, real=args.real, seed=args.seed, out_dir=args.out,
                                steps=args.steps, width=args.size[0], height=args.size[1],
