@@ -2,7 +2,8 @@
 tasks (pendulum, and push with a 2-D action through contacts), and the non-finite guard.
 
 Compiles dominate: each MJX test jits one ``optimize`` (a ``lax.scan`` of a few steps) per order,
-with short horizons.
+with short horizons. Measured on the 2-core dev machine: ~200 s with a cold compilation cache
+(the MJX gradients compile for 45-70 s each), ~70 s warm.
 """
 
 import jax

@@ -31,7 +31,11 @@ The problem is given as two pure functions, so that the states the Gauss–Newto
 explicit: ``rollout_fn(actions (T, m)) -> states (T, n)`` (the state *after* each action) and
 ``reward_fn(state (n,), action (m,)) -> scalar``; ``env_problem(env, state)`` builds them for a
 ``twinrl.envs.Env`` from a start ``State`` (inside a jit, so one compile serves every start state).
-Everything is a pure, jit/vmap-able function of arrays.
+Everything is a pure, jit/vmap-able function of arrays. Typical use (PODS's inner loop)::
+
+    cfg = TrajoptConfig(order=2, regularization=1e-2)
+    step = jax.jit(jax.vmap(lambda s, a: improve(*env_problem(env, s), a, cfg)))
+    res = step(start_states, actions)        # res.actions: regression targets for the policy
 """
 
 from __future__ import annotations
