@@ -196,3 +196,18 @@ def test_push_gauss_newton_with_a_2d_action():
     _assert_never_worse(hist, v0)
     assert not np.any(np.asarray(hist.nonfinite))
     assert np.all(np.isfinite(np.asarray(hist.grad_norm)))
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_improve_vmaps_over_a_batch_of_sequences(order):
+    rollout_fn, reward_fn = _lq_problem()
+    cfg = TrajoptConfig(order=order, line_search_steps=3)
+    batch = jax.random.uniform(jax.random.PRNGKey(0), (3, T_LQ, M_LQ), minval=-0.5, maxval=0.5)
+    step = jax.jit(jax.vmap(lambda a: improve(rollout_fn, reward_fn, a, cfg)))
+    res = step(batch)
+    assert res.actions.shape == batch.shape and res.value.shape == (3,)
+    single = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, cfg))
+    for i in range(3):  # the batch is the same as one sequence at a time
+        one = single(batch[i])
+        np.testing.assert_allclose(res.actions[i], one.actions, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(res.value[i], one.value, rtol=1e-4)
