@@ -22,8 +22,10 @@ $(STAMP): pyproject.toml requirements.lock
 run: $(STAMP)
 	$(VENV)/bin/twinrl gradcheck all --x64 --out $(OUT)
 
+# Two workers, one test file per worker: JAX compiles (most of the suite's time) are largely
+# single-threaded, so a second process keeps the second core busy.
 test: $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 --dist loadfile
 
 bench: $(STAMP)
 	$(PY) bench/physics.py --out bench/results
