@@ -29,6 +29,7 @@ rounding noise is bounded by ``r = 4 eps max(|L|, 1) / h``. With ``s = |fd(h) - 
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Any
 
 import jax
@@ -144,8 +145,6 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | None
       rtol: tolerance on the relative error of stable entries.
       seed: seed of the loss weights and of generic scenarios.
     """
-    import time
-
     name = sim.name if sim.name in SCENES else "mjcf"
     sc = scenario or default_scenario(name, sim.nq, sim.nv, sim.nu,
                                       np.array(sim.mj_model.qpos0), horizon, seed)
