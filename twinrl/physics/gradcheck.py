@@ -35,6 +35,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, Scenario, scenario as default_scenario
@@ -86,24 +87,8 @@ class GradcheckResult:
         }
 
 
-def _flatten(tree) -> tuple[jax.Array, Any]:
-    leaves, treedef = jax.tree_util.tree_flatten(tree)
-    shapes = [l.shape for l in leaves]
-    flat = jnp.concatenate([jnp.ravel(l) for l in leaves]) if leaves else jnp.zeros(0)
-
-    def unflatten(x):
-        out, i = [], 0
-        for s in shapes:
-            n = int(np.prod(s))
-            out.append(x[i:i + n].reshape(s))
-            i += n
-        return jax.tree_util.tree_unflatten(treedef, out)
-
-    return flat, unflatten
-
-
 def _labels(inputs: dict[str, Any]) -> list[tuple[str, str]]:
-    """(group, index) per scalar, in the order ``_flatten`` lays them out."""
+    """(group, index) per scalar, in the order ``ravel_pytree`` lays them out (leaf order)."""
     labels = []
     leaves_with_path = jax.tree_util.tree_flatten_with_path(inputs)[0]
     for path, leaf in leaves_with_path:
@@ -159,7 +144,7 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | None
         "qvel": jnp.asarray(sc.qvel, dtype),
         "params": sim.default_params(),
     }
-    x0, unflatten = _flatten(inputs)
+    x0, unflatten = ravel_pytree(inputs)
 
     def loss(x):
         z = unflatten(x)
