@@ -1,0 +1,99 @@
+"""What every trainer shares: the ``train`` contract, policy evaluation and metric bookkeeping.
+
+The trainer contract (Brax's, made resumable)::
+
+    policy, params, metrics = train(env, config, rng, *, progress_fn=None, checkpoint_fn=None,
+                                    restore=None)
+
+- ``env``: a ``twinrl.envs.Env``; ``config``: the algorithm's frozen dataclass; ``rng``: a key.
+- ``policy``: a ``twinrl.learn.networks.Network``; ``policy.apply(params, obs)`` is the
+  deterministic action in [-1, 1].
+- ``metrics``: ``dict[str, list[float]]``, one entry per epoch, always including ``epoch``,
+  ``env_steps`` (cumulative simulated steps, line searches and gradient re-simulations included),
+  ``wall_s`` (cumulative seconds, compile included), ``return`` (mean undiscounted evaluation
+  return of the deterministic policy over ``eval_episodes`` full episodes) and ``grad_norm``.
+- ``progress_fn(epoch, metrics_of_this_epoch)`` is called after every epoch.
+- ``checkpoint_fn(epoch, train_state, metrics)`` is called after every epoch with the trainer's
+  whole state (a pytree of arrays of fixed structure: params, optimiser state, rng, counters) and
+  the metric history so far, which the caller may save (``twinrl.learn.checkpoint``).
+- ``restore(template_state) -> (train_state, metrics)``: the trainer builds its initial state, hands
+  it to ``restore`` as the structure to fill, and continues from epoch ``len(metrics['epoch'])``.
+  The result equals an uninterrupted run's with the same seed (wall clock aside), because every
+  random draw comes from the key carried in the state.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn", "RestoreFn"]
+
+ProgressFn = Callable[[int, dict[str, float]], None]
+CheckpointFn = Callable[[int, Any, dict[str, list[float]]], None]
+RestoreFn = Callable[[Any], tuple[Any, dict[str, list[float]]]]
+
+
+def make_evaluator(env, apply_fn: Callable, episodes: int, episode_length: int | None = None):
+    """A jitted ``evaluate(params, rng) -> returns (episodes,)`` of the deterministic policy.
+
+    Every episode runs the full ``episode_length`` (an episode that diverged stops earning: reward
+    after ``done`` is masked).
+    """
+    T = int(episode_length or env.episode_length)
+
+    def one(params, key):
+        state = env.reset(key)
+
+        def body(s, _):
+            a = apply_fn(params, s.obs)
+            s2 = env.step(s, a)
+            r = jnp.where(s.done > 0, 0.0, s2.reward)
+            return s2, r
+
+        _, rewards = jax.lax.scan(body, state, None, length=T)
+        return rewards.sum()
+
+    @jax.jit
+    def evaluate(params, rng):
+        keys = jax.random.split(rng, episodes)
+        return jax.vmap(one, in_axes=(None, 0))(params, keys)
+
+    return evaluate
+
+
+def evaluate(env, apply_fn, params, rng, episodes: int = 8) -> np.ndarray:
+    """Returns of ``episodes`` deterministic episodes in ``env`` (compiles each call: prefer
+    ``make_evaluator`` inside a trainer)."""
+    return np.asarray(make_evaluator(env, apply_fn, episodes)(params, rng))
+
+
+class MetricLog:
+    """Per-epoch metric history with cumulative wall clock; ``as_dict()`` is ``train``'s metrics.
+
+    ``history`` restores a log from a train state (``to_arrays``) so that a resumed run's metrics
+    continue the killed run's; wall-clock time continues from the recorded total.
+    """
+
+    def __init__(self, history: dict[str, Any] | None = None):
+        self.history: dict[str, list[float]] = {
+            k: [float(x) for x in np.asarray(v).ravel()] for k, v in (history or {}).items()}
+        self._t0 = time.perf_counter() - (self.history["wall_s"][-1] if self.history.get("wall_s")
+                                          else 0.0)
+
+    def record(self, **values: Any) -> dict[str, float]:
+        row = {k: float(np.asarray(v)) for k, v in values.items()}
+        row["wall_s"] = time.perf_counter() - self._t0
+        for k, v in row.items():
+            self.history.setdefault(k, []).append(v)
+        return row
+
+    def as_dict(self) -> dict[str, list[float]]:
+        return {k: list(v) for k, v in self.history.items()}
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(v, np.float64) for k, v in self.history.items()}
