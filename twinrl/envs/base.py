@@ -168,6 +168,17 @@ class Env(brax_base.Env):
     def observe(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
         """The observation vector of a state (noise-free; the real twin adds its own noise)."""
 
+    def state_from_obs(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """``(qpos, qvel)`` whose ``observe`` is ``obs``: the inverse of ``observe``.
+
+        Real2Sim's multiple shooting (``twinrl.real2sim.sysid``) starts each simulated window from
+        a recorded observation, so it needs this for tasks whose observation determines the state.
+        Tasks that cannot invert their observation raise ``NotImplementedError`` saying why.
+        """
+        raise NotImplementedError(
+            f"{type(self).__name__}.state_from_obs: this task does not say how to recover the "
+            "physical state (qpos, qvel) from its observation")
+
     @abc.abstractmethod
     def reward_terms(self, qpos: jax.Array, qvel: jax.Array,
                      action: jax.Array) -> dict[str, jax.Array]:

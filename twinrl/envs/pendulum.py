@@ -66,6 +66,12 @@ class PendulumSwingup(Env):
         th, thd = qpos[0], qvel[0]
         return jnp.stack([jnp.cos(th), jnp.sin(th), thd, th / jnp.pi]).astype(jnp.float32)
 
+    def state_from_obs(self, obs):
+        # The raw angle th / pi, not atan2(sin, cos): the joint limits make th and th + 2 pi
+        # different states.
+        obs = jnp.asarray(obs)
+        return obs[..., 3:4] * jnp.pi, obs[..., 2:3]
+
     def reward_terms(self, qpos, qvel, action):
         return {
             "upright": 0.5 * (1.0 - jnp.cos(qpos[0])),

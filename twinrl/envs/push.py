@@ -93,6 +93,13 @@ class Push(Env):
             qpos[0:2], qvel[0:2], box, jnp.stack([cos_yaw, sin_yaw]), qvel[2:4], self.goal - box,
         ]).astype(jnp.float32)
 
+    def state_from_obs(self, obs):
+        raise NotImplementedError(
+            "Push.state_from_obs: the observation does not determine the state -- the box's "
+            "height, roll, pitch, vertical velocity and angular velocity (qpos[4], the quaternion "
+            "beyond yaw, qvel[4:8]) are not observed, so a simulated window cannot start from a "
+            "recorded observation; identify push from full states or with a state estimator")
+
     def reward_terms(self, qpos, qvel, action):
         c = self.config
         box = qpos[2:4]
