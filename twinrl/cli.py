@@ -276,6 +276,78 @@ def _cmd_render(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------- train
+def _train_parser(sub) -> None:
+    from twinrl.learn.runner import ALGORITHMS
+
+    p = sub.add_parser(
+        "train", help="learn a policy in the simulator (PODS, HDS, SHAC; Brax PPO/APG baselines)",
+        description="Train a policy in the differentiable simulator. Writes metrics.csv, "
+                    "TensorBoard events (tb/), curve.png, the policy checkpoint (policy/: orbax "
+                    "params + checkpoint.json) and summary.json; the training state is saved "
+                    "every epoch so --resume continues a killed run to the same result.")
+    p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
+    p.add_argument("--algo", required=True, choices=list(ALGORITHMS),
+                   help="pods, pods2 (second order), hds, shac, or the baselines ppo, apg")
+    length = p.add_mutually_exclusive_group()
+    length.add_argument("--epochs", type=int, default=None,
+                        help="epochs (pods/pods2/hds/shac; default: the tuned value)")
+    length.add_argument("--steps", type=int, default=None,
+                        help="environment steps (ppo/apg; default: the tuned value)")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override a config field (JSON value; dotted for nested fields), "
+                        "repeatable, e.g. --set lr=3e-4 --set trajopt.order=2")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the killed run in --out from its last saved epoch")
+    _common(p, "runs/train")
+    p.set_defaults(func=_cmd_train)
+
+
+def _cmd_train(args) -> int:
+    from twinrl import report
+    from twinrl.learn.runner import parse_overrides, train_run
+
+    _check_task(args.env)
+    for flag in ("epochs", "steps"):
+        v = getattr(args, flag)
+        if v is not None and v < 1:
+            raise UsageError(f"--{flag} must be >= 1, got {v}")
+    s = train_run(args.env, args.algo, args.out, seed=args.seed, epochs=args.epochs,
+                  steps=args.steps, overrides=parse_overrides(args.set), resume=args.resume)
+    f = s["final"]
+    report.print_table(f"trained {args.algo} on {args.env}",
+                       ["epochs", "env steps", "final return", "best return", "wall s"],
+                       [[s["epochs"], f.get("env_steps"), f.get("return"), s["best_return"],
+                         f.get("wall_s")]])
+    return 0
+
+
+# ---------------------------------------------------------------------------------- eval
+def _eval_parser(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate a policy checkpoint in sim or in the real twin",
+                       description="Deterministic episodes of a trained policy; writes "
+                                   "summary.json (returns) and a video of the first episode.")
+    p.add_argument("--checkpoint", required=True, type=Path,
+                   help="a policy checkpoint (or the --out of `twinrl train`)")
+    p.add_argument("--real", action="store_true",
+                   help="run on the task's real twin (MuJoCo C, hidden perturbation for --seed)")
+    p.add_argument("--episodes", type=int, default=5, help="episodes (default 5)")
+    p.add_argument("--no-video", action="store_true", help="skip the video")
+    p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"))
+    _common(p, "runs/eval")
+    p.set_defaults(func=_cmd_eval)
+
+
+def _cmd_eval(args) -> int:
+    from twinrl.learn.runner import eval_run
+
+    if not args.checkpoint.exists():
+        raise UsageError(f"checkpoint {args.checkpoint} does not exist")
+    eval_run(args.checkpoint, args.out, real=args.real, episodes=args.episodes, seed=args.seed,
+             video=not args.no_video, size=tuple(args.size))
+    return 0
+
+
 # ---------------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -287,16 +359,20 @@ def build_parser() -> argparse.ArgumentParser:
     _collect_parser(sub)
     _render_parser(sub)
     _gradcheck_parser(sub)
+    _train_parser(sub)
+    _eval_parser(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from twinrl.learn.checkpoint import CheckpointError
+    from twinrl.learn.runner import RunError
     from twinrl.physics import MJCFError
 
     try:
         return args.func(args)
-    except (UsageError, MJCFError, FileNotFoundError) as e:
+    except (UsageError, MJCFError, FileNotFoundError, RunError, CheckpointError) as e:
         print(f"twinrl {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -7,6 +7,8 @@ command never leaves a half-written summary.
 
 from __future__ import annotations
 
+import csv
+import dataclasses
 import json
 import math
 import os
@@ -18,7 +20,8 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-__all__ = ["to_jsonable", "write_json", "print_table", "console"]
+__all__ = ["to_jsonable", "write_json", "print_table", "console", "MetricsWriter", "plot_curves",
+           "write_video"]
 
 # Not a terminal (CI logs, pipes): rich would wrap tables at 80 columns; logs can be wide.
 console = Console(stderr=False, highlight=False,
@@ -26,7 +29,9 @@ console = Console(stderr=False, highlight=False,
 
 
 def to_jsonable(x: Any) -> Any:
-    """Convert numpy/JAX scalars and arrays (and nested containers) to JSON types."""
+    """Convert numpy/JAX scalars and arrays, dataclasses (and nested containers) to JSON types."""
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {f.name: to_jsonable(getattr(x, f.name)) for f in dataclasses.fields(x)}
     if isinstance(x, dict):
         return {str(k): to_jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -68,3 +73,109 @@ def _fmt(v: Any) -> str:
             return "0"
         return f"{v:.2e}" if (abs(v) < 1e-2 or abs(v) >= 1e5) else f"{v:.4g}"
     return str(v)
+
+
+class MetricsWriter:
+    """Per-epoch metrics to ``metrics.csv`` and TensorBoard event files in ``directory``.
+
+    The CSV gains a row per ``write`` and is flushed each time, so a killed run keeps every epoch
+    it finished; a resumed run opens it again and rewrites it from the restored history
+    (``rewrite``), so the file never holds epochs the restored state did not reach.
+    """
+
+    def __init__(self, directory: str | os.PathLike, tensorboard: bool = True):
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.path = self.directory / "metrics.csv"
+        self._columns: list[str] | None = None
+        self._tb = None
+        if tensorboard:
+            from tensorboardX import SummaryWriter
+
+            self._tb = SummaryWriter(str(self.directory / "tb"), flush_secs=10)
+
+    def rewrite(self, history: dict[str, list[float]]) -> None:
+        """Replace the CSV by ``history`` (column -> per-epoch values)."""
+        self._columns = list(history)
+        n = max((len(v) for v in history.values()), default=0)
+        tmp = self.path.with_suffix(".csv.tmp")
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(self._columns)
+            for i in range(n):
+                w.writerow([_csv(history[c][i]) if i < len(history[c]) else "" for c in self._columns])
+        os.replace(tmp, self.path)
+
+    def write(self, step: int, row: dict[str, Any]) -> None:
+        row = {k: float(np.asarray(v)) for k, v in row.items()}
+        if self._columns is None:
+            self._columns = list(row)
+            with open(self.path, "w", newline="") as f:
+                csv.writer(f).writerow(self._columns)
+        with open(self.path, "a", newline="") as f:
+            csv.writer(f).writerow([_csv(row.get(c, "")) for c in self._columns])
+        if self._tb is not None:
+            for k, v in row.items():
+                if math.isfinite(v):
+                    self._tb.add_scalar(k, v, global_step=int(step))
+
+    def close(self) -> None:
+        if self._tb is not None:
+            self._tb.close()
+            self._tb = None
+
+
+def _csv(v: Any) -> str:
+    return repr(float(v)) if isinstance(v, (float, int, np.floating, np.integer)) else str(v)
+
+
+def plot_curves(path: str | os.PathLike, curves: dict[str, tuple[Sequence[float], Sequence[float]]],
+                xlabel: str, ylabel: str, title: str = "",
+                bands: dict[str, tuple[Sequence[float], Sequence[float]]] | None = None,
+                hline: tuple[float, str] | None = None) -> Path:
+    """Line plot of ``{label: (x, y)}`` to a PNG (Agg backend); optional ``bands`` (lo, hi) per
+    label and a dashed horizontal reference line ``(value, label)``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
+    for label, (x, y) in curves.items():
+        line, = ax.plot(np.asarray(x, float), np.asarray(y, float), label=label)
+        if bands and label in bands:
+            lo, hi = bands[label]
+            ax.fill_between(np.asarray(x, float), lo, hi, color=line.get_color(), alpha=0.2)
+    if hline is not None:
+        ax.axhline(hline[0], ls="--", color="k", lw=1, label=hline[1])
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float) -> Path:
+    """Write RGB frames as MP4 (H.264 via imageio-ffmpeg); GIF beside it if ffmpeg is missing.
+    Returns the path actually written."""
+    import imageio.v2 as imageio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames = [np.asarray(f, np.uint8) for f in frames]
+    if not frames:
+        raise ValueError(f"{path}: no frames to write")
+    try:
+        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
+        return path
+    except Exception:  # noqa: BLE001 - no ffmpeg backend
+        gif = path.with_suffix(".gif")
+        imageio.mimsave(gif, frames, duration=1000.0 / fps)
+        return gif

@@ -1,0 +1,128 @@
+"""The run directory of ``twinrl train``/``eval``: files, policy checkpoint round trip, resume,
+metrics CSV/TensorBoard, and clear errors (runner plumbing, with a toy trainer)."""
+
+import csv
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from twinrl.learn import checkpoint, runner
+from twinrl.learn.networks import NetworkConfig, make_network, make_policy
+from twinrl.report import MetricsWriter
+
+ENV = "pendulum_swingup"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def toy_algorithm():
+    runner.ALGORITHMS["toy"] = runner.Algorithm("tests.learn._toy", "train", "ToyConfig", {}, True)
+    yield
+    runner.ALGORITHMS.pop("toy")
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("full")
+    return out, runner.train_run(ENV, "toy", out, epochs=4, seed=3, progress=False)
+
+
+def test_run_directory_has_every_output(full_run):
+    out, summary = full_run
+    for name in ("run.json", "metrics.csv", "curve.png", "summary.json", "policy/checkpoint.json"):
+        assert (out / name).exists(), name
+    assert list((out / "tb").glob("events.out.tfevents.*"))
+    rows = (out / "metrics.csv").read_text().splitlines()
+    assert rows[0].split(",")[:2] == ["epoch", "env_steps"] and len(rows) == 5
+    assert summary["epochs"] == 4 and summary["final"]["epoch"] == 3
+
+
+def test_policy_checkpoint_loads_without_the_trainer(full_run):
+    out, _ = full_run
+    net, params, meta = checkpoint.load_policy(out)        # the run dir resolves to policy/
+    assert meta["algo"] == "toy" and meta["env"] == ENV and meta["seed"] == 3
+    obs = jnp.linspace(-1, 1, net.in_size)
+    a = net.apply(params, obs)
+    assert a.shape == (1,) and bool(jnp.all(jnp.abs(a) <= 1))
+
+
+def test_resume_after_kill_matches_uninterrupted(full_run, tmp_path):
+    out_full, _ = full_run
+    # "Killed" after epoch 1: a run of 2 epochs leaves train_state at epoch 1; the resumed run
+    # must be started with the same settings, so we write the 4-epoch run.json by hand.
+    runner.train_run(ENV, "toy", tmp_path, epochs=2, seed=3, progress=False)
+    doc = json.loads((tmp_path / "run.json").read_text())
+    doc["config"]["epochs"] = 4
+    (tmp_path / "run.json").write_text(json.dumps(doc))
+    s = runner.train_run(ENV, "toy", tmp_path, epochs=4, seed=3, progress=False, resume=True)
+    assert s["resumed"]
+    a = checkpoint.load_policy(out_full)[1]
+    b = checkpoint.load_policy(tmp_path)[1]
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    m_full, m_res = (list(csv.DictReader(open(d / "metrics.csv"))) for d in (out_full, tmp_path))
+    assert len(m_full) == len(m_res) == 4
+    for a_row, b_row in zip(m_full, m_res):
+        for k in ("epoch", "env_steps", "return"):
+            assert a_row[k] == b_row[k], (k, a_row, b_row)
+
+
+def test_existing_run_needs_resume_and_same_settings(full_run):
+    out, _ = full_run
+    with pytest.raises(runner.RunError, match="--resume"):
+        runner.train_run(ENV, "toy", out, epochs=4, seed=3, progress=False)
+    with pytest.raises(runner.RunError, match="different settings.*seed"):
+        runner.train_run(ENV, "toy", out, epochs=4, seed=4, progress=False, resume=True)
+
+
+def test_config_overrides_and_errors():
+    cfg = runner.make_config("toy", ENV, runner.parse_overrides(["lr=0.5", "epochs=7"]))
+    assert cfg.lr == 0.5 and cfg.epochs == 7
+    with pytest.raises(runner.RunError, match="no field 'learning_rate'"):
+        runner.make_config("toy", ENV, {"learning_rate": 1.0})
+    with pytest.raises(runner.RunError, match="unknown algorithm 'sac'"):
+        runner.algorithm("sac")
+    with pytest.raises(runner.RunError, match="field=value"):
+        runner.parse_overrides(["lr"])
+
+
+def test_checkpoint_errors(tmp_path):
+    with pytest.raises(checkpoint.CheckpointError, match="no checkpoint.json"):
+        checkpoint.load_policy(tmp_path)
+    (tmp_path / "checkpoint.json").write_text("{not json")
+    with pytest.raises(checkpoint.CheckpointError, match="not valid JSON"):
+        checkpoint.load_policy(tmp_path)
+    net = make_policy(3, 1, (4,))
+    bad = jax.tree.map(lambda x: x * jnp.nan, net.init(jax.random.key(0)))
+    with pytest.raises(ValueError, match="non-finite"):
+        checkpoint.save_policy(tmp_path / "p", net, bad)
+
+
+def test_zero_last_network_outputs_zero_and_round_trips(tmp_path):
+    net = make_network(4, 2, NetworkConfig(hidden=(8,), output="linear", zero_last=True))
+    params = net.init(jax.random.key(1))
+    assert bool(jnp.all(net.apply(params, jnp.ones((5, 4))) == 0))
+    checkpoint.save_policy(tmp_path, net, params, algo="residual")
+    net2, params2, _ = checkpoint.load_policy(tmp_path)
+    assert net2.config == net.config and bool(jnp.all(net2.apply(params2, jnp.ones(4)) == 0))
+
+
+def test_train_state_keeps_rng_keys(tmp_path):
+    ck = checkpoint.TrainStateCheckpointer(tmp_path)
+    state = {"rng": jax.random.key(5), "x": jnp.arange(3.0)}
+    ck(0, state, {"epoch": [0.0]})
+    got, hist = checkpoint.TrainStateCheckpointer(tmp_path).restore(state)
+    assert hist == {"epoch": [0.0]}
+    np.testing.assert_array_equal(jax.random.key_data(got["rng"]), jax.random.key_data(state["rng"]))
+
+
+def test_metrics_writer_rewrite_drops_epochs_past_the_restored_state(tmp_path):
+    w = MetricsWriter(tmp_path, tensorboard=False)
+    for e in range(3):
+        w.write(e, {"epoch": e, "return": float(e)})
+    w.rewrite({"epoch": [0.0], "return": [0.0]})
+    w.write(1, {"epoch": 1, "return": 1.0})
+    assert (tmp_path / "metrics.csv").read_text().splitlines() == ["epoch,return", "0.0,0.0",
+                                                                   "1.0,1.0"]

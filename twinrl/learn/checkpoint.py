@@ -1,0 +1,181 @@
+"""Checkpoints: a trained policy (orbax params + JSON config) and a resumable training state.
+
+**Policy checkpoint** (``save_policy`` / ``load_policy``), a directory::
+
+    checkpoint.json   format, network (kind, in/out sizes, NetworkConfig), algo, env name and its
+                      config overrides, the trainer's config, final metrics
+    params/           orbax StandardCheckpointer tree of the network parameters
+
+``load_policy(dir)`` rebuilds the network from the JSON alone (Brax's habit: params + a JSON
+network config), so a policy can be evaluated, deployed on the real twin, or used as the base of a
+residual policy without the training code. Networks of other kinds (Brax PPO's normalised policy)
+register a builder with ``register_network_kind``.
+
+**Training state** (``TrainStateCheckpointer``): the trainer's whole state (params, optimiser state,
+rng, counters; ``twinrl.learn.common``) and its metric history, saved together by an orbax
+``CheckpointManager`` after every epoch (or every ``every`` epochs). Orbax writes each step into a
+temporary directory and renames it when complete, so a run killed at any moment leaves the last
+complete step; ``restore(template)`` continues from it. PRNG key arrays are stored as their raw key
+data and re-wrapped with the template's key implementation.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from twinrl.learn.networks import Network, NetworkConfig, make_network
+from twinrl.report import to_jsonable
+
+__all__ = ["save_policy", "load_policy", "register_network_kind", "TrainStateCheckpointer",
+           "CheckpointError", "FORMAT"]
+
+FORMAT = "twinrl-policy-1"
+
+_BUILDERS: dict[str, Callable[[dict[str, Any]], Network]] = {}
+
+
+class CheckpointError(Exception):
+    """A checkpoint directory that is missing, incomplete or of an unknown format."""
+
+
+def register_network_kind(kind: str, builder: Callable[[dict[str, Any]], Network]) -> None:
+    """Teach ``load_policy`` to rebuild networks whose JSON says ``"kind": kind``."""
+    _BUILDERS[kind] = builder
+
+
+def _mlp_builder(spec: dict[str, Any]) -> Network:
+    return make_network(int(spec["in_size"]), int(spec["out_size"]),
+                        NetworkConfig.from_dict(spec["config"]))
+
+
+register_network_kind("mlp", _mlp_builder)
+
+
+def network_spec(policy: Network) -> dict[str, Any]:
+    spec = getattr(policy, "spec", None)
+    if spec is not None:
+        return dict(spec)
+    return {"kind": "mlp", "in_size": policy.in_size, "out_size": policy.out_size,
+            "config": policy.config.to_dict()}
+
+
+def save_policy(path: str | Path, policy: Network, params: Any, **meta: Any) -> Path:
+    """Write a policy checkpoint to ``path`` (created; an existing checkpoint is replaced).
+
+    ``meta`` (algo, env, env_config, config, metrics, ...) goes into ``checkpoint.json`` after
+    conversion to JSON (dataclasses become dicts, arrays lists, non-finite floats null).
+    """
+    import orbax.checkpoint as ocp
+
+    path = Path(path).absolute()
+    path.mkdir(parents=True, exist_ok=True)
+    leaves = jax.tree.leaves(params)
+    if not all(np.all(np.isfinite(np.asarray(x))) for x in leaves):
+        raise ValueError("refusing to save a policy with non-finite parameters")
+    ckptr = ocp.StandardCheckpointer()
+    ckptr.save(path / "params", params, force=True)
+    ckptr.wait_until_finished()
+    doc = {"format": FORMAT, "network": network_spec(policy), **to_jsonable(meta)}
+    tmp = path / "checkpoint.json.tmp"
+    tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))
+    tmp.replace(path / "checkpoint.json")
+    return path
+
+
+def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
+    """``(network, params, meta)`` from a policy checkpoint written by ``save_policy``."""
+    import orbax.checkpoint as ocp
+
+    path = Path(path).absolute()
+    # A training run's output directory holds the policy under policy/.
+    if not (path / "checkpoint.json").exists() and (path / "policy" / "checkpoint.json").exists():
+        path = path / "policy"
+    meta_file = path / "checkpoint.json"
+    if not meta_file.exists():
+        raise CheckpointError(f"{path}: no checkpoint.json (not a twinrl policy checkpoint)")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except json.JSONDecodeError as e:
+        raise CheckpointError(f"{meta_file}: not valid JSON ({e})") from None
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{meta_file}: format {meta.get('format')!r}, expected {FORMAT!r}")
+    spec = meta["network"]
+    kind = spec.get("kind", "mlp")
+    if kind not in _BUILDERS and kind.startswith("brax"):
+        import twinrl.learn.baselines  # noqa: F401  (registers the Brax network kinds)
+    if kind not in _BUILDERS:
+        raise CheckpointError(f"{meta_file}: unknown network kind {kind!r}; "
+                              f"known: {sorted(_BUILDERS)}")
+    network = _BUILDERS[kind](spec)
+    if not (path / "params").exists():
+        raise CheckpointError(f"{path}: params/ missing (checkpoint incomplete)")
+    template = jax.eval_shape(network.init, jax.random.key(0))
+    params = ocp.StandardCheckpointer().restore(path / "params", template)
+    return network, params, meta
+
+
+def _is_key(x) -> bool:
+    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def _unkey(tree):
+    return jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, tree)
+
+
+def _rekey(tree, template):
+    return jax.tree.map(
+        lambda x, t: jax.random.wrap_key_data(x, impl=jax.random.key_impl(t)) if _is_key(t) else x,
+        tree, template)
+
+
+class TrainStateCheckpointer:
+    """Saves a trainer's state + metrics every ``every`` epochs into ``directory``; restores it.
+
+    Use as the trainer's ``checkpoint_fn`` and (``if ckpt.latest_epoch() is not None``) its
+    ``restore``. Keeps the last ``keep`` steps.
+    """
+
+    def __init__(self, directory: str | Path, every: int = 1, keep: int = 2):
+        import orbax.checkpoint as ocp
+
+        if every < 1:
+            raise ValueError(f"every must be >= 1 epoch, got {every}")
+        self.directory = Path(directory).absolute()
+        self.every = int(every)
+        self._ocp = ocp
+        self._manager = ocp.CheckpointManager(
+            self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
+            item_names=("state", "metrics"))
+
+    def latest_epoch(self) -> int | None:
+        return self._manager.latest_step()
+
+    def __call__(self, epoch: int, state: Any, metrics: dict[str, list[float]],
+                 force: bool = False) -> None:
+        if not force and (epoch + 1) % self.every:
+            return
+        ocp = self._ocp
+        self._manager.save(int(epoch), args=ocp.args.Composite(
+            state=ocp.args.StandardSave(_unkey(state)),
+            metrics=ocp.args.JsonSave(to_jsonable(metrics))), force=True)
+        self._manager.wait_until_finished()
+
+    def restore(self, template: Any) -> tuple[Any, dict[str, list[float]]]:
+        step = self.latest_epoch()
+        if step is None:
+            raise CheckpointError(f"{self.directory}: no saved training state to resume from")
+        ocp = self._ocp
+        abstract = jax.tree.map(
+            lambda x: jax.ShapeDtypeStruct(np.shape(x), np.asarray(x).dtype)
+            if not hasattr(x, "sharding") else x, _unkey(template))
+        got = self._manager.restore(step, args=ocp.args.Composite(
+            state=ocp.args.StandardRestore(abstract), metrics=ocp.args.JsonRestore()))
+        return _rekey(got.state, template), dict(got.metrics)
+
+    def close(self) -> None:
+        self._manager.close()

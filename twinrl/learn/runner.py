@@ -1,0 +1,379 @@
+"""Training and evaluation runs on disk: what ``twinrl train`` / ``twinrl eval`` (and the loop) do.
+
+A **training run** directory holds::
+
+    run.json          algo, env, seed and the full trainer config (what --resume must match)
+    metrics.csv       one row per epoch (flushed as it goes); tb/ TensorBoard events
+    train_state/      orbax steps of the whole trainer state (resumable trainers only)
+    policy/           the final policy checkpoint (``twinrl.learn.checkpoint``)
+    curve.png         return vs epoch, env steps and wall clock
+    summary.json      final figures
+
+``train_run`` resumes a killed run (``resume=True``) from the last complete ``train_state`` step;
+because trainers draw every random number from the key in their state, the resumed run ends
+with the same parameters and metrics as an uninterrupted one.
+
+The algorithm registry maps the CLI's names to trainers: ``pods`` and ``pods2`` (PODS, first and
+second order), ``hds``, ``shac`` and the Brax baselines ``ppo`` and ``apg``. Per-task tuned
+defaults live beside each trainer (``TUNED[env_name]``, MuJoCo Playground's habit of keeping RL
+configs apart from task configs) and are applied before the user's overrides.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable, NamedTuple
+
+import jax
+import numpy as np
+
+__all__ = ["ALGORITHMS", "Algorithm", "algorithm", "make_config", "parse_overrides", "train_run",
+           "eval_run", "RunError"]
+
+
+class RunError(Exception):
+    """Bad arguments to a run (unknown algorithm, config field, mismatched resume)."""
+
+
+class Algorithm(NamedTuple):
+    module: str
+    train: str
+    config: str
+    overrides: dict[str, Any]
+    resumable: bool
+
+
+ALGORITHMS: dict[str, Algorithm] = {
+    "pods": Algorithm("twinrl.learn.pods", "train", "PODSConfig", {}, True),
+    "pods2": Algorithm("twinrl.learn.pods", "train", "PODSConfig", {"order": 2}, True),
+    "hds": Algorithm("twinrl.learn.hds", "train", "HDSConfig", {}, True),
+    "shac": Algorithm("twinrl.learn.shac", "train", "SHACConfig", {}, True),
+    "ppo": Algorithm("twinrl.learn.baselines", "ppo_train", "PPOConfig", {}, False),
+    "apg": Algorithm("twinrl.learn.baselines", "apg_train", "APGConfig", {}, False),
+}
+
+
+def algorithm(name: str) -> tuple[Algorithm, Callable, type]:
+    """``(entry, train_fn, ConfigClass)`` of a registered algorithm."""
+    if name not in ALGORITHMS:
+        raise RunError(f"unknown algorithm {name!r}; choose one of {', '.join(ALGORITHMS)}")
+    entry = ALGORITHMS[name]
+    module = importlib.import_module(entry.module)
+    return entry, getattr(module, entry.train), getattr(module, entry.config)
+
+
+def parse_overrides(items: list[str] | None) -> dict[str, Any]:
+    """``["lr=1e-3", "hidden=[64,64]"]`` -> dict; values parsed as JSON, else kept as strings."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise RunError(f"override {item!r} must look like field=value")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k.strip()] = v
+    return out
+
+
+def _replace(config, overrides: dict[str, Any], what: str):
+    """``dataclasses.replace`` with dotted keys into nested dataclass fields."""
+    names = {f.name: f for f in dataclasses.fields(config)}
+    flat, nested = {}, {}
+    for k, v in overrides.items():
+        head, _, rest = k.partition(".")
+        if head not in names:
+            raise RunError(f"{type(config).__name__} has no field {head!r} ({what}); fields: "
+                           f"{', '.join(names)}")
+        if rest:
+            nested.setdefault(head, {})[rest] = v
+        else:
+            cur = getattr(config, head)
+            if dataclasses.is_dataclass(cur) and isinstance(v, dict):
+                nested.setdefault(head, {}).update(v)
+            else:
+                flat[head] = tuple(v) if isinstance(v, list) else v
+    for head, sub in nested.items():
+        flat[head] = _replace(getattr(config, head), sub, what)
+    try:
+        return dataclasses.replace(config, **flat)
+    except (TypeError, ValueError) as e:
+        raise RunError(f"invalid {type(config).__name__} ({what}): {e}") from None
+
+
+def make_config(algo: str, env_name: str, overrides: dict[str, Any] | None = None):
+    """The algorithm's config for a task: class defaults, then the task's tuned values, then the
+    algorithm entry's (``pods2``: order 2), then the user's ``overrides``."""
+    entry, _, cls = algorithm(algo)
+    module = importlib.import_module(entry.module)
+    config = cls()
+    tuned = getattr(module, "TUNED", {}).get(env_name, {})
+    if isinstance(tuned, dict) and algo in tuned and isinstance(tuned[algo], dict):
+        tuned = tuned[algo]
+    config = _replace(config, {k: v for k, v in tuned.items() if not isinstance(v, dict)
+                               or dataclasses.is_dataclass(getattr(config, k, None))},
+                      f"tuned for {env_name}")
+    config = _replace(config, entry.overrides, f"algorithm {algo}")
+    return _replace(config, overrides or {}, "override")
+
+
+def _length_overrides(config, epochs: int | None, steps: int | None) -> dict[str, Any]:
+    fields = {f.name for f in dataclasses.fields(config)}
+    out = {}
+    if epochs is not None:
+        if "epochs" not in fields:
+            raise RunError(f"--epochs does not apply to {type(config).__name__}; use --steps")
+        out["epochs"] = int(epochs)
+    if steps is not None:
+        key = next((k for k in ("num_timesteps", "env_steps", "steps") if k in fields), None)
+        if key is None:
+            raise RunError(f"--steps does not apply to {type(config).__name__}; use --epochs")
+        out[key] = int(steps)
+    return out
+
+
+def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
+              epochs: int | None = None, steps: int | None = None,
+              overrides: dict[str, Any] | None = None, resume: bool = False,
+              progress: bool = True, env=None, train_kwargs: dict[str, Any] | None = None,
+              checkpoint_every: int = 1) -> dict[str, Any]:
+    """Train ``algo`` on ``env_name`` into ``out`` (see the module docstring); returns the summary.
+
+    ``env`` may be given to train in a specific simulator (identified parameters, the loop);
+    ``train_kwargs`` are passed to the trainer (HDS's ``dynamics``).
+    """
+    from twinrl import envs, report
+    from twinrl.learn.checkpoint import TrainStateCheckpointer, save_policy
+
+    entry, train_fn, _ = algorithm(algo)
+    config = make_config(algo, env_name, overrides)
+    config = _replace(config, _length_overrides(config, epochs, steps), "length")
+    env = env if env is not None else envs.make(env_name)
+    out = Path(out)
+    run_doc = {"algo": algo, "env": env_name, "seed": int(seed),
+               "config": report.to_jsonable(config), "config_class": type(config).__name__}
+    run_file = out / "run.json"
+    state_dir = out / "train_state"
+    restore = None
+    ckpt = None
+    if run_file.exists():
+        previous = json.loads(run_file.read_text())
+        if not resume:
+            raise RunError(f"{out} already holds a training run ({previous.get('algo')} on "
+                           f"{previous.get('env')}); pass --resume to continue it or choose a new "
+                           f"--out")
+        if previous != report.to_jsonable(run_doc):
+            diff = sorted(k for k in set(previous) | set(run_doc)
+                          if previous.get(k) != report.to_jsonable(run_doc).get(k))
+            raise RunError(f"--resume: {run_file} was started with different settings "
+                           f"({', '.join(diff)}); resume with the same --algo/--env/--seed/--set")
+    elif resume and (out / "policy").exists():
+        raise RunError(f"--resume: {out} has no run.json")
+    if entry.resumable:
+        ckpt = TrainStateCheckpointer(state_dir, every=checkpoint_every)
+        if resume and ckpt.latest_epoch() is not None:
+            restore = ckpt.restore
+    elif resume:
+        raise RunError(f"{algo} (a Brax trainer) cannot resume; run it again without --resume")
+    report.write_json(run_file, run_doc)
+
+    writer = report.MetricsWriter(out)
+    total = int(getattr(config, "epochs", 0) or 0)
+    bar, task = _progress_bar(f"train {algo} on {env_name}", total, enabled=progress)
+
+    def on_restore(template):
+        state, history = restore(template)
+        writer.rewrite(history)
+        done = len(history.get("epoch", []))
+        if bar is not None:
+            bar.update(task, completed=done)
+        return state, history
+
+    def progress_fn(epoch, row):
+        writer.write(epoch, row)
+        if bar is not None:
+            bar.update(task, completed=int(epoch) + 1 if total else None,
+                       ret=f"{row.get('return', float('nan')):.2f}",
+                       gn=f"{row.get('grad_norm', float('nan')):.2e}")
+
+    kwargs = dict(train_kwargs or {})
+    kwargs["progress_fn"] = progress_fn
+    if entry.resumable:
+        kwargs["checkpoint_fn"] = ckpt
+        kwargs["restore"] = on_restore if restore is not None else None
+    rng = jax.random.key(int(seed))
+    t0 = time.perf_counter()
+    try:
+        if bar is not None:
+            bar.start()
+        policy, params, metrics = train_fn(env, config, rng, **kwargs)
+    finally:
+        if bar is not None:
+            bar.stop()
+        writer.close()
+        if ckpt is not None:
+            ckpt.close()
+    wall = time.perf_counter() - t0
+    writer.rewrite(metrics)
+    save_policy(out / "policy", policy, params, algo=algo, env=env_name,
+                env_config=_env_config(env), config=config, seed=int(seed),
+                metrics={k: v[-1] for k, v in metrics.items() if v})
+    curve = _plot_training(out / "curve.png", metrics, f"{algo} on {env_name}")
+    final = {k: (v[-1] if v else None) for k, v in metrics.items()}
+    summary = {"algo": algo, "env": env_name, "seed": int(seed), "final": final,
+               "best_return": float(np.nanmax(metrics["return"])) if metrics.get("return") else None,
+               "epochs": len(metrics.get("epoch", [])), "wall_s_this_process": wall,
+               "policy": str(out / "policy"), "curve": str(curve),
+               "metrics_csv": str(writer.path), "resumed": restore is not None}
+    report.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _env_config(env) -> dict[str, Any]:
+    from twinrl import report
+
+    return report.to_jsonable(env.config)
+
+
+def _progress_bar(title: str, total: int, enabled: bool):
+    if not enabled:
+        return None, None
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+
+    from twinrl import report
+
+    bar = Progress(TextColumn(f"[bold]{title}"), BarColumn(), MofNCompleteColumn(),
+                   TextColumn("return {task.fields[ret]}  grad {task.fields[gn]}"),
+                   TimeElapsedColumn(), TimeRemainingColumn(), console=report.console,
+                   auto_refresh=True)
+    task = bar.add_task("train", total=total or None, ret="-", gn="-")
+    return bar, task
+
+
+def _plot_training(path: Path, metrics: dict[str, list[float]], title: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ret = np.asarray(metrics.get("return", []), float)
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
+    for ax, key, label in zip(axes, ("epoch", "env_steps", "wall_s"),
+                              ("epoch", "simulated env steps", "wall clock (s)")):
+        x = np.asarray(metrics.get(key, np.arange(len(ret))), float)[:len(ret)]
+        ax.plot(x, ret[:len(x)], marker=".")
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("evaluation return")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+# ------------------------------------------------------------------------------------ eval
+def _env_from_meta(meta: dict[str, Any]):
+    from twinrl import envs
+
+    name = meta.get("env")
+    if name not in envs.names():
+        raise RunError(f"checkpoint's env {name!r} is not a registered task")
+    cfg = meta.get("env_config") or {}
+    default = dataclasses.asdict(envs.default_config(name))
+    overrides = {k: v for k, v in cfg.items() if k in default and default[k] != v}
+    return envs.make(name, **overrides)
+
+
+def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, episodes: int = 5,
+             seed: int = 0, video: bool = True, size: tuple[int, int] = (320, 240),
+             progress: bool = True) -> dict[str, Any]:
+    """Evaluate a policy checkpoint in the simulator or (``real``) its real twin; write
+    ``summary.json`` and an MP4 of the first episode. Returns the summary."""
+    from twinrl import report
+    from twinrl.learn.checkpoint import load_policy
+
+    if episodes < 1:
+        raise RunError(f"--episodes must be >= 1, got {episodes}")
+    network, params, meta = load_policy(checkpoint)
+    env = _env_from_meta(meta)
+    out = Path(out)
+    act = jax.jit(network.apply)
+    frames: list[np.ndarray] = []
+    if real:
+        returns = _eval_real(env, meta["env"], act, params, episodes, seed, frames if video
+                             else None, size, progress)
+    else:
+        from twinrl.learn.common import make_evaluator
+
+        returns = np.asarray(make_evaluator(env, network.apply, episodes)(
+            params, jax.random.key(seed)), float).tolist()
+        if video:
+            frames = _sim_frames(env, act, params, seed, episodes, size)
+    files = {}
+    if video and frames:
+        files["video"] = str(report.write_video(out / f"{'real' if real else 'sim'}.mp4", frames,
+                                                fps=1.0 / env.dt))
+    summary = {"checkpoint": str(checkpoint), "env": meta["env"], "algo": meta.get("algo"),
+               "where": "real twin" if real else "sim", "seed": int(seed),
+               "episodes": int(episodes), "returns": returns,
+               "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)),
+               "files": files}
+    report.print_table(f"eval {meta.get('algo')} on {meta['env']} ({summary['where']})",
+                       ["episodes", "mean return", "std", "min", "max"],
+                       [[episodes, summary["mean_return"], summary["std_return"],
+                         float(np.min(returns)), float(np.max(returns))]])
+    report.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _eval_real(env, name, act, params, episodes, seed, frames, size, progress):
+    from twinrl import envs
+
+    twin = envs.make_real(name, seed=seed, width=size[0], height=size[1])
+    returns = []
+    try:
+        for ep in range(episodes):
+            obs, _ = twin.reset(seed=seed + ep)
+            ret, done = 0.0, False
+            while not done:
+                a = np.asarray(act(params, obs), np.float32)
+                obs, r, term, trunc, _ = twin.step(a)
+                ret += float(r)
+                done = term or trunc
+                if frames is not None and ep == 0:
+                    frames.append(twin.render_images(twin.camera, ("rgb",))["rgb"])
+            returns.append(ret)
+    finally:
+        twin.close()
+    return returns
+
+
+def _sim_frames(env, act, params, seed, episodes, size) -> list[np.ndarray]:
+    """The first evaluation episode of the simulator, drawn by MuJoCo's renderer at the nominal
+    camera (the states are MJX's; only the pixels come from OpenGL)."""
+    import mujoco
+
+    from twinrl.real.twin import CameraRenderer
+
+    state = jax.jit(env.reset)(jax.random.split(jax.random.key(seed), episodes)[0])
+    step = jax.jit(env.step)
+    m = env.sim.mj_model
+    d = mujoco.MjData(m)
+    renderer = CameraRenderer(m, *size)
+    frames = []
+    try:
+        for _ in range(env.episode_length):
+            state = step(state, act(params, state.obs))
+            d.qpos[:] = np.asarray(state.pipeline_state.qpos)
+            mujoco.mj_forward(m, d)
+            frames.append(renderer.images(d, env.cameras[0], ("rgb",))["rgb"])
+    finally:
+        renderer.close()
+    return frames
