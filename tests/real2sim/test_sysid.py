@@ -1,0 +1,166 @@
+"""sysid (multiple shooting + Levenberg-Marquardt) and its CMA-ES baseline on the cartpole.
+
+Every fit here shares one parameter set, window and latency range, so the residual and Jacobian
+functions compile once for the module (``sysid._FUNCTIONS``); the compile of the forward-mode
+Jacobian through MJX dominates the module's time.
+"""
+
+import numpy as np
+import pytest
+
+from twinrl import envs
+from twinrl.real.dataset import DatasetWriter, read
+from twinrl.real.perturbation import Perturbation
+from twinrl.real2sim import baselines, sysid
+
+TASK = "cartpole_swingup"
+FITTED = ("mass/pole", "damping/slider", "frictionloss/slider", "gain/push", "friction/pole")
+WINDOW = 5
+
+
+def config(cart_mass, **kw):
+    return sysid.SysidConfig(params=FITTED, known=(("mass/cart", cart_mass),), window=WINDOW,
+                             max_latency=1, batch_windows=32, **kw)
+
+
+@pytest.fixture(scope="module")
+def env():
+    return envs.make(TASK)
+
+
+@pytest.fixture(scope="module")
+def exact(env):
+    """Data from our own model (Euler, 4 solver iterations, no noise) with known parameters and
+    one step of latency: sysid must recover them to rounding."""
+    pert = Perturbation(mass_scale=(1.0, 1.1), damping_scale=(1.0, 1.0), extra_damping=(0.2, 0.0),
+                        extra_frictionloss=(0.5, 0.0), gain_scale=(0.95,), latency_steps=1)
+    twin = envs.make_real(TASK, seed=0, perturbation=pert, integrator="euler", iterations=4)
+    data = sysid.collect(twin, episodes=2, seed=0, steps=60)
+    result = sysid.fit(env, data, config(1.0))
+    truth = twin.oracle().params  # evaluation only
+    return data, result, sysid.compare_to_truth(result, truth, true_latency=1)
+
+
+@pytest.fixture(scope="module")
+def real(env):
+    """A small dataset from the default real twin (other engine, noise, rail friction)."""
+    twin = envs.make_real(TASK, seed=1)
+    data = sysid.collect(twin, episodes=2, seed=1, steps=150)
+    o = twin.oracle()  # evaluation only
+    result = sysid.fit(env, data, config(float(o.params.mass[0])))
+    return result, sysid.compare_to_truth(result, o.params, o.perturbation.latency_steps)
+
+
+def by_name(rows):
+    return {r["parameter"]: r for r in rows}
+
+
+def test_exact_model_recovers_parameters_and_latency(exact):
+    _, result, rows = exact
+    rows = by_name(rows)
+    for name in ("mass/pole", "damping/slider", "frictionloss/slider", "gain/push"):
+        assert rows[name]["rel_err"] < 2e-3, rows[name]
+        assert rows[name]["identifiable"], rows[name]
+    assert result.latency == 1 and rows["latency"]["covered"]
+    assert result.loss_by_latency[1] < 0.01 * result.loss_by_latency[0]
+    assert result.sim_rollouts >= result.n_windows * len(result.history)
+
+
+def test_flat_direction_is_flagged_and_left_at_nominal(exact):
+    _, result, _ = exact
+    j = result.names.index("friction/pole")  # a geom friction without contacts: no effect at all
+    assert not result.identifiable[j]
+    assert "left at nominal" in result.status[j]
+    assert result.values[j] == pytest.approx(result.nominal[j])
+    assert any("friction/pole" in d["loadings"] for d in result.flat_directions)
+    assert result.status[result.names.index("mass/cart")] == "known"
+
+
+def test_real_twin_small_dataset_within_tolerance_and_covered(real):
+    result, rows = real
+    rows = by_name(rows)
+    assert rows["latency"]["covered"], rows["latency"]
+    for name in ("mass/pole", "damping/slider", "frictionloss/slider", "gain/push"):
+        r = rows[name]
+        assert r["identifiable"], r
+        assert r["rel_err"] < 0.05, r
+        assert r["covered"], r  # |err| <= 3 sd
+    # Residuals at the optimum sit at the twin's observation noise (0.002-0.01), not above.
+    assert np.all(result.residual_sd < 0.02), result.residual_sd
+
+
+def test_bad_data_raises_clear_errors(env):
+    T, good = 20, None
+    rng = np.random.default_rng(0)
+    good = dict(obs=rng.normal(size=(T, 5)), action=rng.uniform(-1, 1, (T, 1)),
+                next_obs=rng.normal(size=(T, 5)))
+    w = sysid.windows_from_dataset(env, good, WINDOW, max_latency=1)
+    assert w.targets.shape == (T // WINDOW, WINDOW, 5)
+    bad = dict(good, obs=good["obs"].copy())
+    bad["obs"][7, 2] = np.nan
+    with pytest.raises(ValueError, match=r"episode 0: obs\[7, 2\] is nan"):
+        sysid.windows_from_dataset(env, bad, WINDOW)
+    with pytest.raises(ValueError, match=r"obs has shape \(20, 4\).*needs \(T, 5\)"):
+        sysid.windows_from_dataset(env, dict(good, obs=good["obs"][:, :4]), WINDOW)
+    with pytest.raises(ValueError, match=r"action has shape \(20, 2\).*needs \(T, 1\)"):
+        sysid.windows_from_dataset(env, dict(good, action=np.zeros((T, 2))), WINDOW)
+    with pytest.raises(ValueError, match="different lengths"):
+        sysid.windows_from_dataset(env, dict(good, next_obs=good["next_obs"][:-1]), WINDOW)
+    with pytest.raises(ValueError, match="3 steps, shorter than the shooting window of 5"):
+        sysid.windows_from_dataset(env, {k: v[:3] for k, v in good.items()}, WINDOW)
+    with pytest.raises(ValueError, match="missing next_obs"):
+        sysid.windows_from_dataset(env, dict(obs=good["obs"], action=good["action"]), WINDOW)
+    with pytest.raises(ValueError, match="mass/wheel"):
+        sysid.build_problem(env, good, sysid.SysidConfig(params=("mass/wheel",), window=WINDOW))
+    with pytest.raises(ValueError, match="loss must be one of"):
+        sysid.SysidConfig(loss="l1")
+
+
+def test_dataset_on_disk_gives_the_same_windows(env, exact, tmp_path):
+    data = exact[0]
+    with DatasetWriter(tmp_path / "ds", env=TASK, obs_shape=5, action_shape=1) as w:
+        for e in range(data["obs"].shape[0]):
+            for t in range(data["obs"].shape[1]):
+                w.add(data["obs"][e, t], data["action"][e, t], data["reward"][e, t],
+                      data["next_obs"][e, t], False, t == data["obs"].shape[1] - 1)
+    a = sysid.windows_from_dataset(env, read(tmp_path / "ds"), WINDOW, max_latency=1)
+    b = sysid.windows_from_dataset(env, data, WINDOW, max_latency=1)
+    for x, y in zip(a[:-1], b[:-1]):
+        np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="recorded on 'pendulum_swingup'"):
+        other = tmp_path / "pend"
+        with DatasetWriter(other, env="pendulum_swingup", obs_shape=5, action_shape=1) as w:
+            w.add(np.zeros(5), np.zeros(1), 0.0, np.zeros(5), False, True)
+        sysid.windows_from_dataset(env, read(other), 1)
+
+
+def test_cmaes_baseline_runs_and_counts_rollouts(env, exact):
+    data = exact[0]
+    cfg = config(1.0, estimate_start=False, latency=1)
+    res = baselines.cmaes_fit(env, data, cfg, baselines.CmaesConfig(max_evals=40, popsize=8))
+    assert res.evaluations >= 40 and res.sim_rollouts == res.evaluations * (2 * (60 // WINDOW))
+    assert res.history[-1]["loss"] <= res.history[0]["loss"]
+    assert res.latency == 1 and set(res.loss_by_latency) == {1}
+
+
+def test_state_from_obs_round_trips_observe():
+    import jax
+    states = {"cartpole_swingup": ([0.3, -2.9], [0.5, -4.0]),
+              "pendulum_swingup": ([3.6], [2.0])}  # 3.6 rad: past pi, inside the joint limit
+    for task, (q, v) in states.items():
+        e = envs.make(task)
+        q, v = np.array(q), np.array(v)
+        q2, v2 = e.state_from_obs(e.observe(q, v))
+        np.testing.assert_allclose(np.asarray(e.observe(q2, v2)), np.asarray(e.observe(q, v)),
+                                   atol=1e-6)
+        np.testing.assert_allclose(q2, q, atol=1e-5)
+        np.testing.assert_allclose(v2, v, atol=1e-6)
+    with pytest.raises(NotImplementedError, match="does not determine the state"):
+        envs.make("push").state_from_obs(np.zeros(12))
+
+
+def test_excitation_actions_hold_levels():
+    a = sysid.excitation_actions(0, 200, 2, hold=(4, 8))
+    assert a.shape == (200, 2) and a.dtype == np.float32 and np.all(np.abs(a) <= 1)
+    changes = np.count_nonzero(np.diff(a[:, 0]))
+    assert 200 / 8 - 2 <= changes <= 200 / 4
