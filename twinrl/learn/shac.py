@@ -57,7 +57,7 @@ from twinrl.learn.networks import Network, NetworkConfig, make_network, make_val
 from twinrl.physics.gradients import clip_by_global_norm, global_norm, guard_stats, nan_guard
 from twinrl.physics.parallel import batch_mesh, shard_batch
 
-__all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networks"]
+__all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networks", "TUNED"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,6 +142,14 @@ class SHACConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "SHACConfig":
         return cls(**d)
+
+
+TUNED: dict[str, dict[str, Any]] = {
+    "pendulum_swingup": {"epochs": 150},
+    "cartpole_swingup": {"epochs": 300},
+}
+"""Per-task overrides of the ``SHACConfig`` defaults (applied by ``twinrl.learn.runner``),
+measured in ``bench/learn.py``."""
 
 
 class SHACState(NamedTuple):
