@@ -1,0 +1,192 @@
+"""``Camera``: a pinhole camera as a JAX pytree, in MuJoCo's convention.
+
+SAM-RL (Lv et al., 2023), Sec. 3.2 optimises the camera pose through a differentiable renderer;
+this is the camera of that renderer. Its pose (``pos``, ``quat``) and field of view (``fovy``) are
+arrays, so ``jax.grad`` reaches them; the image size is static (a pytree auxiliary field).
+
+Convention (MuJoCo's, so images line up with ``mujoco.Renderer``'s):
+  - the camera frame's columns are x = image right, y = image up, z = *backwards*: the camera looks
+    along -z (``data.cam_xmat`` reshaped (3, 3) is that frame in world coordinates);
+  - ``fovy`` is the full vertical field of view in degrees; pixels are square, so the horizontal
+    extent is ``tan(fovy / 2) * width / height`` at unit depth;
+  - image row 0 is the *top* of the picture (as ``mujoco.Renderer.render`` returns it), pixel
+    centres are at half-integers;
+  - depth is the distance along the viewing axis (-z), not along the ray.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Camera", "quat_to_mat", "mat_to_quat", "quat_mul", "rotvec_to_quat", "look_at"]
+
+
+def quat_to_mat(q: jax.Array) -> jax.Array:
+    """Rotation matrix of a quaternion ``(w, x, y, z)`` (normalised first, so any non-zero
+    4-vector is a valid parameterisation and gradients stay tangent)."""
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.stack([
+        jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def mat_to_quat(m) -> np.ndarray:
+    """Quaternion ``(w, x, y, z)`` of a rotation matrix (NumPy; for construction, not for AD)."""
+    import mujoco
+
+    q = np.empty(4)
+    mujoco.mju_mat2Quat(q, np.asarray(m, np.float64).reshape(9))
+    return q
+
+
+def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Hamilton product ``a * b`` of ``(w, x, y, z)`` quaternions."""
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return jnp.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], -1)
+
+
+def rotvec_to_quat(v: jax.Array) -> jax.Array:
+    """Quaternion of an axis-angle vector (smooth at 0: the gradient at v = 0 is exact)."""
+    th2 = jnp.sum(v * v, -1, keepdims=True)
+    th = jnp.sqrt(jnp.where(th2 > 1e-12, th2, 1.0))
+    small = th2 <= 1e-12
+    half_sinc = jnp.where(small, 0.5 - th2 / 48.0, jnp.sin(0.5 * th) / th)
+    w = jnp.where(small, 1.0 - th2 / 8.0, jnp.cos(0.5 * th))
+    return jnp.concatenate([w, half_sinc * v], -1)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """A pinhole camera. ``pos`` (3,), ``quat`` (4,) ``(w, x, y, z)`` of the camera frame in the
+    world (need not be unit: it is normalised where used), ``fovy`` () degrees; ``width`` and
+    ``height`` are static. A batch of cameras is a ``Camera`` whose arrays have a leading axis
+    (``jax.vmap`` over it)."""
+
+    pos: jax.Array
+    quat: jax.Array
+    fovy: jax.Array
+    width: int = dataclasses.field(metadata=dict(static=True), default=64)
+    height: int = dataclasses.field(metadata=dict(static=True), default=64)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def create(cls, pos, quat=None, *, xmat=None, fovy=45.0, width: int = 64,
+               height: int = 64, dtype=None) -> "Camera":
+        """A camera from a position and either a quaternion or a rotation matrix (camera frame
+        columns in world coordinates)."""
+        if (quat is None) == (xmat is None):
+            raise ValueError("give exactly one of quat and xmat")
+        if int(width) < 1 or int(height) < 1:
+            raise ValueError(f"image size must be >= 1x1, got {width}x{height}")
+        if quat is None:
+            xmat = np.asarray(xmat, np.float64)
+            if xmat.size != 9:
+                raise ValueError(f"xmat must have 9 entries (3x3), got shape {xmat.shape}")
+            quat = mat_to_quat(xmat)
+        pos = np.asarray(pos, np.float64)
+        quat = np.asarray(quat, np.float64)
+        if pos.shape != (3,) or quat.shape != (4,):
+            raise ValueError(f"pos must be (3,) and quat (4,), got {pos.shape} and {quat.shape}")
+        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))
+                and np.linalg.norm(quat) > 0):
+            raise ValueError(f"camera pose must be finite with a non-zero quaternion, got "
+                             f"pos={pos}, quat={quat}")
+        if not 0.0 < float(fovy) < 180.0:
+            raise ValueError(f"fovy must be in (0, 180) degrees, got {fovy}")
+        dtype = dtype or jnp.result_type(float)
+        return cls(jnp.asarray(pos, dtype), jnp.asarray(quat / np.linalg.norm(quat), dtype),
+                   jnp.asarray(float(fovy), dtype), int(width), int(height))
+
+    @classmethod
+    def from_mujoco(cls, model, data, cam_id: int | str, width: int = 64, height: int = 64,
+                    dtype=None) -> "Camera":
+        """The camera ``cam_id`` (index or name) of a ``mujoco.MjModel``/``MjData`` (after
+        ``mj_forward`` or ``mj_kinematics`` + ``mj_camlight``), posed as MuJoCo renders it."""
+        import mujoco
+
+        if isinstance(cam_id, str):
+            name = cam_id
+            cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+            if cam_id < 0:
+                raise ValueError(f"camera {name!r} is not in the model; cameras: "
+                                 f"{[model.camera(i).name for i in range(model.ncam)]}")
+        if not 0 <= int(cam_id) < model.ncam:
+            raise ValueError(f"cam_id must be in [0, {model.ncam}), got {cam_id}")
+        return cls.create(np.asarray(data.cam_xpos[cam_id]),
+                          xmat=np.asarray(data.cam_xmat[cam_id]).reshape(3, 3),
+                          fovy=float(model.cam_fovy[cam_id]), width=width, height=height,
+                          dtype=dtype)
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def xmat(self) -> jax.Array:
+        """(3, 3) camera frame in world coordinates (columns: right, up, backwards)."""
+        return quat_to_mat(self.quat)
+
+    def rotated(self, rotvec: jax.Array) -> "Camera":
+        """This camera turned by the axis-angle ``rotvec`` (rad) about its *own* axes, as
+        ``Perturbation.camera_rot_offset`` turns MuJoCo's cameras."""
+        return dataclasses.replace(self, quat=quat_mul(self.quat, rotvec_to_quat(rotvec)))
+
+    def translated(self, delta: jax.Array) -> "Camera":
+        """This camera moved by ``delta`` (m, world frame)."""
+        return dataclasses.replace(self, pos=self.pos + delta)
+
+    def pixel_size(self) -> jax.Array:
+        """Height (m) of one pixel at unit depth."""
+        return 2.0 * jnp.tan(jnp.deg2rad(self.fovy) / 2.0) / self.height
+
+    def rays(self) -> tuple[jax.Array, jax.Array]:
+        """``origin`` (3,) and per-pixel directions (H, W, 3) in the world frame, scaled so the
+        component along the viewing axis is 1: ``origin + s * dir`` is at depth ``s``."""
+        H, W = self.height, self.width
+        t = jnp.tan(jnp.deg2rad(self.fovy) / 2.0)
+        u = (jnp.arange(W, dtype=self.pos.dtype) + 0.5) / W * 2.0 - 1.0
+        v = 1.0 - (jnp.arange(H, dtype=self.pos.dtype) + 0.5) / H * 2.0
+        x = jnp.broadcast_to(u[None, :] * t * (W / H), (H, W))
+        y = jnp.broadcast_to(v[:, None] * t, (H, W))
+        local = jnp.stack([x, y, -jnp.ones_like(x)], -1)
+        return self.pos, local @ self.xmat.T
+
+    def project(self, points: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Pixel coordinates ``(col, row)`` (..., 2) (continuous; pixel centres at +0.5) and depth
+        (...,) of world points."""
+        p = (points - self.pos) @ self.xmat
+        depth = -p[..., 2]
+        t = jnp.tan(jnp.deg2rad(self.fovy) / 2.0)
+        u = p[..., 0] / depth / (t * self.width / self.height)
+        v = p[..., 1] / depth / t
+        col = (u + 1.0) / 2.0 * self.width
+        row = (1.0 - v) / 2.0 * self.height
+        return jnp.stack([col, row], -1), depth
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0), *, fovy=45.0, width: int = 64, height: int = 64,
+            dtype=None) -> Camera:
+    """A camera at ``eye`` looking at ``target`` with ``up`` pointing up in the image."""
+    eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
+    back = eye - target
+    if np.linalg.norm(back) == 0:
+        raise ValueError("look_at: eye and target coincide")
+    back = back / np.linalg.norm(back)
+    right = np.cross(up, back)
+    if np.linalg.norm(right) < 1e-9:
+        raise ValueError(f"look_at: up {up} is parallel to the viewing direction")
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(back, right)
+    return Camera.create(eye, xmat=np.stack([right, cam_up, back], 1), fovy=fovy,
+                         width=width, height=height, dtype=dtype)

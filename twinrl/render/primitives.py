@@ -1,0 +1,366 @@
+"""Ray-primitive geometry in a geom's local frame: first hits, closest approaches, normals.
+
+Every function broadcasts over leading axes. A ray is ``o + s * r`` with ``r`` *not* normalised
+(the renderer scales it so that ``s`` is the depth along the camera axis); sizes are MuJoCo's
+``geom_size`` (sphere ``r``; capsule/cylinder ``r, half-length``; box/ellipsoid half-extents;
+plane ``half-x, half-y`` with 0 meaning infinite).
+
+``hit_*`` gives the smallest ``s > 0`` where the ray enters the surface (``inf`` if none): the hard
+image, which must agree with OpenGL's. ``closest_*`` gives the closest approach of the *ray line*
+to the surface as ``(s*, signed distance)``, negative when the ray passes through the solid: the
+quantity the soft silhouette (SoftRas, Liu et al. 2019, Sec. 3.2: a sigmoid of the signed distance
+to the boundary) blurs, so that a pose moving an edge gets a gradient where the hard image has
+none. Where a closed form exists it is used; boxes, cylinders and convex meshes minimise their
+signed distance function along the ray by golden-section search with the minimiser held constant
+(``stop_gradient``): by the envelope theorem the gradient of ``min_s f(s, theta)`` is
+``df/dtheta`` at the minimiser, so the search itself need not be differentiated.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+INF = jnp.inf
+_EPS = 1e-12
+
+
+def _dot(a, b):
+    return jnp.sum(a * b, -1)
+
+
+def _safe_sqrt(x):
+    return jnp.sqrt(jnp.where(x > 0, x, 1.0)) * (x > 0)
+
+
+def _safe_div(a, b):
+    return a / jnp.where(jnp.abs(b) > _EPS, b, jnp.where(b < 0, -_EPS, _EPS))
+
+
+def _first_positive(*cands):
+    s = INF
+    for c in cands:
+        s = jnp.minimum(s, jnp.where(c > 0, c, INF))
+    return s
+
+
+# ------------------------------------------------------------------ quadrics
+def _quadric_roots(A, B, C):
+    """Roots of ``A s^2 + 2 B s + C`` (A > 0) as (near, far, real?)."""
+    disc = B * B - A * C
+    ok = disc >= 0
+    sq = _safe_sqrt(disc)
+    A = jnp.where(A > _EPS, A, _EPS)
+    return (-B - sq) / A, (-B + sq) / A, ok
+
+
+def hit_sphere(o, r, size):
+    a = size[..., 0]
+    s0, s1, ok = _quadric_roots(_dot(r, r), _dot(o, r), _dot(o, o) - a * a)
+    return jnp.where(ok, _first_positive(s0), INF)
+
+
+def hit_ellipsoid(o, r, size):
+    return hit_sphere(o / size, r / size, jnp.ones_like(size))
+
+
+def _hit_tube(o, r, rad, h):
+    """Side of a z-aligned cylinder of radius ``rad``, ``|z| <= h``."""
+    A = r[..., 0] ** 2 + r[..., 1] ** 2
+    B = o[..., 0] * r[..., 0] + o[..., 1] * r[..., 1]
+    C = o[..., 0] ** 2 + o[..., 1] ** 2 - rad * rad
+    s0, _, ok = _quadric_roots(A, B, C)
+    z = o[..., 2] + s0 * r[..., 2]
+    return jnp.where(ok & (jnp.abs(z) <= h) & (A > _EPS), _first_positive(s0), INF)
+
+
+def hit_capsule(o, r, size):
+    rad, h = size[..., 0], size[..., 1]
+    side = _hit_tube(o, r, rad, h)
+    ez = jnp.zeros_like(o).at[..., 2].set(1.0)
+    top = hit_sphere(o - h[..., None] * ez, r, size)
+    bot = hit_sphere(o + h[..., None] * ez, r, size)
+    return jnp.minimum(side, jnp.minimum(top, bot))
+
+
+def hit_cylinder(o, r, size):
+    rad, h = size[..., 0], size[..., 1]
+    side = _hit_tube(o, r, rad, h)
+    caps = INF
+    for sign in (1.0, -1.0):
+        s = _safe_div(sign * h - o[..., 2], r[..., 2])
+        p = o + s[..., None] * r
+        inside = p[..., 0] ** 2 + p[..., 1] ** 2 <= rad * rad
+        caps = jnp.minimum(caps, jnp.where(inside, _first_positive(s), INF))
+    return jnp.minimum(side, caps)
+
+
+def hit_box(o, r, size):
+    t1 = _safe_div(-size - o, r)
+    t2 = _safe_div(size - o, r)
+    tmin = jnp.max(jnp.minimum(t1, t2), -1)
+    tmax = jnp.min(jnp.maximum(t1, t2), -1)
+    return jnp.where((tmin <= tmax) & (tmin > 0), tmin, INF)
+
+
+def hit_plane(o, r, size):
+    """The plane z = 0, seen from its front (+z) side; finite ``|x| <= sx, |y| <= sy`` when its
+    sizes are positive (MuJoCo draws a plane of size 0 as infinite)."""
+    s = _safe_div(-o[..., 2], r[..., 2])
+    p = o + s[..., None] * r
+    inside = jnp.where(size[..., 0] > 0, jnp.abs(p[..., 0]) <= size[..., 0], True) & jnp.where(
+        size[..., 1] > 0, jnp.abs(p[..., 1]) <= size[..., 1], True)
+    return jnp.where((o[..., 2] > 0) & (r[..., 2] < 0) & inside & (s > 0), s, INF)
+
+
+# ------------------------------------------------------------------ signed distance functions
+def sdf_box(p, size):
+    q = jnp.abs(p) - size
+    out = jnp.sqrt(jnp.sum(jnp.maximum(q, 0.0) ** 2, -1) + 1e-20)
+    return out + jnp.minimum(jnp.max(q, -1), 0.0)
+
+
+def sdf_cylinder(p, size):
+    rad, h = size[..., 0], size[..., 1]
+    rxy = jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + 1e-20)
+    q = jnp.stack([rxy - rad, jnp.abs(p[..., 2]) - h], -1)
+    return jnp.minimum(jnp.max(q, -1), 0.0) + jnp.sqrt(jnp.sum(jnp.maximum(q, 0.0) ** 2, -1)
+                                                       + 1e-20)
+
+
+def golden_min(f, lo, hi, iters: int):
+    """Minimiser of a unimodal ``f`` on ``[lo, hi]`` (elementwise) by golden-section search."""
+    g = 0.6180339887498949
+    c, d = hi - g * (hi - lo), lo + g * (hi - lo)
+    fc, fd = f(c), f(d)
+
+    def body(_, st):
+        lo, hi, c, d, fc, fd = st
+        left = fc < fd
+        hi = jnp.where(left, d, hi)
+        lo = jnp.where(left, lo, c)
+        nc = jnp.where(left, hi - g * (hi - lo), d)
+        nd = jnp.where(left, c, lo + g * (hi - lo))
+        x = jnp.where(left, nc, nd)
+        fx = f(x)
+        fc, fd = jnp.where(left, fx, fd), jnp.where(left, fc, fx)
+        return lo, hi, nc, nd, fc, fd
+
+    lo, hi, *_ = jax.lax.fori_loop(0, iters, body, (lo, hi, c, d, fc, fd))
+    return 0.5 * (lo + hi)
+
+
+def _line_search_sdf(sdf, o, r, size, rbound, iters):
+    """(s*, sdf at s*) along the ray for a convex ``sdf`` of a geom of bounding radius ``rbound``."""
+    o_, r_, size_, rb = (jax.lax.stop_gradient(x) for x in (o, r, size, rbound))
+    rr = _dot(r_, r_)
+    sc = -_dot(o_, r_) / rr
+    half = rb / jnp.sqrt(rr) * 1.05 + 1e-6
+    lo, hi = jnp.maximum(sc - half, 1e-6), jnp.maximum(sc + half, 2e-6)
+    s = golden_min(lambda s: sdf(o_ + s[..., None] * r_, size_), lo, hi, iters)
+    s = jax.lax.stop_gradient(s)
+    return s, sdf(o + s[..., None] * r, size)
+
+
+def closest_sphere(o, r, size, iters=None):
+    rr = _dot(r, r)
+    s = -_dot(o, r) / rr
+    p = o + s[..., None] * r
+    return s, jnp.sqrt(_dot(p, p) + 1e-20) - size[..., 0]
+
+
+def closest_ellipsoid(o, r, size, iters=None):
+    # In the frame scaled to the unit sphere the line-centre distance is exact; scale it back by
+    # the mean radius (exact for spheres, and zero exactly at the silhouette for any ellipsoid).
+    s, d = closest_sphere(o / size, r / size, jnp.ones_like(size))
+    return s, d * jnp.mean(size, -1)
+
+
+def line_segment(o, r, a, b):
+    """Closest approach of the line ``o + s r`` to the segment ``[a, b]``: ``(s, distance)``.
+
+    Exact and differentiable: for each point ``a + z (b - a)`` of the segment the best ``s`` is
+    linear in ``z``, so the squared distance is quadratic in ``z``; it is minimised over
+    ``z in [0, 1]``."""
+    rr = _dot(r, r)
+    e = b - a
+    s0 = _dot(a - o, r) / rr  # best s for z = 0
+    ds = _dot(e, r) / rr  # ds/dz
+    u = o + s0[..., None] * r - a  # line point minus segment point at z = 0
+    v = ds[..., None] * r - e  # d(u)/dz
+    z = jnp.clip(-_dot(u, v) / jnp.maximum(_dot(v, v), _EPS), 0.0, 1.0)
+    p = u + z[..., None] * v
+    return s0 + ds * z, jnp.sqrt(_dot(p, p) + 1e-20)
+
+
+def closest_capsule(o, r, size, iters=None):
+    rad, h = size[..., 0], size[..., 1]
+    ez = jnp.zeros_like(o).at[..., 2].set(1.0) * h[..., None]
+    s, d = line_segment(o, r, -ez, ez)
+    return s, d - rad
+
+
+def _edges_closest(o, r, a, b):
+    """Closest approach of the line to the nearest of the segments ``a``, ``b`` (..., E, 3)."""
+    s, d = line_segment(o[..., None, :], r[..., None, :], a, b)
+    k = jnp.argmin(d, -1)
+    pick = lambda x: jnp.take_along_axis(x, k[..., None], -1)[..., 0]  # noqa: E731
+    return pick(s), pick(d)
+
+
+def _box_edges(size):
+    """The 12 edges of a box of half-extents ``size`` (..., 3) as endpoints (..., 12, 3)."""
+    import itertools
+
+    import numpy as np
+
+    a, b = [], []
+    for axis in range(3):
+        others = [i for i in range(3) if i != axis]
+        for s1, s2 in itertools.product((-1.0, 1.0), repeat=2):
+            lo = np.zeros(3)
+            lo[others[0]], lo[others[1]], lo[axis] = s1, s2, -1.0
+            hi = lo.copy()
+            hi[axis] = 1.0
+            a.append(lo)
+            b.append(hi)
+    a, b = jnp.asarray(np.array(a), size.dtype), jnp.asarray(np.array(b), size.dtype)
+    return a * size[..., None, :], b * size[..., None, :]
+
+
+def polyhedral_depth(m, c, s0):
+    """Deepest point of a ray inside a convex polytope ``max_k (m_k s + c_k) <= 0``.
+
+    ``s0`` (found by search, held constant) locates the minimum of the max of the linear pieces;
+    there two pieces of opposite slope cross, and the crossing is solved exactly, so the value's
+    gradient is right (the envelope theorem does not hold at such a kink). Pieces not in play are
+    ``-inf``. Returns the value ``min_s max_k (m_k s + c_k)`` (negative inside)."""
+    v = m * s0[..., None] + c
+    top2 = jax.lax.top_k(jax.lax.stop_gradient(v), 2)[1]
+    ma, mb = (jnp.take_along_axis(m, top2[..., i:i + 1], -1)[..., 0] for i in (0, 1))
+    ca, cb = (jnp.take_along_axis(c, top2[..., i:i + 1], -1)[..., 0] for i in (0, 1))
+    kink = (ma * mb < 0) & jnp.isfinite(cb)
+    s = jnp.where(kink, (cb - ca) / jnp.where(kink, ma - mb, 1.0), s0)
+    return jnp.where(kink, ma * s + ca, ma * s0 + ca)
+
+
+def closest_box(o, r, size, iters=16):
+    """Outside: the nearest edge (a line missing a convex polytope passes closest to one of its
+    edges), exact and differentiable in ``s`` too. Inside: the deepest point of the ray (search,
+    then the exact crossing of the two active faces)."""
+    a, b = _box_edges(size)
+    s_out, d_out = _edges_closest(o, r, a, b)
+    s_in, _ = _line_search_sdf(sdf_box, o, r, size, jnp.sqrt(_dot(size, size)), iters)
+    sign = jax.lax.stop_gradient(jnp.where(o + s_in[..., None] * r >= 0, 1.0, -1.0))
+    d_in = polyhedral_depth(sign * r, sign * o - size, s_in)
+    inside = d_in < 0
+    return jnp.where(inside, s_in, s_out), jnp.where(inside, d_in, d_out)
+
+
+def closest_cylinder(o, r, size, iters=16):
+    rb = jnp.sqrt(size[..., 0] ** 2 + size[..., 1] ** 2)
+    return _line_search_sdf(sdf_cylinder, o, r, size, rb, iters)
+
+
+def closest_plane(o, r, size, iters=None):
+    """Signed distance, within the plane, of the ray's crossing to the rectangle's border."""
+    s = _safe_div(-o[..., 2], r[..., 2])
+    p = o + s[..., None] * r
+    front = (o[..., 2] > 0) & (r[..., 2] < 0)
+    qx = jnp.abs(p[..., 0]) - size[..., 0]
+    qy = jnp.abs(p[..., 1]) - size[..., 1]
+    finite = (size[..., 0] > 0) & (size[..., 1] > 0)
+    q = jnp.stack([qx, qy], -1)
+    d = jnp.minimum(jnp.max(q, -1), 0.0) + jnp.sqrt(jnp.sum(jnp.maximum(q, 0.0) ** 2, -1) + 1e-20)
+    d = jnp.where(finite, d, -1e3)
+    return jnp.where(front, s, INF), jnp.where(front, d, 1e3)
+
+
+# ------------------------------------------------------------------ normals (local frame)
+# Unnormalised outward normals. ``tn`` (metres) softens the choice of face on geoms with edges
+# (box, cylinder): each face's normal is weighted by softmax(-distance to that face / tn), so a
+# pixel's shade moves continuously across an edge (hard argmin when ``tn`` is None). Without it the
+# soft image would still jump where a pixel crosses from a box's top to its side.
+def normal_sphere(p, size, tn=None):
+    return p
+
+
+def normal_ellipsoid(p, size, tn=None):
+    return p / (size * size)
+
+
+def normal_capsule(p, size, tn=None):
+    z = jnp.clip(p[..., 2], -size[..., 1], size[..., 1])
+    return p.at[..., 2].add(-z)
+
+
+def _pick(dists, normals, tn):
+    """Normal of the nearest face (hard) or the softmin-weighted blend of all faces' normals."""
+    if tn is None:
+        k = jnp.argmin(dists, -1)
+        return jnp.take_along_axis(normals, k[..., None, None], -2)[..., 0, :]
+    w = jax.nn.softmax(-dists / tn[..., None], -1)
+    return jnp.sum(w[..., None] * normals, -2)
+
+
+def normal_cylinder(p, size, tn=None):
+    rad, h = size[..., 0], size[..., 1]
+    rxy = jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + 1e-20)
+    dr = jnp.abs(rxy - rad)
+    dz = jnp.abs(jnp.abs(p[..., 2]) - h)
+    side = p.at[..., 2].set(0.0) / rxy[..., None]
+    cap = jnp.zeros_like(p).at[..., 2].set(jnp.where(p[..., 2] >= 0, 1.0, -1.0))
+    return _pick(jnp.stack([dr, dz], -1), jnp.stack([side, cap], -2), tn)
+
+
+def normal_box(p, size, tn=None):
+    dists = jnp.abs(jnp.abs(p) - size)
+    normals = jnp.eye(3, dtype=p.dtype) * jnp.where(p >= 0, 1.0, -1.0)[..., None, :]
+    return _pick(dists, normals, tn)
+
+
+def normal_plane(p, size, tn=None):
+    return jnp.zeros_like(p).at[..., 2].set(1.0)
+
+
+def rbound(gtype: int, size):
+    """Bounding radius of a primitive from its size (for search brackets and culling)."""
+    if gtype == 2:
+        return size[..., 0]
+    if gtype == 3:
+        return size[..., 0] + size[..., 1]
+    if gtype in (4, 6):
+        return jnp.sqrt(_dot(size, size))
+    if gtype == 5:
+        return jnp.sqrt(size[..., 0] ** 2 + size[..., 1] ** 2)
+    raise ValueError(gtype)
+
+
+PRIMITIVES = {
+    # mjtGeom: (name, hit, closest, normal)
+    0: ("plane", hit_plane, closest_plane, normal_plane),
+    2: ("sphere", hit_sphere, closest_sphere, normal_sphere),
+    3: ("capsule", hit_capsule, closest_capsule, normal_capsule),
+    4: ("ellipsoid", hit_ellipsoid, closest_ellipsoid, normal_ellipsoid),
+    5: ("cylinder", hit_cylinder, closest_cylinder, normal_cylinder),
+    6: ("box", hit_box, closest_box, normal_box),
+}
+GEOM_NAMES = {0: "plane", 1: "hfield", 2: "sphere", 3: "capsule", 4: "ellipsoid",
+              5: "cylinder", 6: "box", 7: "mesh", 8: "sdf"}
+
+
+# ------------------------------------------------------------------ triangle meshes (world frame)
+def hit_triangles(o, r, v0, v1, v2):
+    """Moller-Trumbore, double-sided: ``s`` of the ray hitting each triangle (``inf`` if none).
+    ``o`` (3,), ``r`` (..., 1, 3), triangles (T, 3) -> (..., T)."""
+    e1, e2 = v1 - v0, v2 - v0
+    pv = jnp.cross(r, e2)
+    det = _dot(e1, pv)
+    inv = 1.0 / jnp.where(jnp.abs(det) > 1e-15, det, 1e-15)
+    tv = o - v0
+    u = _dot(tv, pv) * inv
+    qv = jnp.cross(tv, e1)
+    v = _dot(r, qv) * inv
+    s = _dot(e2, qv) * inv
+    ok = (jnp.abs(det) > 1e-15) & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > 0)
+    return jnp.where(ok, s, INF)

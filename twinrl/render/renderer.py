@@ -1,0 +1,506 @@
+"""A differentiable ray-casting renderer of an MJX scene: RGB, depth, segmentation, soft masks.
+
+SAM-RL (Lv et al., 2023), Sec. 3.2 ("differentiable rendering") fits the simulator's camera and
+objects to real RGB-D frames by gradient descent through a renderer; this is that renderer for
+MuJoCo scenes. Each pixel's ray is intersected analytically with every visible geom (plane,
+sphere, capsule, ellipsoid, cylinder, box; meshes through their triangles), so the *hard* image is
+exact and matches ``mujoco.Renderer``'s OpenGL depth and segmentation (up to OpenGL's tessellation
+of curved geoms). The hard image has no gradient when a silhouette moves (a pixel switches
+between geoms discontinuously), so the *soft* image (``tau > 0``) follows SoftRas (Liu et al.,
+2019, Sec. 3.2-3.3): each geom covers a pixel with probability ``sigmoid(-d / tau)``, ``d`` the
+signed distance (in pixels) of the pixel's ray to the geom's boundary, and the coverages are
+composited front to back with a smooth depth order (temperature ``gamma``, metres) in place of
+SoftRas's softmax-of-inverse-depth aggregation; the background takes what no geom covers. As
+``tau, gamma -> 0`` the soft image tends to the hard one.
+
+Shading is OpenGL's fixed-function model as MuJoCo configures it (the headlight and the scene's
+lights: ambient + Lambertian diffuse + Blinn-Phong specular, spot cone and exponent, attenuation),
+with hard shadows of the lights that cast them (shadow rays; treated as constants for gradients).
+
+Everything is a pure function of ``Camera`` and ``Geoms`` pytrees: jit, vmap (batches of cameras
+or scenes) and grad reach the camera pose and intrinsics, geom poses (``geom_xpos``/``geom_xmat``
+of an ``mjx.Data``), ``geom_size``, ``geom_rgba`` and mesh vertices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from twinrl.render import primitives as prim
+from twinrl.render.camera import Camera
+
+__all__ = ["Geoms", "Images", "Renderer", "UnsupportedGeomError"]
+
+_MESH = 7
+
+
+class UnsupportedGeomError(ValueError):
+    """A geom type the renderer cannot draw (height fields, SDF plugins)."""
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Geoms:
+    """What the renderer draws, for *all* geoms of a model (the renderer picks the visible ones):
+    world poses ``xpos`` (G, 3), ``xmat`` (G, 3, 3), ``size`` (G, 3), ``rgba`` (G, 4) and the
+    model's ``mesh_vert`` (V, 3) (mesh-local vertices; (0, 3) without meshes)."""
+
+    xpos: jax.Array
+    xmat: jax.Array
+    size: jax.Array
+    rgba: jax.Array
+    mesh_vert: jax.Array
+
+    @classmethod
+    def from_mjx(cls, model, data, *, kinematics: bool = True) -> "Geoms":
+        """Geoms of an ``mjx.Model``/``mjx.Data``; ``kinematics=True`` first recomputes the poses
+        from ``qpos`` (``mjx.kinematics``), so gradients reach ``qpos`` and the model."""
+        if kinematics:
+            from mujoco import mjx
+
+            data = mjx.kinematics(model, data)
+        return cls(data.geom_xpos, data.geom_xmat.reshape(-1, 3, 3), model.geom_size,
+                   model.geom_rgba, jnp.asarray(model.mesh_vert).reshape(-1, 3))
+
+    @classmethod
+    def from_mujoco(cls, model: mujoco.MjModel, data: mujoco.MjData, dtype=None) -> "Geoms":
+        """Geoms of a MuJoCo C model/data (after ``mj_forward`` or ``mj_kinematics``)."""
+        dt = dtype or jnp.result_type(float)
+        return cls(jnp.asarray(data.geom_xpos, dt), jnp.asarray(data.geom_xmat, dt).reshape(-1, 3, 3),
+                   jnp.asarray(model.geom_size, dt), jnp.asarray(model.geom_rgba, dt),
+                   jnp.asarray(model.mesh_vert, dt).reshape(-1, 3))
+
+    def replace(self, **kw) -> "Geoms":
+        return dataclasses.replace(self, **kw)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Images:
+    """A rendered frame. ``rgb`` (H, W, 3) in [0, 1]; ``depth`` (H, W) metres along the viewing
+    axis (far plane where nothing is seen); ``segmentation`` (H, W) int32 geom ids and ``body``
+    (H, W) body ids of the *hard* image (-1: background); ``weights`` (H, W, G) each drawn geom's
+    share of the pixel (``Renderer.geom_ids`` order; soft when ``tau > 0``, else one-hot);
+    ``background`` (H, W) the background's share."""
+
+    rgb: jax.Array
+    depth: jax.Array
+    segmentation: jax.Array
+    body: jax.Array
+    weights: jax.Array
+    background: jax.Array
+
+
+def _gl_far_depth(near: float, far: float) -> float:
+    """The depth ``mujoco.Renderer`` reports where nothing is drawn: its reverse-Z projection
+    evaluated in float32 at depth-buffer value 0 (a few mm from ``far`` for large scenes), so
+    background pixels compare equal."""
+    zf, zn = np.float32(far), np.float32(near)
+    c = -(zf + zn) / (zf - zn)
+    d = -(np.float32(2) * zf * zn) / (zf - zn)
+    c = np.float32(-0.5) * c - np.float32(0.5)
+    d = np.float32(-0.5) * d
+    return float(np.float32(np.float64(d) / (0.0 + np.float64(c))))
+
+
+def _lights(model: mujoco.MjModel):
+    d = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, d)
+    mujoco.mj_camlight(model, d)
+    on = np.flatnonzero(np.asarray(model.light_active, bool))
+    ltype = np.asarray(model.light_type)[on] if hasattr(model, "light_type") else np.where(
+        np.asarray(model.light_directional)[on], 1, 0)
+    return dict(
+        pos=np.asarray(d.light_xpos[on], np.float64),
+        dir=np.asarray(d.light_xdir[on], np.float64),
+        type=np.asarray(ltype, np.int32),
+        ambient=np.asarray(model.light_ambient[on], np.float64),
+        diffuse=np.asarray(model.light_diffuse[on], np.float64),
+        specular=np.asarray(model.light_specular[on], np.float64),
+        cutoff=np.asarray(model.light_cutoff[on], np.float64),
+        exponent=np.asarray(model.light_exponent[on], np.float64),
+        attenuation=np.asarray(model.light_attenuation[on], np.float64),
+        castshadow=np.asarray(model.light_castshadow[on], bool),
+    )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Renderer:
+    """Renders one ``mujoco.MjModel``'s geoms; holds only static structure (geom types, mesh
+    faces, lights, near/far planes), so its methods jit with it closed over.
+
+    Args:
+      model: the ``mujoco.MjModel`` (the MJX model's source).
+      geom_ids: geoms to draw (default: those MuJoCo draws by default: groups 0-2, alpha > 0).
+      shadows: shadow rays for lights with ``castshadow`` (as ``mujoco.Renderer`` draws them).
+      iters: golden-section iterations of the soft closest-approach search (boxes, cylinders,
+        meshes); the soft silhouette is placed to about ``0.62**iters`` of the geom's size.
+    """
+
+    geom_ids: tuple[int, ...]
+    types: tuple[int, ...]
+    bodies: np.ndarray
+    specular: np.ndarray
+    shininess: np.ndarray
+    emission: np.ndarray
+    mat_rgba: np.ndarray
+    use_mat_rgba: np.ndarray
+    lights: dict
+    headlight: dict
+    near: float
+    far: float
+    """Far clipping plane (m); background depth is ``far_depth``."""
+    far_depth: float
+    tri_geom: np.ndarray
+    tri_vert: np.ndarray
+    shadows: bool = True
+    iters: int = 16
+
+    @classmethod
+    def create(cls, model: mujoco.MjModel, *, geom_ids: Sequence[int] | None = None,
+               shadows: bool = True, iters: int = 16) -> "Renderer":
+        if not isinstance(model, mujoco.MjModel):
+            raise TypeError(f"model must be a mujoco.MjModel, got {type(model).__name__}")
+        if geom_ids is None:
+            geom_ids = [g for g in range(model.ngeom)
+                        if model.geom_group[g] < 3 and model.geom_rgba[g, 3] > 0]
+        geom_ids = tuple(int(g) for g in geom_ids)
+        if not geom_ids:
+            raise ValueError("no geom to draw")
+        for g in geom_ids:
+            if not 0 <= g < model.ngeom:
+                raise ValueError(f"geom id {g} out of range [0, {model.ngeom})")
+            t = int(model.geom_type[g])
+            if t not in prim.PRIMITIVES and t != _MESH:
+                raise UnsupportedGeomError(
+                    f"geom {g} ({model.geom(g).name or 'unnamed'}) has type "
+                    f"{prim.GEOM_NAMES.get(t, t)!r}; the renderer draws plane, sphere, capsule, "
+                    "ellipsoid, cylinder, box and mesh")
+        gi = np.asarray(geom_ids)
+        matid = np.asarray(model.geom_matid)[gi]
+        has = matid >= 0
+        spec = np.where(has, model.mat_specular[np.maximum(matid, 0)] if model.nmat else 0.5, 0.5)
+        shin = np.where(has, model.mat_shininess[np.maximum(matid, 0)] if model.nmat else 0.5, 0.5)
+        emis = np.where(has, model.mat_emission[np.maximum(matid, 0)] if model.nmat else 0.0, 0.0)
+        mat_rgba = (model.mat_rgba[np.maximum(matid, 0)] if model.nmat
+                    else np.ones((len(gi), 4)))
+        # MuJoCo colours a geom by its material unless the geom's own rgba was set explicitly
+        # (compiled, that shows as an rgba different from the default grey).
+        default = np.array([0.5, 0.5, 0.5, 1.0])
+        use_mat = has & np.all(np.isclose(model.geom_rgba[gi], default), -1)
+        tri_geom, tri_vert = [], []
+        for k, g in enumerate(geom_ids):
+            if model.geom_type[g] == _MESH:
+                mid = int(model.geom_dataid[g])
+                va, fa, fn = (int(model.mesh_vertadr[mid]), int(model.mesh_faceadr[mid]),
+                              int(model.mesh_facenum[mid]))
+                faces = np.asarray(model.mesh_face[fa:fa + fn]) + va
+                tri_vert.append(faces)
+                tri_geom.append(np.full(fn, k))
+        ext = float(model.stat.extent)
+        vis = model.vis
+        return cls(
+            geom_ids=geom_ids, types=tuple(int(model.geom_type[g]) for g in geom_ids),
+            bodies=np.asarray(model.geom_bodyid)[gi].astype(np.int32),
+            specular=np.asarray(spec, np.float64), shininess=np.asarray(shin, np.float64),
+            emission=np.asarray(emis, np.float64), mat_rgba=np.asarray(mat_rgba, np.float64),
+            use_mat_rgba=use_mat, lights=_lights(model),
+            headlight=dict(active=bool(vis.headlight.active),
+                           ambient=np.asarray(vis.headlight.ambient, np.float64),
+                           diffuse=np.asarray(vis.headlight.diffuse, np.float64),
+                           specular=np.asarray(vis.headlight.specular, np.float64)),
+            near=float(vis.map.znear) * ext, far=float(vis.map.zfar) * ext,
+            far_depth=_gl_far_depth(float(vis.map.znear) * ext, float(vis.map.zfar) * ext),
+            tri_geom=np.concatenate(tri_geom) if tri_geom else np.zeros(0, np.int32),
+            tri_vert=np.concatenate(tri_vert) if tri_vert else np.zeros((0, 3), np.int32),
+            shadows=bool(shadows), iters=int(iters))
+
+    @property
+    def ngeom(self) -> int:
+        return len(self.geom_ids)
+
+    def index(self, geom_id: int) -> int:
+        """Position of model geom ``geom_id`` in ``Images.weights``' last axis."""
+        if geom_id not in self.geom_ids:
+            raise ValueError(f"geom {geom_id} is not drawn by this renderer ({self.geom_ids})")
+        return self.geom_ids.index(geom_id)
+
+    # ------------------------------------------------------------------ ray casting
+    def _select(self, geoms: Geoms):
+        gi = np.asarray(self.geom_ids)
+        if geoms.xpos.ndim != 2 or geoms.xpos.shape[-1] != 3 or geoms.xmat.shape[-2:] != (3, 3):
+            raise ValueError(f"Geoms.xpos must be (G, 3) and xmat (G, 3, 3); got "
+                             f"{geoms.xpos.shape}, {geoms.xmat.shape} (vmap batches of scenes)")
+        if geoms.xpos.shape[0] <= gi.max():
+            raise ValueError(f"Geoms has {geoms.xpos.shape[0]} geoms; this renderer draws geom "
+                             f"{gi.max()}: render with Geoms of the renderer's own model")
+        return (geoms.xpos[gi], geoms.xmat[gi], geoms.size[gi], geoms.rgba[gi])
+
+    def _triangles(self, geoms: Geoms, xpos, xmat):
+        k = jnp.asarray(self.tri_geom)
+        v = geoms.mesh_vert[jnp.asarray(self.tri_vert)]  # (T, 3, 3) local
+        return jnp.einsum("tij,tcj->tci", xmat[k], v) + xpos[k][:, None, :]
+
+    def cast(self, o, r, geoms: Geoms, *, soft: bool = False, iters: int | None = None,
+             normal_tau=None):
+        """Intersect rays ``o + s r`` (o (..., 3) or (3,), r (..., 3)) with every drawn geom.
+
+        Returns ``s_hit`` (..., G) (inf: no hit), and with ``soft`` also ``s_near`` (..., G) (the
+        hit, else the closest approach), ``dist`` (..., G) signed distance (m) of the ray to the
+        geom's boundary and unit world ``normal`` (..., G, 3) at ``o + s_near r``, blended
+        across edges over ``normal_tau * s_near`` metres (``normal_tau`` (...,): metres per unit
+        depth; None: hard).
+        """
+        xpos, xmat, size, _ = self._select(geoms)
+        iters = self.iters if iters is None else iters
+        batch = r.shape[:-1]
+        G = self.ngeom
+        s_hit = [None] * G
+        s_near, dist, normal = [None] * G, [None] * G, [None] * G
+        types = np.asarray(self.types)
+        for t in sorted(set(self.types)):
+            idx = np.flatnonzero(types == t)
+            if t == _MESH:
+                out = self._cast_mesh(o, r, geoms, xpos, xmat, idx, soft, iters, normal_tau)
+            else:
+                out = self._cast_prim(t, o, r, xpos[idx], xmat[idx], size[idx], soft, iters,
+                                      normal_tau)
+            for j, g in enumerate(idx):
+                s_hit[g] = out[0][..., j]
+                if soft:
+                    s_near[g], dist[g], normal[g] = (out[1][..., j], out[2][..., j],
+                                                     out[3][..., j, :])
+        s_hit = jnp.stack(s_hit, -1)
+        assert s_hit.shape == (*batch, G)
+        if not soft:
+            return s_hit
+        return s_hit, jnp.stack(s_near, -1), jnp.stack(dist, -1), jnp.stack(normal, -2)
+
+    def _cast_prim(self, t, o, r, xpos, xmat, size, soft, iters, normal_tau=None):
+        _, hit, closest, normal = prim.PRIMITIVES[t]
+        # local frame: p_loc = xmat^T (p - xpos)
+        o_l = jnp.einsum("...gi,gij->...gj", o[..., None, :] - xpos, xmat)
+        r_l = jnp.einsum("...i,gij->...gj", r, xmat)
+        s_hit = hit(o_l, r_l, size)
+        if not soft:
+            return (s_hit,)
+        s_c, d = closest(o_l, r_l, size, iters)
+        s_n = jnp.where(jnp.isfinite(s_hit), s_hit, s_c)
+        s_n = jnp.where(jnp.isfinite(s_n), s_n, self.far)
+        p = o_l + s_n[..., None] * r_l
+        tn = None if normal_tau is None else normal_tau[..., None] * s_n
+        n = jnp.einsum("...gj,gij->...gi", normal(p, size, tn), xmat)
+        n = n / jnp.sqrt(jnp.sum(n * n, -1, keepdims=True) + 1e-20)
+        return s_hit, s_n, d, n
+
+    def _cast_mesh(self, o, r, geoms, xpos, xmat, idx, soft, iters, normal_tau=None):
+        tri = self._triangles(geoms, xpos, xmat)  # (T, 3, 3) world
+        k = np.asarray(self.tri_geom)
+        sel = np.stack([k == g for g in idx])  # (Gm, T) which triangles belong to which geom
+        s_tri = prim.hit_triangles(o[..., None, :], r[..., None, :], tri[:, 0], tri[:, 1],
+                                   tri[:, 2])  # (..., T)
+        s_hit = jnp.min(jnp.where(sel, s_tri[..., None, :], jnp.inf), -1)  # (..., Gm)
+        if not soft:
+            return (s_hit,)
+        # A convex mesh is the intersection of its faces' half-spaces: max of plane distances.
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        fn = jnp.cross(e1, e2)
+        fn = fn / jnp.sqrt(jnp.sum(fn * fn, -1, keepdims=True) + 1e-30)
+        off = jnp.sum(fn * tri[:, 0], -1)
+
+        def planes(p):  # p (..., Gm, 3) -> (..., Gm, T)
+            return jnp.where(sel, jnp.einsum("...gi,ti->...gt", p, fn) - off, -jnp.inf)
+
+        o_b = jnp.broadcast_to(o[..., None, :], (*r.shape[:-1], len(idx), 3))
+        r_b = jnp.broadcast_to(r[..., None, :], (*r.shape[:-1], len(idx), 3))
+        cen = xpos[idx]
+        corner = jnp.linalg.norm(tri - xpos[k][:, None, :], axis=-1).max(-1)  # (T,)
+        rb = jax.lax.stop_gradient(jnp.max(jnp.where(sel, corner, 0.0), -1))  # (Gm,)
+        sdf = lambda p, c: jnp.max(planes(p + c), -1)  # noqa: E731 - p relative to the centre
+        s_in, _ = prim._line_search_sdf(sdf, o_b - cen, r_b,
+                                        jnp.broadcast_to(cen, o_b.shape), rb, iters)
+        m_f = jnp.where(sel, jnp.einsum("...gi,ti->...gt", r_b, fn), 0.0)
+        c_f = jnp.where(sel, jnp.einsum("...gi,ti->...gt", o_b, fn) - off, -jnp.inf)
+        d_in = prim.polyhedral_depth(m_f, c_f, s_in)
+        # outside a convex mesh the ray passes closest to one of its edges (exact, differentiable)
+        ea = jnp.concatenate([tri[:, 0], tri[:, 1], tri[:, 2]])
+        eb = jnp.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
+        s_e, d_e = prim.line_segment(o_b[..., None, :], r_b[..., None, :], ea, eb)  # (..., Gm, 3T)
+        d_e = jnp.where(np.tile(sel, (1, 3)), d_e, jnp.inf)
+        k = jnp.argmin(d_e, -1)
+        s_out = jnp.take_along_axis(s_e, k[..., None], -1)[..., 0]
+        d_out = jnp.take_along_axis(d_e, k[..., None], -1)[..., 0]
+        inside = d_in < 0
+        s_c, d = jnp.where(inside, s_in, s_out), jnp.where(inside, d_in, d_out)
+        s_n = jnp.where(jnp.isfinite(s_hit), s_hit, s_c)
+        p = o_b + s_n[..., None] * r_b
+        vals = planes(p)
+        if normal_tau is None:
+            return s_hit, s_n, d, fn[jnp.argmax(vals, -1)]
+        w = jax.nn.softmax(vals / (normal_tau[..., None] * s_n)[..., None], -1)
+        return s_hit, s_n, d, jnp.einsum("...gt,ti->...gi", w, fn)
+
+    # ------------------------------------------------------------------ shading
+    def _albedo(self, rgba):
+        return jnp.where(jnp.asarray(self.use_mat_rgba)[:, None], jnp.asarray(self.mat_rgba),
+                         rgba)
+
+    def _shade(self, p, n, view_o, forward, albedo, own, geoms):
+        """OpenGL fixed-function colour of surface points ``p`` (..., G, 3), normals ``n``."""
+        v = view_o - p
+        v = v / jnp.sqrt(jnp.sum(v * v, -1, keepdims=True) + 1e-20)
+        # No two-sided flip: closed geoms are only ever seen from outside, and at a soft
+        # silhouette (n . v ~ 0) a flip would make the colour jump.
+        rgb = albedo[..., :3]
+        spec_m = jnp.asarray(self.specular)[:, None]
+        shin = 128.0 * jnp.asarray(self.shininess)
+        col = jnp.asarray(self.emission)[:, None] * rgb
+
+        def light(col, l, amb, dif, spe, factor):
+            ndl = jnp.sum(n * l, -1)
+            h = l + v
+            h = h / jnp.sqrt(jnp.sum(h * h, -1, keepdims=True) + 1e-20)
+            ndh = jnp.maximum(jnp.sum(n * h, -1), 0.0)
+            spec = jnp.where(ndl > 0, jnp.power(ndh + 1e-30, shin), 0.0)
+            return (col + amb * rgb + factor[..., None] * (
+                dif * jnp.maximum(ndl, 0.0)[..., None] * rgb + spe * spec_m * spec[..., None]))
+
+        hl = self.headlight
+        if hl["active"]:
+            l = jnp.broadcast_to(-forward, p.shape)
+            col = light(col, l, jnp.asarray(hl["ambient"]), jnp.asarray(hl["diffuse"]),
+                        jnp.asarray(hl["specular"]), jnp.ones(p.shape[:-1], p.dtype))
+        L = self.lights
+        for i in range(len(L["type"])):
+            if L["type"][i] == 1:  # directional
+                l = jnp.broadcast_to(-jnp.asarray(L["dir"][i], p.dtype), p.shape)
+                factor, dist_l = jnp.ones(p.shape[:-1], p.dtype), jnp.full(p.shape[:-1], 1e9)
+            else:
+                dl = jnp.asarray(L["pos"][i], p.dtype) - p
+                dist_l = jnp.sqrt(jnp.sum(dl * dl, -1) + 1e-20)
+                l = dl / dist_l[..., None]
+                a = L["attenuation"][i]
+                factor = 1.0 / (a[0] + a[1] * dist_l + a[2] * dist_l ** 2)
+                if L["type"][i] == 0:  # spot: cone and exponent
+                    cosang = -jnp.sum(l * jnp.asarray(L["dir"][i], p.dtype), -1)
+                    inside = cosang >= np.cos(np.deg2rad(L["cutoff"][i]))
+                    factor = factor * jnp.where(
+                        inside, jnp.power(jnp.maximum(cosang, 1e-30), L["exponent"][i]), 0.0)
+            if self.shadows and L["castshadow"][i]:
+                lit = self._unoccluded(p, l, dist_l, own, geoms)
+                factor = factor * jax.lax.stop_gradient(lit)
+            col = light(col, l, jnp.asarray(L["ambient"][i]), jnp.asarray(L["diffuse"][i]),
+                        jnp.asarray(L["specular"][i]), factor)
+        return jnp.clip(col, 0.0, 1.0)
+
+    def _unoccluded(self, p, l, dist_l, own, geoms):
+        p, l, dist_l = (jax.lax.stop_gradient(x) for x in (p, l, dist_l))
+        geoms = jax.tree_util.tree_map(jax.lax.stop_gradient, geoms)
+        s = self.cast(p + 1e-5 * l, l, geoms)  # (..., G_pts, G)
+        others = ~np.eye(self.ngeom, dtype=bool) if own else True
+        blocked = jnp.any(others & (s < dist_l[..., None]), -1)
+        return 1.0 - blocked.astype(p.dtype)
+
+    # ------------------------------------------------------------------ images
+    def render(self, camera: Camera, geoms: Geoms, *, tau: float = 0.0,
+               gamma: float = 0.01) -> Images:
+        """Render ``geoms`` seen from ``camera``.
+
+        Args:
+          tau: soft-silhouette temperature in pixels (0: the hard image; SoftRas's sigma).
+          gamma: depth-order temperature in metres for the soft composite (SoftRas's gamma).
+        """
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera must be a twinrl.render.Camera, got {type(camera).__name__}")
+        if not isinstance(geoms, Geoms):
+            raise TypeError(f"geoms must be a twinrl.render.Geoms, got {type(geoms).__name__}")
+        if camera.pos.shape != (3,):
+            raise ValueError(f"camera.pos must be (3,), got {camera.pos.shape}: "
+                             "jax.vmap over a batch of cameras")
+        soft = not (isinstance(tau, (int, float)) and tau == 0)
+        H, W, G = camera.height, camera.width, self.ngeom
+        o, r = camera.rays()
+        r = r.reshape(-1, 3)
+        xpos, xmat, size, rgba = self._select(geoms)
+        forward = -camera.xmat[:, 2]
+        if soft:
+            # shading crosses a geom's edges over about tau pixels, as its silhouette does
+            ntau = jnp.broadcast_to(tau * camera.pixel_size(), r.shape[:-1])
+            s_hit, s_n, dist, n = self.cast(o, r, geoms, soft=True, normal_tau=ntau)
+        else:
+            s_hit = self.cast(o, r, geoms)
+        s_hit = jnp.where((s_hit >= self.near) & (s_hit <= self.far), s_hit, jnp.inf)
+        hit = jnp.isfinite(s_hit)
+        first = jnp.argmin(s_hit, -1)
+        any_hit = jnp.any(hit, -1)
+        gi = jnp.asarray(self.geom_ids, jnp.int32)
+        seg = jnp.where(any_hit, gi[first], -1).reshape(H, W)
+        body = jnp.where(any_hit, jnp.asarray(self.bodies)[first], -1).reshape(H, W)
+        albedo = self._albedo(rgba)
+        alpha = albedo[:, 3]
+        if not soft:
+            s_n = jnp.where(hit, s_hit, self.far)
+            p = o + s_n[..., None] * r[:, None, :]
+            n = self._hard_normals(p, xpos, xmat, size, geoms)
+            cover = hit.astype(r.dtype)
+            z = s_n
+            ahead = (z[..., None, :] < z[..., :, None])  # [g, k]: k in front of g
+        else:
+            p = o + s_n[..., None] * r[:, None, :]
+            pix = camera.pixel_size()
+            d_px = dist / (jnp.maximum(s_n, self.near) * pix)
+            cover = jax.nn.sigmoid(-d_px / tau) * ((s_n >= self.near) & (s_n <= self.far))
+            z = s_n
+            ahead = jax.nn.sigmoid((z[..., :, None] - z[..., None, :]) / gamma)
+        offdiag = ~np.eye(G, dtype=bool)
+
+        def composite(a):
+            # w_g = a_g prod_{k != g} (1 - a_k [k in front of g]); background: prod_k (1 - a_k)
+            occl = jnp.where(offdiag, 1.0 - a[..., None, :] * ahead, 1.0)
+            w = a * jnp.prod(occl, -1)
+            bg = jnp.prod(1.0 - a, -1)
+            tot = jnp.sum(w, -1) + bg
+            tot = jnp.where(tot > 0, tot, 1.0)
+            return w / tot[..., None], bg / tot
+
+        w, bg = composite(cover)
+        col = self._shade(p, n, o, forward, albedo, True, geoms)
+        w_rgb, bg_rgb = composite(cover * alpha)
+        rgb = jnp.sum(w_rgb[..., None] * col, -2)  # black background
+        if soft:
+            depth = jnp.sum(w * z, -1) + bg * self.far_depth
+        else:
+            depth = jnp.where(any_hit, jnp.min(s_hit, -1), self.far_depth)
+        return Images(rgb=rgb.reshape(H, W, 3), depth=depth.reshape(H, W), segmentation=seg,
+                      body=body, weights=w.reshape(H, W, G), background=bg.reshape(H, W))
+
+    def _hard_normals(self, p, xpos, xmat, size, geoms):
+        types = np.asarray(self.types)
+        n = [None] * self.ngeom
+        for t in sorted(set(self.types)):
+            idx = np.flatnonzero(types == t)
+            if t == _MESH:
+                tri = self._triangles(geoms, xpos, xmat)
+                k = np.asarray(self.tri_geom)
+                sel = np.stack([k == g for g in idx])
+                fn = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+                fn = fn / jnp.sqrt(jnp.sum(fn * fn, -1, keepdims=True) + 1e-30)
+                off = jnp.sum(fn * tri[:, 0], -1)
+                vals = jnp.where(sel, jnp.einsum("ngi,ti->ngt", p[:, idx], fn) - off, -jnp.inf)
+                nl = fn[jnp.argmax(vals, -1)]
+                for j, g in enumerate(idx):
+                    n[g] = nl[:, j]
+                continue
+            normal = prim.PRIMITIVES[t][3]
+            pl = jnp.einsum("ngi,gij->ngj", p[:, idx] - xpos[idx], xmat[idx])
+            nw = jnp.einsum("ngj,gij->ngi", normal(pl, size[idx]), xmat[idx])
+            for j, g in enumerate(idx):
+                n[g] = nw[:, j]
+        n = jnp.stack(n, -2)
+        return n / jnp.sqrt(jnp.sum(n * n, -1, keepdims=True) + 1e-20)
