@@ -36,8 +36,9 @@ Method
   ``H^-1``.
 * **Identifiability**: eigen-directions of the data's Fisher information whose standard deviation
   exceeds ``max_rel_sd`` are *flat*. A parameter whose posterior sd exceeds ``max_rel_sd`` is
-  reported not identifiable. If a flat direction is one parameter alone (e.g. a geom friction
-  without contacts), that parameter is put back to its nominal value and the rest are refitted;
+  reported not identifiable. If a direction is all but unconstrained (sd > ``flat_sd``) and
+  mostly one parameter (e.g. a geom friction without contacts), that parameter is put back to its
+  nominal value and the rest are refitted;
   if it is a combination (rigid-body dynamics are unchanged when every mass, force gain, damping
   and friction is scaled by one factor -- trajectories alone cannot tell a heavy robot with a
   strong motor from a light one with a weak motor), its component stays at the prior and the
@@ -150,6 +151,9 @@ class SysidConfig:
     max_rel_sd: float = 0.1
     """A parameter (or eigen-direction) whose sd in unconstrained coordinates (about relative)
     exceeds this is not identifiable."""
+    flat_sd: float = 1.0
+    """An eigen-direction whose sd exceeds this (the data say next to nothing: a factor e) and
+    that is mostly one parameter puts that parameter back to its nominal value."""
     uncertainty: str = "sandwich"
     """``sandwich`` (window-clustered, robust to correlated residuals) or ``gauss_newton``."""
     batch_windows: int = 64
@@ -171,7 +175,7 @@ class SysidConfig:
              f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         need(self.uncertainty in UNCERTAINTIES,
              f"uncertainty must be one of {UNCERTAINTIES}, got {self.uncertainty!r}")
-        for name in ("loss_scale", "prior_sd", "nonneg_init", "frictionloss_floor", "max_rel_sd",
+        for name in ("loss_scale", "prior_sd", "flat_sd", "nonneg_init", "frictionloss_floor", "max_rel_sd",
                      "adam_lr", "lm_damping"):
             v = getattr(self, name)
             need(math.isfinite(v) and v > 0, f"{name} must be finite and > 0, got {v}")
@@ -409,7 +413,8 @@ def _rho(r: np.ndarray, kind: str, c: float) -> tuple[np.ndarray, np.ndarray]:
     if kind == "l2":
         return 0.5 * r * r, np.ones_like(r)
     if kind == "huber":
-        return np.where(a <= c, 0.5 * r * r, c * (a - 0.5 * c)), np.where(a <= c, 1.0, c / a)
+        return (np.where(a <= c, 0.5 * r * r, c * (a - 0.5 * c)),
+                np.where(a <= c, 1.0, c / np.maximum(a, c)))
     return 0.5 * c * c * np.log1p((r / c) ** 2), 1.0 / (1.0 + (r / c) ** 2)
 
 
@@ -789,7 +794,8 @@ def fit(env: Env, data, config: SysidConfig | None = None, rng: jax.Array | None
         free = prob.free.copy()
         info = _laplace(prob, theta, latency, free, start)
         single = sorted({max(d["loadings"], key=lambda j: abs(d["loadings"][j]))
-                         for d in info["flat"] if max(x * x for x in d["loadings"].values()) > 0.5})
+                         for d in info["flat"] if d["sd"] > c.flat_sd
+                         and max(x * x for x in d["loadings"].values()) > 0.5})
         if single:
             free_after = free.copy()
             for j in single:
