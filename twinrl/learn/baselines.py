@@ -1,0 +1,357 @@
+"""Model-free and analytic-gradient baselines: Brax's PPO and APG on our tasks, unpatched.
+
+The differentiable trainers (``pods``, ``hds``, ``shac``) are measured against
+
+- **PPO** (Schulman et al. 2017), ``brax.training.agents.ppo``: model-free, on-policy, the usual
+  sample-hungry but robust reference;
+- **APG** (analytic policy gradients, Brax's ``brax.training.agents.apg``): backpropagation through
+  the simulator over a fixed horizon *without* a critic -- the ablation that shows what SHAC's
+  value bootstrap (Xu et al. ICLR 2022, Sec. 3.2) buys.
+
+Both are Brax's own trainers on the pinned brax 0.14.2 / jax 0.9.2; our ``Env`` is a Brax env, so
+they take it unmodified. ``ppo_train`` and ``apg_train`` wrap them in our contract as far as it
+goes (``twinrl.learn.common``): ``(env, config, rng, *, progress_fn) -> (policy, params,
+metrics)`` where ``policy.apply(params, obs)`` is the *deterministic* action (the mode of Brax's
+tanh-Gaussian, ``tanh(loc)``) after Brax's observation normaliser, so ``make_evaluator`` scores it
+like any of ours. ``params`` is a plain dict ``{"obs_mean", "obs_std", "policy"}``: what a
+deployed policy needs (the PPO value network is dropped), and with the JSON of the config
+(``config.to_dict()``) ``ppo_policy``/``apg_policy`` rebuild ``policy`` without the training code:
+the returned policy carries that JSON as ``policy.spec`` and the kinds ``brax_ppo``/``brax_apg``
+are registered with ``twinrl.learn.checkpoint``, so ``save_policy``/``load_policy`` round-trip it.
+
+Metrics: one entry per Brax evaluation (``progress_fn`` call), with ``epoch`` (evaluation index),
+``env_steps``, ``wall_s`` (since ``*_train`` was called, compile included), ``return`` (Brax's
+deterministic evaluation: mean episode return over ``num_eval_envs`` full episodes) and, where Brax
+reports them, its training losses. Brax's trainers keep their state in closures, so runs cannot be
+resumed: passing ``checkpoint_fn`` or ``restore`` raises ``NotImplementedError``.
+
+Tuned settings for our 250-step swing-ups (per-step reward in [0, 1]) are ``TUNED[task][algo]``
+(applied by ``twinrl.learn.runner.make_config``; ``ppo_config(task)``/``apg_config(task)`` here).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.training.acme import running_statistics
+from brax.training.agents.apg import networks as apg_networks
+from brax.training.agents.apg import train as apg
+from brax.training.agents.ppo import networks as ppo_networks
+from brax.training.agents.ppo import train as ppo
+
+from twinrl.learn.checkpoint import register_network_kind
+from twinrl.learn.common import MetricLog, ProgressFn
+from twinrl.learn.networks import ACTIVATIONS, Network, NetworkConfig
+
+__all__ = ["PPOConfig", "APGConfig", "ppo_train", "apg_train", "ppo_policy", "apg_policy",
+           "ppo_config", "apg_config", "TUNED"]
+
+
+def _check_hidden(obj, *names):
+    for name in names:
+        object.__setattr__(obj, name, tuple(int(x) for x in getattr(obj, name)))
+        if any(x < 1 for x in getattr(obj, name)):
+            raise ValueError(f"{type(obj).__name__}.{name} widths must be >= 1, got "
+                             f"{getattr(obj, name)}")
+    if obj.activation not in ACTIVATIONS:
+        raise ValueError(f"{type(obj).__name__}.activation must be one of {sorted(ACTIVATIONS)}, "
+                         f"got {obj.activation!r}")
+
+
+class _JSONConfig:
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v
+                for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]):
+        return cls(**d)
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig(_JSONConfig):
+    """Brax PPO's settings (names as in ``brax.training.agents.ppo.train.train``)."""
+
+    num_timesteps: int = 3_000_000
+    """Environment steps to train for (Brax rounds up to whole training iterations)."""
+    num_envs: int = 256
+    """Environments stepped in parallel."""
+    batch_size: int = 256
+    """Trajectories (of ``unroll_length`` steps) per SGD minibatch."""
+    num_minibatches: int = 8
+    """Minibatches per collected batch; ``batch_size * num_minibatches`` must be a multiple of
+    ``num_envs``."""
+    unroll_length: int = 32
+    """Steps per collected trajectory segment (the GAE window)."""
+    num_updates_per_batch: int = 4
+    """SGD passes over each collected batch."""
+    learning_rate: float = 1e-3
+    """Adam learning rate."""
+    entropy_cost: float = 1e-2
+    """Entropy bonus weight (exploration)."""
+    discounting: float = 0.97
+    """Discount factor."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    clipping_epsilon: float = 0.2
+    """PPO's ratio clip."""
+    reward_scaling: float = 1.0
+    """Multiplies rewards inside the loss."""
+    max_grad_norm: float | None = 1.0
+    """Global-norm gradient clip (None: none)."""
+    normalize_observations: bool = True
+    """Running mean/std observation normaliser (part of the deployed policy)."""
+    policy_hidden: tuple[int, ...] = (64, 64)
+    """Policy MLP hidden widths."""
+    value_hidden: tuple[int, ...] = (128, 128)
+    """Value MLP hidden widths."""
+    activation: str = "swish"
+    """Hidden activation of both networks (``twinrl.learn.networks.ACTIVATIONS``)."""
+    episode_length: int | None = None
+    """Time limit of training and evaluation episodes; default ``env.episode_length``."""
+    num_evals: int = 10
+    """Evaluations (``progress_fn`` calls, metric entries), the first one before training."""
+    num_eval_envs: int = 64
+    """Episodes per evaluation."""
+
+    def __post_init__(self):
+        _check_hidden(self, "policy_hidden", "value_hidden")
+        for name in ("num_timesteps", "num_envs", "batch_size", "num_minibatches",
+                     "unroll_length", "num_updates_per_batch", "num_evals", "num_eval_envs"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"PPOConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if (self.batch_size * self.num_minibatches) % self.num_envs:
+            raise ValueError(f"PPOConfig: batch_size * num_minibatches = "
+                             f"{self.batch_size * self.num_minibatches} must be a multiple of "
+                             f"num_envs = {self.num_envs}")
+
+
+@dataclasses.dataclass(frozen=True)
+class APGConfig(_JSONConfig):
+    """Brax APG's settings (names as in ``brax.training.agents.apg.train.train``)."""
+
+    policy_updates: int = 600
+    """Gradient steps; each simulates ``num_envs * horizon_length`` steps and backpropagates
+    through them."""
+    horizon_length: int = 32
+    """Steps of backpropagation through the simulator per update (Brax's default 32)."""
+    num_envs: int = 64
+    """Environments simulated in parallel."""
+    learning_rate: float = 2e-3
+    """Adam learning rate (decayed by ``schedule_decay`` per update if ``use_schedule``)."""
+    use_schedule: bool = True
+    """Exponential learning-rate decay."""
+    schedule_decay: float = 0.997
+    """Per-update decay factor."""
+    max_gradient_norm: float = 1.0
+    """Global-norm gradient clip."""
+    normalize_observations: bool = True
+    """Running mean/std observation normaliser (part of the deployed policy)."""
+    policy_hidden: tuple[int, ...] = (64, 64)
+    """Policy MLP hidden widths (LayerNorm after each, as Brax's APG networks)."""
+    activation: str = "elu"
+    """Hidden activation (``twinrl.learn.networks.ACTIVATIONS``)."""
+    episode_length: int | None = None
+    """Time limit of training and evaluation episodes; default ``env.episode_length``."""
+    num_evals: int = 11
+    """Evaluations (``progress_fn`` calls, metric entries), the first one before training."""
+    num_eval_envs: int = 64
+    """Episodes per evaluation."""
+
+    def __post_init__(self):
+        _check_hidden(self, "policy_hidden")
+        for name in ("policy_updates", "horizon_length", "num_envs", "num_evals",
+                     "num_eval_envs"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"APGConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.num_evals > 1 and self.policy_updates < self.num_evals - 1:
+            raise ValueError(f"APGConfig.policy_updates = {self.policy_updates} must be >= "
+                             f"num_evals - 1 = {self.num_evals - 1}")
+
+
+TUNED: dict[str, dict[str, dict[str, Any]]] = {
+    "cartpole_swingup": {"ppo": {}, "apg": {}},
+    "pendulum_swingup": {"ppo": {}, "apg": {}},
+}
+"""Per-task overrides of the config defaults, ``TUNED[task][algo]`` (the registry of
+``twinrl.learn.runner`` applies them), measured to learn in a few CPU minutes (``bench/learn.py``)."""
+
+
+def ppo_config(task: str, **overrides) -> PPOConfig:
+    """PPO's config for ``task``: defaults, the task's ``TUNED`` values, then ``overrides``."""
+    return PPOConfig(**{**TUNED.get(task, {}).get("ppo", {}), **overrides})
+
+
+def apg_config(task: str, **overrides) -> APGConfig:
+    """APG's config for ``task``: defaults, the task's ``TUNED`` values, then ``overrides``."""
+    return APGConfig(**{**TUNED.get(task, {}).get("apg", {}), **overrides})
+
+
+# ------------------------------------------------------------------------------ policies
+def _normaliser(config):
+    return running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
+
+
+def _ppo_networks(obs_size: int, action_size: int, config: PPOConfig):
+    return ppo_networks.make_ppo_networks(
+        obs_size, action_size, preprocess_observations_fn=_normaliser(config),
+        policy_hidden_layer_sizes=config.policy_hidden,
+        value_hidden_layer_sizes=config.value_hidden,
+        activation=ACTIVATIONS[config.activation])
+
+
+def _apg_networks(obs_size: int, action_size: int, config: APGConfig):
+    return apg_networks.make_apg_networks(
+        obs_size, action_size, preprocess_observations_fn=_normaliser(config),
+        hidden_layer_sizes=config.policy_hidden, activation=ACTIVATIONS[config.activation],
+        layer_norm=True)
+
+
+class BraxPolicy(Network):
+    """A ``Network`` that also carries ``spec``, the JSON ``twinrl.learn.checkpoint`` saves and
+    ``load_policy`` rebuilds it from (``{"kind": "brax_ppo" | "brax_apg", "in_size", "out_size",
+    "config": <the trainer config as a dict>}``)."""
+
+    # No __slots__: instances get a __dict__ for ``spec``.
+
+
+def _as_network(kind, nets, make_inference, obs_size, action_size, config,
+                layer_norm) -> Network:
+    """Brax's deterministic inference function as our ``Network`` on plain-dict params."""
+    make_policy = make_inference(nets)
+
+    def apply(params, obs):
+        obs = jnp.asarray(obs, jnp.float32)
+        if obs.shape[-1] != obs_size:
+            raise ValueError(f"policy expects observations of size {obs_size}, got {obs.shape}")
+        norm = running_statistics.NestedMeanStd(mean=params["obs_mean"], std=params["obs_std"])
+        # Brax's inference fns take (normaliser, policy[, value]) and a key the mode ignores.
+        act, _ = make_policy((norm, params["policy"]), deterministic=True)(
+            obs, jax.random.PRNGKey(0))
+        return act
+
+    def init(rng):
+        return {"obs_mean": jnp.zeros((obs_size,)), "obs_std": jnp.ones((obs_size,)),
+                "policy": nets.policy_network.init(rng)}
+
+    cfg = NetworkConfig(hidden=config.policy_hidden, activation=config.activation,
+                        output="tanh", layer_norm=layer_norm)
+    net = BraxPolicy(init, apply, obs_size, action_size, cfg)
+    net.spec = {"kind": kind, "in_size": obs_size, "out_size": action_size,
+                "config": config.to_dict()}
+    return net
+
+
+def ppo_policy(obs_size: int, action_size: int, config: PPOConfig) -> Network:
+    """The deterministic PPO policy ``obs -> tanh(loc)`` for params saved by ``ppo_train``."""
+    return _as_network("brax_ppo", _ppo_networks(obs_size, action_size, config),
+                       ppo_networks.make_inference_fn, obs_size, action_size, config, False)
+
+
+def apg_policy(obs_size: int, action_size: int, config: APGConfig) -> Network:
+    """The deterministic APG policy ``obs -> tanh(loc)`` for params saved by ``apg_train``."""
+    return _as_network("brax_apg", _apg_networks(obs_size, action_size, config),
+                       apg_networks.make_inference_fn, obs_size, action_size, config, True)
+
+
+register_network_kind("brax_ppo", lambda spec: ppo_policy(
+    int(spec["in_size"]), int(spec["out_size"]), PPOConfig.from_dict(spec["config"])))
+register_network_kind("brax_apg", lambda spec: apg_policy(
+    int(spec["in_size"]), int(spec["out_size"]), APGConfig.from_dict(spec["config"])))
+
+
+def _plain_params(normaliser, policy_params) -> dict[str, Any]:
+    return {"obs_mean": jnp.asarray(normaliser.mean), "obs_std": jnp.asarray(normaliser.std),
+            "policy": policy_params}
+
+
+# ------------------------------------------------------------------------------ trainers
+def _seed(rng) -> int:
+    """Brax's trainers take an int seed: an int passes through, a key is turned into one."""
+    if isinstance(rng, (int, np.integer)):
+        return int(rng)
+    if isinstance(rng, jax.Array) and jnp.issubdtype(rng.dtype, jax.dtypes.prng_key):
+        rng = jax.random.key_data(rng)
+    return int(jax.random.randint(jnp.asarray(rng, jnp.uint32), (), 0, 2**31 - 1))
+
+
+def _refuse_resume(name, checkpoint_fn, restore):
+    if checkpoint_fn is not None or restore is not None:
+        raise NotImplementedError(
+            f"{name}: Brax's trainer keeps its state in closures, so it cannot be checkpointed or "
+            f"resumed; pass checkpoint_fn=None and restore=None (resume is supported by the "
+            f"twinrl trainers pods, hds and shac)")
+
+
+def _metric_row(log: MetricLog, index: int, env_steps: int, m: dict) -> dict[str, float]:
+    extra = {k.split("/", 1)[1]: v for k, v in m.items()
+             if k.startswith("training/") and np.ndim(v) == 0
+             and k not in ("training/sps", "training/walltime")}
+    return log.record(epoch=index, env_steps=env_steps,
+                      **{"return": m.get("eval/episode_reward", np.nan)}, **extra)
+
+
+def ppo_train(env, config: PPOConfig = PPOConfig(), rng: jax.Array | int = 0, *,
+              progress_fn: ProgressFn | None = None, checkpoint_fn=None, restore=None
+              ) -> tuple[Network, dict[str, Any], dict[str, list[float]]]:
+    """Brax PPO on ``env``; returns ``(policy, params, metrics)`` as described in the module."""
+    _refuse_resume("ppo_train", checkpoint_fn, restore)
+    c = config
+    T = int(c.episode_length or env.episode_length)
+    log = MetricLog()
+    count = [0]
+
+    def progress(step, m):
+        count[0] += 1
+        row = _metric_row(log, count[0] - 1, int(step), m)
+        if progress_fn is not None:
+            progress_fn(count[0] - 1, row)
+
+    nets = lambda obs_size, action_size, preprocess_observations_fn: _ppo_networks(  # noqa: E731
+        obs_size, action_size, c)
+    _, params, _ = ppo.train(
+        environment=env, num_timesteps=c.num_timesteps, num_envs=c.num_envs,
+        episode_length=T, batch_size=c.batch_size, num_minibatches=c.num_minibatches,
+        unroll_length=c.unroll_length, num_updates_per_batch=c.num_updates_per_batch,
+        learning_rate=c.learning_rate, entropy_cost=c.entropy_cost, discounting=c.discounting,
+        gae_lambda=c.gae_lambda, clipping_epsilon=c.clipping_epsilon,
+        reward_scaling=c.reward_scaling, max_grad_norm=c.max_grad_norm,
+        normalize_observations=c.normalize_observations, network_factory=nets,
+        num_evals=c.num_evals, num_eval_envs=c.num_eval_envs, deterministic_eval=True,
+        use_pmap_on_reset=False, seed=_seed(rng), progress_fn=progress)
+    policy = ppo_policy(int(env.observation_size), int(env.action_size), c)
+    return policy, _plain_params(params[0], params[1]), log.as_dict()
+
+
+def apg_train(env, config: APGConfig = APGConfig(), rng: jax.Array | int = 0, *,
+              progress_fn: ProgressFn | None = None, checkpoint_fn=None, restore=None
+              ) -> tuple[Network, dict[str, Any], dict[str, list[float]]]:
+    """Brax APG on ``env``; returns ``(policy, params, metrics)`` as described in the module."""
+    _refuse_resume("apg_train", checkpoint_fn, restore)
+    c = config
+    T = int(c.episode_length or env.episode_length)
+    log = MetricLog()
+    # Brax's APG: round(updates / evaluations after the first) updates between evaluations.
+    per_eval = int(np.round(c.policy_updates / max(c.num_evals - 1, 1)))
+    steps_per_eval = per_eval * c.num_envs * c.horizon_length
+
+    def progress(it, m):
+        row = _metric_row(log, int(it), int(it) * steps_per_eval, m)
+        if progress_fn is not None:
+            progress_fn(int(it), row)
+
+    nets = lambda obs_size, action_size, preprocess_observations_fn: _apg_networks(  # noqa: E731
+        obs_size, action_size, c)
+    _, params, _ = apg.train(
+        environment=env, episode_length=T, policy_updates=c.policy_updates,
+        horizon_length=c.horizon_length, num_envs=c.num_envs, num_evals=c.num_evals,
+        num_eval_envs=c.num_eval_envs, learning_rate=c.learning_rate,
+        use_schedule=c.use_schedule, schedule_decay=c.schedule_decay,
+        max_gradient_norm=c.max_gradient_norm, normalize_observations=c.normalize_observations,
+        deterministic_eval=True, network_factory=nets, seed=_seed(rng), progress_fn=progress)
+    policy = apg_policy(int(env.observation_size), int(env.action_size), c)
+    return policy, _plain_params(params[0], params[1]), log.as_dict()
