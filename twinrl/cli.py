@@ -348,6 +348,47 @@ def _cmd_eval(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------- run
+def _run_parser(sub) -> None:
+    p = sub.add_parser(
+        "run", help="the whole loop: Real2Sim -> Learn@Sim -> Sim2Real on a task's real twin",
+        description="Round 0 records exciting episodes on the real twin; each round then "
+                    "identifies the simulator (sysid), refits the hybrid dynamics, learns in sim "
+                    "(HDS), and deploys with residual adaptation, recording the real episodes. "
+                    "Writes summary.json, report.md, returns.png, params.png and final.mp4; "
+                    "--resume continues a killed run without losing recorded data.")
+    p.add_argument("--env", default="cartpole_swingup",
+                   help="task name (default cartpole_swingup)")
+    p.add_argument("--rounds", type=int, default=None, help="rounds after round 0 (default 2)")
+    p.add_argument("--episodes-per-round", type=int, default=None,
+                   help="real episodes recorded per round (default 2)")
+    p.add_argument("--algo", default=None, help="learner in sim (default hds)")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="training epochs per round (default: tuned per task)")
+    p.add_argument("--no-oracle", action="store_true",
+                   help="skip the oracle policy (evaluation only; saves a training run)")
+    p.add_argument("--resume", action="store_true", help="continue a killed run in --out")
+    _common(p, "runs/loop")
+    p.set_defaults(func=_cmd_run)
+
+
+def _cmd_run(args) -> int:
+    from twinrl.loop import LoopConfig, LoopError, run
+
+    _check_task(args.env)
+    overrides = {k: v for k, v in (("rounds", args.rounds),
+                                   ("episodes_per_round", args.episodes_per_round),
+                                   ("algo", args.algo), ("epochs", args.epochs)) if v is not None}
+    if args.no_oracle:
+        overrides["oracle"] = False
+    try:
+        config = LoopConfig(**overrides)
+        run(args.env, args.out, config, seed=args.seed, resume=args.resume)
+    except LoopError as e:
+        raise UsageError(str(e)) from None
+    return 0
+
+
 # ---------------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -359,6 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     _collect_parser(sub)
     _render_parser(sub)
     _gradcheck_parser(sub)
+    _run_parser(sub)
     _train_parser(sub)
     _eval_parser(sub)
     return parser

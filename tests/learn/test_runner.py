@@ -109,12 +109,15 @@ def test_zero_last_network_outputs_zero_and_round_trips(tmp_path):
     assert net2.config == net.config and bool(jnp.all(net2.apply(params2, jnp.ones(4)) == 0))
 
 
-def test_train_state_keeps_rng_keys(tmp_path):
+def test_train_state_keeps_rng_keys_and_empty_arrays(tmp_path):
+    # An mjx.Data in a trainer's state carries zero-size arrays, which orbax cannot store alone.
     ck = checkpoint.TrainStateCheckpointer(tmp_path)
-    state = {"rng": jax.random.key(5), "x": jnp.arange(3.0)}
+    state = {"rng": jax.random.key(5), "x": jnp.arange(3.0), "act": jnp.zeros((0,))}
     ck(0, state, {"epoch": [0.0]})
-    got, hist = checkpoint.TrainStateCheckpointer(tmp_path).restore(state)
-    assert hist == {"epoch": [0.0]}
+    got, hist = checkpoint.TrainStateCheckpointer(tmp_path).restore(
+        jax.tree.map(jnp.zeros_like, {**state, "rng": jax.random.key(0)}))
+    assert hist == {"epoch": [0.0]} and got["act"].shape == (0,)
+    np.testing.assert_array_equal(got["x"], state["x"])
     np.testing.assert_array_equal(jax.random.key_data(got["rng"]), jax.random.key_data(state["rng"]))
 
 

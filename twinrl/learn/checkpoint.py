@@ -123,14 +123,27 @@ def _is_key(x) -> bool:
     return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
-def _unkey(tree):
-    return jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, tree)
+def _flat(tree) -> dict[str, Any]:
+    """The non-empty leaves of ``tree`` by position, PRNG keys as raw key data. Orbax cannot store
+    zero-size arrays (an ``mjx.Data`` carries several), and positions keep the saved layout free of
+    the trainer's NamedTuple classes."""
+    leaves = jax.tree.leaves(tree)
+    return {f"{i:05d}": (jax.random.key_data(x) if _is_key(x) else x)
+            for i, x in enumerate(leaves) if np.size(x) > 0}
 
 
-def _rekey(tree, template):
-    return jax.tree.map(
-        lambda x, t: jax.random.wrap_key_data(x, impl=jax.random.key_impl(t)) if _is_key(t) else x,
-        tree, template)
+def _unflat(saved: dict[str, Any], template):
+    leaves, treedef = jax.tree.flatten(template)
+    out = []
+    for i, t in enumerate(leaves):
+        k = f"{i:05d}"
+        if np.size(t) == 0:
+            out.append(t)
+        elif _is_key(t):
+            out.append(jax.random.wrap_key_data(saved[k], impl=jax.random.key_impl(t)))
+        else:
+            out.append(saved[k])
+    return jax.tree.unflatten(treedef, out)
 
 
 class TrainStateCheckpointer:
@@ -161,7 +174,7 @@ class TrainStateCheckpointer:
             return
         ocp = self._ocp
         self._manager.save(int(epoch), args=ocp.args.Composite(
-            state=ocp.args.StandardSave(_unkey(state)),
+            state=ocp.args.StandardSave(_flat(state)),
             metrics=ocp.args.JsonSave(to_jsonable(metrics))), force=True)
         self._manager.wait_until_finished()
 
@@ -170,12 +183,11 @@ class TrainStateCheckpointer:
         if step is None:
             raise CheckpointError(f"{self.directory}: no saved training state to resume from")
         ocp = self._ocp
-        abstract = jax.tree.map(
-            lambda x: jax.ShapeDtypeStruct(np.shape(x), np.asarray(x).dtype)
-            if not hasattr(x, "sharding") else x, _unkey(template))
+        abstract = {k: jax.ShapeDtypeStruct(np.shape(v), v.dtype)
+                    for k, v in _flat(template).items()}
         got = self._manager.restore(step, args=ocp.args.Composite(
             state=ocp.args.StandardRestore(abstract), metrics=ocp.args.JsonRestore()))
-        return _rekey(got.state, template), dict(got.metrics)
+        return _unflat(got.state, template), dict(got.metrics)
 
     def close(self) -> None:
         self._manager.close()

@@ -1,0 +1,442 @@
+"""The whole loop, Real2Sim -> Learn@Sim -> Sim2Real, in rounds, resumable: ``twinrl run``.
+
+What a user comes for: hand twinrl a system it cannot see inside (a task's real twin), let it watch
+a few episodes, get back a policy that works on that system. Round 0 records ``K`` episodes with a
+safe exciting open-loop policy (``twinrl.real2sim.sysid.excitation_actions``). Every round ``r >= 1``:
+
+1. **sysid** on every real transition recorded so far -> ``PhysParams`` and action latency
+   (``twinrl.real2sim.sysid``);
+2. **hybrid refit**: the residual dynamics on top of the identified simulator
+   (``twinrl.sim2real.hybrid``);
+3. **learn in sim**: HDS by default (``twinrl.learn.hds``) in the identified simulator with a
+   fraction of rollouts through the hybrid model;
+4. **deploy with residual adaptation**: the residual policy (zero at first, so the first deployment
+   is exactly the simulator's policy) is trained through the hybrid model from recorded real states
+   (``twinrl.sim2real.residual``), then ``K`` real episodes are run and recorded.
+
+Bookkeeping per round: real steps used so far, identified-parameter errors, sim return, real return
+and the oracle's return. The **oracle** (evaluation only, never fed back) is a policy trained the
+same way in a simulator given the twin's *true* parameters, evaluated on the real twin; the
+parameter errors likewise read the twin's hidden truth. Both happen in ``_evaluation_*`` functions
+that the learning stages never call.
+
+Resume: every stage writes its outputs, then marks itself done in ``progress.json`` (atomically).
+Real episodes go to ``dataset/`` as they happen (``twinrl.real.dataset``), so a run killed at any
+moment loses nothing recorded; ``resume=True`` skips the finished stages, counts the episodes the
+dataset already holds for the interrupted collection stage, and resumes training from its last
+saved epoch (``twinrl.learn.runner``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twinrl import report
+
+__all__ = ["LoopConfig", "run", "LoopError"]
+
+
+class LoopError(Exception):
+    """Bad loop settings or a mismatched resume."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopConfig:
+    """Settings of ``twinrl run``."""
+
+    rounds: int = 2
+    """Rounds of sysid -> hybrid -> learn -> deploy after the round-0 collection."""
+    episodes_per_round: int = 2
+    """Real episodes recorded per round (round 0: exciting open-loop actions)."""
+    algo: str = "hds"
+    """Learner in sim (``twinrl.learn.runner.ALGORITHMS``)."""
+    epochs: int | None = None
+    """Training epochs per round (None: the algorithm's tuned value for the task)."""
+    model_fraction: float = 0.25
+    """HDS's beta: fraction of rollouts through the hybrid model (0 disables the hybrid in
+    learning)."""
+    hybrid: bool = True
+    """Fit the hybrid residual dynamics each round (needed for the residual policy)."""
+    residual: bool = True
+    """Adapt with a residual policy trained through the hybrid model before each deployment."""
+    sysid_window: int = 10
+    """Multiple-shooting window length (steps) of sysid."""
+    oracle: bool = True
+    """Train and evaluate the oracle policy (evaluation only)."""
+    eval_episodes: int = 3
+    """Evaluation-only real episodes of the oracle and of the sim policy without adaptation (not
+    recorded, not counted as real steps)."""
+    video: bool = True
+    """Write final.mp4: the final real episode beside the simulator's."""
+
+    def __post_init__(self):
+        for name in ("rounds", "episodes_per_round", "eval_episodes"):
+            if getattr(self, name) < 1:
+                raise LoopError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 <= self.model_fraction < 1.0:
+            raise LoopError(f"model_fraction must be in [0, 1), got {self.model_fraction}")
+        if self.model_fraction > 0 and not self.hybrid:
+            raise LoopError("model_fraction > 0 needs the hybrid model (hybrid=True)")
+        if self.residual and not self.hybrid:
+            raise LoopError("the residual policy is trained through the hybrid model: "
+                            "residual=True needs hybrid=True")
+
+
+# ------------------------------------------------------------------------------ bookkeeping
+class _Progress:
+    """``progress.json``: the finished stages and the per-round records, written atomically."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.doc = json.loads(path.read_text()) if path.exists() else {"done": [], "rounds": {}}
+
+    def done(self, stage: str) -> bool:
+        return stage in self.doc["done"]
+
+    def mark(self, stage: str, **record: Any) -> None:
+        if record:
+            r = stage.split("/")[0]
+            self.doc["rounds"].setdefault(r, {}).update(report.to_jsonable(record))
+        if stage not in self.doc["done"]:
+            self.doc["done"].append(stage)
+        report.write_json(self.path, self.doc)
+
+    def record(self, r: int) -> dict[str, Any]:
+        return self.doc["rounds"].get(f"round{r}", {})
+
+
+def _params_to_json(p) -> dict[str, list]:
+    return {k: np.asarray(v, np.float64).tolist() for k, v in p.as_dict().items()}
+
+
+def _params_from_json(d: dict[str, list]):
+    from twinrl.physics import PhysParams
+
+    return PhysParams(**{k: jnp.asarray(np.asarray(v), jnp.float32) for k, v in d.items()})
+
+
+# ------------------------------------------------------------------------------ the stages
+def _collect(twin, writer, episodes: int, policy, seed: int, rng: np.random.Generator,
+             bar=None) -> list[float]:
+    """Run ``policy(obs, t) -> action`` for ``episodes`` real episodes, recording every
+    transition; returns the episode returns."""
+    returns = []
+    for ep in range(episodes):
+        obs, _ = twin.reset(seed=int(rng.integers(0, 2**31 - 1)))
+        ret, done, t = 0.0, False, 0
+        while not done:
+            a = np.asarray(policy(obs, t), np.float32)
+            nxt, r, term, trunc, info = twin.step(a)
+            writer.add(obs, a, r, nxt, term, trunc,
+                       info={k: v for k, v in info.items() if np.isscalar(v)})
+            obs, ret, done, t = nxt, ret + float(r), term or trunc, t + 1
+        returns.append(ret)
+        if bar is not None:
+            bar(f"episode {ep + 1}/{episodes} return {ret:.1f}")
+    return returns
+
+
+def _episodes_in(dataset_dir: Path) -> int:
+    from twinrl.real import dataset as ds
+
+    if not (dataset_dir / "meta.json").exists():
+        return 0
+    data = ds.read(dataset_dir)
+    return int(np.sum(data.episode_complete))
+
+
+def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, seed: int = 0,
+        resume: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Run the loop on ``env_name``'s real twin (hidden perturbation drawn from ``seed``) into
+    ``out``; returns the summary (also ``out/summary.json``)."""
+    from twinrl import envs
+    from twinrl.learn.runner import algorithm
+    from twinrl.real.dataset import DatasetWriter
+    from twinrl.real2sim import sysid
+
+    if env_name not in envs.names():
+        raise LoopError(f"unknown task {env_name!r}; registered: {', '.join(envs.names())}")
+    algorithm(config.algo)
+    out = Path(out)
+    settings = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config)}
+    settings_file = out / "loop.json"
+    if settings_file.exists():
+        previous = json.loads(settings_file.read_text())
+        if not resume:
+            raise LoopError(f"{out} already holds a loop run; pass --resume to continue it or "
+                            f"choose a new --out")
+        if previous != report.to_jsonable(settings):
+            raise LoopError(f"--resume: {settings_file} was started with other settings "
+                            f"({previous}); resume with the same ones")
+    out.mkdir(parents=True, exist_ok=True)
+    report.write_json(settings_file, settings)
+    prog = _Progress(out / "progress.json")
+    say = report.console.print if progress else (lambda *a, **k: None)
+    t_start = time.perf_counter()
+
+    twin = envs.make_real(env_name, seed=seed)
+    nominal_env = envs.make(env_name)
+    K, T = config.episodes_per_round, nominal_env.episode_length
+    rng = np.random.default_rng(seed)
+    obs0, _ = twin.reset(seed=seed)
+    writer = DatasetWriter(out / "dataset", env=env_name, obs_shape=obs0.shape,
+                           action_shape=twin.action_space.shape, obs_dtype=np.float32,
+                           action_dtype=np.float32)
+    rounds: list[dict[str, Any]] = []
+    try:
+        # ---------------------------------------------------------------- round 0: excitation
+        if not prog.done("round0/collect"):
+            have = _episodes_in(out / "dataset")
+            need = K - have
+            say(f"[bold]round 0[/]: recording {need} exciting episodes on the real twin"
+                f"{f' ({have} already recorded)' if have else ''}")
+            acts = [sysid.excitation_actions(np.random.default_rng([seed, e]), T,
+                                             nominal_env.action_size) for e in range(K)]
+            for e in range(have, K):
+                _collect(twin, writer, 1, lambda o, t, a=acts[e]: a[min(t, T - 1)], seed,
+                         np.random.default_rng([seed, e, 1]))
+            prog.mark("round0/collect", real_steps=_real_steps(out), real_return=None)
+        rounds.append(_round_record(prog, 0))
+
+        policy_dir = None
+        for r in range(1, config.rounds + 1):
+            tag = f"round{r}"
+            rdir = out / tag
+            rdir.mkdir(exist_ok=True)
+            say(f"[bold]round {r}[/] ({time.perf_counter() - t_start:.0f} s)")
+            data = _read(out / "dataset")
+
+            # 1. sysid --------------------------------------------------------------------
+            if not prog.done(f"{tag}/sysid"):
+                say(f"  sysid on {len(data)} real transitions ...")
+                res = sysid.fit(nominal_env, data, sysid.SysidConfig(window=config.sysid_window))
+                report.write_json(rdir / "sysid.json", {
+                    "latency": res.latency, "params": _params_to_json(res.params),
+                    "table": res.table, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
+                    "seconds": res.seconds})
+                errs = _evaluation_param_errors(twin, res)
+                prog.mark(f"{tag}/sysid", param_rel_error=errs, latency=res.latency,
+                          sysid_rollouts=res.sim_rollouts)
+            sys_doc = json.loads((rdir / "sysid.json").read_text())
+            params = _params_from_json(sys_doc["params"])
+            latency = int(sys_doc["latency"])
+            env = sysid.identified_env(env_name, params) if hasattr(
+                sysid, "identified_env") else envs.make(env_name, params=params)
+
+            # 2. hybrid -------------------------------------------------------------------
+            hyb = None
+            if config.hybrid:
+                hyb = _hybrid_stage(prog, tag, rdir, env, data, latency, seed + r, say)
+
+            # 3. learn in sim -------------------------------------------------------------
+            policy_dir = rdir / "train"
+            if not prog.done(f"{tag}/learn"):
+                say(f"  learning with {config.algo} in the identified simulator ...")
+                kwargs = {}
+                overrides = {}
+                if config.algo == "hds" and config.model_fraction > 0 and hyb is not None:
+                    from twinrl.sim2real.hybrid import make_dynamics
+
+                    kwargs["dynamics"] = make_dynamics(env, hyb)
+                    overrides["model_fraction"] = config.model_fraction
+                from twinrl.learn.runner import train_run
+
+                s = train_run(env_name, config.algo, policy_dir, seed=seed + r,
+                              epochs=config.epochs, overrides=overrides, resume=True,
+                              progress=progress, env=env, train_kwargs=kwargs)
+                prog.mark(f"{tag}/learn", sim_return=s["final"].get("return"),
+                          train_epochs=s["epochs"])
+
+            # 4. residual + deploy ---------------------------------------------------------
+            if not prog.done(f"{tag}/deploy"):
+                act = _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed + r, say)
+                have = _episodes_in(out / "dataset") - _episodes_before(prog, r, K)
+                say(f"  deploying on the real twin ({K - have} episodes) ...")
+                rets = list(prog.record(r).get("deploy_returns_partial", []))
+                for e in range(max(0, have), K):
+                    rets += _collect(twin, writer, 1, lambda o, t: act(o), seed,
+                                     np.random.default_rng([seed, r, e]))
+                    prog.mark(f"{tag}/deploy_partial", deploy_returns_partial=rets)
+                no_adapt = _evaluation_real_return(env_name, seed, policy_dir,
+                                                   config.eval_episodes)
+                prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
+                          real_returns=rets, real_steps=_real_steps(out),
+                          sim_policy_real_return=no_adapt)
+            rounds.append(_round_record(prog, r))
+    finally:
+        writer.close()
+        twin.close()
+
+    # ------------------------------------------------------------------------- oracle
+    oracle_return = None
+    if config.oracle:
+        oracle_return = _evaluation_oracle(env_name, seed, out / "oracle", config, progress)
+    for rec in rounds:
+        rec["oracle_return"] = oracle_return
+    final = dict(rounds[-1]) if rounds else {}
+    if oracle_return:
+        final["fraction_of_oracle"] = (final.get("real_return") or 0.0) / oracle_return
+    summary = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config),
+               "rounds": rounds, "final": final,
+               "wall_s_this_process": time.perf_counter() - t_start}
+    _write_outputs(out, summary, config, env_name, seed, policy_dir)
+    return summary
+
+
+def _read(path: Path):
+    from twinrl.real import dataset as ds
+
+    return ds.read(path)
+
+
+def _real_steps(out: Path) -> int:
+    return int(len(_read(out / "dataset")))
+
+
+def _episodes_before(prog: _Progress, r: int, K: int) -> int:
+    """Complete episodes recorded before round ``r``'s deployment: K per earlier stage."""
+    return K * r
+
+
+def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
+    rec = prog.record(r)
+    return {"round": r, "real_steps": rec.get("real_steps"), "real_return": rec.get("real_return"),
+            "sim_return": rec.get("sim_return"), "oracle_return": None,
+            "param_rel_error": rec.get("param_rel_error", {}),
+            "sim_policy_real_return": rec.get("sim_policy_real_return"),
+            "latency": rec.get("latency")}
+
+
+def _hybrid_stage(prog, tag, rdir, env, data, latency, seed, say):
+    from twinrl.learn.checkpoint import load_policy, save_policy
+    from twinrl.sim2real import hybrid
+
+    if not prog.done(f"{tag}/hybrid"):
+        say("  fitting the hybrid residual dynamics ...")
+        fit = hybrid.fit(env, data, latency=latency, rng=jax.random.key(seed))
+        m = fit.model
+        save_policy(rdir / "hybrid", m.network, m.params, kind="hybrid_residual",
+                    in_mean=m.in_mean, in_std=m.in_std, out_scale=m.out_scale,
+                    latency=m.latency, metrics=fit.metrics)
+        prog.mark(f"{tag}/hybrid", hybrid_sim_rmse=fit.metrics["sim_val_rmse"],
+                  hybrid_rmse=fit.metrics["hybrid_val_rmse"])
+    net, params, meta = load_policy(rdir / "hybrid")
+    f32 = lambda k: jnp.asarray(np.asarray(meta[k]), jnp.float32)  # noqa: E731
+    return hybrid.HybridModel(net, params, f32("in_mean"), f32("in_std"), f32("out_scale"),
+                              int(meta["latency"]))
+
+
+def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
+    """The deployed ``obs -> action``: pi_sim, plus the residual trained through the hybrid."""
+    from twinrl.learn.checkpoint import load_policy, save_policy
+    from twinrl.sim2real import hybrid, residual
+
+    base, base_params, _ = load_policy(policy_dir)
+    if not config.residual or hyb is None:
+        f = jax.jit(base.apply)
+        return lambda o: np.asarray(f(base_params, o))
+    pol = residual.make_residual(base, base_params)
+    if not (rdir / "residual" / "checkpoint.json").exists():
+        say("  training the residual policy through the hybrid model ...")
+        res_params, metrics = residual.train(env, hybrid.make_dynamics(env, hyb), pol, data.obs,
+                                             rng=jax.random.key(seed))
+        save_policy(rdir / "residual", pol.delta, res_params, kind="residual",
+                    metrics={k: v[-1] for k, v in metrics.items()})
+    _, res_params, _ = load_policy(rdir / "residual")
+    f = jax.jit(pol.act)
+    return lambda o: np.asarray(f(res_params, o))
+
+
+# ------------------------------------------------------------------------------ evaluation only
+def _evaluation_param_errors(twin, result) -> dict[str, float]:
+    """Relative error of every fitted parameter against the twin's hidden truth (parameters the
+    data fix only up to a common scale are compared after that scale: ``aligned_rel_err``;
+    parameters left at nominal as not identifiable are left out)."""
+    from twinrl.real2sim.sysid import compare_to_truth
+
+    truth = twin.oracle()
+    rows = compare_to_truth(result, truth.params, truth.perturbation.latency_steps)
+    return {row["parameter"]: float(row.get("aligned_rel_err", row["rel_err"]))
+            for row in rows if not str(row.get("status", "")).startswith(("known", "not ident"))}
+
+
+def _evaluation_real_return(env_name, seed, policy_dir, episodes):
+    """Mean return of a policy checkpoint on a fresh copy of the real twin (same hidden
+    perturbation), not recorded and not counted."""
+    from twinrl import envs
+    from twinrl.learn.checkpoint import load_policy
+
+    net, params, _ = load_policy(policy_dir)
+    f = jax.jit(net.apply)
+    twin = envs.make_real(env_name, seed=seed)
+    rets = []
+    try:
+        for e in range(episodes):
+            obs, _ = twin.reset(seed=10_000 + e)
+            done, ret = False, 0.0
+            while not done:
+                obs, rw, term, trunc, _ = twin.step(np.asarray(f(params, obs), np.float32))
+                ret, done = ret + rw, term or trunc
+            rets.append(ret)
+    finally:
+        twin.close()
+    return float(np.mean(rets))
+
+
+def _evaluation_oracle(env_name, seed, out, config, progress) -> float:
+    """The oracle: trained in a simulator with the twin's true parameters (evaluation only)."""
+    from twinrl import envs
+    from twinrl.learn.runner import train_run
+
+    twin = envs.make_real(env_name, seed=seed)
+    truth = twin.oracle().params
+    twin.close()
+    env = envs.make(env_name, params=truth)
+    if not (out / "policy" / "checkpoint.json").exists():
+        train_run(env_name, config.algo, out, seed=seed, epochs=config.epochs, resume=True,
+                  progress=progress, env=env)
+    return _evaluation_real_return(env_name, seed, out / "policy", config.eval_episodes)
+
+
+# ------------------------------------------------------------------------------ outputs
+def _write_outputs(out: Path, summary, config, env_name, seed, policy_dir) -> None:
+    rounds = summary["rounds"]
+    rows = [[r["round"], r["real_steps"], r["sim_return"], r["real_return"],
+             r["sim_policy_real_return"], r["oracle_return"],
+             max(r["param_rel_error"].values()) if r["param_rel_error"] else None]
+            for r in rounds]
+    cols = ["round", "real steps", "sim return", "real return", "no-adapt real", "oracle",
+            "max param err"]
+    report.print_table(f"twinrl run {env_name} (seed {seed})", cols, rows)
+    report.write_json(out / "summary.json", summary)
+    done = [r for r in rounds if r["real_return"] is not None]
+    files = {}
+    if done:
+        files["returns"] = report.plot_curves(
+            out / "returns.png",
+            {"real return (deployed)": ([r["real_steps"] for r in done],
+                                        [r["real_return"] for r in done])},
+            "real env steps used", "episode return", f"{env_name}: return vs real steps",
+            hline=(rounds[0]["oracle_return"], "oracle") if rounds[0]["oracle_return"] else None)
+    errs = [r for r in rounds if r["param_rel_error"]]
+    if errs:
+        names = sorted(errs[0]["param_rel_error"])
+        files["params"] = report.plot_curves(
+            out / "params.png",
+            {n: ([r["round"] for r in errs], [r["param_rel_error"].get(n, np.nan) for r in errs])
+             for n in names}, "round", "relative error", "identified parameters vs truth")
+    md = [f"# twinrl run: {env_name} (seed {seed})", "",
+          "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    md += ["| " + " | ".join(report._fmt(v) if v is not None else "-" for v in row) + " |"
+           for row in rows]
+    md += ["", f"Final: {json.dumps(report.to_jsonable(summary['final']))}", ""]
+    md += [f"![{k}]({Path(v).name})" for k, v in files.items()]
+    (out / "report.md").write_text("\n".join(md) + "\n")
