@@ -17,8 +17,9 @@ safe exciting open-loop policy (``twinrl.real2sim.sysid.excitation_actions``). E
 Bookkeeping per round: real steps used so far, identified-parameter errors, sim return, real return
 and the oracle's return. The **oracle** (evaluation only, never fed back) is a policy trained the
 same way in a simulator given the twin's *true* parameters, evaluated on the real twin; the
-parameter errors likewise read the twin's hidden truth. Both happen in ``_evaluation_*`` functions
-that the learning stages never call.
+parameter errors likewise read the twin's hidden truth. Both happen in evaluation functions
+(``twinrl.eval``, the only module
+outside ``twinrl/real`` allowed to read the twin's oracle) that the learning stages never call.
 
 Resume: every stage writes its outputs, then marks itself done in ``progress.json`` (atomically).
 Real episodes go to ``dataset/`` as they happen (``twinrl.real.dataset``), so a run killed at any
@@ -39,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from twinrl import eval as evaluation
 from twinrl import report
 
 __all__ = ["LoopConfig", "run", "LoopError"]
@@ -222,7 +224,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                     "latency": res.latency, "params": _params_to_json(res.params),
                     "table": res.table, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
                     "seconds": res.seconds})
-                errs = _evaluation_param_errors(twin, res)
+                errs = evaluation.param_errors(twin, res)
                 prog.mark(f"{tag}/sysid", param_rel_error=errs, latency=res.latency,
                           sysid_rollouts=res.sim_rollouts)
             sys_doc = json.loads((rdir / "sysid.json").read_text())
@@ -265,7 +267,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                     rets += _collect(twin, writer, 1, lambda o, t: act(o), seed,
                                      np.random.default_rng([seed, r, e]))
                     prog.mark(f"{tag}/deploy_partial", deploy_returns_partial=rets)
-                no_adapt = _evaluation_real_return(env_name, seed, policy_dir,
+                no_adapt = evaluation.real_return(env_name, seed, policy_dir,
                                                    config.eval_episodes)
                 prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
                           real_returns=rets, real_steps=_real_steps(out),
@@ -278,7 +280,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     # ------------------------------------------------------------------------- oracle
     oracle_return = None
     if config.oracle:
-        oracle_return = _evaluation_oracle(env_name, seed, out / "oracle", config, progress)
+        oracle_return = evaluation.oracle_return(env_name, seed, out / "oracle", config, progress)
     for rec in rounds:
         rec["oracle_return"] = oracle_return
     final = dict(rounds[-1]) if rounds else {}
@@ -287,8 +289,54 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     summary = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config),
                "rounds": rounds, "final": final,
                "wall_s_this_process": time.perf_counter() - t_start}
+    if config.video and policy_dir is not None:
+        summary["video"] = str(_final_video(out, env_name, seed, config))
+        report.write_json(out / "summary.json", summary)
     _write_outputs(out, summary, config, env_name, seed, policy_dir)
     return summary
+
+
+def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig,
+                 size: tuple[int, int] = (320, 240)) -> Path:
+    """``final.mp4``: an episode of the final deployed policy on the real twin (left, its true
+    camera) beside the identified simulator's episode from the same recorded start (right).
+    Neither episode is recorded in the dataset."""
+    import mujoco
+
+    from twinrl import envs
+    from twinrl.real.twin import CameraRenderer
+
+    r = config.rounds
+    rdir = out / f"round{r}"
+    sys_doc = json.loads((rdir / "sysid.json").read_text())
+    env = envs.make(env_name, params=_params_from_json(sys_doc["params"]))
+    hyb = _load_hybrid(rdir) if config.hybrid else None
+    act = _deployed_policy(config, env, hyb, None, rdir / "train", rdir, seed + r,
+                           lambda *a, **k: None)
+    twin = envs.make_real(env_name, seed=seed, width=size[0], height=size[1])
+    renderer = CameraRenderer(env.sim.mj_model, *size)
+    frames = []
+    try:
+        obs, _ = twin.reset(seed=20_000 + seed)
+        qpos, qvel = env.state_from_obs(jnp.asarray(obs))
+        state = env.reset(jax.random.key(0))
+        state = state.replace(pipeline_state=env.sim.init(qpos, qvel), obs=env.observe(qpos, qvel))
+        step = jax.jit(env.step)
+        d = mujoco.MjData(env.sim.mj_model)
+        done = False
+        while not done:
+            obs, _, term, trunc, _ = twin.step(act(obs))
+            state = step(state, jnp.asarray(act(np.asarray(state.obs))))
+            d.qpos[:] = np.asarray(state.pipeline_state.qpos)
+            mujoco.mj_forward(env.sim.mj_model, d)
+            real_img = twin.render_images(twin.camera, ("rgb",))["rgb"]
+            sim_img = renderer.images(d, env.cameras[0], ("rgb",))["rgb"]
+            frames.append(np.concatenate([real_img, sim_img], axis=1))
+            done = term or trunc
+    finally:
+        renderer.close()
+        twin.close()
+    return report.write_video(out / "final.mp4", frames, fps=1.0 / env.dt)
 
 
 def _read(path: Path):
@@ -316,7 +364,7 @@ def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
 
 
 def _hybrid_stage(prog, tag, rdir, env, data, latency, seed, say):
-    from twinrl.learn.checkpoint import load_policy, save_policy
+    from twinrl.learn.checkpoint import save_policy
     from twinrl.sim2real import hybrid
 
     if not prog.done(f"{tag}/hybrid"):
@@ -328,6 +376,13 @@ def _hybrid_stage(prog, tag, rdir, env, data, latency, seed, say):
                     latency=m.latency, metrics=fit.metrics)
         prog.mark(f"{tag}/hybrid", hybrid_sim_rmse=fit.metrics["sim_val_rmse"],
                   hybrid_rmse=fit.metrics["hybrid_val_rmse"])
+    return _load_hybrid(rdir)
+
+
+def _load_hybrid(rdir: Path):
+    from twinrl.learn.checkpoint import load_policy
+    from twinrl.sim2real import hybrid
+
     net, params, meta = load_policy(rdir / "hybrid")
     f32 = lambda k: jnp.asarray(np.asarray(meta[k]), jnp.float32)  # noqa: E731
     return hybrid.HybridModel(net, params, f32("in_mean"), f32("in_std"), f32("out_scale"),
@@ -345,6 +400,8 @@ def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
         return lambda o: np.asarray(f(base_params, o))
     pol = residual.make_residual(base, base_params)
     if not (rdir / "residual" / "checkpoint.json").exists():
+        if data is None:
+            raise LoopError(f"{rdir}: residual policy missing")
         say("  training the residual policy through the hybrid model ...")
         res_params, metrics = residual.train(env, hybrid.make_dynamics(env, hyb), pol, data.obs,
                                              rng=jax.random.key(seed))
@@ -353,57 +410,6 @@ def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
     _, res_params, _ = load_policy(rdir / "residual")
     f = jax.jit(pol.act)
     return lambda o: np.asarray(f(res_params, o))
-
-
-# ------------------------------------------------------------------------------ evaluation only
-def _evaluation_param_errors(twin, result) -> dict[str, float]:
-    """Relative error of every fitted parameter against the twin's hidden truth (parameters the
-    data fix only up to a common scale are compared after that scale: ``aligned_rel_err``;
-    parameters left at nominal as not identifiable are left out)."""
-    from twinrl.real2sim.sysid import compare_to_truth
-
-    truth = twin.oracle()
-    rows = compare_to_truth(result, truth.params, truth.perturbation.latency_steps)
-    return {row["parameter"]: float(row.get("aligned_rel_err", row["rel_err"]))
-            for row in rows if not str(row.get("status", "")).startswith(("known", "not ident"))}
-
-
-def _evaluation_real_return(env_name, seed, policy_dir, episodes):
-    """Mean return of a policy checkpoint on a fresh copy of the real twin (same hidden
-    perturbation), not recorded and not counted."""
-    from twinrl import envs
-    from twinrl.learn.checkpoint import load_policy
-
-    net, params, _ = load_policy(policy_dir)
-    f = jax.jit(net.apply)
-    twin = envs.make_real(env_name, seed=seed)
-    rets = []
-    try:
-        for e in range(episodes):
-            obs, _ = twin.reset(seed=10_000 + e)
-            done, ret = False, 0.0
-            while not done:
-                obs, rw, term, trunc, _ = twin.step(np.asarray(f(params, obs), np.float32))
-                ret, done = ret + rw, term or trunc
-            rets.append(ret)
-    finally:
-        twin.close()
-    return float(np.mean(rets))
-
-
-def _evaluation_oracle(env_name, seed, out, config, progress) -> float:
-    """The oracle: trained in a simulator with the twin's true parameters (evaluation only)."""
-    from twinrl import envs
-    from twinrl.learn.runner import train_run
-
-    twin = envs.make_real(env_name, seed=seed)
-    truth = twin.oracle().params
-    twin.close()
-    env = envs.make(env_name, params=truth)
-    if not (out / "policy" / "checkpoint.json").exists():
-        train_run(env_name, config.algo, out, seed=seed, epochs=config.epochs, resume=True,
-                  progress=progress, env=env)
-    return _evaluation_real_return(env_name, seed, out / "policy", config.eval_episodes)
 
 
 # ------------------------------------------------------------------------------ outputs

@@ -125,3 +125,21 @@ def test_task_declares_cameras_and_action_bounds(made):
         np.testing.assert_array_equal(env.action_to_ctrl(jnp.full(env.action_size, 2.0)),
                                       env.sim.ctrl_range[:, 1])  # actions are clipped to [-1, 1]
         assert env.episode_length > 0 and env.dt > 0 and env.backend == "mjx"
+
+
+def test_params_with_new_dry_friction_get_a_friction_row():
+    # MJX fixes friction-loss rows at put_model: identified rail friction (absent from the MJCF)
+    # must reach the compiled model, or it would silently do nothing in the simulator.
+    nominal = envs.make("cartpole_balance")
+    p = nominal.sim.default_params()
+    rough = envs.make("cartpole_balance",
+                      params=p.replace(frictionloss=p.frictionloss.at[0].set(2.0)))
+    assert nominal.sim.mj_model.dof_frictionloss[0] == 0
+    assert rough.sim.mj_model.dof_frictionloss[0] == 2.0
+    push = jnp.array([0.1])                           # 1 N, below the 2 N of dry friction
+    moved = []
+    for env in (nominal, rough):
+        s = env.reset(jax.random.key(0))
+        s = s.replace(pipeline_state=env.sim.init(jnp.zeros(2), jnp.zeros(2)))
+        moved.append(abs(float(jax.jit(env.step)(s, push).pipeline_state.qvel[0])))
+    assert moved[0] > 1e-2 and moved[1] < moved[0] / 10, moved  # (MJX friction is soft)

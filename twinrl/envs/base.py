@@ -20,6 +20,7 @@ reward functions as the simulator.
 from __future__ import annotations
 
 import abc
+import copy
 import dataclasses
 from typing import ClassVar, Mapping
 
@@ -27,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from brax.envs import base as brax_base
+from mujoco import mjx
 
 from twinrl.physics import PhysParams, Sim
 
@@ -144,7 +146,8 @@ class Env(brax_base.Env):
             raise TypeError(f"config must be a {self.Config.__name__}, got {type(config).__name__}")
         self.config = config
         self.name = name or type(self).__name__
-        self.sim = Sim.load(self.scene, frame_skip=int(config.frame_skip), name=self.scene)
+        self.sim = _with_friction_rows(
+            Sim.load(self.scene, frame_skip=int(config.frame_skip), name=self.scene), params)
         self.params = params
         r = self.sim.ctrl_range
         if not np.all(np.isfinite(r)):
@@ -259,3 +262,23 @@ class Env(brax_base.Env):
     def episode_length(self) -> int:
         return int(self.config.episode_length)
 
+
+
+def _with_friction_rows(sim: Sim, params: PhysParams | None) -> Sim:
+    """``sim``, recompiled so that every dof given a friction loss by ``params`` has one.
+
+    MJX decides at ``mjx.put_model`` which dofs get a friction-loss constraint row (those whose
+    compiled ``dof_frictionloss`` is non-zero); a dof without a row ignores any friction loss that
+    ``PhysParams.apply`` writes later. Identified (or true) parameters that add dry friction where
+    the MJCF has none (the cartpole's rail) must therefore reach the compiled model. Traced
+    parameters (vmapped domain randomisation) keep the rows the MJCF has.
+    """
+    if params is None or isinstance(params.frictionloss, jax.core.Tracer):
+        return sim
+    fl = np.asarray(params.frictionloss, np.float64)
+    need = (fl > 0) & (sim.mj_model.dof_frictionloss == 0)
+    if not need.any():
+        return sim
+    mj = copy.deepcopy(sim.mj_model)
+    mj.dof_frictionloss[need] = fl[need]
+    return Sim(mj_model=mj, model=mjx.put_model(mj), frame_skip=sim.frame_skip, name=sim.name)
