@@ -7,6 +7,8 @@ a Gauss–Newton step (second order), accepting it only after a line search find
 
 from twinrl.learn.trajopt import (TrajoptConfig, TrajoptResult, env_problem, improve, optimize,
                                   trajectory_return)
+from twinrl.learn.pods import PODSConfig  # noqa: E402  (after trajopt, which pods imports)
+from twinrl.learn.hds import HDSConfig  # noqa: E402
 
 __all__ = ["TrajoptConfig", "TrajoptResult", "env_problem", "improve", "optimize",
-           "trajectory_return"]
+           "trajectory_return", "PODSConfig", "HDSConfig"]
