@@ -159,7 +159,12 @@ def test_nan_guard_skips_every_nonfinite_update():
     assert all(np.isfinite(np.asarray(x)).all() for x in leaves)
     # Every update was dropped, and Adam's moments stayed 0: the policy is the initial one.
     init = shac.make_networks(2, 1, cfg)[0].init(jax.random.split(jax.random.PRNGKey(0), 4)[0])
-    jax.tree_util.tree_map(np.testing.assert_array_equal, params, init)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, s.actor["policy"], init)
+    # The returned params are those with the observation standardisation folded in.
+    obs = jnp.array([[0.3, -0.2], [1.0, 0.5]])
+    std = np.sqrt(np.asarray(s.obs_norm["var"]) + 1e-2)
+    np.testing.assert_allclose(policy.apply(params, obs), policy.apply(
+        init, (obs - s.obs_norm["mean"]) / std), rtol=1e-5, atol=1e-6)
 
 
 def test_td_lambda_targets_by_hand():

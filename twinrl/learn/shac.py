@@ -57,7 +57,8 @@ from twinrl.learn.networks import Network, NetworkConfig, make_network, make_val
 from twinrl.physics.gradients import clip_by_global_norm, global_norm, guard_stats, nan_guard
 from twinrl.physics.parallel import batch_mesh, shard_batch
 
-__all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networks", "TUNED"]
+__all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networks",
+           "fold_normaliser", "TUNED"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,6 +107,9 @@ class SHACConfig:
     """Hidden widths of the critic MLP (LayerNorm after each, as in SHAC)."""
     critic_activation: str = "elu"
     """Hidden activation of the critic."""
+    normalize_observations: bool = True
+    """Standardise observations with running mean/std (SHAC's ``obs_rms``) before the actor and
+    the critic; the returned policy has the standardisation folded into its first layer."""
     eval_episodes: int = 8
     """Full deterministic episodes behind each epoch's ``return`` metric (not counted in
     ``env_steps``: they train nothing)."""
@@ -169,6 +173,8 @@ class SHACState(NamedTuple):
     """The ``num_envs`` environment states (Brax ``State`` with a leading batch axis)."""
     ep_step: jax.Array
     """(num_envs,) int32: steps taken in each environment's current episode."""
+    obs_norm: Any
+    """Running observation statistics ``{"mean", "var", "count"}`` (identity if disabled)."""
     rng: jax.Array
     """uint32[2] key: the source of every later random draw."""
     epoch: jax.Array
@@ -213,6 +219,35 @@ def make_networks(obs_size: int, action_size: int, config: SHACConfig
     pre = make_network(obs_size, action_size, dataclasses.replace(pcfg, output="linear"))
     critic = make_value(obs_size, config.critic_hidden, config.critic_activation, layer_norm=True)
     return policy, pre, critic
+
+
+def _update_stats(stats, x):
+    """Chan et al.'s parallel update of running mean/variance with the batch ``x`` (..., d)."""
+    x = x.reshape(-1, x.shape[-1])
+    n, mean, var = x.shape[0], jnp.mean(x, 0), jnp.var(x, 0)
+    total = stats["count"] + n
+    delta = mean - stats["mean"]
+    new_mean = stats["mean"] + delta * n / total
+    m2 = stats["var"] * stats["count"] + var * n + jnp.square(delta) * stats["count"] * n / total
+    return {"mean": new_mean, "var": m2 / total, "count": total}
+
+
+def _std(stats):
+    # A variance floor of 1e-2: a feature that barely moved so far (cos of a hanging pole) must not
+    # blow up to hundreds of standard deviations, and saturate the network, once it does move.
+    return jnp.sqrt(stats["var"] + 1e-2)
+
+
+def fold_normaliser(params, mean: jax.Array, std: jax.Array):
+    """MLP params acting on ``(obs - mean) / std`` rewritten to act on raw ``obs``: the first
+    Dense layer absorbs the affine map (``W' = W / std``, ``b' = b - (mean / std) W``)."""
+    inner = dict(params["params"])
+    first = dict(inner["Dense_0"])
+    w = first["kernel"]
+    first["kernel"] = w / std[:, None]
+    first["bias"] = first["bias"] - (mean / std) @ w
+    inner["Dense_0"] = first
+    return {**params, "params": inner}
 
 
 def _optimizer(lr: float, config: SHACConfig, updates: int) -> optax.GradientTransformation:
@@ -276,9 +311,12 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
             actor=actor, critic=vparams, target_critic=vparams,
             actor_opt=actor_tx.init(actor), critic_opt=critic_tx.init(vparams),
             env_state=v_reset(jax.random.split(k_env, N)),
-            ep_step=jnp.zeros((N,), jnp.int32), rng=key, epoch=jnp.zeros((), jnp.int32))
+            ep_step=jnp.zeros((N,), jnp.int32),
+            obs_norm={"mean": jnp.zeros((obs_size,)), "var": jnp.ones((obs_size,)),
+                      "count": jnp.full((), 1e-4)},
+            rng=key, epoch=jnp.zeros((), jnp.int32))
 
-    def actor_loss(actor, target_critic, env_state, ep_step, key):
+    def actor_loss(actor, target_critic, env_state, ep_step, obs_norm, key):
         """SHAC's short-horizon actor loss (Eq. 2) and the window's data for the critic."""
         k_noise, k_reset = jax.random.split(key)
         # One fresh state per environment serves any episode that ends inside this window
@@ -286,23 +324,25 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
         fresh = jax.lax.stop_gradient(v_reset(jax.random.split(k_reset, N)))
         noise = jax.random.normal(k_noise, (h, N, act_size))
         std = jnp.exp(actor["log_std"])
+        mean_o, std_o = obs_norm["mean"], _std(obs_norm)
+        norm = lambda o: (o - mean_o) / std_o  # noqa: E731
 
         def step(carry, xs):
             s, t, acc, disc = carry
             eps, i = xs
-            a = jnp.tanh(pre.apply(actor["policy"], s.obs) + std * eps)
+            a = jnp.tanh(pre.apply(actor["policy"], norm(s.obs)) + std * eps)
             s2 = v_step(s, a)
             t2 = t + 1
             terminated = s2.done > 0
             ended = terminated | (t2 >= T)
             boundary = ended | (i == h - 1)
-            v_next = jnp.where(terminated, 0.0, critic.apply(target_critic, s2.obs))
+            v_next = jnp.where(terminated, 0.0, critic.apply(target_critic, norm(s2.obs)))
             acc = acc + disc * s2.reward
             disc = disc * c.gamma
             contrib = jnp.where(boundary, acc + disc * v_next, 0.0)
             acc = jnp.where(boundary, 0.0, acc)
             disc = jnp.where(boundary, 1.0, disc)
-            out = (jax.lax.stop_gradient(s.obs), jax.lax.stop_gradient(s2.reward),
+            out = (jax.lax.stop_gradient(norm(s.obs)), jax.lax.stop_gradient(s2.reward),
                    jax.lax.stop_gradient(v_next), boundary, contrib)
             return (_select(ended, fresh, s2), jnp.where(ended, 0, t2), acc, disc), out
 
@@ -337,7 +377,7 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
     def epoch_fn(s: SHACState):
         key, k_actor, k_critic, k_eval = jax.random.split(s.rng, 4)
         (loss, aux), grads = jax.value_and_grad(actor_loss, has_aux=True)(
-            s.actor, s.target_critic, s.env_state, s.ep_step, k_actor)
+            s.actor, s.target_critic, s.env_state, s.ep_step, s.obs_norm, k_actor)
         env_state, ep_step, obs, rew, v_next, bnd = aux
         updates, actor_opt = actor_tx.update(grads, s.actor_opt, s.actor)
         actor = optax.apply_updates(s.actor, updates)
@@ -348,9 +388,13 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
                                                    k_critic)
         target = jax.tree_util.tree_map(lambda t, v: c.target_alpha * t
                                         + (1.0 - c.target_alpha) * v, s.target_critic, vparams)
+        # The statistics move after the update, so actor and critic always saw one fixed
+        # standardisation within a window (the critic's inputs were standardised with it too).
+        raw_obs = obs * _std(s.obs_norm) + s.obs_norm["mean"]
+        obs_norm = _update_stats(s.obs_norm, raw_obs) if c.normalize_observations else s.obs_norm
         new = SHACState(actor=actor, critic=vparams, target_critic=target, actor_opt=actor_opt,
-                        critic_opt=critic_opt, env_state=env_state, ep_step=ep_step, rng=key,
-                        epoch=s.epoch + 1)
+                        critic_opt=critic_opt, env_state=env_state, ep_step=ep_step,
+                        obs_norm=obs_norm, rng=key, epoch=s.epoch + 1)
         metrics = {
             "grad_norm": global_norm(grads), "actor_loss": loss, "critic_loss": closs,
             "train_reward": jnp.mean(rew), "std": jnp.mean(jnp.exp(actor["log_std"])),
@@ -382,12 +426,15 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
                          f"{done_epochs} epochs")
     evaluate = make_evaluator(env, policy.apply, c.eval_episodes, T)
 
+    def deployed(s):
+        return fold_normaliser(s.actor["policy"], s.obs_norm["mean"], _std(s.obs_norm))
+
     for e in range(done_epochs, c.epochs):
         state, m, k_eval = epoch_fn(state)
-        ret = jnp.mean(evaluate(state.actor["policy"], k_eval))
+        ret = jnp.mean(evaluate(deployed(state), k_eval))
         row = log.record(epoch=e + 1, env_steps=(e + 1) * N * h, **{"return": ret}, **m)
         if progress_fn is not None:
             progress_fn(e + 1, row)
         if checkpoint_fn is not None:
             checkpoint_fn(e + 1, state, log.as_dict())
-    return policy, state.actor["policy"], log.as_dict()
+    return policy, deployed(state), log.as_dict()

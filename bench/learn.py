@@ -1,0 +1,225 @@
+"""Learn@Sim benchmark: differentiable trainers against model-free and analytic-gradient baselines.
+
+For every task (``pendulum_swingup``, ``cartpole_swingup``; simulated) and algorithm
+(``pods``, ``pods2`` = PODS with the second-order step, ``hds``, ``shac``, ``ppo``, ``apg``), over
+``--seeds`` seeds:
+
+- final return (deterministic policy, mean over evaluation episodes), mean +- std over seeds;
+- wall-clock seconds (compile included) and env steps to first reach 90% of the best final return
+  that any algorithm reached on the task (mean over the seeds that reached it, and how many did);
+- seconds to reach PPO's final return, and that time as a fraction of PPO's whole run (the issue's
+  target for the best differentiable algorithm: <= 1/5);
+- a plot of return against wall-clock and against env steps (``learn.png``), a printed table and
+  ``learn.json`` in ``--out``.
+
+Configs are the CLI's (``twinrl.learn.runner.make_config``: class defaults, then each trainer
+module's ``TUNED[task]``). Algorithms whose module is not there yet (``twinrl.learn.pods``/``hds`` are imported lazily) are
+reported as skipped. ``--quick`` runs tiny configurations (a smoke test of this script, numbers
+meaningless). The full run takes long on a CPU; run it on an otherwise idle machine::
+
+    python bench/learn.py --out bench/results                    # everything, 3 seeds
+    python bench/learn.py --algos shac ppo --envs cartpole_swingup --seeds 1
+    python bench/learn.py --quick --out /tmp/learn_quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import platform
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import twinrl
+from twinrl import envs
+from twinrl.learn import runner
+from twinrl.report import print_table, write_json
+
+ALGOS = ("pods", "pods2", "hds", "shac", "ppo", "apg")
+TASKS = ("pendulum_swingup", "cartpole_swingup")
+FRACTION = 0.9
+
+QUICK_TASK = {"episode_length": 40}
+QUICK = {
+    "shac": dict(epochs=3, num_envs=8, horizon=8, critic_iterations=2, critic_minibatches=2,
+                 eval_episodes=2),
+    "ppo": dict(num_timesteps=2048, num_envs=8, batch_size=8, num_minibatches=4,
+                unroll_length=8, num_updates_per_batch=1, num_evals=3, num_eval_envs=4),
+    "apg": dict(policy_updates=4, horizon_length=8, num_envs=4, num_evals=3, num_eval_envs=4),
+    # PODS/HDS configs are another module's: only the fields they have are overridden.
+    "pods": dict(epochs=3, num_envs=8, num_rollouts=8, eval_episodes=2),
+    "hds": dict(epochs=3, num_envs=8, num_rollouts=8, eval_episodes=2, horizon=8),
+}
+
+
+def _override(config, overrides: dict):
+    names = {f.name for f in dataclasses.fields(config)}
+    return dataclasses.replace(config, **{k: v for k, v in overrides.items() if k in names})
+
+
+def trainer(algo: str, task: str, quick: bool):
+    """``(train_fn, config)`` for ``algo`` on ``task``: the CLI's registry and per-task tuned
+    configs (``twinrl.learn.runner``); ``ImportError`` if the algorithm's module is absent."""
+    _, train, _ = runner.algorithm(algo)
+    cfg = runner.make_config(algo, task)
+    if quick:
+        cfg = _override(cfg, QUICK["pods" if algo == "pods2" else algo])
+    return train, cfg
+
+
+def run(algo: str, task: str, seed: int, quick: bool) -> dict:
+    train, cfg = trainer(algo, task, quick)
+    env = envs.make(task, **(QUICK_TASK if quick else {}))
+    t0 = time.perf_counter()
+    last = [t0]
+
+    def progress(epoch, m):
+        if time.perf_counter() - last[0] > 15:
+            last[0] = time.perf_counter()
+            print(f"  {algo} {task} seed {seed}: epoch {epoch} steps {m['env_steps']:.3g} "
+                  f"return {m['return']:.1f} ({m['wall_s']:.0f} s)", flush=True)
+
+    _, _, metrics = train(env, cfg, jax.random.PRNGKey(seed), progress_fn=progress)
+    cfg_json = cfg.to_dict() if hasattr(cfg, "to_dict") else dataclasses.asdict(cfg)
+    return {"seed": seed, "config": cfg_json, "wall_s": metrics["wall_s"],
+            "env_steps": metrics["env_steps"], "return": metrics["return"],
+            "total_s": time.perf_counter() - t0}
+
+
+def first_reach(run_: dict, threshold: float) -> tuple[float, float]:
+    """(wall_s, env_steps) of the first evaluation at or above ``threshold``; NaN if none."""
+    r = np.asarray(run_["return"], float)
+    hit = np.flatnonzero(np.nan_to_num(r, nan=-np.inf) >= threshold)
+    if not hit.size:
+        return float("nan"), float("nan")
+    return float(run_["wall_s"][hit[0]]), float(run_["env_steps"][hit[0]])
+
+
+def _mean(xs) -> float:
+    xs = [x for x in xs if np.isfinite(x)]
+    return float(np.mean(xs)) if xs else float("nan")
+
+
+def analyse(task_runs: dict[str, list[dict]]) -> dict:
+    finals = {a: [r["return"][-1] for r in runs] for a, runs in task_runs.items() if runs}
+    best = max(np.mean(f) for f in finals.values())
+    threshold = FRACTION * best
+    ppo_final = np.mean(finals["ppo"]) if "ppo" in finals else float("nan")
+    ppo_wall = (np.mean([r["wall_s"][-1] for r in task_runs["ppo"]]) if "ppo" in finals
+                else float("nan"))
+    out = {"best_final_return": best, "threshold": threshold, "ppo_final_return": ppo_final,
+           "ppo_wall_s": ppo_wall, "algos": {}}
+    for a, runs in task_runs.items():
+        if not runs:
+            continue
+        reach = [first_reach(r, threshold) for r in runs]
+        to_ppo = [first_reach(r, ppo_final)[0] for r in runs] if np.isfinite(ppo_final) else []
+        out["algos"][a] = {
+            "final_mean": float(np.mean(finals[a])), "final_std": float(np.std(finals[a])),
+            "wall_s_mean": float(np.mean([r["wall_s"][-1] for r in runs])),
+            "env_steps_final": float(np.mean([r["env_steps"][-1] for r in runs])),
+            "time_to_threshold_s": _mean([t for t, _ in reach]),
+            "steps_to_threshold": _mean([s for _, s in reach]),
+            "reached": int(sum(np.isfinite(t) for t, _ in reach)), "seeds": len(runs),
+            "time_to_ppo_final_s": _mean(to_ppo),
+            "fraction_of_ppo_wall": _mean(to_ppo) / ppo_wall if to_ppo else float("nan"),
+            "runs": runs,
+        }
+    return out
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = list(results)
+    fig, axes = plt.subplots(len(tasks), 2, figsize=(11, 3.6 * len(tasks)), squeeze=False)
+    colours = dict(zip(ALGOS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    for row, task in zip(axes, tasks):
+        res = results[task]
+        for a, r in res["algos"].items():
+            for i, run_ in enumerate(r["runs"]):
+                kw = dict(color=colours.get(a), alpha=0.8, lw=1.2, label=a if i == 0 else None)
+                row[0].plot(run_["wall_s"], run_["return"], **kw)
+                row[1].plot(run_["env_steps"], run_["return"], **kw)
+        for ax, xl in zip(row, ("wall-clock (s, compile included)", "env steps")):
+            ax.axhline(res["threshold"], color="grey", ls=":", lw=1,
+                       label=f"{FRACTION:.0%} of best final")
+            ax.set_xlabel(xl)
+            ax.set_ylabel("return")
+            ax.set_title(task)
+            ax.grid(alpha=0.3)
+        row[1].set_xscale("log")
+        row[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, default=3, help="seeds per algorithm and task")
+    p.add_argument("--algos", nargs="*", default=list(ALGOS), choices=ALGOS)
+    p.add_argument("--envs", nargs="*", default=list(TASKS), choices=envs.names())
+    p.add_argument("--out", type=Path, default=Path("bench/results"))
+    p.add_argument("--quick", action="store_true", help="tiny configurations (smoke test)")
+    args = p.parse_args(argv)
+    if args.seeds < 1:
+        p.error(f"--seeds must be >= 1, got {args.seeds}")
+
+    results, skipped = {}, {}
+    for task in args.envs:
+        task_runs = {}
+        for algo in args.algos:
+            try:
+                trainer(algo, task, args.quick)
+            except ImportError as e:
+                skipped[algo] = f"not available: {e}"
+                continue
+            runs = []
+            for seed in range(args.seeds):
+                print(f"{algo} on {task}, seed {seed} ...", flush=True)
+                try:
+                    runs.append(run(algo, task, seed, args.quick))
+                except Exception as e:  # one broken algorithm must not sink the others' numbers
+                    traceback.print_exc()
+                    skipped[f"{algo}/{task}"] = f"failed: {type(e).__name__}: {e}"
+                    break
+            task_runs[algo] = runs
+        if any(task_runs.values()):
+            results[task] = analyse(task_runs)
+
+    rows = []
+    for task, res in results.items():
+        for a, r in res["algos"].items():
+            rows.append([task, a, f"{r['final_mean']:.1f} ± {r['final_std']:.1f}",
+                         r["wall_s_mean"], r["env_steps_final"], r["time_to_threshold_s"],
+                         r["steps_to_threshold"], f"{r['reached']}/{r['seeds']}",
+                         r["time_to_ppo_final_s"], r["fraction_of_ppo_wall"]])
+    print_table(f"Learn@Sim ({args.seeds} seeds; threshold = {FRACTION:.0%} of the best final "
+                f"return per task; {jax.devices()[0].platform})",
+                ["task", "algo", "final return", "wall s", "env steps", "s to thr",
+                 "steps to thr", "reached", "s to PPO final", "/ PPO wall"], rows)
+    for k, v in skipped.items():
+        print(f"skipped {k}: {v}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    if results:
+        plot(results, args.out / "learn.png")
+    meta = {"seeds": args.seeds, "quick": args.quick, "fraction": FRACTION,
+            "platform": jax.devices()[0].platform, "devices": len(jax.devices()),
+            "python": platform.python_version(), "jax": jax.__version__,
+            "twinrl": twinrl.__version__, "argv": sys.argv[1:]}
+    path = write_json(args.out / "learn.json", {"meta": meta, "skipped": skipped,
+                                                "tasks": results})
+    print(f"wrote {path} and {args.out / 'learn.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
