@@ -185,18 +185,21 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
     total = int(getattr(config, "epochs", 0) or 0)
     bar, task = _progress_bar(f"train {algo} on {env_name}", total, enabled=progress)
 
+    finished = [0]                     # epochs done (trainers number epochs from 0 or 1)
+
     def on_restore(template):
         state, history = restore(template)
         writer.rewrite(history)
-        done = len(history.get("epoch", []))
+        finished[0] = len(history.get("epoch", []))
         if bar is not None:
-            bar.update(task, completed=done)
+            bar.update(task, completed=finished[0])
         return state, history
 
     def progress_fn(epoch, row):
         writer.write(epoch, row)
+        finished[0] += 1
         if bar is not None:
-            bar.update(task, completed=int(epoch) + 1 if total else None,
+            bar.update(task, completed=finished[0],
                        ret=f"{row.get('return', float('nan')):.2f}",
                        gn=f"{row.get('grad_norm', float('nan')):.2e}")
 
