@@ -128,6 +128,31 @@ def sdf_cylinder(p, size):
                                                        + 1e-20)
 
 
+def sdf(gtype: int, p, size):
+    """Signed distance of local points to a primitive (ellipsoid: scaled-sphere approximation;
+    plane: distance to its rectangle, 0 thickness)."""
+    if gtype == 2:
+        return jnp.sqrt(_dot(p, p) + 1e-20) - size[..., 0]
+    if gtype == 3:
+        z = jnp.clip(p[..., 2], -size[..., 1], size[..., 1])
+        q = p.at[..., 2].add(-z)
+        return jnp.sqrt(_dot(q, q) + 1e-20) - size[..., 0]
+    if gtype == 4:
+        q = p / size
+        return (jnp.sqrt(_dot(q, q) + 1e-20) - 1.0) * jnp.min(size, -1)
+    if gtype == 5:
+        return sdf_cylinder(p, size)
+    if gtype == 6:
+        return sdf_box(p, size)
+    if gtype == 0:
+        finite = (size[..., 0] > 0) & (size[..., 1] > 0)
+        q = jnp.stack([jnp.abs(p[..., 0]) - size[..., 0], jnp.abs(p[..., 1]) - size[..., 1],
+                       jnp.zeros_like(p[..., 0])], -1)
+        q = jnp.where(finite[..., None], jnp.maximum(q, 0.0), 0.0).at[..., 2].set(p[..., 2])
+        return jnp.sqrt(_dot(q, q) + 1e-20)
+    raise ValueError(f"no SDF for geom type {gtype}")
+
+
 def golden_min(f, lo, hi, iters: int):
     """Minimiser of a unimodal ``f`` on ``[lo, hi]`` (elementwise) by golden-section search."""
     g = 0.6180339887498949

@@ -1,0 +1,177 @@
+"""Renderer: hard images equal OpenGL's; soft-image gradients equal finite differences (x64);
+the soft silhouette gives a lateral move a gradient; batching; errors. About 40 s cold."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from twinrl.physics import load_mjcf
+from twinrl.real.twin import CameraRenderer
+from twinrl.render import Camera, Geoms, Renderer, UnsupportedGeomError, look_at
+
+S = 24
+BOX = 3  # push.xml: floor, goal, pusher, box
+
+
+@pytest.fixture(scope="module")
+def push():
+    m = load_mjcf("push")
+    d = mujoco.MjData(m)
+    d.qpos[2:4] = [0.12, 0.03]
+    mujoco.mj_forward(m, d)
+    return m, d
+
+
+@pytest.mark.parametrize("scene,cam,qpos", [("push", "top", None),
+                                            ("pendulum", "front", [0.7]),
+                                            ("peg_in_hole", "front", [0.01, -0.02])])
+def test_hard_image_matches_opengl(scene, cam, qpos):
+    m = load_mjcf(scene)
+    d = mujoco.MjData(m)
+    if qpos is not None:
+        d.qpos[:] = qpos
+    mujoco.mj_forward(m, d)
+    gl = CameraRenderer(m, 32, 32).images(d, cam)  # EGL, else OSMesa: no skip
+    im = Renderer.create(m).render(Camera.from_mujoco(m, d, cam, 32, 32), Geoms.from_mujoco(m, d))
+    seg = np.asarray(im.segmentation)
+    assert np.mean(seg == gl["segmentation"]) >= 0.99
+    assert np.mean(np.abs(np.asarray(im.depth) - gl["depth"])) <= 1e-3
+    body = np.where(seg >= 0, m.geom_bodyid[np.maximum(seg, 0)], -1)
+    np.testing.assert_array_equal(np.asarray(im.body), body)
+    psnr = 10 * np.log10(1.0 / np.mean((np.asarray(im.rgb) - gl["rgb"] / 255.0) ** 2))
+    assert psnr > 25, psnr
+
+
+def test_mesh_renders_like_the_same_box():
+    xml = """<mujoco><asset><mesh name="cube" vertex="-.05 -.05 -.05 .05 -.05 -.05 -.05 .05 -.05
+      .05 .05 -.05 -.05 -.05 .05 .05 -.05 .05 -.05 .05 .05 .05 .05 .05"/></asset>
+      <visual><global offwidth="64" offheight="64"/></visual>
+      <worldbody><light pos="0 0 3" dir="0 0 -1"/><camera name="c" pos="0.2 -0.6 0.4"
+      xyaxes="1 0.3 0 0 0.6 0.8"/><geom type="plane" size="1 1 .1"/>
+      <geom name="m" type="mesh" mesh="cube" pos="0.05 0 0.05" euler="0 0 20" rgba="1 0 0 1"/>
+      </worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    gl = CameraRenderer(m, 32, 32).images(d, "c")
+    im = Renderer.create(m).render(Camera.from_mujoco(m, d, "c", 32, 32), Geoms.from_mujoco(m, d))
+    assert np.mean(np.asarray(im.segmentation) == gl["segmentation"]) >= 0.99
+    assert np.mean(np.abs(np.asarray(im.depth) - gl["depth"])) <= 1e-3
+
+
+@pytest.fixture(scope="module")
+def fd_setup(push, x64):
+    m, d = push
+    R = Renderer.create(m, shadows=False, iters=40)
+    cam = Camera.from_mujoco(m, d, "top", S, S)
+    g = Geoms.from_mujoco(m, d)
+    moved = g.replace(xpos=g.xpos.at[BOX].add(jnp.array([0.015, -0.01, 0.0])),
+                      size=g.size.at[BOX].multiply(1.1), rgba=g.rgba.at[BOX, :3].add(0.1))
+    target = R.render(cam.rotated(jnp.array([0.01, -0.01, 0.02])), moved, tau=0.7)
+
+    def loss(p):
+        c = cam.rotated(p["rot"]).translated(p["cam"])
+        gg = g.replace(xpos=g.xpos.at[BOX].add(p["obj"]), size=g.size.at[BOX].set(p["size"]),
+                       rgba=g.rgba.at[BOX].set(p["rgba"]))
+        im = R.render(c, gg, tau=0.7)
+        return (jnp.sum((im.rgb - target.rgb) ** 2) + jnp.sum((im.depth - target.depth) ** 2)
+                + jnp.sum((im.weights - target.weights) ** 2))
+
+    p0 = {"cam": jnp.zeros(3), "rot": jnp.zeros(3), "obj": jnp.zeros(3), "size": g.size[BOX],
+          "rgba": g.rgba[BOX]}
+    return jax.jit(loss), p0
+
+
+@pytest.mark.parametrize("name", ["cam", "rot", "obj", "size", "rgba"])
+def test_gradients_match_finite_differences(fd_setup, name):
+    loss, p0 = fd_setup
+    assert p0[name].dtype == jnp.float64
+    grad = jax.jit(jax.grad(loss))(p0)[name]
+    assert np.all(np.isfinite(grad))
+    eps = 1e-6
+    fd = []
+    for j in range(p0[name].shape[0]):
+        e = jnp.zeros_like(p0[name]).at[j].set(eps)
+        fd.append((loss({**p0, name: p0[name] + e}) - loss({**p0, name: p0[name] - e})) / (2 * eps))
+    fd = np.array(fd)
+    if name == "size":  # a box's size has 3 components, all used
+        assert np.all(np.abs(fd) > 0)
+    err = np.linalg.norm(np.asarray(grad) - fd) / np.linalg.norm(fd)
+    assert err < 0.05, (name, np.asarray(grad), fd)
+
+
+def test_lateral_move_gets_a_gradient_the_right_way(push):
+    m, d = push
+    R = Renderer.create(m)
+    cam = Camera.from_mujoco(m, d, "top", S, S)
+    g = Geoms.from_mujoco(m, d)
+    target = R.render(cam, g.replace(xpos=g.xpos.at[BOX, 0].add(0.02)))  # the box 2 cm to +x
+
+    def loss(dx, tau):
+        im = R.render(cam, g.replace(xpos=g.xpos.at[BOX, 0].add(dx)), tau=tau)
+        mask = (target.segmentation == BOX).astype(im.rgb.dtype)
+        return jnp.sum((im.weights[..., R.index(BOX)] - mask) ** 2) + jnp.sum(
+            (im.rgb - target.rgb) ** 2)
+
+    hard = jax.grad(loss)(0.0, 0.0)
+    soft = jax.grad(loss)(0.0, 1.0)
+    assert hard == 0.0  # the hard image (like mjx.ray's depth) is flat in a lateral move
+    assert soft < 0.0  # soft: moving towards +x lowers the loss
+
+
+def test_vmap_over_cameras_and_scenes(push):
+    m, d = push
+    R = Renderer.create(m)
+    g = Geoms.from_mujoco(m, d)
+    cams = [look_at([0.3, -1.0, 1.0], [0.15, 0, 0], width=S, height=S),
+            look_at([1.0, 0.5, 0.8], [0.15, 0, 0], width=S, height=S)]
+    batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *cams)
+    out = jax.jit(jax.vmap(lambda c: R.render(c, g, tau=0.5).depth))(batch)
+    for k, c in enumerate(cams):
+        np.testing.assert_allclose(out[k], R.render(c, g, tau=0.5).depth, rtol=1e-5, atol=1e-5)
+    gs = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), g)
+    gs = gs.replace(xpos=gs.xpos.at[1, BOX, 0].add(0.05))
+    segs = jax.vmap(lambda g: R.render(cams[0], g).segmentation)(gs)
+    assert not np.array_equal(segs[0], segs[1])
+
+
+def test_from_mujoco_matches_look_at_and_projection(push):
+    m, d = push
+    cam = Camera.from_mujoco(m, d, "top", S, S)
+    np.testing.assert_allclose(cam.xmat, d.cam_xmat[0].reshape(3, 3), atol=1e-6)
+    # the centre of the box projects where the renderer sees the box
+    px, depth = cam.project(jnp.asarray(d.geom_xpos[BOX]))
+    im = Renderer.create(m).render(cam, Geoms.from_mujoco(m, d))
+    col, row = np.asarray(px).astype(int)
+    assert int(im.segmentation[row, col]) == BOX
+    assert 0 < float(depth) < float(im.depth[row, col]) + 0.1
+
+
+def test_bad_inputs(push):
+    m, d = push
+    R = Renderer.create(m)
+    cam = Camera.from_mujoco(m, d, "top", S, S)
+    g = Geoms.from_mujoco(m, d)
+    with pytest.raises(ValueError, match="xpos must be"):
+        R.render(cam, g.replace(xpos=g.xpos[None]))
+    with pytest.raises(ValueError, match="Geoms has"):
+        R.render(cam, g.replace(xpos=g.xpos[:2], xmat=g.xmat[:2]))
+    with pytest.raises(TypeError, match="Camera"):
+        R.render("top", g)
+    with pytest.raises(ValueError, match="fovy"):
+        Camera.create([0, 0, 1], [1, 0, 0, 0], fovy=0.0)
+    with pytest.raises(ValueError, match="pos must be"):
+        Camera.create([0, 0], [1, 0, 0, 0])
+    with pytest.raises(ValueError, match="camera 'nope'"):
+        Camera.from_mujoco(m, d, "nope")
+    with pytest.raises(ValueError, match="vmap"):
+        R.render(dataclasses.replace(cam, pos=cam.pos[None]), g)
+    hf = mujoco.MjModel.from_xml_string(
+        '<mujoco><asset><hfield name="h" nrow="2" ncol="2" size="1 1 .1 .1"/></asset>'
+        '<worldbody><geom type="hfield" hfield="h"/></worldbody></mujoco>')
+    with pytest.raises(UnsupportedGeomError, match="hfield"):
+        Renderer.create(hf)

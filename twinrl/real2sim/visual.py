@@ -1,0 +1,533 @@
+"""Visual Real2Sim: fit the simulator's camera and objects to real RGB-D + segmentation frames.
+
+SAM-RL (Lv et al., 2023), Sec. 3.2: the real robot's camera images are compared with images the
+differentiable renderer (``twinrl.render``) draws of the simulated scene, and gradient descent on
+the difference updates (a) the camera extrinsics, given a known scene; (b) an object's pose, size
+and colour, given a known camera; (c) the vertices of a mesh object (regularised by edge lengths
+and a Laplacian, so the surface stays smooth). The loss is a weighted sum of
+
+- ``rgb``: mean squared RGB difference (soft image, SoftRas Sec. 3.3, so edges give gradients);
+- ``iou``: 1 - soft IoU of the geoms' masks with the real segmentation;
+- ``emd``: Sinkhorn EMD between the real depth's point cloud and the rendered one (the object's
+  points in (b)/(c); every geom's in (a)); the real points are unprojected with the *current*
+  camera estimate, so a wrong camera shows as misplaced surfaces;
+- ``depth``: mean absolute depth difference over pixels where the real camera sees a geom;
+- ``surface``: mean squared distance of the real depth points to the surfaces of the geoms the
+  real segmentation assigns them (a point-to-model, ICP-like term: it still pulls when a
+  silhouette is many pixels off and the soft masks no longer overlap).
+
+The temperature of the soft silhouette is annealed from coarse to fine; several random restarts
+are run and the best (lowest final loss) kept.
+
+Frames come from a dataset recorded by ``twinrl collect --images`` (states read back from the
+observations; see ``state_from_obs``) or as a list of dicts with ``rgb`` (H, W, 3) uint8,
+``depth`` (H, W) metres, ``segmentation`` (H, W) geom ids and ``qpos``. The entry point is
+``visual_sysid``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import optax
+
+from twinrl.render import Camera, Geoms, Renderer, rotvec_to_quat
+from twinrl.render.camera import quat_mul, quat_to_mat
+from twinrl.render.pointcloud import depth_to_points, sinkhorn_emd
+
+__all__ = ["VisualConfig", "visual_sysid", "fit_camera", "fit_object", "fit_mesh",
+           "state_from_obs", "frames_from_dataset", "check_frames", "DEFAULT_OBJECT"]
+
+DEFAULT_OBJECT = {"push": "box", "cartpole_swingup": "cart", "cartpole_balance": "cart",
+                  "pendulum_swingup": "bob"}
+
+
+@dataclasses.dataclass(frozen=True)
+class VisualConfig:
+    """Settings of a visual fit."""
+
+    steps: int = 150
+    """Adam steps per restart."""
+    restarts: int = 3
+    """Random restarts (the first starts at the nominal values); the lowest final loss wins."""
+    lr: float = 4e-3
+    """Adam learning rate (metres, radians, log-scale and colour-logit units alike)."""
+    tau: tuple[float, float] = (1.5, 0.3)
+    """Soft-silhouette temperature in pixels, annealed geometrically from first to second."""
+    gamma: float = 0.01
+    """Depth-order temperature (m) of the soft composite."""
+    w_rgb: float = 1.0
+    """Weight of the RGB L2 term."""
+    w_iou: float = 0.5
+    """Weight of the 1 - soft mask IoU term."""
+    w_emd: float = 20.0
+    """Weight of the point-cloud Sinkhorn EMD term (m^2)."""
+    w_depth: float = 5.0
+    """Weight of the mean absolute depth term (m)."""
+    w_surface: float = 2000.0
+    """Weight of the point-to-model term (m^2): mean squared signed distance of each real depth
+    point (unprojected with the current camera) to the surface of the geom the real segmentation
+    assigns it; long-range where silhouettes no longer overlap (ICP-like)."""
+    emd_points: int = 96
+    """Points per cloud in the EMD term (fixed random pixels)."""
+    emd_epsilon: float = 1e-4
+    """Sinkhorn regularisation (m^2)."""
+    init_pos_sd: float = 0.02
+    """Standard deviation (m) of the restarts' initial position offsets."""
+    init_rot_sd: float = 0.03
+    """Standard deviation (rad) of the restarts' initial rotation offsets."""
+    mesh_smooth: float = 1.0
+    """Weight of the mesh regulariser (edge-length change and Laplacian) in (c)."""
+
+    def __post_init__(self):
+        if self.steps < 1 or self.restarts < 1:
+            raise ValueError(f"steps and restarts must be >= 1, got {self.steps}, {self.restarts}")
+        if not (self.tau[0] > 0 and self.tau[1] > 0):
+            raise ValueError(f"tau must be two positive temperatures (pixels), got {self.tau}")
+        for f in ("w_rgb", "w_iou", "w_emd", "w_depth", "w_surface", "mesh_smooth"):
+            if getattr(self, f) < 0:
+                raise ValueError(f"{f} must be >= 0, got {getattr(self, f)}")
+
+
+# ---------------------------------------------------------------------- frames
+def state_from_obs(env_name: str, obs: np.ndarray) -> np.ndarray:
+    """The ``qpos`` of a registered task's (noisy) observation, where the observation determines
+    it (box height and tilt of ``push`` are taken at rest on the floor)."""
+    o = np.asarray(obs, np.float64)
+    if env_name.startswith("cartpole"):
+        return np.array([o[0], np.arctan2(o[2], o[1])])
+    if env_name == "pendulum_swingup":
+        return np.array([np.arctan2(o[1], o[0])])
+    if env_name == "push":
+        yaw = np.arctan2(o[7], o[6])
+        return np.array([o[0], o[1], o[4], o[5], 0.05, np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)])
+    raise ValueError(f"no observation-to-state map for task {env_name!r}; pass frames with "
+                     "'qpos' instead")
+
+
+def frames_from_dataset(env_name: str, dataset, n: int = 4, seed: int = 0) -> list[dict]:
+    """``n`` frames evenly spread over a dataset recorded with ``twinrl collect --images``."""
+    from twinrl.real.dataset import Dataset, read
+
+    ds = dataset if isinstance(dataset, Dataset) else read(dataset)
+    missing = {"rgb", "depth", "segmentation"} - set(ds.images)
+    if missing:
+        raise ValueError(f"dataset {ds.path} has no {sorted(missing)} images: record it with "
+                         "`twinrl collect --images`")
+    if len(ds) == 0:
+        raise ValueError(f"dataset {ds.path} is empty")
+    if ds.meta.get("env") not in (None, env_name):
+        raise ValueError(f"dataset {ds.path} was recorded on {ds.meta.get('env')!r}, "
+                         f"not {env_name!r}")
+    idx = np.unique(np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int))
+    # images are rendered after the step: they show next_obs's state
+    return [{"rgb": ds.images["rgb"][i], "depth": ds.images["depth"][i],
+             "segmentation": ds.images["segmentation"][i],
+             "qpos": state_from_obs(env_name, ds.next_obs[i])} for i in idx]
+
+
+def check_frames(frames: Sequence[Mapping[str, Any]], nq: int) -> list[dict]:
+    """Validate frames (shapes, dtypes, finite values) and return them as NumPy dicts."""
+    if not frames:
+        raise ValueError("no frames given")
+    out, shape = [], None
+    for i, f in enumerate(frames):
+        for k in ("rgb", "depth", "segmentation", "qpos"):
+            if k not in f:
+                raise ValueError(f"frame {i} has no {k!r} (keys: {sorted(f)})")
+        rgb, depth = np.asarray(f["rgb"]), np.asarray(f["depth"], np.float64)
+        seg, qpos = np.asarray(f["segmentation"]), np.asarray(f["qpos"], np.float64)
+        H, W = depth.shape if depth.ndim == 2 else (None, None)
+        if depth.ndim != 2 or rgb.shape != (H, W, 3) or seg.shape != (H, W):
+            raise ValueError(f"frame {i}: need rgb (H, W, 3), depth (H, W), segmentation (H, W);"
+                             f" got {rgb.shape}, {depth.shape}, {seg.shape}")
+        if shape is not None and (H, W) != shape:
+            raise ValueError(f"frame {i} is {H}x{W}; frame 0 is {shape[0]}x{shape[1]}")
+        shape = (H, W)
+        if rgb.dtype != np.uint8:
+            raise ValueError(f"frame {i}: rgb must be uint8, got {rgb.dtype}")
+        if not np.all(np.isfinite(depth)) or np.any(depth < 0):
+            raise ValueError(f"frame {i}: depth must be finite and >= 0 (NaN or inf found)")
+        if qpos.shape != (nq,) or not np.all(np.isfinite(qpos)):
+            raise ValueError(f"frame {i}: qpos must be {nq} finite numbers, got {qpos}")
+        out.append({"rgb": rgb, "depth": depth, "segmentation": seg.astype(np.int32),
+                    "qpos": qpos})
+    return out
+
+
+def _geoms_of(model: mujoco.MjModel, qposes) -> Geoms:
+    """Stacked ``Geoms`` (K leading) of the nominal model at each frame's qpos."""
+    d = mujoco.MjData(model)
+    xs, ms = [], []
+    for q in qposes:
+        d.qpos[:] = q
+        mujoco.mj_kinematics(model, d)
+        xs.append(d.geom_xpos.copy())
+        ms.append(d.geom_xmat.reshape(-1, 3, 3).copy())
+    K = len(xs)
+    rep = lambda a: jnp.asarray(np.broadcast_to(a, (K, *a.shape)))  # noqa: E731
+    return Geoms(jnp.asarray(np.stack(xs)), jnp.asarray(np.stack(ms)), rep(model.geom_size),
+                 rep(model.geom_rgba), rep(np.asarray(model.mesh_vert).reshape(-1, 3)))
+
+
+# ---------------------------------------------------------------------- the loss
+def _soft_iou(w, m):
+    inter = jnp.sum(w * m)
+    union = jnp.sum(w + m - w * m)
+    return inter / jnp.maximum(union, 1e-6)
+
+
+def _frame_loss(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms, real: dict, tau,
+                focus: int | None, pix_idx):
+    """Loss terms of one frame. ``focus``: index (renderer order) of the object whose mask and
+    point cloud are compared (None: every geom)."""
+    im = R.render(cam, geoms, tau=tau, gamma=cfg.gamma)
+    rgb_real = real["rgb"].astype(im.rgb.dtype) / 255.0
+    terms = {"rgb": jnp.mean((im.rgb - rgb_real) ** 2)}
+    onehot = (real["segmentation"][..., None] == jnp.asarray(R.geom_ids)).astype(im.rgb.dtype)
+    if focus is None:
+        present = jnp.sum(onehot, (0, 1)) + jnp.sum(im.weights, (0, 1)) > 0
+        ious = jax.vmap(_soft_iou, in_axes=(-1, -1))(im.weights, onehot)
+        terms["iou"] = 1.0 - jnp.sum(ious * present) / jnp.maximum(jnp.sum(present), 1)
+        real_w = (real["segmentation"] >= 0).astype(im.rgb.dtype)
+        sim_w = 1.0 - im.background
+    else:
+        terms["iou"] = 1.0 - _soft_iou(im.weights[..., focus], onehot[..., focus])
+        real_w = onehot[..., focus]
+        sim_w = im.weights[..., focus]
+    seen = (real["segmentation"] >= 0).astype(im.rgb.dtype)
+    terms["depth"] = jnp.sum(seen * jnp.abs(im.depth - real["depth"])) / jnp.maximum(
+        jnp.sum(seen), 1.0)
+    pts, _ = depth_to_points(cam, real["depth"])
+    sd = R.sdf(pts, geoms)  # (H*W, G)
+    oh = onehot.reshape(-1, onehot.shape[-1])
+    if focus is not None:
+        oh = oh[:, focus:focus + 1]
+        sd = sd[:, focus:focus + 1]
+    # per geom, then averaged over the geoms seen: small objects count as much as the floor
+    per = jnp.sum(oh * sd ** 2, 0) / jnp.maximum(jnp.sum(oh, 0), 1.0)
+    terms["surface"] = jnp.sum(per) / jnp.maximum(jnp.sum(jnp.sum(oh, 0) > 0), 1)
+    if cfg.w_emd > 0:
+        pr, wr = depth_to_points(cam, real["depth"], real_w)
+        ps, ws = depth_to_points(cam, im.depth, sim_w)
+        terms["emd"] = sinkhorn_emd(pr[pix_idx], ps[pix_idx], wr[pix_idx], ws[pix_idx],
+                                    epsilon=cfg.emd_epsilon)
+    else:
+        terms["emd"] = jnp.zeros(())
+    total = (cfg.w_rgb * terms["rgb"] + cfg.w_iou * terms["iou"] + cfg.w_depth * terms["depth"]
+             + cfg.w_emd * terms["emd"] + cfg.w_surface * terms["surface"])
+    return total, terms
+
+
+def _pixel_subset(frames, n, focus_id, rng):
+    """Fixed pixels for the EMD clouds: where the real frames show the object (or any geom),
+    grown by a margin so the rendered estimate's points are there too."""
+    import scipy.ndimage as ndi
+
+    segs = np.stack([f["segmentation"] for f in frames])
+    mask = (segs == focus_id) if focus_id is not None else (segs >= 0)
+    mask = ndi.binary_dilation(mask.any(0), iterations=3).ravel()
+    cand = np.flatnonzero(mask)
+    if cand.size == 0:
+        cand = np.arange(mask.size)
+    return jnp.asarray(rng.choice(cand, size=min(n, cand.size), replace=cand.size < n))
+
+
+def _optimise(loss_fn, params0, cfg: VisualConfig, rng: np.random.Generator, perturb):
+    """Adam with a coarse-to-fine temperature over restarts; returns (best params, history)."""
+    taus = np.geomspace(cfg.tau[0], cfg.tau[1], cfg.steps)
+    opt = optax.adam(cfg.lr)
+
+    @jax.jit
+    def step(p, s, tau):
+        (loss, terms), g = jax.value_and_grad(loss_fn, has_aux=True)(p, tau)
+        g = jax.tree_util.tree_map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)
+        u, s = opt.update(g, s, p)
+        return optax.apply_updates(p, u), s, loss, terms
+
+    best, runs = None, []
+    for k in range(cfg.restarts):
+        p = params0 if k == 0 else perturb(params0, rng)
+        s = opt.init(p)
+        for t in range(cfg.steps):
+            p, s, loss, terms = step(p, s, taus[t])
+        final, terms = jax.jit(loss_fn)(p, cfg.tau[1])
+        final = float(final)
+        runs.append({"restart": k, "final_loss": final,
+                     **{k2: float(v) for k2, v in terms.items()}})
+        if np.isfinite(final) and (best is None or final < best[1]):
+            best = (p, final)
+    if best is None:
+        raise FloatingPointError("every restart of the visual fit diverged (non-finite loss)")
+    return best[0], runs
+
+
+# ---------------------------------------------------------------------- camera (a)
+def _apply_camera(cam0: Camera, p) -> Camera:
+    cam = cam0.translated(p["cam_dpos"])
+    return dataclasses.replace(cam, quat=quat_mul(cam0.quat, rotvec_to_quat(p["cam_drot"])))
+
+
+def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = VisualConfig(),
+               seed: int = 0, renderer: Renderer | None = None):
+    """(a) Camera position and orientation (relative to ``cam0``, in its own frame as
+    ``Perturbation.camera_rot_offset``) from frames of a known scene. Returns ``(camera,
+    info)``."""
+    R = renderer or Renderer.create(model)
+    geoms = _geoms_of(model, [f["qpos"] for f in frames])
+    reals = _stack_real(frames)
+    rng = np.random.default_rng(seed)
+    pix = _pixel_subset(frames, cfg.emd_points, None, rng)
+
+    def loss_fn(p, tau):
+        cam = _apply_camera(cam0, p)
+        tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, cam, g, r, tau, None, pix))(
+            geoms, reals)
+        return jnp.mean(tot), jax.tree_util.tree_map(jnp.mean, terms)
+
+    p0 = {"cam_dpos": jnp.zeros(3), "cam_drot": jnp.zeros(3)}
+
+    def perturb(p, rng):
+        return {"cam_dpos": p["cam_dpos"] + rng.normal(0, cfg.init_pos_sd, 3),
+                "cam_drot": p["cam_drot"] + rng.normal(0, cfg.init_rot_sd, 3)}
+
+    p, runs = _optimise(loss_fn, p0, cfg, rng, perturb)
+    return _apply_camera(cam0, p), {"runs": runs, "pos_offset": np.asarray(p["cam_dpos"]),
+                                    "rot_offset": np.asarray(p["cam_drot"])}
+
+
+def _stack_real(frames):
+    return {"rgb": jnp.asarray(np.stack([f["rgb"] for f in frames])),
+            "depth": jnp.asarray(np.stack([f["depth"] for f in frames])),
+            "segmentation": jnp.asarray(np.stack([f["segmentation"] for f in frames]))}
+
+
+# ---------------------------------------------------------------------- object (b)
+_SIZE_DIMS = {0: 2, 2: 1, 3: 2, 4: 3, 5: 2, 6: 3, 7: 0}
+
+
+def _apply_object(geoms: Geoms, gid: int, gtype: int, p) -> Geoms:
+    rot = quat_to_mat(rotvec_to_quat(p["obj_drot"]))
+    nd = _SIZE_DIMS[gtype]
+    scale = jnp.exp(jnp.where(jnp.arange(3) < nd, p["obj_logsize"], 0.0))
+    size = geoms.size.at[..., gid, :].multiply(scale)
+    rgba = geoms.rgba.at[..., gid, :3].set(jax.nn.sigmoid(p["obj_logit_rgb"]))
+    return geoms.replace(xpos=geoms.xpos.at[..., gid, :].add(p["obj_dpos"]),
+                         xmat=geoms.xmat.at[..., gid, :, :].set(rot @ geoms.xmat[..., gid, :, :]),
+                         size=size, rgba=rgba)
+
+
+def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
+               cfg: VisualConfig = VisualConfig(), seed: int = 0,
+               renderer: Renderer | None = None):
+    """(b) One object's position, orientation, size and colour, with a known camera: offsets of
+    its world pose from the frames' states, a log-scale of its size, its RGB (logit). Returns the
+    fitted values (``pos_offset``, ``rot_offset``, ``size``, ``rgb``) and per-restart losses."""
+    gid = _geom_id(model, geom)
+    R = renderer or Renderer.create(model)
+    focus = R.index(gid)
+    gtype = int(model.geom_type[gid])
+    geoms = _geoms_of(model, [f["qpos"] for f in frames])
+    reals = _stack_real(frames)
+    rng = np.random.default_rng(seed)
+    pix = _pixel_subset(frames, cfg.emd_points, gid, rng)
+
+    def loss_fn(p, tau):
+        g = _apply_object(geoms, gid, gtype, p)
+        tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, camera, g, r, tau, focus, pix))(
+            g, reals)
+        return jnp.mean(tot), jax.tree_util.tree_map(jnp.mean, terms)
+
+    rgb0 = np.clip(model.geom_rgba[gid, :3], 0.02, 0.98)
+    p0 = {"obj_dpos": jnp.zeros(3), "obj_drot": jnp.zeros(3), "obj_logsize": jnp.zeros(3),
+          "obj_logit_rgb": jnp.asarray(np.log(rgb0 / (1 - rgb0)))}
+
+    def perturb(p, rng):
+        return {**p, "obj_dpos": p["obj_dpos"] + rng.normal(0, cfg.init_pos_sd, 3),
+                "obj_logsize": p["obj_logsize"] + rng.normal(0, 0.05, 3)}
+
+    p, runs = _optimise(loss_fn, p0, cfg, rng, perturb)
+    nd = _SIZE_DIMS[gtype]
+    size = np.array(model.geom_size[gid], np.float64)
+    size[:nd] *= np.exp(np.asarray(p["obj_logsize"])[:nd])
+    return {"geom": model.geom(gid).name, "pos_offset": np.asarray(p["obj_dpos"]),
+            "rot_offset": np.asarray(p["obj_drot"]), "size": size,
+            "rgb": np.asarray(jax.nn.sigmoid(p["obj_logit_rgb"])), "runs": runs}
+
+
+def _geom_id(model, geom):
+    if isinstance(geom, str):
+        gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, geom)
+        if gid < 0:
+            raise ValueError(f"geom {geom!r} is not in the model; geoms: "
+                             f"{[model.geom(i).name for i in range(model.ngeom)]}")
+        return gid
+    if not 0 <= int(geom) < model.ngeom:
+        raise ValueError(f"geom id {geom} out of range [0, {model.ngeom})")
+    return int(geom)
+
+
+# ---------------------------------------------------------------------- mesh (c)
+def fit_mesh(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
+             cfg: VisualConfig = VisualConfig(), seed: int = 0,
+             renderer: Renderer | None = None):
+    """(c) The vertices of a mesh geom (its mesh-local ``mesh_vert``), regularised towards the
+    initial mesh's edge lengths and a small Laplacian. Returns the fitted vertices (V, 3) of that
+    mesh and per-restart losses."""
+    gid = _geom_id(model, geom)
+    if model.geom_type[gid] != mujoco.mjtGeom.mjGEOM_MESH:
+        raise ValueError(f"geom {geom!r} is not a mesh")
+    R = renderer or Renderer.create(model)
+    focus = R.index(gid)
+    mid = int(model.geom_dataid[gid])
+    va, vn = int(model.mesh_vertadr[mid]), int(model.mesh_vertnum[mid])
+    fa, fn = int(model.mesh_faceadr[mid]), int(model.mesh_facenum[mid])
+    faces = np.asarray(model.mesh_face[fa:fa + fn])
+    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]],
+                                              faces[:, [2, 0]]]), 1), axis=0)
+    geoms = _geoms_of(model, [f["qpos"] for f in frames])
+    v0 = jnp.asarray(model.mesh_vert[va:va + vn], geoms.mesh_vert.dtype)
+    len0 = jnp.linalg.norm(v0[edges[:, 0]] - v0[edges[:, 1]], axis=-1)
+    deg = np.bincount(edges.ravel(), minlength=vn)
+    reals = _stack_real(frames)
+    rng = np.random.default_rng(seed)
+    pix = _pixel_subset(frames, cfg.emd_points, gid, rng)
+
+    def regulariser(v):
+        ln = jnp.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=-1)
+        nb = jnp.zeros_like(v).at[edges[:, 0]].add(v[edges[:, 1]]).at[edges[:, 1]].add(
+            v[edges[:, 0]])
+        lap = v - nb / deg[:, None]
+        lap0 = v0 - (jnp.zeros_like(v0).at[edges[:, 0]].add(v0[edges[:, 1]]).at[
+            edges[:, 1]].add(v0[edges[:, 0]])) / deg[:, None]
+        return jnp.mean(((ln - len0) / len0) ** 2) + jnp.mean(jnp.sum((lap - lap0) ** 2, -1)) / (
+            jnp.mean(len0) ** 2)
+
+    def loss_fn(p, tau):
+        v = v0 + p["dvert"]
+        g = geoms.replace(mesh_vert=geoms.mesh_vert.at[..., va:va + vn, :].set(v))
+        tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, camera, g, r, tau, focus, pix))(
+            g, reals)
+        reg = regulariser(v)
+        terms = jax.tree_util.tree_map(jnp.mean, terms)
+        terms["mesh_reg"] = reg
+        return jnp.mean(tot) + cfg.mesh_smooth * reg, terms
+
+    p0 = {"dvert": jnp.zeros_like(v0)}
+
+    def perturb(p, rng):
+        return {"dvert": p["dvert"] + rng.normal(0, 0.002, p["dvert"].shape)}
+
+    p, runs = _optimise(loss_fn, p0, cfg, rng, perturb)
+    return {"geom": model.geom(gid).name, "vertices": np.asarray(v0 + p["dvert"]), "runs": runs}
+
+
+# ---------------------------------------------------------------------- the command's function
+def visual_sysid(env_name: str, frames_or_dataset, out_dir: str | os.PathLike, seed: int = 0,
+                 *, fit: Sequence[str] = ("camera", "object"), object_geom: str | None = None,
+                 camera: str | None = None, n_frames: int = 4,
+                 config: VisualConfig | None = None) -> dict:
+    """Fit the camera, then an object, of task ``env_name`` to real frames; write
+    ``out_dir/summary.json`` and ``out_dir/visual_<stage>.png`` (real | rendered before |
+    rendered after, per frame) and return the summary.
+
+    Args:
+      env_name: registered task (``twinrl envs``).
+      frames_or_dataset: a dataset directory or ``Dataset`` (``twinrl collect --images``), or a
+        list of frame dicts (``rgb``, ``depth``, ``segmentation``, ``qpos``).
+      out_dir: where the summary and PNGs go (created).
+      seed: restarts and pixel sampling.
+      fit: stages, in order, from ``"camera"`` (a) and ``"object"`` (b); the object is fitted
+        with the camera found by (a) when both run.
+      object_geom: the object's geom name (default: the task's, ``DEFAULT_OBJECT``).
+      camera: camera name (default: the task's first).
+      n_frames: frames taken from a dataset.
+      config: ``VisualConfig``.
+    """
+    from twinrl import report
+    from twinrl.envs import make
+
+    cfg = config or VisualConfig()
+    unknown = set(fit) - {"camera", "object"}
+    if unknown or not fit:
+        raise ValueError(f"fit must name stages from ('camera', 'object'), got {fit!r}")
+    env = make(env_name)
+    model = env.sim.mj_model
+    cam_name = camera or env.cameras[0]
+    if isinstance(frames_or_dataset, (str, os.PathLike)) or hasattr(frames_or_dataset, "images"):
+        frames = frames_from_dataset(env_name, frames_or_dataset, n_frames, seed)
+    else:
+        frames = list(frames_or_dataset)
+    frames = check_frames(frames, model.nq)
+    H, W = frames[0]["depth"].shape
+    d = mujoco.MjData(model)
+    mujoco.mj_forward(model, d)
+    cam0 = Camera.from_mujoco(model, d, cam_name, W, H)
+    R = Renderer.create(model)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summary: dict[str, Any] = {"env": env_name, "seed": seed, "frames": len(frames),
+                               "image_size": [W, H], "camera_name": cam_name,
+                               "config": dataclasses.asdict(cfg)}
+    cam = cam0
+    geoms = _geoms_of(model, [f["qpos"] for f in frames])
+    t0 = time.perf_counter()
+    if "camera" in fit:
+        cam, info = fit_camera(model, frames, cam0, cfg, seed, R)
+        _save_panels(out / "visual_camera.png", R, frames, (cam0, geoms), (cam, geoms))
+        summary["camera"] = {"pos": np.asarray(cam.pos), "quat": np.asarray(cam.quat),
+                             "pos_offset_world": info["pos_offset"],
+                             "rot_offset_camera": info["rot_offset"], "runs": info["runs"]}
+    if "object" in fit:
+        name = object_geom or DEFAULT_OBJECT.get(env_name)
+        if name is None:
+            raise ValueError(f"no default object for task {env_name!r}: pass object_geom")
+        res = fit_object(model, frames, cam, name, cfg, seed, R)
+        gid = _geom_id(model, name)
+        after = _apply_object(geoms, gid, int(model.geom_type[gid]), {
+            "obj_dpos": jnp.asarray(res["pos_offset"]), "obj_drot": jnp.asarray(res["rot_offset"]),
+            "obj_logsize": jnp.log(jnp.asarray(res["size"] / np.where(
+                model.geom_size[gid] > 0, model.geom_size[gid], 1.0))),
+            "obj_logit_rgb": jnp.asarray(np.log(res["rgb"] / (1 - res["rgb"])))})
+        _save_panels(out / "visual_object.png", R, frames, (cam, geoms), (cam, after))
+        summary["object"] = res
+    summary["seconds"] = time.perf_counter() - t0
+    rows = []
+    if "camera" in summary:
+        c = summary["camera"]
+        rows.append(["camera", f"dpos {np.round(c['pos_offset_world'] * 1e3, 1)} mm",
+                     f"drot {np.round(np.rad2deg(c['rot_offset_camera']), 2)} deg",
+                     min(r["final_loss"] for r in c["runs"])])
+    if "object" in summary:
+        o = summary["object"]
+        rows.append([f"object {o['geom']}", f"dpos {np.round(o['pos_offset'] * 1e3, 1)} mm",
+                     f"size {np.round(o['size'], 4)} rgb {np.round(o['rgb'] * 255, 1)}",
+                     min(r["final_loss"] for r in o["runs"])])
+    report.print_table(f"visual real2sim: {env_name}", ["stage", "position", "other", "loss"],
+                       rows)
+    report.write_json(out / "summary.json", summary)
+    return report.to_jsonable(summary)
+
+
+def _save_panels(path: Path, R: Renderer, frames, before, after, max_frames: int = 4) -> None:
+    """Rows of real | rendered before | rendered after (hard images, RGB)."""
+    import imageio.v2 as imageio
+
+    rows = []
+    for k, f in enumerate(frames[:max_frames]):
+        imgs = [f["rgb"]]
+        for cam, geoms in (before, after):
+            g = jax.tree_util.tree_map(lambda x: x[k], geoms)
+            rgb = np.asarray(R.render(cam, g).rgb)
+            imgs.append((np.clip(rgb, 0, 1) * 255).round().astype(np.uint8))
+        sep = np.full((f["rgb"].shape[0], 2, 3), 255, np.uint8)
+        rows.append(np.concatenate([imgs[0], sep, imgs[1], sep, imgs[2]], 1))
+    imageio.imwrite(path, np.concatenate(rows, 0))
