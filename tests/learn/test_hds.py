@@ -3,7 +3,8 @@ logged, rollouts through a drop-in ``dynamics`` are counted, a model fraction wi
 refused, and a resumed run equals an uninterrupted one.
 
 One compiled config (a short pendulum with half the rollouts through a heavier pendulum's
-``step``) serves every test: ``hds._build`` is memoised per env, config and dynamics.
+``step``) serves every test: ``hds._build`` is memoised per env, config and dynamics. Measured with a cold compilation cache
+on the shared 2-core dev machine: 288 s wall, 169 s CPU, of which the tests proper take ~2 s.
 """
 
 import jax

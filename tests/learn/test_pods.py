@@ -4,7 +4,10 @@ against one.
 
 Every test of a config shares one compiled set of functions (``pods._build`` is memoised per env
 and config, epochs aside), so the module pays one MJX gradient compile per config: pendulum
-(first order), push (Gauss–Newton) and the two-device subprocess.
+(first order), push (Gauss–Newton) and the two-device subprocess. Measured with a cold
+compilation cache on the shared 2-core dev machine (load ~7): 987 s wall, 443 s CPU, almost all
+of it XLA compiling the three configs (push's Gauss–Newton through contacts: 344 s wall); the
+tests themselves run in ~7 s once compiled.
 """
 
 import json
