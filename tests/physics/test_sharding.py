@@ -39,9 +39,10 @@ SCRIPT = textwrap.dedent("""
 
 
 def test_two_emulated_devices_equal_one():
-    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu",
-           "JAX_ENABLE_X64": "1"}
     import os
+    # Same compiler flags as this process, plus the two emulated devices.
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    env = {"XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu", "JAX_ENABLE_X64": "1"}
     out = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True,
                          env={**os.environ, **env}, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
