@@ -40,6 +40,14 @@ def test_gradcheck_command_on_a_user_mjcf_path(tmp_path):
     (["gradcheck", "nosuchscene"], "unknown scene 'nosuchscene'"),
     (["collect", "--env", "nosuchtask", "--episodes", "1"], "unknown task 'nosuchtask'"),
     (["collect", "--env", "pendulum_swingup", "--episodes", "0"], "--episodes must be >= 1"),
+    (["sysid", "--env", "cartpole_swingup", "--from", "/no/such/data"],
+     "--from /no/such/data: no dataset there"),
+    (["train", "--env", "pendulum_swingup", "--algo", "shac", "--set", "no_such_field=1"],
+     "SHACConfig has no field 'no_such_field'"),
+    (["train", "--env", "pendulum_swingup", "--algo", "ppo", "--epochs", "3"],
+     "--epochs does not apply to PPOConfig"),
+    (["eval", "--checkpoint", "/no/such/ckpt"], "checkpoint /no/such/ckpt does not exist"),
+    (["run", "--env", "cartpole_swingup", "--rounds", "0"], "rounds must be >= 1"),
 ])
 def test_bad_input_gets_one_clear_line(args, message):
     out = twinrl(*args)
