@@ -31,11 +31,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn", "RestoreFn"]
+__all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn", "RestoreFn"]
 
 ProgressFn = Callable[[int, dict[str, float]], None]
 CheckpointFn = Callable[[int, Any, dict[str, list[float]]], None]
 RestoreFn = Callable[[Any], tuple[Any, dict[str, list[float]]]]
+
+
+def raw_key(rng) -> jax.Array:
+    """A uint32[2] key from an int seed (None: 0), a raw key or a typed key; trainers carry raw
+    keys in their state so that checkpoints hold plain arrays."""
+    if rng is None:
+        rng = 0
+    if isinstance(rng, (int, np.integer)):
+        return jax.random.PRNGKey(int(rng))
+    if isinstance(rng, jax.Array) and jnp.issubdtype(rng.dtype, jax.dtypes.prng_key):
+        rng = jax.random.key_data(rng)
+    rng = jnp.asarray(rng)
+    if rng.shape != (2,) or rng.dtype != jnp.uint32:
+        raise ValueError(f"rng must be an int seed, a jax.random.PRNGKey (uint32[2]) or a typed "
+                         f"key, got {rng.dtype}{list(rng.shape)}")
+    return rng
 
 
 def make_evaluator(env, apply_fn: Callable, episodes: int, episode_length: int | None = None):

@@ -52,7 +52,8 @@ import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
 from twinrl.learn import trajopt
-from twinrl.learn.common import CheckpointFn, MetricLog, ProgressFn, RestoreFn, make_evaluator
+from twinrl.learn.common import (CheckpointFn, MetricLog, ProgressFn, RestoreFn, make_evaluator,
+                                 raw_key)
 from twinrl.learn.networks import Network, make_policy
 from twinrl.physics.gradients import global_norm, guard_stats, hygiene
 from twinrl.physics.parallel import batch_mesh, shard_batch
@@ -279,21 +280,6 @@ def state_problem(env, step_fn: Callable, state) -> tuple[trajopt.RolloutFn, tra
         return env.reward(s[:nq], s[nq:], a)[0]
 
     return rollout_fn, reward_fn
-
-
-def raw_key(rng) -> jax.Array:
-    """A uint32[2] key from an int seed, a raw key or a typed key."""
-    if rng is None:
-        rng = 0
-    if isinstance(rng, (int, np.integer)):
-        return jax.random.PRNGKey(int(rng))
-    if isinstance(rng, jax.Array) and jnp.issubdtype(rng.dtype, jax.dtypes.prng_key):
-        rng = jax.random.key_data(rng)
-    rng = jnp.asarray(rng)
-    if rng.shape != (2,) or rng.dtype != jnp.uint32:
-        raise ValueError(f"rng must be an int seed, a jax.random.PRNGKey (uint32[2]) or a typed "
-                         f"key, got {rng.dtype}{list(rng.shape)}")
-    return rng
 
 
 def replicate(tree, mesh):

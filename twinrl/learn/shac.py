@@ -51,7 +51,7 @@ import numpy as np
 import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
-from twinrl.learn.common import (CheckpointFn, MetricLog, ProgressFn, RestoreFn,
+from twinrl.learn.common import (CheckpointFn, MetricLog, ProgressFn, RestoreFn, raw_key,
                                  make_evaluator)
 from twinrl.learn.networks import Network, NetworkConfig, make_network, make_value
 from twinrl.physics.gradients import clip_by_global_norm, global_norm, guard_stats, nan_guard
@@ -263,19 +263,6 @@ def _select(mask: jax.Array, a, b):
         lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
-def _raw_key(rng) -> jax.Array:
-    """A uint32[2] key from an int seed, a raw key or a typed key (checkpoints hold raw ones)."""
-    if isinstance(rng, (int, np.integer)):
-        return jax.random.PRNGKey(int(rng))
-    if isinstance(rng, jax.Array) and jnp.issubdtype(rng.dtype, jax.dtypes.prng_key):
-        rng = jax.random.key_data(rng)
-    rng = jnp.asarray(rng)
-    if rng.shape != (2,) or rng.dtype != jnp.uint32:
-        raise ValueError(f"rng must be an int seed, a jax.random.PRNGKey (uint32[2]) or a typed "
-                         f"key, got {rng.dtype}{list(rng.shape)}")
-    return rng
-
-
 def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, *,
           progress_fn: ProgressFn | None = None, checkpoint_fn: CheckpointFn | None = None,
           restore: RestoreFn | None = None) -> tuple[Network, Any, dict[str, list[float]]]:
@@ -289,7 +276,7 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
     ``skipped`` / ``critic_skipped`` (cumulative updates dropped by the NaN guard).
     """
     c = config
-    rng = jax.random.PRNGKey(0) if rng is None else _raw_key(rng)
+    rng = jax.random.PRNGKey(0) if rng is None else raw_key(rng)
     N, h = int(c.num_envs), int(c.horizon)
     T = int(c.episode_length or env.episode_length)
     mesh = batch_mesh()
