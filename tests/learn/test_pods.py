@@ -189,8 +189,9 @@ TWO_DEVICES = textwrap.dedent("""
 
 def test_two_emulated_devices_equal_one(pendulum, small_run):
     cfg = dict(SMALL, epochs=2)
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
-           "JAX_PLATFORMS": "cpu"}
+    # The parent's compiler flags (the suite runs XLA at -O0) plus two emulated devices.
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", TWO_DEVICES, json.dumps(cfg)],
                          capture_output=True, text=True, env=env, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
