@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-TRAIN = ["train", "--env", "pendulum_swingup", "--algo", "shac", "--epochs", "40",
+TRAIN = ["train", "--env", "cartpole_swingup", "--algo", "shac", "--epochs", "40",
          "--set", "num_envs=4", "--set", "horizon=8", "--set", "eval_episodes=1",
          "--seed", "2"]
 

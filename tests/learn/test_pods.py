@@ -1,9 +1,9 @@
 """``twinrl.learn.pods``: the trainer contract, determinism, kill/resume equivalence, learning on
-a short pendulum, the second order on the 2-D push through contacts, and two emulated devices
-against one.
+a short cartpole swing-up, the second order on the 2-D push through contacts, and two emulated
+devices against one.
 
 Every test of a config shares one compiled set of functions (``pods._build`` is memoised per env
-and config, epochs aside), so the module pays one MJX gradient compile per config: pendulum
+and config, epochs aside), so the module pays one MJX gradient compile per config: cartpole
 (first order), push (Gauss–Newton) and the two-device subprocess. Measured with a cold
 compilation cache on the shared 2-core dev machine (load ~7): 987 s wall, 443 s CPU, almost all
 of it XLA compiling the three configs (push's Gauss–Newton through contacts: 344 s wall); the
@@ -25,7 +25,7 @@ from twinrl import envs
 from twinrl.learn import pods, trajopt
 from twinrl.learn.pods import PODSConfig
 
-# A short pendulum problem: 40-step rollouts cut into two 20-step windows, 40-step evaluations.
+# A short cartpole problem: 40-step rollouts cut into two 20-step windows, 40-step evaluations.
 SMALL = dict(batch_size=4, rollout_length=40, horizon=20, line_search_steps=4, step_size=1.0,
              regression_steps=32, hidden=(32, 32), eval_episodes=4, eval_length=40)
 EPOCHS = 8
@@ -44,7 +44,9 @@ def _tree_equal(a, b, atol=0.0):
 
 @pytest.fixture(scope="module")
 def pendulum():
-    return envs.make("pendulum_swingup")
+    # cartpole_swingup, not the pendulum: no joint limit, so no constraint solve in the compiled
+    # gradient (about half the compile time; the suite is compile-bound).
+    return envs.make("cartpole_swingup")
 
 
 @pytest.fixture(scope="module")
@@ -89,8 +91,9 @@ def test_contract_metrics_and_finite_params(pendulum, small_run):
 def test_learning_improves_the_return(small_run):
     *_, metrics, _, _ = small_run
     ret = metrics["return"]
-    # measured: ~0.5 at epoch 1 -> > 3 by epoch 8 (40-step episodes from hanging)
-    assert max(ret[-3:]) > ret[0] + 1.0, ret
+    # measured: 2.31 at epoch 1 rising every epoch to 3.21 by epoch 8 (40-step cartpole
+    # episodes from hanging, where a policy that does nothing earns about 2)
+    assert max(ret[-3:]) > 1.25 * ret[0], ret
     assert np.mean(metrics["improvement"]) > 0
 
 
@@ -181,7 +184,7 @@ TWO_DEVICES = textwrap.dedent("""
     from twinrl.learn import pods
     assert len(jax.devices()) == 2, jax.devices()
     cfg = pods.PODSConfig(**json.loads(sys.argv[1]))
-    _, params, metrics = pods.train(envs.make("pendulum_swingup"), cfg, jax.random.PRNGKey(0))
+    _, params, metrics = pods.train(envs.make("cartpole_swingup"), cfg, jax.random.PRNGKey(0))
     leaves = [np.asarray(x).ravel().tolist() for x in jax.tree_util.tree_leaves(params)]
     print("RESULT" + json.dumps({"metrics": metrics, "params": leaves}))
 """)
