@@ -21,8 +21,9 @@ def twinrl(*args, timeout=900):
 
 @pytest.mark.slow
 def test_gradcheck_command_on_a_user_mjcf_path(tmp_path):
-    # A user's own MJCF by path (here the bundled pendulum file, copied elsewhere).
-    src = (ROOT / "twinrl/physics/scenes/pendulum.xml").read_text()
+    # A user's own MJCF by path (here the bundled cartpole file, copied elsewhere; the
+    # constrained scenes are gradchecked in tests/physics/test_gradcheck.py).
+    src = (ROOT / "twinrl/physics/scenes/cartpole.xml").read_text()
     (tmp_path / "my_robot.xml").write_text(src)
     out = twinrl("gradcheck", str(tmp_path / "my_robot.xml"), "--x64", "--horizon", "40",
                  "--out", str(tmp_path / "gc"))
