@@ -109,17 +109,13 @@ def _rot_err_deg(q1, q2):
 
 
 def _real_frames(m_real, S, qposes):
-    from twinrl.real.twin import CameraRenderer
+    from twinrl.real.twin import render_states
 
-    r = CameraRenderer(m_real, S, S)
+    frames = render_states(m_real, "top", qposes, S, S)
     d = mujoco.MjData(m_real)
-    frames = []
-    for q in qposes:
-        d.qpos[:] = q
-        mujoco.mj_forward(m_real, d)
-        frames.append({**r.images(d, "top"), "qpos": np.array(q)})
+    d.qpos[:] = qposes[-1]
+    mujoco.mj_forward(m_real, d)
     cam = Camera.from_mujoco(m_real, d, "top", S, S)
-    r.close()
     return frames, cam
 
 

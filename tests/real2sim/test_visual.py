@@ -7,7 +7,7 @@ import pytest
 
 from twinrl.physics import load_mjcf
 from twinrl.real.perturbation import Perturbation
-from twinrl.real.twin import CameraRenderer
+from twinrl.real.twin import render_states
 from twinrl.real2sim import visual as V
 from twinrl.render import Camera
 
@@ -23,13 +23,10 @@ def push():
 
 
 def _frames(model, qposes):
-    r = CameraRenderer(model, S, S)
+    out = render_states(model, "top", qposes, S, S)
     d = mujoco.MjData(model)
-    out = []
-    for q in qposes:
-        d.qpos[:] = q
-        mujoco.mj_forward(model, d)
-        out.append({**r.images(d, "top"), "qpos": np.array(q)})
+    d.qpos[:] = qposes[-1]
+    mujoco.mj_forward(model, d)
     return out, Camera.from_mujoco(model, d, "top", S, S)
 
 

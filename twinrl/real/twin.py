@@ -47,7 +47,8 @@ from twinrl.envs import Env, make  # noqa: E402
 from twinrl.physics import PhysParams, load_mjcf  # noqa: E402
 from twinrl.real.perturbation import Perturbation  # noqa: E402
 
-__all__ = ["RealTwin", "Oracle", "CameraRenderer", "render_episode", "IMAGE_KINDS"]
+__all__ = ["RealTwin", "Oracle", "CameraRenderer", "render_episode", "render_states",
+           "IMAGE_KINDS"]
 
 IMAGE_KINDS = ("rgb", "depth", "segmentation")
 _INTEGRATORS = {
@@ -145,6 +146,23 @@ class CameraRenderer:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def render_states(model: mujoco.MjModel, camera: str | int, qposes: Sequence[np.ndarray],
+                  width: int, height: int) -> list[dict[str, np.ndarray]]:
+    """OpenGL frames (``rgb``, ``depth``, ``segmentation``, and the ``qpos`` drawn) of ``model`` at
+    each of ``qposes``, from ``camera``: reference images for the differentiable renderer."""
+    r = CameraRenderer(model, width, height)
+    d = mujoco.MjData(model)
+    frames = []
+    try:
+        for q in qposes:
+            d.qpos[:] = q
+            mujoco.mj_forward(model, d)
+            frames.append({**r.images(d, camera), "qpos": np.array(q)})
+    finally:
+        r.close()
+    return frames
 
 
 # ---------------------------------------------------------------------- the real twin

@@ -356,12 +356,7 @@ class Renderer:
         for t in sorted(set(self.types)):
             idx = np.flatnonzero(types == t)
             if t == _MESH:
-                tri = self._triangles(geoms, xpos, xmat)
-                k = np.asarray(self.tri_geom)
-                sel = np.stack([k == g for g in idx])
-                fn = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                fn = fn / jnp.sqrt(jnp.sum(fn * fn, -1, keepdims=True) + 1e-30)
-                off = jnp.sum(fn * tri[:, 0], -1)
+                fn, off, sel = self._face_planes(geoms, xpos, xmat, idx)
                 vals = jnp.where(sel, (points @ fn.T - off)[..., None, :], -jnp.inf)
                 d = jnp.max(vals, -1)
             else:
@@ -505,18 +500,24 @@ class Renderer:
         return Images(rgb=rgb.reshape(H, W, 3), depth=depth.reshape(H, W), segmentation=seg,
                       body=body, weights=w.reshape(H, W, G), background=bg.reshape(H, W))
 
+    def _face_planes(self, geoms, xpos, xmat, idx):
+        """Unit normals ``fn`` (T, 3) and offsets ``off`` (T,) of every mesh triangle's plane in
+        the world, and ``sel`` (len(idx), T): which triangles belong to each mesh geom in ``idx``
+        (a convex mesh's distance is its largest face-plane distance)."""
+        tri = self._triangles(geoms, xpos, xmat)
+        k = np.asarray(self.tri_geom)
+        sel = np.stack([k == g for g in idx])
+        fn = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        fn = fn / jnp.sqrt(jnp.sum(fn * fn, -1, keepdims=True) + 1e-30)
+        return fn, jnp.sum(fn * tri[:, 0], -1), sel
+
     def _hard_normals(self, p, xpos, xmat, size, geoms):
         types = np.asarray(self.types)
         n = [None] * self.ngeom
         for t in sorted(set(self.types)):
             idx = np.flatnonzero(types == t)
             if t == _MESH:
-                tri = self._triangles(geoms, xpos, xmat)
-                k = np.asarray(self.tri_geom)
-                sel = np.stack([k == g for g in idx])
-                fn = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                fn = fn / jnp.sqrt(jnp.sum(fn * fn, -1, keepdims=True) + 1e-30)
-                off = jnp.sum(fn * tri[:, 0], -1)
+                fn, off, sel = self._face_planes(geoms, xpos, xmat, idx)
                 vals = jnp.where(sel, jnp.einsum("ngi,ti->ngt", p[:, idx], fn) - off, -jnp.inf)
                 nl = fn[jnp.argmax(vals, -1)]
                 for j, g in enumerate(idx):
