@@ -1,0 +1,178 @@
+"""``twinrl.loop``: a run killed with SIGKILL in the middle of a round's real deployment and
+resumed keeps every real transition it had recorded, does not redo finished stages, and finishes
+with the same bookkeeping as a run that was never interrupted.
+
+The stages that compile (sysid, the learner) are replaced in the child process by cheap stand-ins
+(a sysid that returns the nominal parameters, a trainer that returns a seeded random policy): this tests the loop's
+resume bookkeeping, the real-twin recording and the dataset's durability, each stage having its own
+tests. The deployed policy sleeps a few milliseconds a step so the kill lands inside an episode.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from twinrl.real import dataset as ds
+
+ROUNDS, K, T = 2, 2, 250
+
+CHILD = textwrap.dedent("""
+    import dataclasses, sys, time
+    from pathlib import Path
+    from twinrl import eval as evaluation, loop
+    from twinrl.learn import runner
+    from twinrl.learn.common import MetricLog
+    from twinrl.learn.networks import make_policy
+    from twinrl.real2sim import sysid
+
+    out, resume = Path(sys.argv[1]), sys.argv[2] == "resume"
+    log = out.parent / "calls.log"
+
+    def note(s):
+        with open(log, "a") as f:
+            f.write(s + "\\n")
+
+    class Result:  # the fields of a SysidResult the loop stores
+        def __init__(self, env):
+            self.params, self.latency, self.table = env.sim.default_params(), 0, []
+            self.loss, self.sim_rollouts, self.seconds = 0.0, 0, 0.0
+
+    def fit(env, data, config=None, **kw):
+        note(f"sysid {len(data)}")
+        return Result(env)
+
+    real_deployed = loop._deployed_policy
+
+    def slow_deployed(*a, **k):
+        act = real_deployed(*a, **k)
+        def slow(o):
+            time.sleep(0.004)
+            return act(o)
+        return slow
+
+    @dataclasses.dataclass(frozen=True)
+    class Config:
+        epochs: int = 2
+
+    def train(env, config, rng, *, progress_fn=None, checkpoint_fn=None, restore=None):
+        # a trainer that follows the contract and compiles nothing: a seeded random policy
+        note("train")
+        pol = make_policy(env.observation_size, env.action_size, (8,))
+        state, log = {"params": pol.init(rng)}, MetricLog()
+        if restore is not None:
+            state, hist = restore(state)
+            log = MetricLog(hist)
+        for e in range(len(log.history.get("epoch", [])), config.epochs):
+            row = log.record(epoch=e, env_steps=10 * (e + 1), grad_norm=0.0, **{"return": 0.5 * e})
+            if checkpoint_fn:
+                checkpoint_fn(e, state, log.as_dict())
+        return pol, state["params"], log.as_dict()
+
+    sysid.fit = fit
+    evaluation.param_errors = lambda twin, res: {"cart_mass": 0.0}
+    loop._deployed_policy = slow_deployed
+    runner.ALGORITHMS["toy"] = runner.Algorithm("__main__", "train", "Config", {}, True)
+    config = loop.LoopConfig(rounds=%d, episodes_per_round=%d, algo="toy", epochs=2,
+                             model_fraction=0.0, hybrid=False, residual=False, oracle=False,
+                             video=False, eval_episodes=1)
+    note("start resume" if resume else "start")
+    loop.run("cartpole_swingup", out, config, seed=4, resume=resume, progress=False)
+    note("finished")
+""" % (ROUNDS, K))
+
+
+def _child(out: Path, mode: str):
+    return subprocess.Popen([sys.executable, "-c", CHILD, str(out), mode],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _done(out: Path) -> list[str]:
+    try:
+        return json.loads((out / "progress.json").read_text())["done"]
+    except (FileNotFoundError, json.JSONDecodeError):
+        return []
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    base = tmp_path_factory.mktemp("loop")
+    full, killed = base / "full" / "run", base / "killed" / "run"
+    for d in (full, killed):
+        d.parent.mkdir()
+    p = _child(full, "fresh")
+    text, _ = p.communicate(timeout=600)
+    assert p.returncode == 0, text
+
+    p = _child(killed, "fresh")
+    deadline = time.time() + 600
+    # wait for round 1's first deployed episode to be recorded: the second is then under way
+    while time.time() < deadline and "round1/deploy_partial" not in _done(killed):
+        assert p.poll() is None, p.communicate()[0]
+        time.sleep(0.02)
+    time.sleep(0.4)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    done_at_kill = _done(killed)
+    at_kill = ds.read(killed / "dataset")
+    p = _child(killed, "resume")
+    text, _ = p.communicate(timeout=600)
+    assert p.returncode == 0, text
+    return full, killed, done_at_kill, at_kill
+
+
+def test_killed_mid_episode(runs):
+    _, _, done_at_kill, at_kill = runs
+    assert "round1/deploy" not in done_at_kill and "round1/learn" in done_at_kill
+    # round 0 and one deployed episode complete, the next one cut short
+    assert int(np.sum(at_kill.episode_complete)) == 2 * K - 1
+    assert (2 * K - 1) * T < len(at_kill) < 2 * K * T
+
+
+def test_resume_loses_no_recorded_transition(runs):
+    _, killed, _, at_kill = runs
+    final = ds.read(killed / "dataset")
+    n = len(at_kill)
+    np.testing.assert_array_equal(final.obs[:n], at_kill.obs)
+    np.testing.assert_array_equal(final.action[:n], at_kill.action)
+    np.testing.assert_array_equal(final.reward[:n], at_kill.reward)
+    np.testing.assert_array_equal(final.episode_id[:n], at_kill.episode_id)
+    # every round's K episodes complete, plus the interrupted one kept as incomplete
+    assert int(np.sum(final.episode_complete)) == K * (ROUNDS + 1)
+    assert len(final.episode_complete) == K * (ROUNDS + 1) + 1
+    assert len(final) == K * (ROUNDS + 1) * T + (n - (2 * K - 1) * T)
+
+
+def test_finished_stages_are_not_redone(runs):
+    full, killed, _, _ = runs
+    calls = (killed.parent / "calls.log").read_text().split("\n")
+    # sysid and training ran once per round: round 1's before the kill, round 2's after
+    sysids = [c for c in calls if c.startswith("sysid")]
+    assert len(sysids) == ROUNDS and calls.count("train") == ROUNDS, calls
+    assert calls.index("start resume") > calls.index(sysids[0])
+    # the same data went into each round's sysid as in the uninterrupted run, except the
+    # interrupted episode's partial transitions in round 2
+    full_calls = [c for c in (full.parent / "calls.log").read_text().split("\n")
+                  if c.startswith("sysid")]
+    assert sysids[0] == full_calls[0]
+
+
+def test_summary_matches_the_uninterrupted_run(runs):
+    full, killed, _, _ = runs
+    a = json.loads((full / "summary.json").read_text())
+    b = json.loads((killed / "summary.json").read_text())
+    assert len(a["rounds"]) == len(b["rounds"]) == ROUNDS + 1
+    for ra, rb in zip(a["rounds"], b["rounds"]):
+        # the same episodes from the same seeds: identical returns and sim returns
+        assert ra["real_return"] == rb["real_return"], (ra, rb)
+        assert ra["sim_return"] == rb["sim_return"]
+    # the killed run's dataset also holds the interrupted episode's partial transitions
+    assert b["rounds"][-1]["real_steps"] > a["rounds"][-1]["real_steps"]
+    assert (killed / "report.md").exists() and (killed / "returns.png").exists()
