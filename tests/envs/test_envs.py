@@ -15,6 +15,10 @@ import pytest
 from twinrl import envs
 
 NAMES = envs.names()
+# The gradient test compiles a value_and_grad per task. cartpole_balance is cartpole_swingup's
+# model, step and reward with another reset distribution (test_balance_and_swingup_share_a_model),
+# so it is compiled there once, as cartpole_swingup.
+MODELS = [n for n in NAMES if n != "cartpole_balance"]
 BATCH, STEPS, HORIZON = 4, 10, 30
 
 
@@ -64,7 +68,19 @@ def _episode_actions(env, key):
     return jnp.clip(a, -1.0, 1.0)
 
 
-@pytest.mark.parametrize("name", NAMES)
+def test_balance_and_swingup_share_a_model(made):
+    bal, up = made["cartpole_balance"], made["cartpole_swingup"]
+    assert type(bal) is type(up) and bal.scene == up.scene
+    assert dataclasses.replace(bal.config, swingup=True) == up.config
+    assert bal.sim.mj_model.nq == up.sim.mj_model.nq
+    s = up.reset(jax.random.PRNGKey(0))
+    a = jnp.full((up.action_size,), 0.3)
+    nb, nu = jax.jit(bal.step)(s, a), jax.jit(up.step)(s, a)  # same state in, same state out
+    np.testing.assert_array_equal(nb.pipeline_state.qpos, nu.pipeline_state.qpos)
+    np.testing.assert_array_equal(nb.reward, nu.reward)
+
+
+@pytest.mark.parametrize("name", MODELS)
 def test_grad_of_episode_return_wrt_actions_is_finite(name, made):
     env = made[name]
     s0 = env.reset(jax.random.PRNGKey(2))

@@ -171,8 +171,9 @@ def test_second_order_on_push_with_a_2d_action():
     assert calls["gn"] >= 1 and calls["first"] == 0  # traced through the Gauss-Newton step
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(params))
     assert np.all(np.isfinite(metrics["return"]))
-    assert np.all(np.array(metrics["improvement"]) >= 0)
+    assert np.all(np.array(metrics["improvement"]) >= 0)  # never worse than the policy's own
     assert sum(metrics["accepted_frac"]) > 0
+    assert all(n == 0 for n in metrics["nonfinite"])  # gradients through the contacts finite
     assert metrics["env_steps"][-1] == 3 * 2 * 2 * (5 + 5 * (1 + 3))
 
 
