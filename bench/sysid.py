@@ -16,7 +16,8 @@ Per task and seed: record ``--episodes`` episodes of excitation actions on the d
    rollouts each needs to reach the loss and the worst relative parameter error sysid ends at.
 
 Prints tables (``twinrl.report.print_table``) and writes ``bench/results/sysid.json``.
-Run: ``.venv/bin/python bench/sysid.py [--tasks cartpole_swingup pendulum_swingup] [--seeds 0 1 2]``.
+Run: ``.venv/bin/python bench/sysid.py [--tasks cartpole_swingup pendulum_swingup] [--seeds 0 1 2]``
+(``--no-cma``: only part 1, the acceptance tables; part 2 costs minutes per seed).
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ def first_reaching(history, key, target):
     return None
 
 
-def run(task: str, seed: int, episodes: int, cma_evals: int) -> dict:
+def run(task: str, seed: int, episodes: int, cma_evals: int | None) -> dict:
     twin = envs.make_real(task, seed=seed)
     data = sysid.collect(twin, episodes=episodes, seed=seed)
     truth = twin.oracle()  # evaluation only
@@ -76,6 +77,8 @@ def run(task: str, seed: int, episodes: int, cma_evals: int) -> dict:
     out["unanchored"] = dict(rows=rows_u, loss=res_u.loss, rollouts=res_u.sim_rollouts,
                              flat=res_u.flat_directions)
 
+    if cma_evals is None:
+        return out
     # 2. same objective for both: recorded starts, the found latency, identifiable parameters
     cfg = sysid.SysidConfig(params=COMPARE[task], known=known, estimate_start=False,
                             latency=res.latency)
@@ -109,13 +112,14 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--episodes", type=int, default=5)
     ap.add_argument("--cma-evals", type=int, default=2000)
+    ap.add_argument("--no-cma", action="store_true", help="skip part 2 (sysid vs CMA-ES)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     results = []
     for task in args.tasks:
         for seed in args.seeds:
             t = time.perf_counter()
-            r = run(task, seed, args.episodes, args.cma_evals)
+            r = run(task, seed, args.episodes, None if args.no_cma else args.cma_evals)
             r["seconds"] = time.perf_counter() - t
             results.append(r)
             report.write_json(args.out, {"results": results})  # durable after every seed
@@ -135,7 +139,7 @@ def main(argv=None) -> int:
     cols = ["task", "seed", "sysid loss", "sysid err", "sysid rollouts", "to loss", "to err",
             "cma loss", "cma err", "cma rollouts", "to loss", "to err", "ratio (err)"]
     rows = []
-    for r in results:
+    for r in (r for r in results if "compare" in r):
         c = r["compare"]
         ratio = (c["cma_rollouts_to_err"] / c["sysid_rollouts_to_err"]
                  if c["cma_rollouts_to_err"] and c["sysid_rollouts_to_err"] else
@@ -144,8 +148,9 @@ def main(argv=None) -> int:
                      c["sysid_rollouts_to_loss"], c["sysid_rollouts_to_err"], c["cma_loss"],
                      c["cma_err"], c["cma_rollouts"], c["cma_rollouts_to_loss"] or "never",
                      c["cma_rollouts_to_err"] or "never", ratio])
-    report.print_table("sysid vs CMA-ES: window rollouts to the same loss / parameter error",
-                       cols, rows)
+    if rows:
+        report.print_table("sysid vs CMA-ES: window rollouts to the same loss / parameter error",
+                           cols, rows)
     report.write_json(args.out, {"results": results})
     return 0
 
