@@ -364,7 +364,8 @@ def _sysid_parser(sub) -> None:
     p.add_argument("--known", action="append", default=[], metavar="PARAM=VALUE",
                    help="a parameter known from elsewhere, e.g. --known mass/cart=1.05 (fixes the "
                         "common scale that trajectories cannot)")
-    p.add_argument("--window", type=int, default=10, help="shooting window, steps (default 10)")
+    p.add_argument("--window", type=int, default=None,
+                   help="shooting window, steps (default: SysidConfig's, 20)")
     p.add_argument("--frames", type=int, default=4, help="frames used with --visual (default 4)")
     _common(p, "runs/sysid")
     p.set_defaults(func=_cmd_sysid)
@@ -406,7 +407,8 @@ def _cmd_sysid(args) -> int:
             raise UsageError(f"--known {item!r} must look like PARAM=NUMBER") from None
     env = envs.make(args.env)
     try:
-        config = sysid.SysidConfig(window=args.window, known=tuple(known))
+        config = sysid.SysidConfig(known=tuple(known), **(
+            {"window": args.window} if args.window is not None else {}))
         with report.console.status(f"sysid on {len(data)} transitions ..."):
             res = sysid.fit(env, data, config)
     except ValueError as e:

@@ -69,8 +69,8 @@ class LoopConfig:
     """Fit the hybrid residual dynamics each round (needed for the residual policy)."""
     residual: bool = True
     """Adapt with a residual policy trained through the hybrid model before each deployment."""
-    sysid_window: int = 10
-    """Multiple-shooting window length (steps) of sysid."""
+    sysid_window: int | None = None
+    """Multiple-shooting window length (steps) of sysid (None: ``SysidConfig``'s default)."""
     oracle: bool = True
     """Train and evaluate the oracle policy (evaluation only)."""
     eval_episodes: int = 3
@@ -219,7 +219,8 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
             # 1. sysid --------------------------------------------------------------------
             if not prog.done(f"{tag}/sysid"):
                 say(f"  sysid on {len(data)} real transitions ...")
-                res = sysid.fit(nominal_env, data, sysid.SysidConfig(window=config.sysid_window))
+                res = sysid.fit(nominal_env, data, sysid.SysidConfig(
+                    **({"window": config.sysid_window} if config.sysid_window else {})))
                 report.write_json(rdir / "sysid.json", {
                     "latency": res.latency, "params": _params_to_json(res.params),
                     "table": res.table, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
