@@ -63,8 +63,9 @@ __all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networ
 
 @dataclasses.dataclass(frozen=True)
 class SHACConfig:
-    """Hyper-parameters of SHAC (defaults: SHAC's cartpole settings, Appendix A.4, retuned for
-    our 250-step tasks)."""
+    """Hyper-parameters of SHAC (defaults: SHAC's cartpole settings, Appendix A.4, except the
+    learning rates, 2e-3 for both, which ``pendulum_swingup`` is solved with; ``TUNED`` sets
+    SHAC's actor 1e-2 / critic 1e-3 for ``cartpole_swingup``)."""
 
     epochs: int = 300
     """Number of epochs; each is one actor update on ``num_envs * horizon`` simulated steps."""
@@ -150,7 +151,11 @@ class SHACConfig:
 
 TUNED: dict[str, dict[str, Any]] = {
     "pendulum_swingup": {"epochs": 150},
-    "cartpole_swingup": {"epochs": 300},
+    # SHAC's own cartpole learning rates (actor 1e-2, critic 1e-3). With the defaults (2e-3
+    # for both) the return stalled at 73 after 300 epochs; either change alone stayed below 95
+    # after 200 epochs; both together: final return 134.9 / 156.9 / 188.5 (seeds 0 / 1 / 2; mean
+    # of the last 50 epochs 134.6 / 165.9 / 188.4), 10-epoch mean >= 130 from epoch 75 / 139 / 23.
+    "cartpole_swingup": {"epochs": 300, "actor_lr": 1e-2, "critic_lr": 1e-3},
 }
 """Per-task overrides of the ``SHACConfig`` defaults (applied by ``twinrl.learn.runner``),
 measured in ``bench/learn.py``."""
