@@ -61,5 +61,5 @@ def oracle_return(env_name, seed, out, config, progress) -> float:
     env = envs.make(env_name, params=truth)
     if not (out / "policy" / "checkpoint.json").exists():
         train_run(env_name, config.algo, out, seed=seed, epochs=config.epochs, resume=True,
-                  progress=progress, env=env)
+                  progress=progress, env=env, checkpoint_every=config.checkpoint_every)
     return real_return(env_name, seed, out / "policy", config.eval_episodes)

@@ -71,6 +71,9 @@ class LoopConfig:
     """Adapt with a residual policy trained through the hybrid model before each deployment."""
     sysid_window: int | None = None
     """Multiple-shooting window length (steps) of sysid (None: ``SysidConfig``'s default)."""
+    checkpoint_every: int = 10
+    """Save the learner's train state every this many epochs (a killed round resumes from the
+    last save; saving every epoch costs SHAC on cartpole about a second an epoch)."""
     oracle: bool = True
     """Train and evaluate the oracle policy (evaluation only)."""
     eval_episodes: int = 3
@@ -80,7 +83,7 @@ class LoopConfig:
     """Write final.mp4: the final real episode beside the simulator's."""
 
     def __post_init__(self):
-        for name in ("rounds", "episodes_per_round", "eval_episodes"):
+        for name in ("rounds", "episodes_per_round", "eval_episodes", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise LoopError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 <= self.model_fraction < 1.0:
@@ -254,7 +257,8 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
 
                 s = train_run(env_name, config.algo, policy_dir, seed=seed + r,
                               epochs=config.epochs, overrides=overrides, resume=True,
-                              progress=progress, env=env, train_kwargs=kwargs)
+                              progress=progress, env=env, train_kwargs=kwargs,
+                              checkpoint_every=config.checkpoint_every)
                 prog.mark(f"{tag}/learn", sim_return=s["final"].get("return"),
                           train_epochs=s["epochs"])
 
