@@ -433,10 +433,11 @@ def _run_parser(sub) -> None:
                     "--resume continues a killed run without losing recorded data.")
     p.add_argument("--env", default="cartpole_swingup",
                    help="task name (default cartpole_swingup)")
-    p.add_argument("--rounds", type=int, default=None, help="rounds after round 0 (default 2)")
+    p.add_argument("--rounds", type=int, default=None, help="rounds after round 0 (default 1)")
     p.add_argument("--episodes-per-round", type=int, default=None,
                    help="real episodes recorded per round (default 2)")
-    p.add_argument("--algo", default=None, help="learner in sim (default hds)")
+    p.add_argument("--algo", default=None,
+                   help="learner in sim (default shac; hds mixes in the hybrid model)")
     p.add_argument("--epochs", type=int, default=None,
                    help="training epochs per round (default: tuned per task)")
     p.add_argument("--no-oracle", action="store_true",
