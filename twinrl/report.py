@@ -142,7 +142,9 @@ def plot_curves(path: str | os.PathLike, curves: dict[str, tuple[Sequence[float]
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
     for label, (x, y) in curves.items():
-        line, = ax.plot(np.asarray(x, float), np.asarray(y, float), label=label)
+        # few points (a loop's rounds): mark them, or a single point would not show at all
+        line, = ax.plot(np.asarray(x, float), np.asarray(y, float), label=label,
+                        marker="o" if len(x) <= 20 else None)
         if bands and label in bands:
             lo, hi = bands[label]
             ax.fill_between(np.asarray(x, float), lo, hi, color=line.get_color(), alpha=0.2)
