@@ -21,3 +21,19 @@ def x64():
     """Float64 for the whole module (finite-difference checks are noise in float32)."""
     with jax.enable_x64(True):
         yield
+
+
+# Longest files first (fresh clone, cold cache, 2 workers: each of these took 65-270 s). xdist's
+# --dist loadfile hands files out in collection order, so the long ones start early and the short
+# ones fill the gaps at the end instead of one worker finishing a long file alone.
+_LONG_FIRST = ("physics/test_gradcheck.py", "learn/test_pods.py", "cli/test_train_cli.py",
+               "physics/test_solver.py", "envs/test_envs.py", "envs/test_ppo.py",
+               "real2sim/test_sysid.py", "cli/test_cli.py", "learn/test_hds.py",
+               "sim2real/test_hybrid_residual.py", "learn/test_shac.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {p: i for i, p in enumerate(_LONG_FIRST)}
+    # stable: the order within a file, and of the other files, is kept
+    items.sort(key=lambda it: rank.get(it.nodeid.split("::")[0].removeprefix("tests/"),
+                                       len(rank)))
