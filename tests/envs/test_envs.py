@@ -17,8 +17,11 @@ from twinrl import envs
 NAMES = envs.names()
 # The gradient test compiles a value_and_grad per task. cartpole_balance is cartpole_swingup's
 # model, step and reward with another reset distribution (test_balance_and_swingup_share_a_model),
-# so it is compiled there once, as cartpole_swingup.
-MODELS = [n for n in NAMES if n != "cartpole_balance"]
+# so it is compiled there once, as cartpole_swingup. push's gradients through contacts are checked
+# against float64 finite differences (tests/physics/test_gradcheck.py), vmapped in float32
+# (tests/physics/test_solver.py) and through PODS training (tests/learn/test_pods.py); a fourth
+# compile of its episode gradient here cost 69 s of the suite's budget.
+MODELS = [n for n in NAMES if n not in ("cartpole_balance", "push")]
 BATCH, STEPS, HORIZON = 4, 10, 30
 
 
@@ -62,10 +65,7 @@ def test_reset_and_step_jit_without_nan(name, made):
 
 
 def _episode_actions(env, key):
-    a = 0.5 * jax.random.uniform(key, (HORIZON, env.action_size), minval=-1.0, maxval=1.0)
-    if env.scene == "push":  # drive into the box, so the gradient passes through the contact
-        a = a.at[:, 0].add(0.8).at[:, 1].multiply(0.2)
-    return jnp.clip(a, -1.0, 1.0)
+    return 0.5 * jax.random.uniform(key, (HORIZON, env.action_size), minval=-1.0, maxval=1.0)
 
 
 def test_balance_and_swingup_share_a_model(made):
@@ -86,27 +86,23 @@ def test_grad_of_episode_return_wrt_actions_is_finite(name, made):
     s0 = env.reset(jax.random.PRNGKey(2))
 
     def episode_return(actions):
-        final, rewards = env.unroll(s0, actions)
-        return rewards.sum(), final.pipeline_state.qpos
+        _, rewards = env.unroll(s0, actions)
+        return rewards.sum()
 
-    value_and_grad = jax.jit(jax.value_and_grad(episode_return, has_aux=True))
+    value_and_grad = jax.jit(jax.value_and_grad(episode_return))
     actions = _episode_actions(env, jax.random.PRNGKey(3))
-    (ret, final_qpos), g = value_and_grad(actions)
+    ret, g = value_and_grad(actions)
     g = np.asarray(g)
     assert np.isfinite(float(ret)) and 0 <= float(ret) <= HORIZON
     assert g.shape == actions.shape and np.all(np.isfinite(g)), g
     assert np.abs(g).max() > 0
-    if env.scene == "push":
-        # the pusher did push the box (box x is qpos[2]): the gradient went through contacts
-        assert float(final_qpos[2] - s0.pipeline_state.qpos[2]) > 0.02
-    else:
-        # smooth tasks: the reverse-mode derivative matches a central difference (float32)
-        v = np.array(jax.random.normal(jax.random.PRNGKey(4), actions.shape))
-        v /= np.linalg.norm(v)
-        eps = 1e-2
-        fd = (float(value_and_grad(actions + eps * v)[0][0])
-              - float(value_and_grad(actions - eps * v)[0][0])) / (2 * eps)
-        np.testing.assert_allclose(float(np.sum(g * v)), fd, rtol=5e-2, atol=1e-3)
+    # the reverse-mode derivative matches a central difference (float32)
+    v = np.array(jax.random.normal(jax.random.PRNGKey(4), actions.shape))
+    v /= np.linalg.norm(v)
+    eps = 1e-2
+    fd = (float(value_and_grad(actions + eps * v)[0])
+          - float(value_and_grad(actions - eps * v)[0])) / (2 * eps)
+    np.testing.assert_allclose(float(np.sum(g * v)), fd, rtol=5e-2, atol=1e-3)
 
 
 def test_overrides_make_a_new_config_and_name_bad_fields():
