@@ -428,7 +428,7 @@ def _run_parser(sub) -> None:
         "run", help="the whole loop: Real2Sim -> Learn@Sim -> Sim2Real on a task's real twin",
         description="Round 0 records exciting episodes on the real twin; each round then "
                     "identifies the simulator (sysid), refits the hybrid dynamics, learns in sim "
-                    "(HDS), and deploys with residual adaptation, recording the real episodes. "
+                    "(--algo), and deploys with residual adaptation, recording the real episodes. "
                     "Writes summary.json, report.md, returns.png, params.png and final.mp4; "
                     "--resume continues a killed run without losing recorded data.")
     p.add_argument("--env", default="cartpole_swingup",
@@ -437,7 +437,8 @@ def _run_parser(sub) -> None:
     p.add_argument("--episodes-per-round", type=int, default=None,
                    help="real episodes recorded per round (default 2)")
     p.add_argument("--algo", default=None,
-                   help="learner in sim (default shac; hds mixes in the hybrid model)")
+                   help="learner in sim (default ppo; shac and hds learn through the "
+                        "simulator's gradients, hds mixes in the hybrid model)")
     p.add_argument("--epochs", type=int, default=None,
                    help="training epochs per round (default: tuned per task)")
     p.add_argument("--no-oracle", action="store_true",

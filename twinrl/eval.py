@@ -53,13 +53,13 @@ def real_return(env_name, seed, policy_dir, episodes):
 def oracle_return(env_name, seed, out, config, progress) -> float:
     """The oracle: trained in a simulator with the twin's true parameters (evaluation only)."""
     from twinrl import envs
-    from twinrl.learn.runner import train_run
+    from twinrl.learn.runner import continue_run
 
     twin = envs.make_real(env_name, seed=seed)
     truth = twin.oracle().params
     twin.close()
     env = envs.make(env_name, params=truth)
     if not (out / "policy" / "checkpoint.json").exists():
-        train_run(env_name, config.algo, out, seed=seed, epochs=config.epochs, resume=True,
-                  progress=progress, env=env, checkpoint_every=config.checkpoint_every)
+        continue_run(env_name, config.algo, out, seed=seed, epochs=config.epochs,
+                     progress=progress, env=env, checkpoint_every=config.checkpoint_every)
     return real_return(env_name, seed, out / "policy", config.eval_episodes)

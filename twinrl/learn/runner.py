@@ -32,7 +32,7 @@ import jax
 import numpy as np
 
 __all__ = ["ALGORITHMS", "Algorithm", "algorithm", "make_config", "parse_overrides", "train_run",
-           "eval_run", "RunError"]
+           "continue_run", "eval_run", "RunError"]
 
 
 class RunError(Exception):
@@ -234,6 +234,19 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
                "metrics_csv": str(writer.path), "resumed": restore is not None}
     report.write_json(out / "summary.json", summary)
     return summary
+
+
+def continue_run(env_name: str, algo: str, out: str | Path, **kwargs) -> dict[str, Any]:
+    """``train_run`` into ``out`` that survives being killed: a resumable trainer continues from
+    its last saved step; a Brax trainer (which keeps no state between its own evaluations) starts
+    again from scratch, its partial directory removed. What the loop and the oracle call."""
+    import shutil
+
+    entry, _, _ = algorithm(algo)
+    out = Path(out)
+    if not entry.resumable and out.exists():
+        shutil.rmtree(out)
+    return train_run(env_name, algo, out, resume=entry.resumable, **kwargs)
 
 
 def _env_config(env) -> dict[str, Any]:
