@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-__all__ = ["param_errors", "real_return", "oracle_return"]
+__all__ = ["param_errors", "real_return", "policy_real_return", "oracle_return"]
 
 
 def param_errors(twin, result) -> dict[str, float]:
@@ -27,22 +27,30 @@ def param_errors(twin, result) -> dict[str, float]:
             for row in rows if not str(row.get("status", "")).startswith(("known", "not ident"))}
 
 
-def real_return(env_name, seed, policy_dir, episodes):
+def real_return(env_name, seed, policy_dir, episodes, perturbation=None):
     """Mean return of a policy checkpoint on a fresh copy of the real twin (same hidden
     perturbation), not recorded and not counted."""
-    from twinrl import envs
     from twinrl.learn.checkpoint import load_policy
 
     net, params, _ = load_policy(policy_dir)
     f = jax.jit(net.apply)
-    twin = envs.make_real(env_name, seed=seed)
+    return policy_real_return(env_name, seed, lambda o: f(params, o), episodes, perturbation)
+
+
+def policy_real_return(env_name, seed, act, episodes, perturbation=None):
+    """Mean return of ``act: obs -> action`` over ``episodes`` episodes of a fresh copy of the real
+    twin, started from the same states as ``real_return``'s (so two policies compare on equal
+    terms), not recorded and not counted."""
+    from twinrl import envs
+
+    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation)
     rets = []
     try:
         for e in range(episodes):
             obs, _ = twin.reset(seed=10_000 + e)
             done, ret = False, 0.0
             while not done:
-                obs, rw, term, trunc, _ = twin.step(np.asarray(f(params, obs), np.float32))
+                obs, rw, term, trunc, _ = twin.step(np.asarray(act(obs), np.float32))
                 ret, done = ret + rw, term or trunc
             rets.append(ret)
     finally:
@@ -50,16 +58,16 @@ def real_return(env_name, seed, policy_dir, episodes):
     return float(np.mean(rets))
 
 
-def oracle_return(env_name, seed, out, config, progress) -> float:
+def oracle_return(env_name, seed, out, config, progress, perturbation=None) -> float:
     """The oracle: trained in a simulator with the twin's true parameters (evaluation only)."""
     from twinrl import envs
     from twinrl.learn.runner import continue_run
 
-    twin = envs.make_real(env_name, seed=seed)
+    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation)
     truth = twin.oracle().params
     twin.close()
     env = envs.make(env_name, params=truth)
     if not (out / "policy" / "checkpoint.json").exists():
         continue_run(env_name, config.algo, out, seed=seed, epochs=config.epochs,
                      progress=progress, env=env, checkpoint_every=config.checkpoint_every)
-    return real_return(env_name, seed, out / "policy", config.eval_episodes)
+    return real_return(env_name, seed, out / "policy", config.eval_episodes, perturbation)

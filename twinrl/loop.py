@@ -198,9 +198,13 @@ def _episodes_in(dataset_dir: Path) -> int:
 
 
 def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, seed: int = 0,
-        resume: bool = False, progress: bool = True) -> dict[str, Any]:
+        resume: bool = False, progress: bool = True, perturbation=None) -> dict[str, Any]:
     """Run the loop on ``env_name``'s real twin (hidden perturbation drawn from ``seed``) into
-    ``out``; returns the summary (also ``out/summary.json``)."""
+    ``out``; returns the summary (also ``out/summary.json``).
+
+    ``perturbation`` (a ``twinrl.real.perturbation.Perturbation``) replaces the drawn one: a
+    benchmark's custom real twin, e.g. one with an effect the simulator cannot model. Like the drawn
+    one it is applied by the twin and never shown to the learning stages."""
     from twinrl import envs
     from twinrl.learn.runner import algorithm
     from twinrl.real.dataset import DatasetWriter
@@ -211,6 +215,8 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     algorithm(config.algo)
     out = Path(out)
     settings = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config)}
+    if perturbation is not None:
+        settings["perturbation"] = report.to_jsonable(perturbation)
     settings_file = out / "loop.json"
     if settings_file.exists():
         previous = json.loads(settings_file.read_text())
@@ -230,9 +236,9 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     if config.oracle and config.oracle_in_background:
         say("training the oracle (evaluation only) in the background")
         oracle_job = _Background(evaluation.oracle_return, env_name, seed, out / "oracle", config,
-                                 False)
+                                 False, perturbation)
 
-    twin = envs.make_real(env_name, seed=seed)
+    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation)
     nominal_env = envs.make(env_name)
     K, T = config.episodes_per_round, nominal_env.episode_length
     rng = np.random.default_rng(seed)
@@ -317,11 +323,15 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                     rets += _collect(twin, writer, 1, lambda o, t: act(o), seed,
                                      np.random.default_rng([seed, r, e]))
                     prog.mark(f"{tag}/deploy_partial", deploy_returns_partial=rets)
+                # evaluation only: pi_sim alone and the deployed policy on the same unrecorded
+                # episodes (same start states), a like-for-like before/after of the adaptation
                 no_adapt = evaluation.real_return(env_name, seed, policy_dir,
-                                                   config.eval_episodes)
+                                                   config.eval_episodes, perturbation)
+                adapted = evaluation.policy_real_return(env_name, seed, act,
+                                                        config.eval_episodes, perturbation)
                 prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
                           real_returns=rets, real_steps=_real_steps(out),
-                          sim_policy_real_return=no_adapt)
+                          sim_policy_real_return=no_adapt, adapted_real_return=adapted)
             rounds.append(_round_record(prog, r))
     finally:
         writer.close()
@@ -334,7 +344,8 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
             say("waiting for the oracle's training ...")
         oracle_return = oracle_job.result()
     elif config.oracle:
-        oracle_return = evaluation.oracle_return(env_name, seed, out / "oracle", config, progress)
+        oracle_return = evaluation.oracle_return(env_name, seed, out / "oracle", config, progress,
+                                                 perturbation)
     for rec in rounds:
         rec["oracle_return"] = oracle_return
     final = dict(rounds[-1]) if rounds else {}
@@ -344,13 +355,13 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                "rounds": rounds, "final": final,
                "wall_s_this_process": time.perf_counter() - t_start}
     if config.video and policy_dir is not None:
-        summary["video"] = str(_final_video(out, env_name, seed, config))
+        summary["video"] = str(_final_video(out, env_name, seed, config, perturbation))
         report.write_json(out / "summary.json", summary)
     _write_outputs(out, summary, config, env_name, seed, policy_dir)
     return summary
 
 
-def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig,
+def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, perturbation=None,
                  size: tuple[int, int] = (320, 240)) -> Path:
     """``final.mp4``: an episode of the final deployed policy on the real twin (left, its true
     camera) beside the identified simulator's episode from the same recorded start (right).
@@ -367,7 +378,8 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig,
     hyb = _load_hybrid(rdir) if config.hybrid else None
     act = _deployed_policy(config, env, hyb, None, rdir / "train", rdir, seed + r,
                            lambda *a, **k: None)
-    twin = envs.make_real(env_name, seed=seed, width=size[0], height=size[1])
+    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation, width=size[0],
+                          height=size[1])
     renderer = CameraRenderer(env.sim.mj_model, *size)
     frames = []
     try:
@@ -414,6 +426,7 @@ def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
             "sim_return": rec.get("sim_return"), "oracle_return": None,
             "param_rel_error": rec.get("param_rel_error", {}),
             "sim_policy_real_return": rec.get("sim_policy_real_return"),
+            "adapted_real_return": rec.get("adapted_real_return"),
             "latency": rec.get("latency")}
 
 
@@ -470,11 +483,11 @@ def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
 def _write_outputs(out: Path, summary, config, env_name, seed, policy_dir) -> None:
     rounds = summary["rounds"]
     rows = [[r["round"], r["real_steps"], r["sim_return"], r["real_return"],
-             r["sim_policy_real_return"], r["oracle_return"],
+             r["sim_policy_real_return"], r.get("adapted_real_return"), r["oracle_return"],
              max(r["param_rel_error"].values()) if r["param_rel_error"] else None]
             for r in rounds]
-    cols = ["round", "real steps", "sim return", "real return", "no-adapt real", "oracle",
-            "max param err"]
+    cols = ["round", "real steps", "sim return", "real return", "no-adapt real", "adapted real",
+            "oracle", "max param err"]
     report.print_table(f"twinrl run {env_name} (seed {seed})", cols, rows)
     report.write_json(out / "summary.json", summary)
     done = [r for r in rounds if r["real_return"] is not None]

@@ -172,6 +172,23 @@ def test_latency_delays_actions():
     np.testing.assert_array_equal(q[0], q[2])  # two steps late: the first two apply zeros
 
 
+def test_actuator_offset_is_a_constant_extra_control():
+    # force = gain * (ctrl + offset): zero actions on the offset twin move the cart exactly as
+    # actions equal to the offset do on the twin without it (the gain scaled in both)
+    a = np.full(1, 0.25, np.float32)
+    obs = {}
+    for off in (0.0, 0.25):
+        p = Perturbation(gain_scale=(0.9,), actuator_offset=(off,) if off else ())
+        twin = RealTwin("cartpole_swingup", perturbation=p)
+        twin.reset(seed=0)
+        obs[off] = [twin.step(a - off)[0] for _ in range(10)]
+        twin.close()
+    np.testing.assert_allclose(obs[0.25], obs[0.0], rtol=1e-6, atol=1e-7)
+    assert not Perturbation(actuator_offset=(0.1,)).is_none()
+    with pytest.raises(ValueError, match="actuator_offset"):
+        Perturbation(actuator_offset=(np.nan,))
+
+
 def test_perturbation_validation_and_sampling():
     assert Perturbation.none().is_none() and not Perturbation.sample("push", 0).is_none()
     assert Perturbation.sample("push", 3) == Perturbation.sample("push", 3)

@@ -44,6 +44,11 @@ class Perturbation:
     """Damping added per dof (nv,), after scaling."""
     extra_frictionloss: tuple[float, ...] = ()
     """Dry friction added per dof (nv,): unmodeled where the simulator's MJCF has none."""
+    actuator_offset: tuple[float, ...] = ()
+    """Constant offset per actuator, in control units: the force is ``gain * (ctrl + offset)``, as
+    from a motor driver's zero error. The simulator's ``PhysParams`` have no such term, so it is an
+    effect sysid cannot model (only the hybrid model and the residual policy can correct it). Never
+    drawn by ``sample``: set it explicitly (``dataclasses.replace``) for such a benchmark twin."""
     latency_steps: int = 0
     """Control steps between an action being sent and being applied (zeros before the first)."""
     obs_noise_std: float = 0.0
@@ -65,6 +70,11 @@ class Perturbation:
                     f"numbers; got {getattr(self, name)!r} (index {where})"
                 )
             object.__setattr__(self, name, tuple(float(x) for x in v))
+        offset = np.asarray(self.actuator_offset, dtype=np.float64)
+        if offset.ndim != 1 or not np.all(np.isfinite(offset)):
+            raise ValueError(f"Perturbation.actuator_offset must be a flat tuple of finite numbers, "
+                             f"got {self.actuator_offset!r}")
+        object.__setattr__(self, "actuator_offset", tuple(float(x) for x in offset))
         if int(self.latency_steps) != self.latency_steps or self.latency_steps < 0:
             raise ValueError(
                 f"Perturbation.latency_steps must be an integer >= 0, got {self.latency_steps!r}"
@@ -145,6 +155,7 @@ class Perturbation:
         return (
             all(x == 1.0 for k in _SCALES for x in getattr(self, k))
             and all(x == 0.0 for k in _EXTRAS for x in getattr(self, k))
+            and not any(self.actuator_offset)
             and self.latency_steps == 0
             and self.obs_noise_std == 0.0
             and not any(self.camera_pos_offset)
@@ -172,6 +183,16 @@ class Perturbation:
         model.dof_frictionloss[:] += vec("extra_frictionloss", model.nv, 0.0)
         model.geom_friction[:, 0] *= vec("friction_scale", model.ngeom, 1.0)
         model.actuator_gainprm[:, 0] *= vec("gain_scale", model.nu, 1.0)
+        offset = vec("actuator_offset", model.nu, 0.0)
+        for i in np.flatnonzero(offset):
+            if int(model.actuator_gaintype[i]) != int(mujoco.mjtGain.mjGAIN_FIXED) or (
+                    int(model.actuator_biastype[i]) not in (int(mujoco.mjtBias.mjBIAS_NONE),
+                                                            int(mujoco.mjtBias.mjBIAS_AFFINE))):
+                raise ValueError(f"Perturbation.actuator_offset: actuator {i} is not a fixed-gain "
+                                 f"actuator with no or affine bias")
+            # force = gain * ctrl + bias0 (+ bias1 * length + bias2 * velocity, zero for a motor)
+            model.actuator_biastype[i] = int(mujoco.mjtBias.mjBIAS_AFFINE)
+            model.actuator_biasprm[i, 0] += offset[i] * model.actuator_gainprm[i, 0]
         rot = np.asarray(self.camera_rot_offset)
         angle = float(np.linalg.norm(rot))
         dq = np.array([1.0, 0.0, 0.0, 0.0])
