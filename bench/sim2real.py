@@ -1,0 +1,231 @@
+"""Benchmark: real-twin steps model-free SAC and TD3 (sbx-rl) need to reach 90 % of the oracle.
+
+Our loop (``twinrl run``) learns in the identified simulator and spends only a few real-twin steps
+(1,000 in ``runs/main``). This asks what a model-free learner trained *directly on the real twin*
+(``twinrl.envs.make_real(task, seed=seed)``) spends to get as far. For each task, algorithm
+(sbx-rl ``SAC`` and ``TD3``, JAX implementations of the Stable-Baselines3 algorithms) and seed:
+
+- train on the real twin; every ``--eval-every`` real steps (default 2,500) score the
+  deterministic policy with ``twinrl.eval.policy_real_return`` on ``--eval-episodes`` (default 3)
+  fresh episodes: a fresh twin with the same hidden perturbation and the loop's fixed start states,
+  so scores compare with the loop's. Evaluation steps are not counted;
+- stop when the score reaches 90 % of the oracle return (a policy trained in a simulator with the
+  twin's true parameters), or at ``--max-steps`` real steps.
+
+Hyper-parameters: sbx defaults (MLP 256x256, lr 3e-4, batch 256, gamma 0.99, tau 0.005, one
+gradient step per env step, buffer 1e6) except ``learning_starts=1000`` (uniform random actions
+first, for both) and, for TD3, Gaussian exploration noise with sd 0.1 (SB3/sbx TD3 has no
+exploration noise by default; 0.1 is the RL-Zoo value).
+
+The oracle return and the loop's numbers come from a loop run's ``summary.json``
+(``--loop-summary``, one per task/seed; keys ``rounds[0].oracle_return``, ``final.real_steps``,
+``final.real_return``, ``final.sim_policy_real_return``). Reported per task/seed: real steps to
+90 % of the oracle per algorithm (``> max`` when not reached), wall seconds, the return at each
+evaluation, and the ratio (steps of the better of SAC and TD3) / (loop real steps) -- a lower bound
+``>= max/loop`` when neither got there; plus the loop's own row and the sim-only policy without
+adaptation (``sim_policy_real_return``). Writes ``bench/results/sim2real.json`` (after every run)
+and ``bench/results/sim2real.png`` (return vs real steps).
+
+Needs the ``bench`` extra (sbx-rl, stable-baselines3, CPU torch):
+``pip install -e '.[bench]'`` in a separate environment (it must keep jax 0.9.2).
+Run: ``python bench/sim2real.py --tasks cartpole_swingup --seeds 0 --max-steps 25000
+--loop-summary runs/main/summary.json``
+(25,000 steps: SAC ~6.5 min, TD3 ~4 min on 2 CPU cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import twinrl  # noqa: F401  (compilation cache)
+from twinrl import envs, report
+from twinrl.eval import policy_real_return
+
+RESULTS = Path(__file__).resolve().parent / "results" / "sim2real.json"
+FRACTION = 0.9
+LEARNING_STARTS = 1000
+TD3_NOISE_SD = 0.1
+
+
+def import_sbx():
+    """sbx (and through it stable-baselines3 and torch) is an optional dependency of the bench."""
+    try:
+        import sbx
+        from stable_baselines3.common.callbacks import BaseCallback
+        from stable_baselines3.common.noise import NormalActionNoise
+    except ImportError as e:
+        raise SystemExit(f"bench/sim2real.py needs sbx-rl, stable-baselines3 and torch ({e}); "
+                         "install the `bench` extra: pip install -e '.[bench]'") from None
+    return sbx, BaseCallback, NormalActionNoise
+
+
+def load_summary(path: Path) -> dict:
+    """The loop numbers this benchmark compares with; a clear error when any is missing."""
+    if not path.exists():
+        raise SystemExit(f"loop summary {path} not found (run `twinrl run` first, or pass "
+                         "--loop-summary PATH)")
+    s = json.loads(path.read_text())
+    try:
+        out = {"task": s["env"], "seed": int(s["seed"]),
+               "oracle_return": s["rounds"][0]["oracle_return"],
+               "loop_real_steps": s["final"]["real_steps"],
+               "loop_real_return": s["final"]["real_return"],
+               "sim_policy_real_return": s["final"]["sim_policy_real_return"]}
+    except (KeyError, IndexError, TypeError) as e:
+        raise SystemExit(f"{path} lacks {e} (needs env, seed, rounds[0].oracle_return, "
+                         "final.real_steps, final.real_return, final.sim_policy_real_return)")
+    missing = [k for k, v in out.items() if v is None]
+    if missing:
+        raise SystemExit(f"{path}: {', '.join(missing)} is null (was the loop run with the "
+                         "oracle on?)")
+    out["path"] = str(path)
+    return out
+
+
+def train(algo: str, task: str, seed: int, target: float, max_steps: int, eval_every: int,
+          eval_episodes: int) -> dict:
+    sbx, BaseCallback, NormalActionNoise = import_sbx()
+    twin = envs.make_real(task, seed=seed)
+    if algo == "sac":
+        model = sbx.SAC("MlpPolicy", twin, learning_starts=LEARNING_STARTS, seed=seed)
+    else:
+        nu = twin.action_space.shape[0]
+        model = sbx.TD3("MlpPolicy", twin, learning_starts=LEARNING_STARTS, seed=seed,
+                        action_noise=NormalActionNoise(np.zeros(nu), TD3_NOISE_SD * np.ones(nu)))
+    act = lambda obs: model.predict(obs, deterministic=True)[0]  # noqa: E731
+    curve: list[dict] = []
+    t0 = time.perf_counter()
+    eval_s = [0.0]
+
+    def evaluate(steps: int) -> bool:
+        t = time.perf_counter()
+        ret = policy_real_return(task, seed, act, eval_episodes)
+        eval_s[0] += time.perf_counter() - t
+        curve.append({"real_steps": steps, "return": ret, "wall_s": time.perf_counter() - t0})
+        print(f"  {task} {algo} seed {seed}: {steps:>6} real steps  return {ret:8.2f}"
+              f"  (target {target:.2f})  {time.perf_counter() - t0:6.0f} s", flush=True)
+        return ret >= target
+
+    class Eval(BaseCallback):
+        def _on_step(self) -> bool:
+            n = self.num_timesteps
+            if n % eval_every == 0 or n >= max_steps:
+                return not evaluate(n)  # False stops learn()
+            return True
+
+    model.learn(total_timesteps=max_steps, callback=Eval())
+    twin.close()
+    reached = next((c["real_steps"] for c in curve if c["return"] >= target), None)
+    wall = time.perf_counter() - t0
+    return {"task": task, "seed": seed, "algo": algo, "target": target, "max_steps": max_steps,
+            "steps_to_target": reached, "real_steps_trained": int(model.num_timesteps),
+            "final_return": curve[-1]["return"] if curve else None,
+            "best_return": max(c["return"] for c in curve) if curve else None,
+            "wall_s": wall, "eval_wall_s": eval_s[0], "curve": curve,
+            "hyperparameters": {"learning_starts": LEARNING_STARTS,
+                                **({"action_noise_sd": TD3_NOISE_SD} if algo == "td3" else {}),
+                                "other": "sbx defaults"}}
+
+
+def ratio(runs: list[dict], loop_steps: int) -> dict:
+    reached = [r["steps_to_target"] for r in runs if r["steps_to_target"] is not None]
+    if reached:
+        return {"value": min(reached) / loop_steps, "lower_bound": False}
+    return {"value": max(r["real_steps_trained"] for r in runs) / loop_steps, "lower_bound": True}
+
+
+def fmt_ratio(r: dict) -> str:
+    return (">= " if r["lower_bound"] else "") + f"{r['value']:.3g}"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tasks", nargs="+", default=["cartpole_swingup"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--algos", nargs="+", choices=["sac", "td3"], default=["sac", "td3"])
+    ap.add_argument("--max-steps", type=int, default=25_000,
+                    help="real-twin steps per run, at most")
+    ap.add_argument("--eval-every", type=int, default=2_500, help="real steps between evaluations")
+    ap.add_argument("--eval-episodes", type=int, default=3)
+    ap.add_argument("--loop-summary", nargs="+", type=Path,
+                    default=[Path("runs/main/summary.json")],
+                    help="summary.json of loop runs, one per task/seed benchmarked")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--plot", type=Path, default=None, help="default: --out with .png")
+    args = ap.parse_args(argv)
+    import_sbx()  # fail fast, before any training, when the extra is missing
+
+    loops = {}
+    for p in args.loop_summary:
+        s = load_summary(p)
+        loops[(s["task"], s["seed"])] = s
+    for task in args.tasks:
+        for seed in args.seeds:
+            if (task, seed) not in loops:
+                raise SystemExit(f"no --loop-summary for {task} seed {seed} "
+                                 f"(have: {sorted(loops)})")
+
+    runs: list[dict] = []
+    comparisons: list[dict] = []
+    out = {"fraction_of_oracle": FRACTION, "max_steps": args.max_steps,
+           "eval_every": args.eval_every, "eval_episodes": args.eval_episodes,
+           "runs": runs, "comparisons": comparisons}
+    for task in args.tasks:
+        for seed in args.seeds:
+            loop = loops[(task, seed)]
+            target = FRACTION * loop["oracle_return"]
+            these = []
+            for algo in args.algos:
+                these.append(train(algo, task, seed, target, args.max_steps, args.eval_every,
+                                   args.eval_episodes))
+                runs.append(these[-1])
+                report.write_json(args.out, out)  # durable after every run
+            comparisons.append({**loop, "target": target,
+                                "ratio_best_to_loop": ratio(these, loop["loop_real_steps"])})
+            report.write_json(args.out, out)
+
+    rows = []
+    for c in comparisons:
+        task, seed = c["task"], c["seed"]
+        for r in (r for r in runs if (r["task"], r["seed"]) == (task, seed)):
+            rows.append([task, seed, r["algo"],
+                         r["steps_to_target"] if r["steps_to_target"] is not None
+                         else f"> {r['real_steps_trained']}",
+                         r["final_return"], r["best_return"], r["wall_s"],
+                         " ".join(f"{p['real_steps']}:{p['return']:.1f}" for p in r["curve"])])
+        rows.append([task, seed, "loop (twinrl run)", c["loop_real_steps"], c["loop_real_return"],
+                     None, None, ""])
+        rows.append([task, seed, "(d) sim-only policy, no adaptation", 0,
+                     c["sim_policy_real_return"], None, None, ""])
+    report.print_table(f"real-twin steps to {FRACTION:.0%} of the oracle return",
+                       ["task", "seed", "method", "real steps to target", "final return",
+                        "best return", "wall s", "return at eval (steps:return)"], rows)
+    report.print_table("model-free vs loop", ["task", "seed", "oracle", "target",
+                                              "loop real steps", "best model-free / loop steps"],
+                       [[c["task"], c["seed"], c["oracle_return"], c["target"],
+                         c["loop_real_steps"], fmt_ratio(c["ratio_best_to_loop"])]
+                        for c in comparisons])
+
+    plot = args.plot or args.out.with_suffix(".png")
+    for c in comparisons:
+        curves = {f"{r['algo']} seed {r['seed']}": ([p["real_steps"] for p in r["curve"]],
+                                                    [p["return"] for p in r["curve"]])
+                  for r in runs if r["task"] == c["task"] and r["seed"] == c["seed"]}
+        curves[f"loop seed {c['seed']}"] = ([c["loop_real_steps"]], [c["loop_real_return"]])
+        path = plot if len(comparisons) == 1 else plot.with_name(
+            f"{plot.stem}_{c['task']}_s{c['seed']}{plot.suffix}")
+        report.plot_curves(path, curves, "real-twin steps", "return (deterministic policy)",
+                           title=f"{c['task']}: model-free on the real twin vs loop",
+                           hline=(c["target"], f"{FRACTION:.0%} of oracle"))
+        print(f"plot: {path}")
+    print(f"results: {report.write_json(args.out, out)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
