@@ -60,7 +60,8 @@ def import_sbx():
         from stable_baselines3.common.noise import NormalActionNoise
     except ImportError as e:
         raise SystemExit(f"bench/sim2real.py needs sbx-rl, stable-baselines3 and torch ({e}); "
-                         "install the `bench` extra: pip install -e '.[bench]'") from None
+                         "install the `bench` extra's pinned versions with --no-deps in a copy "
+                         "of the venv, so the jax pins hold (pyproject.toml, README)") from None
     return sbx, BaseCallback, NormalActionNoise
 
 
