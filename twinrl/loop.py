@@ -329,9 +329,10 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                                                    config.eval_episodes, perturbation)
                 adapted = evaluation.policy_real_return(env_name, seed, act,
                                                         config.eval_episodes, perturbation)
+                gate = _residual_gate(rdir)
                 prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
                           real_returns=rets, real_steps=_real_steps(out),
-                          sim_policy_real_return=no_adapt, adapted_real_return=adapted)
+                          sim_policy_real_return=no_adapt, adapted_real_return=adapted, **gate)
             rounds.append(_round_record(prog, r))
     finally:
         writer.close()
@@ -427,6 +428,7 @@ def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
             "param_rel_error": rec.get("param_rel_error", {}),
             "sim_policy_real_return": rec.get("sim_policy_real_return"),
             "adapted_real_return": rec.get("adapted_real_return"),
+            "residual_accepted": rec.get("residual_accepted"),
             "latency": rec.get("latency")}
 
 
@@ -456,6 +458,14 @@ def _load_hybrid(rdir: Path):
                               int(meta["latency"]))
 
 
+def _residual_gate(rdir: Path) -> dict[str, Any]:
+    """The residual's acceptance (``residual.accept``) as recorded in its checkpoint."""
+    f = rdir / "residual" / "checkpoint.json"
+    m = json.loads(f.read_text()).get("metrics", {}) if f.exists() else {}
+    return {"residual_accepted": bool(m["accepted"]) if "accepted" in m else None,
+            "residual_model_return": [m.get("model_return_before"), m.get("model_return_after")]}
+
+
 def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
     """The deployed ``obs -> action``: pi_sim, plus the residual trained through the hybrid."""
     from twinrl.learn.checkpoint import load_policy, save_policy
@@ -470,10 +480,18 @@ def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
         if data is None:
             raise LoopError(f"{rdir}: residual policy missing")
         say("  training the residual policy through the hybrid model ...")
-        res_params, metrics = residual.train(env, hybrid.make_dynamics(env, hyb), pol, data.obs,
+        dynamics = hybrid.make_dynamics(env, hyb)
+        res_params, metrics = residual.train(env, dynamics, pol, data.obs,
                                              rng=jax.random.key(seed))
-        save_policy(rdir / "residual", pol.delta, res_params, kind="residual",
-                    metrics={k: v[-1] for k, v in metrics.items()})
+        ok, before, after = residual.accept(env, dynamics, pol, res_params,
+                                            jax.random.key(seed + 1))
+        say(f"  residual {'accepted' if ok else 'rejected (deploying pi_sim)'}: full-episode "
+            f"return through the hybrid model {before:.1f} -> {after:.1f}")
+        if not ok:  # the exact pi_sim: an all-zero delta outputs tanh(0) = 0
+            res_params = jax.tree_util.tree_map(jnp.zeros_like, res_params)
+        metrics = {k: v[-1] for k, v in metrics.items()}
+        metrics.update(accepted=float(ok), model_return_before=before, model_return_after=after)
+        save_policy(rdir / "residual", pol.delta, res_params, kind="residual", metrics=metrics)
     _, res_params, _ = load_policy(rdir / "residual")
     f = jax.jit(pol.act)
     return lambda o: np.asarray(f(res_params, o))

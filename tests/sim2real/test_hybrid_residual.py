@@ -115,3 +115,30 @@ def test_residual_training_improves_the_hybrid_return_within_bounds(res_setup):
     assert float(jnp.abs(d).max()) <= cfg.scale + 1e-6 and float(jnp.abs(d).max()) > 0
     with pytest.raises(ValueError, match="start_obs must have shape"):
         residual.train(nominal, None, pol, data.obs[:, :2], cfg)
+
+
+def test_accept_compares_full_episodes_from_the_task_start(res_setup):
+    # A model whose reward is the applied action: a constant delta of +scale raises the return
+    # of every episode, -scale lowers it, zero leaves it; the gate must say so, over whole
+    # episodes (the env's 60 steps) from the task's own initial states.
+    nominal, _, _, pol = res_setup
+
+    def dyn(s, a):
+        return nominal.step(s, a).replace(reward=a[0])
+
+    p0 = pol.delta.init(jax.random.key(0))
+
+    def constant(sign):  # all-zero weights, last bias saturating the tanh: delta = sign * scale
+        p = jax.tree.map(jnp.zeros_like, p0)
+        p["params"]["Dense_1"]["bias"] = jnp.full((1,), 20.0 * sign)
+        return p
+
+    ok0, b0, a0 = residual.accept(nominal, dyn, pol, p0, jax.random.key(4), episodes=4)
+    assert ok0 and a0 == b0 and np.isfinite(b0)
+    ok_up, b_up, a_up = residual.accept(nominal, dyn, pol, constant(+1), jax.random.key(4),
+                                        episodes=4)
+    ok_dn, b_dn, a_dn = residual.accept(nominal, dyn, pol, constant(-1), jax.random.key(4),
+                                        episodes=4)
+    assert b_up == b_dn == b0
+    assert ok_up and a_up > b0 + 0.1 * T * 0.3  # ~+0.3 a step where the clip leaves room
+    assert not ok_dn and a_dn < b0 - 0.1 * T * 0.3
