@@ -13,7 +13,9 @@ safe exciting open-loop policy (``twinrl.real2sim.sysid.excitation_actions``). E
    with ``algo="hds"``, HDS with a fraction of rollouts through the hybrid model;
 4. **deploy with residual adaptation**: the residual policy (zero at first, so the first deployment
    is exactly the simulator's policy) is trained through the hybrid model from recorded real states
-   (``twinrl.sim2real.residual``), then ``K`` real episodes are run and recorded.
+   (``twinrl.sim2real.residual``) and kept only if it does not lower the full-episode return through
+   that model (``residual.accept``; else pi_sim is deployed), then ``K`` real episodes are run and
+   recorded.
 
 Bookkeeping per round: real steps used so far, identified-parameter errors, sim return, real return
 and the oracle's return. The **oracle** (evaluation only, never fed back) is a policy trained the
