@@ -25,7 +25,7 @@ def test_gradcheck_command_on_a_user_mjcf_path(tmp_path):
     # constrained scenes are gradchecked in tests/physics/test_gradcheck.py).
     src = (ROOT / "twinrl/physics/scenes/cartpole.xml").read_text()
     (tmp_path / "my_robot.xml").write_text(src)
-    out = twinrl("gradcheck", str(tmp_path / "my_robot.xml"), "--x64", "--horizon", "40",
+    out = twinrl("gradcheck", str(tmp_path / "my_robot.xml"), "--x64", "--horizon", "20",
                  "--out", str(tmp_path / "gc"))
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     summary = json.loads((tmp_path / "gc/summary.json").read_text())
@@ -81,11 +81,6 @@ def test_envs_collect_and_render(tmp_path):
     ds = read(tmp_path / "c/dataset")
     assert len(ds) == summary["steps"] and ds.num_episodes == 2
     assert ds.images["rgb"].shape[1:] == (24, 32, 3)
-    # appending: a second run continues the dataset with new episodes
-    out = twinrl("collect", "--env", "pendulum_swingup", "--episodes", "1", "--images",
-                 "--size", "32", "24", "--seed", "5", "--out", str(tmp_path / "c"))
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert read(tmp_path / "c/dataset").num_episodes == 3
 
     out = twinrl("render", "--env", "cartpole_swingup", "--real", "--steps", "10",
                  "--size", "64", "48", "--out", str(tmp_path / "r"))
