@@ -326,12 +326,14 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                                      np.random.default_rng([seed, r, e]))
                     prog.mark(f"{tag}/deploy_partial", deploy_returns_partial=rets)
                 # evaluation only: pi_sim alone and the deployed policy on the same unrecorded
-                # episodes (same start states), a like-for-like before/after of the adaptation
+                # episodes (same start states), a like-for-like before/after of the adaptation;
+                # without an accepted residual the deployed policy is pi_sim (scored once)
                 no_adapt = evaluation.real_return(env_name, seed, policy_dir,
                                                    config.eval_episodes, perturbation)
-                adapted = evaluation.policy_real_return(env_name, seed, act,
-                                                        config.eval_episodes, perturbation)
                 gate = _residual_gate(rdir)
+                adapted = (evaluation.policy_real_return(env_name, seed, act,
+                                                         config.eval_episodes, perturbation)
+                           if gate["residual_accepted"] else no_adapt)
                 prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
                           real_returns=rets, real_steps=_real_steps(out),
                           sim_policy_real_return=no_adapt, adapted_real_return=adapted, **gate)

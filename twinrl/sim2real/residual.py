@@ -177,8 +177,14 @@ def model_return(env, dynamics, policy: ResidualPolicy, res_params, start_obs: n
     """Mean ``horizon``-step return of the combined policy through ``dynamics`` from every
     recorded observation in ``start_obs`` (deterministic: the before/after measure of training)."""
     qpos0, qvel0 = env.state_from_obs(jnp.asarray(np.asarray(start_obs, np.float32)))
+    return _mean_return_fn(env, dynamics, policy, horizon)(res_params, qpos0, qvel0)
+
+
+def _mean_return_fn(env, dynamics, policy: ResidualPolicy, horizon: int):
+    """``(res_params, qpos (B, nq), qvel (B, nv)) -> float``: mean ``horizon``-step return of the
+    combined policy through ``dynamics`` from each state (compiled once, reusable)."""
     f = jax.jit(jax.vmap(_rollout_fn(env, dynamics, policy, horizon), in_axes=(None, 0, 0)))
-    return float(jnp.mean(f(res_params, qpos0, qvel0)[0].sum(-1)))
+    return lambda p, qpos, qvel: float(jnp.mean(f(p, qpos, qvel)[0].sum(-1)))
 
 
 def accept(env, dynamics, policy: ResidualPolicy, res_params, rng: jax.Array,
@@ -188,8 +194,7 @@ def accept(env, dynamics, policy: ResidualPolicy, res_params, rng: jax.Array,
     (``env.reset``), with ``delta`` and without (zero). Returns ``(accepted, before, after)``."""
     states = jax.vmap(env.reset)(jax.random.split(rng, episodes))
     qpos0, qvel0 = states.pipeline_state.qpos, states.pipeline_state.qvel
-    f = jax.jit(jax.vmap(_rollout_fn(env, dynamics, policy, env.episode_length),
-                         in_axes=(None, 0, 0)))  # one compile for both evaluations
+    mean_return = _mean_return_fn(env, dynamics, policy, env.episode_length)  # one compile
     zero = jax.tree_util.tree_map(jnp.zeros_like, res_params)
-    before, after = (float(jnp.mean(f(p, qpos0, qvel0)[0].sum(-1))) for p in (zero, res_params))
+    before, after = (mean_return(p, qpos0, qvel0) for p in (zero, res_params))
     return bool(np.isfinite(after) and after >= before), before, after
