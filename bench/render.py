@@ -195,6 +195,8 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--size", type=int, default=64, help="image size of the visual fits")
     ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--refine-iters", type=int, default=30,
+                    help="Levenberg-Marquardt iterations after Adam (0: Adam only)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "render.json"))
     args = ap.parse_args(argv)
     out = {"cpu_count": os.cpu_count(), "jax": jax.__version__, "devices": str(jax.devices())}
@@ -222,10 +224,13 @@ def main(argv=None):
         from twinrl.real2sim.visual import VisualConfig
 
         cfg = {"frames": 3,
-               "camera": VisualConfig(steps=args.steps, restarts=1),
-               "object": VisualConfig(steps=args.steps, restarts=1)}
+               "camera": VisualConfig(steps=args.steps, restarts=1,
+                                      refine_iters=args.refine_iters),
+               "object": VisualConfig(steps=args.steps, restarts=1,
+                                      refine_iters=args.refine_iters)}
         rows = visual(args.seeds, args.size, cfg)
-        out["visual"] = {"size": args.size, "steps": args.steps, "rows": rows}
+        out["visual"] = {"size": args.size, "steps": args.steps,
+                         "refine_iters": args.refine_iters, "rows": rows}
         keys = ["cam_pos_err_mm", "cam_rot_err_deg", "obj_pos_err_mm", "size_err_pct",
                 "colour_err_255"]
         report.print_table(f"visual real2sim on push, {args.size}x{args.size} (before -> after)",

@@ -1,5 +1,6 @@
-"""Visual Real2Sim: a small fit recovers an object offset and a camera offset on tiny OpenGL
-frames; bad frames are refused with clear errors. About 40 s cold."""
+"""Visual Real2Sim on small OpenGL frames (48x48): a camera offset of 3.6 cm / 5 deg and an object's
+position, size and colour are recovered to the issue's tolerances; bad frames are refused with
+clear errors."""
 
 import mujoco
 import numpy as np
@@ -11,7 +12,7 @@ from twinrl.real.twin import render_states
 from twinrl.real2sim import visual as V
 from twinrl.render import Camera
 
-S = 32
+S = 48
 
 
 @pytest.fixture(scope="module")
@@ -30,31 +31,52 @@ def _frames(model, qposes):
     return out, Camera.from_mujoco(model, d, "top", S, S)
 
 
-def test_fit_object_position(push):
-    m, cam = push
-    q = m.qpos0.copy()
-    true = q.copy()
-    true[2:4] += [0.012, -0.008]
-    frames, _ = _frames(m, [true])
-    frames = [{**frames[0], "qpos": q}]  # the fit starts from the nominal box position
+def test_fit_object_pose_size_and_colour(push):
+    # The real box is moved 14 mm, resized (still resting on the floor) and recoloured; three
+    # 64x64 views. Adam on the image losses, then Levenberg-Marquardt on the metric residuals and
+    # a robust colour solve. A pixel is about 1.5 cm wide at the box and OpenGL's edges are not
+    # anti-aliased, so edges are placed to a fraction of a pixel: the bounds here are 3 mm and
+    # 3 %; bench/render.py --visual measures the issue's 2 mm and 2 % over 5 seeds.
+    m, _ = push
+    box = m.geom("box").id
+    real = load_mjcf("push")
+    real.geom_size[box] *= [0.92, 1.06, 0.9]
+    real.geom_rgba[box, :3] = [0.3, 0.35, 0.7]
+    dz = real.geom_size[box, 2] - m.geom_size[box, 2]
+    qs = [m.qpos0.copy() for _ in range(3)]
+    qs[1][2:4] += [-0.06, 0.04]
+    qs[2][2:4] += [0.05, -0.05]
+    moved = [q.copy() for q in qs]
+    for q in moved:
+        q[2:5] += [0.012, -0.008, dz]
+    frames = render_states(real, "top", moved, 64, 64)
+    frames = [{**f, "qpos": q} for f, q in zip(frames, qs)]  # the nominal guess
     cfg = V.VisualConfig(steps=60, restarts=1, w_emd=0.0, tau=(1.0, 0.3), lr=2e-3)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    cam = Camera.from_mujoco(m, d, "top", 64, 64)
     res = V.fit_object(m, V.check_frames(frames, m.nq), cam, "box", cfg)
-    # one 32x32 view: x-y is well determined, height trades against size, so check x-y
-    err = np.linalg.norm(res["pos_offset"][:2] - [0.012, -0.008])
-    assert err < 0.5 * np.hypot(0.012, 0.008), res["pos_offset"]
+    assert np.linalg.norm(res["pos_offset"] - [0.012, -0.008, dz]) < 3e-3, res["pos_offset"]
+    assert np.max(np.abs(res["size"] / real.geom_size[box] - 1)) < 0.03, res["size"]
+    assert np.max(np.abs(res["rgb"] - real.geom_rgba[box, :3])) * 255 < 2, res["rgb"] * 255
+    assert res["refine"]["cost_after"] < 0.1 * res["refine"]["cost_before"]
 
 
 def test_fit_camera_offset(push):
     m, cam0 = push
     real = load_mjcf("push")
-    Perturbation(camera_pos_offset=(0.01, 0.0, -0.01)).apply(real)
+    Perturbation(camera_pos_offset=(0.03, 0.0, -0.02), camera_rot_offset=(0.05, -0.06, 0.03)
+                 ).apply(real)
     q = m.qpos0.copy()
-    frames, true_cam = _frames(real, [q])
+    q2 = q.copy()
+    q2[:4] = [0.1, -0.1, 0.1, 0.08]
+    frames, true_cam = _frames(real, [q2, q])
     cfg = V.VisualConfig(steps=60, restarts=1, w_emd=0.0, tau=(1.0, 0.3), lr=2e-3)
     cam, info = V.fit_camera(m, V.check_frames(frames, m.nq), cam0, cfg)
-    before = np.linalg.norm(np.asarray(cam0.pos - true_cam.pos))
-    after = np.linalg.norm(np.asarray(cam.pos - true_cam.pos))
-    assert after < 0.5 * before, (before, after)
+    assert np.linalg.norm(np.asarray(cam0.pos - true_cam.pos)) > 0.03
+    assert np.linalg.norm(np.asarray(cam.pos - true_cam.pos)) < 5e-3
+    dot = abs(float(np.dot(np.asarray(cam.quat), np.asarray(true_cam.quat))))
+    assert np.rad2deg(2 * np.arccos(min(dot, 1.0))) < 0.5
 
 
 def test_bad_frames(push):

@@ -86,10 +86,24 @@ class VisualConfig:
     """Standard deviation (rad) of the restarts' initial rotation offsets."""
     mesh_smooth: float = 1.0
     """Weight of the mesh regulariser (edge-length change and Laplacian) in (c)."""
+    refine_iters: int = 30
+    """Levenberg-Marquardt iterations of the geometric refinement that follows Adam in (a) and
+    (b) (0: none). Its residuals are metric: each real depth point's signed distance to the geom
+    the real segmentation assigns it, and in (b) how deep the rays of pixels the object does not
+    own pass inside it (free space), with a Huber loss; in (b) also the soft silhouette against the
+    real mask (so edges sit midway between labelled and unlabelled pixel centres) and, after the
+    geometry, the colour (robust, on the object's own pixels)."""
+    huber: float = 0.005
+    """Huber scale (m) of the refinement's residuals."""
+    keep_support: bool = True
+    """(b): keep the object's lowest point at the height the frames' states put it (an object
+    resting on a table). Its underside is hidden, so from images alone its height trades against
+    its size; a resting object's support is known."""
 
     def __post_init__(self):
-        if self.steps < 1 or self.restarts < 1:
-            raise ValueError(f"steps and restarts must be >= 1, got {self.steps}, {self.restarts}")
+        if self.steps < 1 or self.restarts < 1 or self.refine_iters < 0:
+            raise ValueError(f"steps and restarts must be >= 1 and refine_iters >= 0, got "
+                             f"{self.steps}, {self.restarts}, {self.refine_iters}")
         if not (self.tau[0] > 0 and self.tau[1] > 0):
             raise ValueError(f"tau must be two positive temperatures (pixels), got {self.tau}")
         for f in ("w_rgb", "w_iou", "w_emd", "w_depth", "w_surface", "mesh_smooth"):
@@ -270,6 +284,116 @@ def _optimise(loss_fn, params0, cfg: VisualConfig, rng: np.random.Generator, per
     return best[0], runs
 
 
+# ---------------------------------------------------------------------- geometric refinement
+def _huber_residual(r, c):
+    """Residual whose square is twice the Huber loss of ``r`` (scale ``c``): linear tails."""
+    a = jnp.abs(r)
+    return jnp.where(a <= c, r, jnp.sign(r) * jnp.sqrt(jnp.maximum(2.0 * c * a - c * c, 0.0)))
+
+
+def _surface_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms, real: dict,
+                       focus: int | None):
+    """Signed distance (m, Huber) of each real depth point, unprojected with ``cam``, to the geom
+    the real segmentation assigns it (only the ``focus`` geom's points when given); weighted so
+    every geom seen counts as much as any other, whatever its pixel count. (H*W,)"""
+    pts, _ = depth_to_points(cam, real["depth"])
+    sd = R.sdf(pts, geoms)
+    oh = (real["segmentation"].reshape(-1, 1) == jnp.asarray(R.geom_ids)).astype(sd.dtype)
+    if focus is not None:
+        oh, sd = oh[:, focus:focus + 1], sd[:, focus:focus + 1]
+    n = jnp.sum(oh, 0)
+    w = oh / jnp.sqrt(jnp.maximum(n, 1.0) * jnp.maximum(jnp.sum(n > 0), 1))
+    return jnp.sum(w * _huber_residual(jnp.where(oh > 0, sd, 0.0), cfg.huber), -1)
+
+
+def _free_space_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms, real: dict,
+                          focus: int):
+    """How deep (m, Huber) the ray of each pixel the real segmentation does *not* give to the
+    ``focus`` geom passes inside that geom in front of the real depth: the silhouette, in metres.
+    (H*W,)"""
+    o, r = cam.rays()
+    _, s_n, dist, _ = R.cast(o, r.reshape(-1, 3), geoms, soft=True)
+    s_n, dist = s_n[:, focus], dist[:, focus]
+    other = real["segmentation"].reshape(-1) != R.geom_ids[focus]
+    pen = jnp.where(other & (s_n < real["depth"].reshape(-1)), jnp.maximum(-dist, 0.0), 0.0)
+    n = jnp.sum(real["segmentation"] == R.geom_ids[focus])
+    return _huber_residual(pen, cfg.huber) / jnp.sqrt(jnp.maximum(n, 1.0))
+
+
+def _silhouette_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms, real: dict,
+                          focus: int):
+    """Soft coverage of each unoccluded pixel by the ``focus`` geom (temperature ``tau[1]``
+    pixels) minus whether the real segmentation gives it that geom, in metres (times the pixel's
+    footprint). Zero-cost placements of an edge span the pixel between a labelled and an
+    unlabelled centre; this term centres the edge in that gap. (H*W,)"""
+    o, r = cam.rays()
+    _, s_n, dist, _ = R.cast(o, r.reshape(-1, 3), geoms, soft=True)
+    s_n, dist = s_n[:, focus], dist[:, focus]
+    foot = jnp.maximum(s_n, R.near) * cam.pixel_size()
+    cover = jax.nn.sigmoid(-dist / (foot * cfg.tau[1]))
+    label = (real["segmentation"].reshape(-1) == R.geom_ids[focus]).astype(cover.dtype)
+    # a pixel something else hides (real surface in front of the geom) says nothing of its edge
+    seen = (label > 0) | (real["depth"].reshape(-1) >= s_n)
+    n = jnp.maximum(jnp.sum(label), 1.0)
+    return jnp.where(seen, (cover - label) * jax.lax.stop_gradient(foot), 0.0) / jnp.sqrt(n)
+
+
+def _lowest_z(geoms: Geoms, gid: int, gtype: int):
+    """World height of the lowest point of geom ``gid`` (``Geoms`` of one frame)."""
+    R, c, s = geoms.xmat[gid], geoms.xpos[gid, 2], geoms.size[gid]
+    rz = R[2]  # the world z component of the geom's local axes
+    if gtype == 2:  # sphere
+        return c - s[0]
+    if gtype == 3:  # capsule
+        return c - s[0] - jnp.abs(rz[2]) * s[1]
+    if gtype == 5:  # cylinder
+        return c - jnp.abs(rz[2]) * s[1] - s[0] * jnp.sqrt(jnp.maximum(1 - rz[2] ** 2, 1e-12))
+    if gtype == 4:  # ellipsoid
+        return c - jnp.sqrt(jnp.sum((rz * s) ** 2))
+    if gtype == 6:  # box
+        return c - jnp.sum(jnp.abs(rz) * s)
+    raise ValueError(f"keep_support: no lowest point for geom type {gtype}; set "
+                     "keep_support=False")
+
+
+def _levenberg_marquardt(res_fn, params: dict, keys: Sequence[str], iters: int,
+                         lam: float = 1e-2):
+    """Minimise ``0.5 |res_fn(params)|^2`` over ``params[k]`` for ``k`` in ``keys`` (the others
+    held) by Levenberg-Marquardt with Marquardt's diagonal scaling and a forward-mode Jacobian.
+    Returns the refined params and ``{"cost_before", "cost_after", "iters"}``."""
+    from jax.flatten_util import ravel_pytree
+
+    x, unravel = ravel_pytree({k: params[k] for k in keys})
+
+    def fun(x):
+        return res_fn({**params, **unravel(x)})
+
+    f, jac = jax.jit(fun), jax.jit(jax.jacfwd(fun))
+    r = f(x)
+    cost = cost0 = float(0.5 * jnp.sum(r * r))
+    if not np.isfinite(cost):
+        raise FloatingPointError("visual refinement: non-finite residuals at the start")
+    it = 0
+    for it in range(1, iters + 1):
+        J = jac(x)
+        A, g = J.T @ J, J.T @ r
+        D = jnp.diag(jnp.diag(A) + 1e-9 * jnp.max(jnp.diag(A)) + 1e-30)
+        for _ in range(10):
+            dx = jnp.linalg.solve(A + lam * D, -g)
+            r_new = f(x + dx)
+            c_new = float(0.5 * jnp.sum(r_new * r_new))
+            if np.isfinite(c_new) and c_new < cost:
+                break
+            lam *= 4.0
+        else:
+            break  # no step lowers the cost: converged (or stuck)
+        x, r, drop, cost = x + dx, r_new, cost - c_new, c_new
+        lam = max(lam / 3.0, 1e-9)
+        if drop <= 1e-9 * cost0:
+            break
+    return {**params, **unravel(x)}, {"cost_before": cost0, "cost_after": cost, "iters": it}
+
+
 # ---------------------------------------------------------------------- camera (a)
 def _apply_camera(cam0: Camera, p) -> Camera:
     cam = cam0.translated(p["cam_dpos"])
@@ -300,8 +424,17 @@ def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = 
                 "cam_drot": p["cam_drot"] + rng.normal(0, cfg.init_rot_sd, 3)}
 
     p, runs = _optimise(loss_fn, p0, cfg, rng, perturb)
+    refine = None
+    if cfg.refine_iters:
+        def residuals(p):
+            cam = _apply_camera(cam0, p)
+            return jax.vmap(lambda g, r: _surface_residuals(R, cfg, cam, g, r, None))(
+                geoms, reals).ravel()
+
+        p, refine = _levenberg_marquardt(residuals, p, ("cam_dpos", "cam_drot"),
+                                         cfg.refine_iters)
     return _apply_camera(cam0, p), {"runs": runs, "pos_offset": np.asarray(p["cam_dpos"]),
-                                    "rot_offset": np.asarray(p["cam_drot"])}
+                                    "rot_offset": np.asarray(p["cam_drot"]), "refine": refine}
 
 
 def _stack_real(frames):
@@ -355,12 +488,46 @@ def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
                 "obj_logsize": p["obj_logsize"] + rng.normal(0, 0.05, 3)}
 
     p, runs = _optimise(loss_fn, p0, cfg, rng, perturb)
+    refine = None
+    if cfg.refine_iters:
+        def residuals(p):
+            g = _apply_object(geoms, gid, gtype, p)
+
+            def frame(g, g0, r):
+                res = [_surface_residuals(R, cfg, camera, g, r, focus),
+                       _free_space_residuals(R, cfg, camera, g, r, focus),
+                       _silhouette_residuals(R, cfg, camera, g, r, focus)]
+                if cfg.keep_support and gtype in (2, 3, 4, 5, 6):
+                    res.append(3.0 * (_lowest_z(g, gid, gtype) - _lowest_z(g0, gid, gtype))[None])
+                return jnp.concatenate(res)
+            return jax.vmap(frame)(g, geoms, reals).ravel()
+
+        p, refine = _levenberg_marquardt(residuals, p, ("obj_dpos", "obj_drot", "obj_logsize"),
+                                         cfg.refine_iters)
+
+        def colour_residuals(p):
+            # the object's own pixels (in the real frame and in the refined hard render alike)
+            g = _apply_object(geoms, gid, gtype, p)
+
+            def frame(g, r):
+                im = R.render(camera, g)
+                own = (im.segmentation == R.geom_ids[focus]) & (
+                    r["segmentation"] == R.geom_ids[focus])
+                d = im.rgb - r["rgb"].astype(im.rgb.dtype) / 255.0
+                # Huber at 2/255: the few pixels of a specular highlight that OpenGL interpolates
+                # from the vertices (and this renderer computes per pixel) are outliers, not colour
+                return jnp.where(own[..., None], _huber_residual(d, 2.0 / 255.0), 0.0).ravel()
+            return jax.vmap(frame)(g, reals).ravel()
+
+        p, refine["colour"] = _levenberg_marquardt(colour_residuals, p, ("obj_logit_rgb",),
+                                                   cfg.refine_iters)
     nd = _SIZE_DIMS[gtype]
     size = np.array(model.geom_size[gid], np.float64)
     size[:nd] *= np.exp(np.asarray(p["obj_logsize"])[:nd])
     return {"geom": model.geom(gid).name, "pos_offset": np.asarray(p["obj_dpos"]),
             "rot_offset": np.asarray(p["obj_drot"]), "size": size,
-            "rgb": np.asarray(jax.nn.sigmoid(p["obj_logit_rgb"])), "runs": runs}
+            "rgb": np.asarray(jax.nn.sigmoid(p["obj_logit_rgb"])), "runs": runs,
+            "refine": refine}
 
 
 def _geom_id(model, geom):
@@ -485,7 +652,8 @@ def visual_sysid(env_name: str, frames_or_dataset, out_dir: str | os.PathLike, s
         _save_panels(out / "visual_camera.png", R, frames, (cam0, geoms), (cam, geoms))
         summary["camera"] = {"pos": np.asarray(cam.pos), "quat": np.asarray(cam.quat),
                              "pos_offset_world": info["pos_offset"],
-                             "rot_offset_camera": info["rot_offset"], "runs": info["runs"]}
+                             "rot_offset_camera": info["rot_offset"], "runs": info["runs"],
+                             "refine": info["refine"]}
     if "object" in fit:
         name = object_geom or DEFAULT_OBJECT.get(env_name)
         if name is None:
