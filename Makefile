@@ -33,7 +33,8 @@ gradcheck: $(STAMP)
 # Tests: XLA's LLVM backend at optimisation level 0 compiles about twice as fast (measured on
 # tests/learn/test_trajopt.py, cold cache: 363 s -> 200 s) and the suite is compile-bound. XLA's
 # legacy CPU fusion emitter (fusion emitters off) halves it again: the float64 value_and_grad of a
-# 30-step push rollout compiles in 15 s instead of 28-35 s, and runs no slower.
+# 30-step push rollout compiles in 15 s instead of 28-35 s and runs no slower. Suite only: the
+# renderer runs slower with it (64x64 forward+gradient, one core: 86 -> 30 frames/s).
 TEST_XLA_FLAGS := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false
 test: $(STAMP)
 	XLA_FLAGS="$(XLA_FLAGS) $(TEST_XLA_FLAGS)" $(PY) -m pytest -n 2 --dist loadfile
