@@ -306,21 +306,26 @@ def _surface_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms
     return jnp.sum(w * _huber_residual(jnp.where(oh > 0, sd, 0.0), cfg.huber), -1)
 
 
-def _free_space_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms, real: dict,
-                          focus: int):
+def _focus_rays(R: Renderer, cam: Camera, geoms: Geoms, focus: int):
+    """Each pixel ray's hit-or-closest-approach depth and signed distance (m) to the ``focus``
+    geom. (H*W,) each."""
+    o, r = cam.rays()
+    _, s_n, dist, _ = R.cast(o, r.reshape(-1, 3), geoms, soft=True)
+    return s_n[:, focus], dist[:, focus]
+
+
+def _free_space_residuals(R: Renderer, cfg: VisualConfig, rays, real: dict, focus: int):
     """How deep (m, Huber) the ray of each pixel the real segmentation does *not* give to the
     ``focus`` geom passes inside that geom in front of the real depth: the silhouette, in metres.
     (H*W,)"""
-    o, r = cam.rays()
-    _, s_n, dist, _ = R.cast(o, r.reshape(-1, 3), geoms, soft=True)
-    s_n, dist = s_n[:, focus], dist[:, focus]
+    s_n, dist = rays
     other = real["segmentation"].reshape(-1) != R.geom_ids[focus]
     pen = jnp.where(other & (s_n < real["depth"].reshape(-1)), jnp.maximum(-dist, 0.0), 0.0)
     n = jnp.sum(real["segmentation"] == R.geom_ids[focus])
     return _huber_residual(pen, cfg.huber) / jnp.sqrt(jnp.maximum(n, 1.0))
 
 
-def _silhouette_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms, real: dict,
+def _silhouette_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, rays, real: dict,
                           focus: int):
     """Soft coverage of each unoccluded pixel by the ``focus`` geom (temperature ``tau[1]``
     pixels) minus whether the real segmentation gives it that geom, in metres (times the pixel's
@@ -328,9 +333,7 @@ def _silhouette_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Ge
     unlabelled pixel centre; this weak term only breaks that tie (towards the gap's middle): with
     full weight it would override the narrower gap that several views' hard constraints leave
     (bench seed 0: 0.7 % -> 3.7 % size error). (H*W,)"""
-    o, r = cam.rays()
-    _, s_n, dist, _ = R.cast(o, r.reshape(-1, 3), geoms, soft=True)
-    s_n, dist = s_n[:, focus], dist[:, focus]
+    s_n, dist = rays
     foot = jnp.maximum(s_n, R.near) * cam.pixel_size()
     cover = jax.nn.sigmoid(-dist / (foot * cfg.tau[1]))
     label = (real["segmentation"].reshape(-1) == R.geom_ids[focus]).astype(cover.dtype)
@@ -496,9 +499,10 @@ def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
             g = _apply_object(geoms, gid, gtype, p)
 
             def frame(g, g0, r):
+                rays = _focus_rays(R, camera, g, focus)  # one cast for both ray terms
                 res = [_surface_residuals(R, cfg, camera, g, r, focus),
-                       _free_space_residuals(R, cfg, camera, g, r, focus),
-                       _silhouette_residuals(R, cfg, camera, g, r, focus)]
+                       _free_space_residuals(R, cfg, rays, r, focus),
+                       _silhouette_residuals(R, cfg, camera, rays, r, focus)]
                 if cfg.keep_support and gtype in (2, 3, 4, 5, 6):
                     res.append(3.0 * (_lowest_z(g, gid, gtype) - _lowest_z(g0, gid, gtype))[None])
                 return jnp.concatenate(res)
