@@ -7,10 +7,13 @@
 3. Visual Real2Sim (``--visual``): over seeds, hidden camera offsets of 3-4 cm and 5-6 degrees
    (``Perturbation`` constructed directly) and a hidden object pose/size/colour change on
    ``push``; (a) camera fitted with the scene known, (b) the box fitted with the camera known.
+   Frames are ``--size`` square (default 256: a real RGB-D camera's resolution order, where a
+   pixel is 3.75 mm at the box), ``--frames`` of them (default 5); the Adam stage sees every
+   4th pixel (``--coarse`` 64), the refinement every pixel.
 
 Prints tables and writes ``bench/results/render.json``.
 
-    .venv/bin/python bench/render.py [--visual] [--seeds 0 1 2 3 4] [--size 64]
+    .venv/bin/python bench/render.py [--visual] [--seeds 0 1 2 3 4] [--size 256] [--frames 5]
 """
 
 from __future__ import annotations
@@ -131,15 +134,19 @@ def visual(seeds, S, cfg):
     rows = []
     for seed in seeds:
         rng = np.random.default_rng(1000 + seed)
+        extra = np.random.default_rng(2000 + seed)
         unit = lambda v: v / np.linalg.norm(v)  # noqa: E731
         pos_off = unit(rng.normal(size=3)) * rng.uniform(0.03, 0.04)
         rot_off = unit(rng.normal(size=3)) * np.deg2rad(rng.uniform(5.0, 6.0))
         pert = Perturbation(camera_pos_offset=tuple(pos_off), camera_rot_offset=tuple(rot_off))
         qposes = []
-        for _ in range(cfg["frames"]):
+        for k in range(cfg["frames"]):
+            # frames past the third come from their own stream: the hidden values (drawn next)
+            # stay the same whatever the number of frames
+            r = rng if k < 3 else extra
             q = m.qpos0.copy()
-            q[0:2] = rng.uniform(-0.12, 0.12, 2)
-            q[2:4] = np.array([0.15, 0.0]) + rng.uniform(-0.05, 0.05, 2)
+            q[0:2] = r.uniform(-0.12, 0.12, 2)
+            q[2:4] = np.array([0.15, 0.0]) + r.uniform(-0.05, 0.05, 2)
             qposes.append(q)
         # (a) camera, scene known
         m_real = load_mjcf("push")
@@ -193,7 +200,10 @@ def main(argv=None):
     ap.add_argument("--visual", action="store_true", help="also run the visual Real2Sim fits")
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    ap.add_argument("--size", type=int, default=64, help="image size of the visual fits")
+    ap.add_argument("--size", type=int, default=256, help="image size of the visual fits' frames")
+    ap.add_argument("--frames", type=int, default=5, help="frames per visual fit")
+    ap.add_argument("--coarse", type=int, default=64,
+                    help="image size the Adam stage sees (VisualConfig.coarse_size)")
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--refine-iters", type=int, default=30,
                     help="Levenberg-Marquardt iterations after Adam (0: Adam only)")
@@ -223,17 +233,16 @@ def main(argv=None):
     if args.visual:
         from twinrl.real2sim.visual import VisualConfig
 
-        cfg = {"frames": 3,
-               "camera": VisualConfig(steps=args.steps, restarts=1,
-                                      refine_iters=args.refine_iters),
-               "object": VisualConfig(steps=args.steps, restarts=1,
-                                      refine_iters=args.refine_iters)}
+        vc = VisualConfig(steps=args.steps, restarts=1, refine_iters=args.refine_iters,
+                          coarse_size=args.coarse)
+        cfg = {"frames": args.frames, "camera": vc, "object": vc}
         rows = visual(args.seeds, args.size, cfg)
-        out["visual"] = {"size": args.size, "steps": args.steps,
-                         "refine_iters": args.refine_iters, "rows": rows}
+        out["visual"] = {"size": args.size, "frames": args.frames, "coarse": args.coarse,
+                         "steps": args.steps, "refine_iters": args.refine_iters, "rows": rows}
         keys = ["cam_pos_err_mm", "cam_rot_err_deg", "obj_pos_err_mm", "size_err_pct",
                 "colour_err_255"]
-        report.print_table(f"visual real2sim on push, {args.size}x{args.size} (before -> after)",
+        report.print_table(f"visual real2sim on push, {args.frames} frames, "
+                           f"{args.size}x{args.size} (before -> after)",
                            ["seed", "hidden cam", *keys],
                            [[r["seed"], f"{r['hidden_cam_offset_mm']:.0f} mm "
                              f"{r['hidden_cam_rot_deg']:.1f} deg",

@@ -152,6 +152,36 @@ def test_from_mujoco_matches_look_at_and_projection(push):
     assert 0 < float(depth) < float(im.depth[row, col]) + 0.1
 
 
+def test_window_sees_exactly_those_pixels(push):
+    """A crop, and every 3rd pixel of a 48x48 image, render as those pixels of the full image (same
+    rays through the same pixel centres); projection inverts the rays; gradients flow to the
+    pose through the principal point."""
+    m, d = push
+    R = Renderer.create(m)
+    g = Geoms.from_mujoco(m, d)
+    full = Camera.from_mujoco(m, d, "top", 48, 48)
+    ref = R.render(full, g)
+    o, rays = full.rays()
+    for (r0, c0, h, w, k) in [(5, 9, 20, 14, 1), (1, 2, 16, 15, 3)]:
+        win = full.window(r0, c0, h, w, k)
+        sl = np.s_[r0:r0 + k * h:k, c0:c0 + k * w:k]
+        np.testing.assert_allclose(win.rays()[1], rays[sl], atol=1e-6)
+        np.testing.assert_allclose(win.pixel_size(), k * full.pixel_size(), rtol=1e-6)
+        im = R.render(win, g)
+        np.testing.assert_array_equal(im.segmentation, ref.segmentation[sl])
+        np.testing.assert_allclose(im.depth, ref.depth[sl], rtol=1e-4)  # float32 roots
+        px, _ = win.project(o + 0.8 * win.rays()[1])
+        centres = np.stack(np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5), -1)
+        np.testing.assert_allclose(px, centres, atol=1e-3)
+    gpos = jax.grad(lambda p: dataclasses.replace(full, pos=p).window(1, 2, 16, 15, 3).project(
+        jnp.asarray(d.geom_xpos[BOX]))[0][0])(full.pos)
+    assert np.all(np.isfinite(gpos)) and np.any(gpos != 0)
+    with pytest.raises(ValueError, match="leave the 48x48"):
+        full.window(40, 0, 10, 10)
+    with pytest.raises(ValueError, match=">= 1"):
+        full.window(0, 0, 4, 4, step=0)
+
+
 def test_bad_inputs(push):
     m, d = push
     R = Renderer.create(m)

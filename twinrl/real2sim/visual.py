@@ -99,11 +99,22 @@ class VisualConfig:
     """(b): keep the object's lowest point at the height the frames' states put it (an object
     resting on a table). Its underside is hidden, so from images alone its height trades against
     its size; a resting object's support is known."""
+    coarse_size: int = 64
+    """Longest side (pixels) of the images the Adam stage of (a), (b) and (c) sees: larger frames are
+    subsampled by an integer step, keeping exactly the pixels a camera that many times coarser
+    would see (``Camera.window``). The refinement uses every pixel: edges are placed to a finer
+    pixel, and the Adam stage's cost does not grow with the resolution."""
+    roi_margin: int = 6
+    """(b): the refinement sees, in each frame, a window around the object's real pixels grown by
+    this many pixels of the coarse image on every side (it must cover the Adam stage's error)."""
 
     def __post_init__(self):
         if self.steps < 1 or self.restarts < 1 or self.refine_iters < 0:
             raise ValueError(f"steps and restarts must be >= 1 and refine_iters >= 0, got "
                              f"{self.steps}, {self.restarts}, {self.refine_iters}")
+        if self.coarse_size < 8 or self.roi_margin < 1:
+            raise ValueError(f"coarse_size must be >= 8 and roi_margin >= 1, got "
+                             f"{self.coarse_size}, {self.roi_margin}")
         if not (self.tau[0] > 0 and self.tau[1] > 0):
             raise ValueError(f"tau must be two positive temperatures (pixels), got {self.tau}")
         for f in ("w_rgb", "w_iou", "w_emd", "w_depth", "w_surface", "mesh_smooth"):
@@ -412,14 +423,15 @@ def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = 
     info)``."""
     R = renderer or Renderer.create(model)
     geoms = _geoms_of(model, [f["qpos"] for f in frames])
-    reals = _stack_real(frames)
+    frames_c, cam0_c, _ = _coarse(frames, cam0, cfg.coarse_size)
+    reals_c = _stack_real(frames_c)
     rng = np.random.default_rng(seed)
-    pix = _pixel_subset(frames, cfg.emd_points, None, rng)
+    pix = _pixel_subset(frames_c, cfg.emd_points, None, rng)
 
     def loss_fn(p, tau):
-        cam = _apply_camera(cam0, p)
+        cam = _apply_camera(cam0_c, p)
         tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, cam, g, r, tau, None, pix))(
-            geoms, reals)
+            geoms, reals_c)
         return jnp.mean(tot), jax.tree_util.tree_map(jnp.mean, terms)
 
     p0 = {"cam_dpos": jnp.zeros(3), "cam_drot": jnp.zeros(3)}
@@ -431,6 +443,8 @@ def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = 
     p, runs = _optimise(loss_fn, p0, cfg, rng, perturb)
     refine = None
     if cfg.refine_iters:
+        reals = _stack_real(frames)
+
         def residuals(p):
             cam = _apply_camera(cam0, p)
             return jax.vmap(lambda g, r: _surface_residuals(R, cfg, cam, g, r, None))(
@@ -448,6 +462,52 @@ def _stack_real(frames):
             "segmentation": jnp.asarray(np.stack([f["segmentation"] for f in frames]))}
 
 
+def _crop(frame: Mapping[str, Any], row0: int, col0: int, h: int, w: int, step: int) -> dict:
+    """A frame's images cut as ``Camera.window(row0, col0, h, w, step)`` sees them."""
+    out = dict(frame)
+    for k in ("rgb", "depth", "segmentation"):
+        out[k] = np.asarray(frame[k])[row0:row0 + step * h:step, col0:col0 + step * w:step]
+    return out
+
+
+def _coarse(frames, camera: Camera, max_side: int):
+    """``(frames, camera, step)`` subsampled by the smallest integer step that brings the longer
+    side to ``max_side`` or less (centred; the identity when it already is)."""
+    H, W = camera.height, camera.width
+    step = -(-max(H, W) // max_side)
+    if step == 1:
+        return list(frames), camera, 1
+    h, w = -(-H // step), -(-W // step)
+    r0, c0 = (H - step * (h - 1) - 1) // 2, (W - step * (w - 1) - 1) // 2
+    return ([_crop(f, r0, c0, h, w, step) for f in frames], camera.window(r0, c0, h, w, step),
+            step)
+
+
+def _object_windows(frames, camera: Camera, gid: int, margin: int):
+    """Per frame, the full-resolution window around the object's real pixels grown by
+    ``margin`` pixels, all of one size (the largest) so they batch: ``(frames, cameras)``, the
+    cameras stacked (a leading frame axis). The whole image when the object is missing from a
+    frame."""
+    H, W = camera.height, camera.width
+    boxes = []
+    for f in frames:
+        rows, cols = np.nonzero(np.asarray(f["segmentation"]) == gid)
+        if rows.size == 0:
+            return list(frames), jax.tree_util.tree_map(lambda *a: jnp.stack(a),
+                                                        *[camera] * len(frames))
+        boxes.append((rows.min(), rows.max(), cols.min(), cols.max()))
+    b = np.asarray(boxes)
+    h = min(H, int((b[:, 1] - b[:, 0]).max()) + 1 + 2 * margin)
+    w = min(W, int((b[:, 3] - b[:, 2]).max()) + 1 + 2 * margin)
+    out, cams = [], []
+    for f, (r_lo, r_hi, c_lo, c_hi) in zip(frames, b):
+        r0 = int(np.clip((r_lo + r_hi + 1 - h) // 2, 0, H - h))
+        c0 = int(np.clip((c_lo + c_hi + 1 - w) // 2, 0, W - w))
+        out.append(_crop(f, r0, c0, h, w, 1))
+        cams.append(camera.window(r0, c0, h, w))
+    return out, jax.tree_util.tree_map(lambda *a: jnp.stack(a), *cams)
+
+
 # ---------------------------------------------------------------------- object (b)
 _SIZE_DIMS = {0: 2, 2: 1, 3: 2, 4: 3, 5: 2, 6: 3, 7: 0}
 
@@ -463,6 +523,27 @@ def _apply_object(geoms: Geoms, gid: int, gtype: int, p) -> Geoms:
                          size=size, rgba=rgba)
 
 
+def _object_residuals(R: Renderer, cfg: VisualConfig, cameras: Camera, geoms: Geoms, reals,
+                      gid: int, gtype: int, focus: int):
+    """The object refinement's residuals as a function of the fit's params: per frame (each with
+    its camera: ``cameras`` is stacked), the surface, free-space and silhouette terms and
+    (``keep_support``) the lowest point's height."""
+    def residuals(p):
+        g = _apply_object(geoms, gid, gtype, p)
+
+        def frame(g, g0, r, cam):
+            rays = _focus_rays(R, cam, g, focus)  # one cast for both ray terms
+            res = [_surface_residuals(R, cfg, cam, g, r, focus),
+                   _free_space_residuals(R, cfg, rays, r, focus),
+                   _silhouette_residuals(R, cfg, cam, rays, r, focus)]
+            if cfg.keep_support and gtype in (2, 3, 4, 5, 6):
+                res.append(3.0 * (_lowest_z(g, gid, gtype) - _lowest_z(g0, gid, gtype))[None])
+            return jnp.concatenate(res)
+        return jax.vmap(frame)(g, geoms, reals, cameras).ravel()
+
+    return residuals
+
+
 def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
                cfg: VisualConfig = VisualConfig(), seed: int = 0,
                renderer: Renderer | None = None):
@@ -474,14 +555,15 @@ def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
     focus = R.index(gid)
     gtype = int(model.geom_type[gid])
     geoms = _geoms_of(model, [f["qpos"] for f in frames])
-    reals = _stack_real(frames)
+    frames_c, cam_c, step = _coarse(frames, camera, cfg.coarse_size)
+    reals_c = _stack_real(frames_c)
     rng = np.random.default_rng(seed)
-    pix = _pixel_subset(frames, cfg.emd_points, gid, rng)
+    pix = _pixel_subset(frames_c, cfg.emd_points, gid, rng)
 
     def loss_fn(p, tau):
         g = _apply_object(geoms, gid, gtype, p)
-        tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, camera, g, r, tau, focus, pix))(
-            g, reals)
+        tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, cam_c, g, r, tau, focus, pix))(
+            g, reals_c)
         return jnp.mean(tot), jax.tree_util.tree_map(jnp.mean, terms)
 
     rgb0 = np.clip(model.geom_rgba[gid, :3], 0.02, 0.98)
@@ -495,19 +577,9 @@ def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
     p, runs = _optimise(loss_fn, p0, cfg, rng, perturb)
     refine = None
     if cfg.refine_iters:
-        def residuals(p):
-            g = _apply_object(geoms, gid, gtype, p)
-
-            def frame(g, g0, r):
-                rays = _focus_rays(R, camera, g, focus)  # one cast for both ray terms
-                res = [_surface_residuals(R, cfg, camera, g, r, focus),
-                       _free_space_residuals(R, cfg, rays, r, focus),
-                       _silhouette_residuals(R, cfg, camera, rays, r, focus)]
-                if cfg.keep_support and gtype in (2, 3, 4, 5, 6):
-                    res.append(3.0 * (_lowest_z(g, gid, gtype) - _lowest_z(g0, gid, gtype))[None])
-                return jnp.concatenate(res)
-            return jax.vmap(frame)(g, geoms, reals).ravel()
-
+        frames_w, cams_w = _object_windows(frames, camera, gid, cfg.roi_margin * step)
+        reals = _stack_real(frames_w)
+        residuals = _object_residuals(R, cfg, cams_w, geoms, reals, gid, gtype, focus)
         p, refine = _levenberg_marquardt(residuals, p, ("obj_dpos", "obj_drot", "obj_logsize"),
                                          cfg.refine_iters)
 
@@ -515,15 +587,15 @@ def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
             # the object's own pixels (in the real frame and in the refined hard render alike)
             g = _apply_object(geoms, gid, gtype, p)
 
-            def frame(g, r):
-                im = R.render(camera, g)
+            def frame(g, r, cam):
+                im = R.render(cam, g)
                 own = (im.segmentation == R.geom_ids[focus]) & (
                     r["segmentation"] == R.geom_ids[focus])
                 d = im.rgb - r["rgb"].astype(im.rgb.dtype) / 255.0
                 # Huber at 2/255: the few pixels of a specular highlight that OpenGL interpolates
                 # from the vertices (and this renderer computes per pixel) are outliers, not colour
                 return jnp.where(own[..., None], _huber_residual(d, 2.0 / 255.0), 0.0).ravel()
-            return jax.vmap(frame)(g, reals).ravel()
+            return jax.vmap(frame)(g, reals, cams_w).ravel()
 
         p, refine["colour"] = _levenberg_marquardt(colour_residuals, p, ("obj_logit_rgb",),
                                                    cfg.refine_iters)
@@ -570,9 +642,10 @@ def fit_mesh(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
     v0 = jnp.asarray(model.mesh_vert[va:va + vn], geoms.mesh_vert.dtype)
     len0 = jnp.linalg.norm(v0[edges[:, 0]] - v0[edges[:, 1]], axis=-1)
     deg = np.bincount(edges.ravel(), minlength=vn)
-    reals = _stack_real(frames)
+    frames_c, cam_c, _ = _coarse(frames, camera, cfg.coarse_size)
+    reals = _stack_real(frames_c)
     rng = np.random.default_rng(seed)
-    pix = _pixel_subset(frames, cfg.emd_points, gid, rng)
+    pix = _pixel_subset(frames_c, cfg.emd_points, gid, rng)
 
     def regulariser(v):
         ln = jnp.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=-1)
@@ -587,7 +660,7 @@ def fit_mesh(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
     def loss_fn(p, tau):
         v = v0 + p["dvert"]
         g = geoms.replace(mesh_vert=geoms.mesh_vert.at[..., va:va + vn, :].set(v))
-        tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, camera, g, r, tau, focus, pix))(
+        tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, cam_c, g, r, tau, focus, pix))(
             g, reals)
         reg = regulariser(v)
         terms = jax.tree_util.tree_map(jnp.mean, terms)

@@ -11,6 +11,9 @@ Convention (MuJoCo's, so images line up with ``mujoco.Renderer``'s):
     extent is ``tan(fovy / 2) * width / height`` at unit depth;
   - image row 0 is the *top* of the picture (as ``mujoco.Renderer.render`` returns it), pixel
     centres are at half-integers;
+  - the optical axis meets the image at ``principal`` (column, row, in pixels), by default the
+    image's centre (MuJoCo's cameras); ``Camera.window`` uses it to make a camera that sees a
+    window of another's pixels, or every k-th of them, exactly;
   - depth is the distance along the viewing axis (-z), not along the ray.
 """
 
@@ -72,7 +75,9 @@ def rotvec_to_quat(v: jax.Array) -> jax.Array:
 @dataclasses.dataclass(frozen=True)
 class Camera:
     """A pinhole camera. ``pos`` (3,), ``quat`` (4,) ``(w, x, y, z)`` of the camera frame in the
-    world (need not be unit: it is normalised where used), ``fovy`` () degrees; ``width`` and
+    world (need not be unit: it is normalised where used), ``fovy`` () degrees (the focal length
+    is ``height / (2 tan(fovy / 2))`` pixels); ``principal`` (2,) the (column, row) in pixels
+    where the optical axis meets the image, ``None`` for the image's centre; ``width`` and
     ``height`` are static. A batch of cameras is a ``Camera`` whose arrays have a leading axis
     (``jax.vmap`` over it)."""
 
@@ -81,13 +86,15 @@ class Camera:
     fovy: jax.Array
     width: int = dataclasses.field(metadata=dict(static=True), default=64)
     height: int = dataclasses.field(metadata=dict(static=True), default=64)
+    principal: jax.Array | None = None
 
     # ------------------------------------------------------------------ construction
     @classmethod
     def create(cls, pos, quat=None, *, xmat=None, fovy=45.0, width: int = 64,
-               height: int = 64, dtype=None) -> "Camera":
+               height: int = 64, principal=None, dtype=None) -> "Camera":
         """A camera from a position and either a quaternion or a rotation matrix (camera frame
-        columns in world coordinates)."""
+        columns in world coordinates); ``principal`` (column, row) in pixels, default the
+        image's centre."""
         if (quat is None) == (xmat is None):
             raise ValueError("give exactly one of quat and xmat")
         if int(width) < 1 or int(height) < 1:
@@ -108,8 +115,13 @@ class Camera:
         if not 0.0 < float(fovy) < 180.0:
             raise ValueError(f"fovy must be in (0, 180) degrees, got {fovy}")
         dtype = dtype or jnp.result_type(float)
+        if principal is not None:
+            principal = np.asarray(principal, np.float64)
+            if principal.shape != (2,) or not np.all(np.isfinite(principal)):
+                raise ValueError(f"principal must be a finite (column, row), got {principal}")
+            principal = jnp.asarray(principal, dtype)
         return cls(jnp.asarray(pos, dtype), jnp.asarray(quat / np.linalg.norm(quat), dtype),
-                   jnp.asarray(float(fovy), dtype), int(width), int(height))
+                   jnp.asarray(float(fovy), dtype), int(width), int(height), principal)
 
     @classmethod
     def from_mujoco(cls, model, data, cam_id: int | str, width: int = 64, height: int = 64,
@@ -147,18 +159,23 @@ class Camera:
         return dataclasses.replace(self, pos=self.pos + delta)
 
     def pixel_size(self) -> jax.Array:
-        """Height (m) of one pixel at unit depth."""
+        """Height (m) of one pixel at unit depth (the inverse of the focal length in pixels)."""
         return 2.0 * jnp.tan(jnp.deg2rad(self.fovy) / 2.0) / self.height
+
+    def _principal(self) -> tuple[jax.Array, jax.Array]:
+        if self.principal is None:
+            return (jnp.asarray(self.width / 2.0, self.pos.dtype),
+                    jnp.asarray(self.height / 2.0, self.pos.dtype))
+        return self.principal[0], self.principal[1]
 
     def rays(self) -> tuple[jax.Array, jax.Array]:
         """``origin`` (3,) and per-pixel directions (H, W, 3) in the world frame, scaled so the
         component along the viewing axis is 1: ``origin + s * dir`` is at depth ``s``."""
         H, W = self.height, self.width
-        t = jnp.tan(jnp.deg2rad(self.fovy) / 2.0)
-        u = (jnp.arange(W, dtype=self.pos.dtype) + 0.5) / W * 2.0 - 1.0
-        v = 1.0 - (jnp.arange(H, dtype=self.pos.dtype) + 0.5) / H * 2.0
-        x = jnp.broadcast_to(u[None, :] * t * (W / H), (H, W))
-        y = jnp.broadcast_to(v[:, None] * t, (H, W))
+        px, (cx, cy) = self.pixel_size(), self._principal()
+        x = (jnp.arange(W, dtype=self.pos.dtype) + 0.5 - cx) * px
+        y = (cy - jnp.arange(H, dtype=self.pos.dtype) - 0.5) * px
+        x, y = jnp.broadcast_to(x[None, :], (H, W)), jnp.broadcast_to(y[:, None], (H, W))
         local = jnp.stack([x, y, -jnp.ones_like(x)], -1)
         return self.pos, local @ self.xmat.T
 
@@ -167,12 +184,33 @@ class Camera:
         (...,) of world points."""
         p = (points - self.pos) @ self.xmat
         depth = -p[..., 2]
-        t = jnp.tan(jnp.deg2rad(self.fovy) / 2.0)
-        u = p[..., 0] / depth / (t * self.width / self.height)
-        v = p[..., 1] / depth / t
-        col = (u + 1.0) / 2.0 * self.width
-        row = (1.0 - v) / 2.0 * self.height
+        px, (cx, cy) = self.pixel_size(), self._principal()
+        col = cx + p[..., 0] / depth / px
+        row = cy - p[..., 1] / depth / px
         return jnp.stack([col, row], -1), depth
+
+    def window(self, row0: int, col0: int, height: int, width: int, step: int = 1) -> "Camera":
+        """The camera whose pixel ``(r, c)`` is this camera's pixel ``(row0 + step r,
+        col0 + step c)`` (same ray through the same pixel centre), ``height`` x ``width`` of them:
+        a crop (``step`` 1), every ``step``-th pixel (a coarser image of exactly those pixels), or
+        both. Slice an image the same way with ``image[row0:row0 + step * height:step,
+        col0:col0 + step * width:step]``. Differentiable in the pose and ``fovy``."""
+        row0, col0, height, width, step = (int(a) for a in (row0, col0, height, width, step))
+        if step < 1 or height < 1 or width < 1:
+            raise ValueError(f"window: height, width and step must be >= 1, got "
+                             f"{height}, {width}, {step}")
+        if not (0 <= row0 and row0 + step * (height - 1) < self.height and 0 <= col0
+                and col0 + step * (width - 1) < self.width):
+            raise ValueError(f"window: rows {row0}+{step}*[0, {height}) or columns "
+                             f"{col0}+{step}*[0, {width}) leave the {self.height}x{self.width} "
+                             "image")
+        cx, cy = self._principal()
+        # new pixel c's centre c + 0.5 sits at old col0 + step c + 0.5; focal length / step
+        principal = jnp.stack([(cx - col0 - 0.5) / step + 0.5, (cy - row0 - 0.5) / step + 0.5])
+        fovy = 2.0 * jnp.rad2deg(jnp.arctan(jnp.tan(jnp.deg2rad(self.fovy) / 2.0)
+                                            * step * height / self.height))
+        return dataclasses.replace(self, fovy=fovy, width=width, height=height,
+                                   principal=principal.astype(self.pos.dtype))
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0), *, fovy=45.0, width: int = 64, height: int = 64,
