@@ -4,6 +4,11 @@ Compiling a gradient through contacts takes tens of seconds; the cache makes the
 command (and the test suite) skip it. It lives in ``$TWINRL_CACHE_DIR`` if set, else
 ``$XDG_CACHE_HOME/twinrl/jax`` (``~/.cache/twinrl/jax``). ``TWINRL_CACHE_DIR=off`` disables it.
 A cache directory the user already configured for JAX (``JAX_COMPILATION_CACHE_DIR``) is left alone.
+
+XLA's C++ runtime logs a warning ("Assume version compatibility. PjRt-IFRT does not track XLA
+executable versions") for every executable it loads from that cache: dozens of lines per command.
+Unless ``TF_CPP_MIN_LOG_LEVEL`` is set, it is set to 2 (errors only) here, before JAX is first
+imported; a process that imported JAX before twinrl keeps its own setting.
 """
 
 from __future__ import annotations
@@ -14,7 +19,10 @@ import os
 import sys
 from pathlib import Path
 
-import jax
+if "jax" not in sys.modules:
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+
+import jax  # noqa: E402
 
 
 def import_mjx_quietly() -> None:

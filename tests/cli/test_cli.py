@@ -36,6 +36,20 @@ def test_gradcheck_command_on_a_user_mjcf_path(tmp_path):
     assert "Failed to import warp" not in out.stdout
 
 
+def test_xla_cache_warnings_are_quiet_unless_asked_for():
+    # every executable loaded from the compilation cache makes XLA's C++ runtime log a warning;
+    # twinrl sets TF_CPP_MIN_LOG_LEVEL=2 before JAX is imported, unless the user set it
+    code = "import os, twinrl; print(os.environ['TF_CPP_MIN_LOG_LEVEL'])"
+    for given, seen in ((None, "2"), ("0", "0")):
+        env = {k: v for k, v in os.environ.items() if k != "TF_CPP_MIN_LOG_LEVEL"}
+        if given is not None:
+            env["TF_CPP_MIN_LOG_LEVEL"] = given
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             env=env, cwd=ROOT, timeout=120)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.strip() == seen
+
+
 @pytest.mark.parametrize("args, message", [
     (["gradcheck", "/no/such/robot.xml"], "MJCF file not found: /no/such/robot.xml"),
     (["gradcheck", "nosuchscene"], "unknown scene 'nosuchscene'"),
