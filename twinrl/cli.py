@@ -367,6 +367,10 @@ def _sysid_parser(sub) -> None:
     p.add_argument("--window", type=int, default=None,
                    help="shooting window, steps (default: SysidConfig's, 20)")
     p.add_argument("--frames", type=int, default=4, help="frames used with --visual (default 4)")
+    p.add_argument("--twin-seed", type=int, default=None,
+                   help="evaluation only, with --visual: the seed of the real twin the dataset "
+                        "was recorded on (`collect --seed`); adds the errors against its hidden "
+                        "camera and object to summary.json")
     _common(p, "runs/sysid")
     p.set_defaults(func=_cmd_sysid)
 
@@ -388,13 +392,25 @@ def _cmd_sysid(args) -> int:
     if data.meta.get("env") not in (None, args.env):
         raise UsageError(f"--from {source} was recorded on {data.meta.get('env')!r}, "
                          f"not {args.env!r}")
+    if args.twin_seed is not None and not args.visual:
+        raise UsageError("--twin-seed evaluates a visual fit: use it with --visual")
     if args.visual:
         from twinrl.real2sim.visual import visual_sysid
 
         if not data.images:
             raise UsageError(f"--from {source} holds no images: record with "
                              f"`twinrl collect --images`")
-        visual_sysid(args.env, data, args.out, seed=args.seed, n_frames=args.frames)
+        summary = visual_sysid(args.env, data, args.out, seed=args.seed, n_frames=args.frames)
+        if args.twin_seed is not None:
+            from twinrl.eval import visual_errors
+
+            summary["evaluation"] = {"twin_seed": args.twin_seed,
+                                     **visual_errors(args.env, args.twin_seed, summary)}
+            report.print_table(f"evaluation only: errors against real twin seed {args.twin_seed}",
+                               ["error", "value"],
+                               [[k, v] for k, v in summary["evaluation"].items()
+                                if k != "twin_seed"])
+            report.write_json(args.out / "summary.json", summary)
         return 0
     from twinrl.real2sim import sysid
 

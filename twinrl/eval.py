@@ -12,7 +12,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-__all__ = ["param_errors", "real_return", "policy_real_return", "oracle_return"]
+__all__ = ["param_errors", "real_return", "policy_real_return", "oracle_return",
+           "visual_errors"]
 
 
 def param_errors(twin, result) -> dict[str, float]:
@@ -25,6 +26,50 @@ def param_errors(twin, result) -> dict[str, float]:
     rows = compare_to_truth(result, truth.params, truth.perturbation.latency_steps)
     return {row["parameter"]: float(row.get("aligned_rel_err", row["rel_err"]))
             for row in rows if not str(row.get("status", "")).startswith(("known", "not ident"))}
+
+
+def visual_errors(env_name: str, twin_seed: int, summary: dict) -> dict[str, float]:
+    """Errors of a visual fit (``twinrl.real2sim.visual.visual_sysid``'s summary) against the
+    hidden truth of the real twin ``make_real(env_name, seed=twin_seed)`` the frames came from:
+    camera position (mm) and rotation (deg) against its offset camera; the object's position
+    offset (mm; the frames' recorded states are where the object really was, so the truth is 0),
+    size (largest relative error, %) and colour (largest channel error, /255) against its true
+    model."""
+    import mujoco
+
+    from twinrl import envs
+    from twinrl.render import Camera
+
+    twin = envs.make_real(env_name, seed=twin_seed)
+    try:
+        model = twin.oracle().model
+    finally:
+        twin.close()
+    out: dict[str, float] = {}
+    if "camera" in summary:
+        c = summary["camera"]
+        d = mujoco.MjData(model)
+        mujoco.mj_forward(model, d)
+        true = Camera.from_mujoco(model, d, summary["camera_name"])
+        A = np.asarray(true.xmat, np.float64)
+        q = np.asarray(c["quat"], np.float64)
+        B = np.empty(9)
+        mujoco.mju_quat2Mat(B, q / np.linalg.norm(q))
+        cos = (np.trace(A.T @ B.reshape(3, 3)) - 1) / 2
+        out["camera_pos_err_mm"] = float(np.linalg.norm(np.asarray(c["pos"]) - np.asarray(
+            true.pos)) * 1e3)
+        out["camera_rot_err_deg"] = float(np.rad2deg(np.arccos(np.clip(cos, -1, 1))))
+    if "object" in summary:
+        o = summary["object"]
+        gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, o["geom"])
+        size = np.asarray(model.geom_size[gid], np.float64)
+        used = size > 0
+        out["object_pos_err_mm"] = float(np.linalg.norm(o["pos_offset"]) * 1e3)
+        out["object_size_err_pct"] = float(np.max(np.abs(
+            np.asarray(o["size"])[used] / size[used] - 1)) * 100)
+        out["object_colour_err_255"] = float(np.max(np.abs(
+            np.asarray(o["rgb"]) - model.geom_rgba[gid, :3])) * 255)
+    return out
 
 
 def real_return(env_name, seed, policy_dir, episodes, perturbation=None):
