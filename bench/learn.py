@@ -7,6 +7,9 @@ For every task (``pendulum_swingup``, ``cartpole_swingup``; simulated) and algor
 - final return (deterministic policy, mean over evaluation episodes), mean +- std over seeds;
 - wall-clock seconds (compile included) and env steps to first reach 90% of the best final return
   that any algorithm reached on the task (mean over the seeds that reached it, and how many did);
+- whether each run **solved** the task (issue #4: an evaluation return >= 130 of the maximum 250
+  while the mean of the last 10 evaluations is >= 130 too), and the epoch, seconds and env steps
+  at which it first did;
 - seconds to reach PPO's final return, and that time as a fraction of PPO's whole run (the issue's
   target for the best differentiable algorithm: <= 1/5);
 - a plot of return against wall-clock and against env steps (``learn.png``), a printed table and
@@ -43,6 +46,9 @@ from twinrl.report import print_table, write_json
 ALGOS = ("pods", "pods2", "hds", "shac", "ppo", "apg")
 TASKS = ("pendulum_swingup", "cartpole_swingup")
 FRACTION = 0.9
+SOLVED = 130.0
+"""Issue #4's "solved": return >= SOLVED with the SOLVED_WINDOW-evaluation running mean >= it."""
+SOLVED_WINDOW = 10
 
 QUICK_TASK = {"episode_length": 40}
 QUICK = {
@@ -51,9 +57,11 @@ QUICK = {
     "ppo": dict(num_timesteps=2048, num_envs=8, batch_size=8, num_minibatches=4,
                 unroll_length=8, num_updates_per_batch=1, num_evals=3, num_eval_envs=4),
     "apg": dict(policy_updates=4, horizon_length=8, num_envs=4, num_evals=3, num_eval_envs=4),
-    # PODS/HDS configs are another module's: only the fields they have are overridden.
-    "pods": dict(epochs=3, num_envs=8, num_rollouts=8, eval_episodes=2),
-    "hds": dict(epochs=3, num_envs=8, num_rollouts=8, eval_episodes=2, horizon=8),
+    # short windows: QUICK_TASK's 40-step episodes are shorter than the default horizon (50)
+    "pods": dict(epochs=3, batch_size=4, horizon=8, regression_steps=8, critic_steps=8,
+                 eval_episodes=2),
+    "hds": dict(epochs=3, batch_size=4, horizon=8, regression_steps=8, critic_steps=8,
+                eval_episodes=2),
 }
 
 
@@ -100,6 +108,16 @@ def first_reach(run_: dict, threshold: float) -> tuple[float, float]:
     return float(run_["wall_s"][hit[0]]), float(run_["env_steps"][hit[0]])
 
 
+def first_solved(run_: dict) -> tuple[float, float, float]:
+    """(epoch, wall_s, env_steps) of the first evaluation that solves the task (``SOLVED``);
+    NaN if none."""
+    r = np.nan_to_num(np.asarray(run_["return"], float), nan=-np.inf)
+    for i in range(SOLVED_WINDOW - 1, len(r)):
+        if r[i] >= SOLVED and r[i - SOLVED_WINDOW + 1:i + 1].mean() >= SOLVED:
+            return float(i + 1), float(run_["wall_s"][i]), float(run_["env_steps"][i])
+    return float("nan"), float("nan"), float("nan")
+
+
 def _mean(xs) -> float:
     xs = [x for x in xs if np.isfinite(x)]
     return float(np.mean(xs)) if xs else float("nan")
@@ -118,6 +136,7 @@ def analyse(task_runs: dict[str, list[dict]]) -> dict:
         if not runs:
             continue
         reach = [first_reach(r, threshold) for r in runs]
+        solved = [first_solved(r) for r in runs]
         to_ppo = [first_reach(r, ppo_final)[0] for r in runs] if np.isfinite(ppo_final) else []
         out["algos"][a] = {
             "final_mean": float(np.mean(finals[a])), "final_std": float(np.std(finals[a])),
@@ -126,6 +145,11 @@ def analyse(task_runs: dict[str, list[dict]]) -> dict:
             "time_to_threshold_s": _mean([t for t, _ in reach]),
             "steps_to_threshold": _mean([s for _, s in reach]),
             "reached": int(sum(np.isfinite(t) for t, _ in reach)), "seeds": len(runs),
+            "best_mean": float(np.mean([np.max(r["return"]) for r in runs])),
+            "solved": int(sum(np.isfinite(e) for e, _, _ in solved)),
+            "epochs_to_solved": _mean([e for e, _, _ in solved]),
+            "time_to_solved_s": _mean([t for _, t, _ in solved]),
+            "steps_to_solved": _mean([x for _, _, x in solved]),
             "time_to_ppo_final_s": _mean(to_ppo),
             "fraction_of_ppo_wall": _mean(to_ppo) / ppo_wall if to_ppo else float("nan"),
             "runs": runs,
@@ -201,11 +225,13 @@ def main(argv=None) -> int:
             rows.append([task, a, f"{r['final_mean']:.1f} ± {r['final_std']:.1f}",
                          r["wall_s_mean"], r["env_steps_final"], r["time_to_threshold_s"],
                          r["steps_to_threshold"], f"{r['reached']}/{r['seeds']}",
+                         f"{r['solved']}/{r['seeds']}", r["time_to_solved_s"],
                          r["time_to_ppo_final_s"], r["fraction_of_ppo_wall"]])
     print_table(f"Learn@Sim ({args.seeds} seeds; threshold = {FRACTION:.0%} of the best final "
                 f"return per task; {jax.devices()[0].platform})",
                 ["task", "algo", "final return", "wall s", "env steps", "s to thr",
-                 "steps to thr", "reached", "s to PPO final", "/ PPO wall"], rows)
+                 "steps to thr", "reached", "solved", "s to solved", "s to PPO final",
+                 "/ PPO wall"], rows)
     for k, v in skipped.items():
         print(f"skipped {k}: {v}")
     args.out.mkdir(parents=True, exist_ok=True)

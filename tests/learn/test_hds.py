@@ -1,6 +1,7 @@
 """``twinrl.learn.hds``: exploration noise decays, the simulated-annealing step size runs and is
 logged, rollouts through a drop-in ``dynamics`` are counted, a model fraction without dynamics is
-refused, and a resumed run equals an uninterrupted one.
+refused, the critic (on every rollout, model ones included) is fitted and resumed, and a resumed
+run equals an uninterrupted one.
 
 One compiled config (a short pendulum with half the rollouts through a heavier pendulum's
 ``step``) serves every test: ``hds._build`` is memoised per env, config and dynamics. Measured with a cold compilation cache
@@ -17,7 +18,8 @@ from twinrl.learn.hds import HDSConfig
 
 CFG = dict(batch_size=4, rollout_length=40, horizon=20, line_search_steps=4, regression_steps=32,
            hidden=(32, 32), eval_episodes=4, eval_length=40, noise_std=0.3, noise_decay=0.8,
-           anneal_temperature=0.01, anneal_cooling=0.7, model_fraction=0.5)
+           anneal_temperature=0.01, anneal_cooling=0.7, model_fraction=0.5, critic=True,
+           critic_steps=8)
 EPOCHS = 6
 CUT = 2
 
@@ -79,6 +81,18 @@ def test_contract_and_finite(run):
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(params))
     assert np.all(np.isfinite(metrics["return"]))
     assert sorted(captured) == metrics["epoch"]
+    # the critic bootstraps the windows of env and model rollouts alike, and its fit helps
+    assert np.all(np.array(metrics["value_loss"]) < np.array(metrics["value_loss_before"]))
+    first, last = captured[1][0].critic_params, captured[EPOCHS][0].critic_params
+    assert any(not np.allclose(a, b) for a, b in zip(jax.tree_util.tree_leaves(first),
+                                                     jax.tree_util.tree_leaves(last)))
+
+
+def test_tuned_cartpole_config():
+    from twinrl.learn import runner
+    cfg = runner.make_config("hds", "cartpole_swingup")
+    assert cfg.critic and cfg.step_size_bounds == (0.25, 20.0)
+    assert runner.make_config("hds", "pendulum_swingup").critic is False
 
 
 def test_noise_decays(run):

@@ -18,6 +18,7 @@ import textwrap
 from unittest import mock
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -140,11 +141,80 @@ def test_config_errors():
     for bad, word in [(dict(batch_size=0), "batch_size"), (dict(horizon=0), "horizon"),
                       (dict(rollout_length=10, horizon=20), "horizon"),
                       (dict(order=3), "order"), (dict(learning_rate=0.0), "learning_rate"),
-                      (dict(max_grad_norm=-1.0), "max_grad_norm")]:
+                      (dict(max_grad_norm=-1.0), "max_grad_norm"),
+                      (dict(max_step_norm=0.0), "max_step_norm"), (dict(gamma=1.0), "gamma"),
+                      (dict(lam=1.5), "lam"), (dict(critic_steps=0), "critic_steps"),
+                      (dict(critic_learning_rate=0.0), "critic_learning_rate")]:
         with pytest.raises(ValueError, match=word):
             PODSConfig(**bad)
     with pytest.raises(TypeError, match="PODSConfig"):
         pods.train(None, trajopt.TrajoptConfig())
+
+
+# ----------------------------------------------------------------------------- critic
+def test_critic_targets_are_td_lambda_returns():
+    rng = np.random.default_rng(0)
+    B, T, gamma = 2, 7, 0.9
+    obs = rng.standard_normal((B, T, 3)).astype(np.float32)
+    final_obs = rng.standard_normal((B, 3)).astype(np.float32)
+    rewards = rng.uniform(0, 1, (B, T)).astype(np.float32)
+    valid = np.ones((B, T), bool)
+    valid[1, 5:] = False  # rollout 1 diverged after its 5th step
+    final_valid = valid[:, -1].copy()
+    value = lambda o: np.asarray(o, np.float64).sum(-1)  # noqa: E731
+    args = (obs, rewards, valid, final_obs, final_valid, gamma)
+    # lambda = 1: the discounted return, bootstrapped with V(final) at the truncation
+    g1 = np.asarray(pods.critic_targets(lambda o: jnp.sum(o, -1), *args, 1.0))
+    v_final = value(final_obs)
+    for t in range(T):
+        ref = sum(gamma ** (k - t) * rewards[0, k] for k in range(t, T)) \
+            + gamma ** (T - t) * v_final[0]
+        np.testing.assert_allclose(g1[0, t], ref, rtol=1e-5)
+    for t in range(4):  # rollout 1 ends at its last live step: nothing after it
+        ref = sum(gamma ** (k - t) * rewards[1, k] for k in range(t, 5))
+        np.testing.assert_allclose(g1[1, t], ref, rtol=1e-5)
+    # lambda = 0: one-step TD targets r_t + gamma V(s_{t+1})
+    g0 = np.asarray(pods.critic_targets(lambda o: jnp.sum(o, -1), *args, 0.0))
+    v = value(obs)
+    np.testing.assert_allclose(g0[0, :-1], rewards[0, :-1] + gamma * v[0, 1:], rtol=1e-5)
+    np.testing.assert_allclose(g0[0, -1], rewards[0, -1] + gamma * v_final[0], rtol=1e-5)
+
+
+def test_critic_is_fitted_and_bootstraps_the_windows(pendulum):
+    cfg = PODSConfig(epochs=4, critic=True, critic_steps=16, **SMALL)
+    states = {}
+    _, params, metrics = pods.train(pendulum, cfg, jax.random.PRNGKey(0),
+                                    checkpoint_fn=lambda e, st, m: states.__setitem__(e, st))
+    for k in ("value_loss", "value_loss_before", "value", "return", "loss"):
+        assert len(metrics[k]) == 4 and np.all(np.isfinite(metrics[k])), k
+    # every epoch's fit lowers the TD(lambda) error it starts from
+    assert np.all(np.array(metrics["value_loss"]) < np.array(metrics["value_loss_before"]))
+    assert metrics["value"][-1] > 0  # rewards are >= 0
+    assert max(metrics["accepted_frac"]) > 0
+    assert metrics["env_steps"][-1] == 4 * cfg.steps_per_epoch(pendulum)  # no extra simulation
+    c1, c4 = states[1].critic_params, states[4].critic_params
+    assert any(not np.allclose(a, b) for a, b in zip(jax.tree_util.tree_leaves(c1),
+                                                     jax.tree_util.tree_leaves(c4)))
+    # the critic-less run carries an (untouched) critic of the same structure
+    assert (jax.tree_util.tree_structure(states[1])
+            == jax.tree_util.tree_structure(captured_state(pendulum)))
+
+
+def captured_state(env):
+    seen = {}
+    pods.train(env, PODSConfig(epochs=1, **SMALL), 0,
+               checkpoint_fn=lambda e, st, m: seen.setdefault("s", st))
+    return seen["s"]
+
+
+def test_tuned_cartpole_configs_use_the_critic():
+    from twinrl.learn import runner
+    for algo in ("pods", "pods2"):
+        cfg = runner.make_config(algo, "cartpole_swingup")
+        assert cfg.critic and cfg.trajopt_config().discount == cfg.gamma
+        assert cfg.order == (2 if algo == "pods2" else 1)
+    assert runner.make_config("pods", "pendulum_swingup").critic is False
+    assert PODSConfig().trajopt_config().discount == 1.0  # PODS's plain return by default
 
 
 # ----------------------------------------------------------------------------- push, order 2

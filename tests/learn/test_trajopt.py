@@ -50,9 +50,10 @@ def _lq_problem(nan_reward=False):
     return rollout_fn, reward_fn
 
 
-def _lq_optimum():
+def _lq_optimum(gamma=1.0, terminal=None):
     """Closed form: s = S0 + G a, so V = -(s'Qs + a'Ra) is maximised by
-    (G'QG + R) a = -G'Q S0 over the stacked sequences."""
+    (G'QG + R) a = -G'Q S0 over the stacked sequences; with a discount the blocks of Q and R are
+    weighted by gamma^t, and a terminal value -s'Ps adds gamma^T P to the last state's block."""
     A, B, Q, R, s0 = _lq()
     G = np.zeros((T_LQ * N_LQ, T_LQ * M_LQ))
     S0 = np.zeros(T_LQ * N_LQ)
@@ -61,8 +62,11 @@ def _lq_optimum():
         for k in range(t + 1):
             G[t * N_LQ:(t + 1) * N_LQ, k * M_LQ:(k + 1) * M_LQ] = (
                 np.linalg.matrix_power(A, t - k) @ B)
-    Qb = np.kron(np.eye(T_LQ), Q)
-    Rb = np.kron(np.eye(T_LQ), R)
+    w = gamma ** np.arange(T_LQ)
+    Qb = np.kron(np.diag(w), Q)
+    if terminal is not None:
+        Qb[-N_LQ:, -N_LQ:] += gamma ** T_LQ * terminal
+    Rb = np.kron(np.diag(w), R)
     a = np.linalg.solve(G.T @ Qb @ G + Rb, -G.T @ Qb @ S0)
     s = S0 + G @ a
     return a.reshape(T_LQ, M_LQ), -(s @ Qb @ s + a @ Rb @ a)
@@ -98,6 +102,71 @@ def test_first_order_improves_monotonically_towards_the_lq_optimum():
     np.testing.assert_allclose(np.asarray(hist.old_value)[1:], np.asarray(hist.value)[:-1])
     assert v_star - values[-1] < 0.05 * (v_star - v0)
     assert values[-1] <= v_star + 1e-12
+
+
+GAMMA = 0.9
+P_TERM = np.diag([3.0, 1.0, 0.5])
+
+
+def _terminal_fn(s):
+    return -(s @ jnp.asarray(P_TERM, s.dtype) @ s)
+
+
+def test_discount_and_terminal_value():
+    a_star, v_star = _lq_optimum(GAMMA, P_TERM)
+    with jax.enable_x64(True):
+        rollout_fn, reward_fn = _lq_problem()
+        a0 = jnp.zeros((T_LQ, M_LQ), jnp.float64)
+        # the objective is the hand-written one
+        a1 = jnp.asarray(np.random.default_rng(1).uniform(-0.5, 0.5, (T_LQ, M_LQ)))
+        states = rollout_fn(a1)
+        manual = sum(GAMMA ** t * reward_fn(states[t], a1[t]) for t in range(T_LQ))
+        manual = manual + GAMMA ** T_LQ * _terminal_fn(states[-1])
+        v = trajopt.trajectory_return(rollout_fn, reward_fn, a1, GAMMA, _terminal_fn)
+        np.testing.assert_allclose(v, manual, rtol=1e-12)
+        # with the terminal value's curvature the full Gauss-Newton step solves the LQ problem
+        cfg = TrajoptConfig(order=2, step_size=1.0, line_search_steps=4, regularization=1e-9,
+                            discount=GAMMA, terminal_curvature=True)
+        res = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, cfg, _terminal_fn))(a0)
+        assert bool(res.accepted) and float(res.alpha) == 1.0
+        np.testing.assert_allclose(res.actions, a_star, atol=1e-6)
+        np.testing.assert_allclose(res.value, v_star, rtol=1e-9)
+        # without it (the default: a learned critic enters linearly) the step still ascends,
+        # and first-order steps climb towards the same optimum
+        cfg_lin = TrajoptConfig(order=2, regularization=1e-9, discount=GAMMA)
+        lin = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, cfg_lin, _terminal_fn))(a0)
+        assert bool(lin.accepted) and float(lin.value) > float(lin.old_value)
+        assert not np.allclose(lin.actions, a_star, atol=1e-3)
+        cfg1 = TrajoptConfig(order=1, step_size=0.5, line_search_steps=6, discount=GAMMA)
+        _, hist = jax.jit(lambda a: optimize(rollout_fn, reward_fn, a, cfg1, 40, _terminal_fn))(
+            a0 + 0.5)
+        v0 = float(trajopt.trajectory_return(rollout_fn, reward_fn, a0 + 0.5, GAMMA, _terminal_fn))
+        values = np.concatenate([[v0], np.asarray(hist.value)])
+        assert np.all(np.diff(values) >= 0)
+        assert v_star - values[-1] < 0.05 * (v_star - v0)
+
+
+def test_max_step_norm_and_direction_scale():
+    with jax.enable_x64(True):
+        rollout_fn, reward_fn = _lq_problem()
+        a0 = jnp.full((T_LQ, M_LQ), 0.5, jnp.float64)
+        # a trust region: the accepted change is at most step_size * max_step_norm
+        cfg = TrajoptConfig(order=2, step_size=1.0, line_search_steps=4, regularization=1e-9,
+                            max_step_norm=0.05)
+        res = improve(rollout_fn, reward_fn, a0, cfg)
+        assert bool(res.accepted)
+        np.testing.assert_allclose(float(jnp.linalg.norm(res.actions - a0)), 0.05, rtol=1e-9)
+        # direction_scale s with step_size 1 tries exactly step_size s's candidates
+        base = TrajoptConfig(order=1, step_size=1.0, line_search_steps=5)
+        scaled = improve(rollout_fn, reward_fn, a0, base, direction_scale=jnp.float64(0.25))
+        plain = improve(rollout_fn, reward_fn, a0, TrajoptConfig(order=1, step_size=0.25,
+                                                                 line_search_steps=5))
+        np.testing.assert_allclose(scaled.actions, plain.actions, rtol=1e-12)
+        np.testing.assert_allclose(scaled.alpha, plain.alpha, rtol=1e-12)
+    for bad, word in [(dict(discount=0.0), "discount"), (dict(discount=1.5), "discount"),
+                      (dict(max_step_norm=0.0), "max_step_norm")]:
+        with pytest.raises(ValueError, match=word):
+            TrajoptConfig(**bad)
 
 
 @pytest.mark.parametrize("order", [1, 2])
