@@ -246,8 +246,8 @@ def main(argv=None):
                            ["seed", "hidden cam", *keys],
                            [[r["seed"], f"{r['hidden_cam_offset_mm']:.0f} mm "
                              f"{r['hidden_cam_rot_deg']:.1f} deg",
-                             *[f"{r[k + '_before'] if k + '_before' in r else r[k.replace('_err', '_err')]:.3g}"
-                               f" -> {r[k]:.3g}" for k in keys]] for r in rows])
+                             *[f"{r[k + '_before']:.3g} -> {r[k]:.3g}" for k in keys]]
+                            for r in rows])
     elif "visual" in prev:
         out["visual"] = prev["visual"]
     report.write_json(args.out, out)

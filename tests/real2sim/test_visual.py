@@ -1,6 +1,6 @@
-"""Visual Real2Sim on OpenGL frames (48x48 for the camera, 128x128 for the object): a camera offset of
-3.6 cm / 5 deg and an object's position, size and colour are recovered to the issue's tolerances;
-bad frames are refused with clear errors."""
+"""Visual Real2Sim on OpenGL frames (48x48 for the camera, 128x128 for the object): a camera offset
+of 3.6 cm / 5 deg and an object's position, size and colour are recovered to the issue's
+tolerances; bad frames are refused with clear errors; the evaluation's errors against the twin."""
 
 import mujoco
 import numpy as np

@@ -100,8 +100,8 @@ class VisualConfig:
     resting on a table). Its underside is hidden, so from images alone its height trades against
     its size; a resting object's support is known."""
     coarse_size: int = 64
-    """Longest side (pixels) of the images the Adam stage of (a), (b) and (c) sees: larger frames are
-    subsampled by an integer step, keeping exactly the pixels a camera that many times coarser
+    """Longest side (pixels) of the images the Adam stage of (a), (b) and (c) sees: larger frames
+    are subsampled by an integer step, keeping exactly the pixels a camera that many times coarser
     would see (``Camera.window``). The refinement uses every pixel: edges are placed to a finer
     pixel, and the Adam stage's cost does not grow with the resolution."""
     roi_margin: int = 6
@@ -489,12 +489,12 @@ def _object_windows(frames, camera: Camera, gid: int, margin: int):
     cameras stacked (a leading frame axis). The whole image when the object is missing from a
     frame."""
     H, W = camera.height, camera.width
+    stack = lambda cams: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *cams)  # noqa: E731
     boxes = []
     for f in frames:
         rows, cols = np.nonzero(np.asarray(f["segmentation"]) == gid)
         if rows.size == 0:
-            return list(frames), jax.tree_util.tree_map(lambda *a: jnp.stack(a),
-                                                        *[camera] * len(frames))
+            return list(frames), stack([camera] * len(frames))
         boxes.append((rows.min(), rows.max(), cols.min(), cols.max()))
     b = np.asarray(boxes)
     h = min(H, int((b[:, 1] - b[:, 0]).max()) + 1 + 2 * margin)
@@ -505,7 +505,7 @@ def _object_windows(frames, camera: Camera, gid: int, margin: int):
         c0 = int(np.clip((c_lo + c_hi + 1 - w) // 2, 0, W - w))
         out.append(_crop(f, r0, c0, h, w, 1))
         cams.append(camera.window(r0, c0, h, w))
-    return out, jax.tree_util.tree_map(lambda *a: jnp.stack(a), *cams)
+    return out, stack(cams)
 
 
 # ---------------------------------------------------------------------- object (b)
