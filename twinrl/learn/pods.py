@@ -431,26 +431,15 @@ def critic_targets(value_fn: Callable, obs, rewards, valid, final_obs, final_val
 def make_critic_update(value_apply: Callable, optimizer, steps: int, gamma: float, lam: float):
     """``update(critic_params, opt_state, obs (B, T, o), rewards, valid (B, T), final_obs (B, o),
     final_valid (B,)) -> (critic_params, opt_state, loss_before, loss_after)``: TD(lambda) targets
-    from the current critic, then ``steps`` full-batch Adam steps on the weighted squared error."""
+    from the current critic, then ``steps`` full-batch Adam steps on the squared error of the
+    valid states (``make_regress``, the policy's regression, with a one-output network)."""
+    regress = make_regress(lambda p, x: value_apply(p, x)[..., None], optimizer, steps)
 
     def update(cparams, opt_state, obs, rewards, valid, final_obs, final_valid):
         targets = critic_targets(lambda o: value_apply(cparams, o), obs, rewards, valid,
                                  final_obs, final_valid, gamma, lam)
-        w = valid.astype(jnp.float32)
-        x = jnp.where(valid[..., None], obs, 0.0)
-
-        def loss_fn(p):
-            se = jnp.square(value_apply(p, x) - targets)
-            return jnp.sum(w * se) / jnp.maximum(jnp.sum(w), 1.0)
-
-        def body(carry, _):
-            p, s = carry
-            loss, g = jax.value_and_grad(loss_fn)(p)
-            u, s = optimizer.update(g, s, p)
-            return (optax.apply_updates(p, u), s), loss
-
-        (p, s), losses = jax.lax.scan(body, (cparams, opt_state), None, length=steps)
-        return p, s, losses[0], loss_fn(p)
+        p, s, loss_after, _, loss_before = regress(cparams, opt_state, obs, targets, valid)
+        return p, s, loss_before, loss_after
 
     return update
 
