@@ -23,12 +23,18 @@ meaningless). The full run takes long on a CPU; run it on an otherwise idle mach
     python bench/learn.py --out bench/results                    # everything, 3 seeds
     python bench/learn.py --algos shac ppo --envs cartpole_swingup --seeds 1
     python bench/learn.py --quick --out /tmp/learn_quick
+
+Each finished run is also written to ``--out/learn_runs/TASK-ALGO-SEED.json`` and reused by a
+later invocation with the same ``--out`` (``--fresh`` ignores them), so a long benchmark can be
+split over several processes (one task each, one core each) or continued after an interruption;
+the final invocation with every task then analyses all the runs together.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import platform
 import sys
 import time
@@ -193,9 +199,12 @@ def main(argv=None) -> int:
     p.add_argument("--envs", nargs="*", default=list(TASKS), choices=envs.names())
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     p.add_argument("--quick", action="store_true", help="tiny configurations (smoke test)")
+    p.add_argument("--fresh", action="store_true",
+                   help="re-run every run instead of reusing --out/learn_runs/*.json")
     args = p.parse_args(argv)
     if args.seeds < 1:
         p.error(f"--seeds must be >= 1, got {args.seeds}")
+    runs_dir = args.out / "learn_runs"
 
     results, skipped = {}, {}
     for task in args.envs:
@@ -208,9 +217,17 @@ def main(argv=None) -> int:
                 continue
             runs = []
             for seed in range(args.seeds):
+                cached = runs_dir / f"{task}-{algo}-{seed}.json"
+                if cached.exists() and not args.fresh:
+                    saved = json.loads(cached.read_text())
+                    if saved.get("quick") == args.quick:
+                        print(f"{algo} on {task}, seed {seed}: reusing {cached}", flush=True)
+                        runs.append(saved["run"])
+                        continue
                 print(f"{algo} on {task}, seed {seed} ...", flush=True)
                 try:
                     runs.append(run(algo, task, seed, args.quick))
+                    write_json(cached, {"quick": args.quick, "run": runs[-1]})
                 except Exception as e:  # one broken algorithm must not sink the others' numbers
                     traceback.print_exc()
                     skipped[f"{algo}/{task}"] = f"failed: {type(e).__name__}: {e}"
