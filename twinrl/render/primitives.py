@@ -10,7 +10,8 @@ image, which must agree with OpenGL's. ``closest_*`` gives the closest approach 
 to the surface as ``(s*, signed distance)``, negative when the ray passes through the solid: the
 quantity the soft silhouette (SoftRas, Liu et al. 2019, Sec. 3.2: a sigmoid of the signed distance
 to the boundary) blurs, so that a pose moving an edge gets a gradient where the hard image has
-none. Where a closed form exists it is used; boxes, cylinders and convex meshes minimise their
+none. Where a closed form exists it is used (boxes: nearest edge outside, the crossing of two
+faces inside); cylinders and convex meshes minimise their
 signed distance function along the ray by golden-section search with the minimiser held constant
 (``stop_gradient``): by the envelope theorem the gradient of ``min_s f(s, theta)`` is
 ``df/dtheta`` at the minimiser, so the search itself need not be differentiated.
@@ -25,8 +26,40 @@ INF = jnp.inf
 _EPS = 1e-12
 
 
+# Reductions over a short last axis (xyz, the faces of a box, the geoms of a scene) are written
+# out element by element: XLA on CPU then fuses them with their neighbours, where a reduce over a
+# minor axis of 3 is a kernel of its own (and slow); the arithmetic is the same.
+def _reduce_last(op, x):
+    out = x[..., 0]
+    for i in range(1, x.shape[-1]):
+        out = op(out, x[..., i])
+    return out
+
+
+def _unrolled(op, reference):
+    """The reduction ``op`` over the last axis written out, with the tangent of ``reference``
+    (the ``jnp`` reduction): the reverse pass then broadcasts one cotangent instead of padding
+    one per element (slices transpose to pads, which XLA on CPU does not fuse well)."""
+
+    @jax.custom_jvp
+    def f(x):
+        return _reduce_last(op, x)
+
+    @f.defjvp
+    def _jvp(primals, tangents):
+        return f(primals[0]), jax.jvp(reference, primals, tangents)[1]
+
+    return f
+
+
+sum_last = _unrolled(jnp.add, lambda x: jnp.sum(x, -1))
+max_last = _unrolled(jnp.maximum, lambda x: jnp.max(x, -1))
+min_last = _unrolled(jnp.minimum, lambda x: jnp.min(x, -1))
+prod_last = _unrolled(jnp.multiply, lambda x: jnp.prod(x, -1))
+
+
 def _dot(a, b):
-    return jnp.sum(a * b, -1)
+    return sum_last(a * b)
 
 
 def _safe_sqrt(x):
@@ -98,8 +131,8 @@ def hit_cylinder(o, r, size):
 def hit_box(o, r, size):
     t1 = _safe_div(-size - o, r)
     t2 = _safe_div(size - o, r)
-    tmin = jnp.max(jnp.minimum(t1, t2), -1)
-    tmax = jnp.min(jnp.maximum(t1, t2), -1)
+    tmin = max_last(jnp.minimum(t1, t2))
+    tmax = min_last(jnp.maximum(t1, t2))
     return jnp.where((tmin <= tmax) & (tmin > 0), tmin, INF)
 
 
@@ -116,16 +149,16 @@ def hit_plane(o, r, size):
 # ------------------------------------------------------------------ signed distance functions
 def sdf_box(p, size):
     q = jnp.abs(p) - size
-    out = jnp.sqrt(jnp.sum(jnp.maximum(q, 0.0) ** 2, -1) + 1e-20)
-    return out + jnp.minimum(jnp.max(q, -1), 0.0)
+    out = jnp.sqrt(sum_last(jnp.maximum(q, 0.0) ** 2) + 1e-20)
+    return out + jnp.minimum(max_last(q), 0.0)
 
 
 def sdf_cylinder(p, size):
     rad, h = size[..., 0], size[..., 1]
     rxy = jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + 1e-20)
-    q = jnp.stack([rxy - rad, jnp.abs(p[..., 2]) - h], -1)
-    return jnp.minimum(jnp.max(q, -1), 0.0) + jnp.sqrt(jnp.sum(jnp.maximum(q, 0.0) ** 2, -1)
-                                                       + 1e-20)
+    q0, q1 = rxy - rad, jnp.abs(p[..., 2]) - h
+    return jnp.minimum(jnp.maximum(q0, q1), 0.0) + jnp.sqrt(
+        jnp.maximum(q0, 0.0) ** 2 + jnp.maximum(q1, 0.0) ** 2 + 1e-20)
 
 
 def sdf(gtype: int, p, size):
@@ -139,7 +172,7 @@ def sdf(gtype: int, p, size):
         return jnp.sqrt(_dot(q, q) + 1e-20) - size[..., 0]
     if gtype == 4:
         q = p / size
-        return (jnp.sqrt(_dot(q, q) + 1e-20) - 1.0) * jnp.min(size, -1)
+        return (jnp.sqrt(_dot(q, q) + 1e-20) - 1.0) * min_last(size)
     if gtype == 5:
         return sdf_cylinder(p, size)
     if gtype == 6:
@@ -159,6 +192,8 @@ def golden_min(f, lo, hi, iters: int):
     c, d = hi - g * (hi - lo), lo + g * (hi - lo)
     fc, fd = f(c), f(d)
 
+    # The state travels as one stacked array, so that each iteration is one fused kernel (XLA on
+    # CPU gives every output of a loop body a kernel of its own, each recomputing ``f``).
     def body(_, st):
         lo, hi, c, d, fc, fd = st
         left = fc < fd
@@ -169,10 +204,10 @@ def golden_min(f, lo, hi, iters: int):
         x = jnp.where(left, nc, nd)
         fx = f(x)
         fc, fd = jnp.where(left, fx, fd), jnp.where(left, fc, fx)
-        return lo, hi, nc, nd, fc, fd
+        return jnp.stack([lo, hi, nc, nd, fc, fd])
 
-    lo, hi, *_ = jax.lax.fori_loop(0, iters, body, (lo, hi, c, d, fc, fd))
-    return 0.5 * (lo + hi)
+    st = jax.lax.fori_loop(0, iters, body, jnp.stack([lo, hi, c, d, fc, fd]))
+    return 0.5 * (st[0] + st[1])
 
 
 def _line_search_sdf(sdf, o, r, size, rbound, iters):
@@ -233,8 +268,8 @@ def _edges_closest(o, r, a, b):
     return pick(s), pick(d)
 
 
-def _box_edges(size):
-    """The 12 edges of a box of half-extents ``size`` (..., 3) as endpoints (..., 12, 3)."""
+def _box_edge_table():
+    """The 12 edges of the box ``[-1, 1]^3`` as NumPy endpoints ``a``, ``b`` (12, 3) each."""
     import itertools
 
     import numpy as np
@@ -249,7 +284,13 @@ def _box_edges(size):
             hi[axis] = 1.0
             a.append(lo)
             b.append(hi)
-    a, b = jnp.asarray(np.array(a), size.dtype), jnp.asarray(np.array(b), size.dtype)
+    return np.array(a), np.array(b)
+
+
+def _box_edges(size):
+    """The 12 edges of a box of half-extents ``size`` (..., 3) as endpoints (..., 12, 3)."""
+    a, b = _box_edge_table()
+    a, b = jnp.asarray(a, size.dtype), jnp.asarray(b, size.dtype)
     return a * size[..., None, :], b * size[..., None, :]
 
 
@@ -269,15 +310,99 @@ def polyhedral_depth(m, c, s0):
     return jnp.where(kink, ma * s + ca, ma * s0 + ca)
 
 
+def _broadcast(*xs):
+    """Arrays broadcast to one shape up front: a small operand (a geom's size) broadcast
+    implicitly in every operation gets one reduction per use in the reverse pass; broadcast once,
+    its cotangents add elementwise and are reduced once."""
+    shape = jnp.broadcast_shapes(*(x.shape for x in xs))
+    return tuple(jnp.broadcast_to(x, shape) for x in xs)
+
+
+def _onehot_pick(x, k, n):
+    """``x[..., k]`` for an integer array ``k`` (``x`` (..., n) or (n,)) as a masked sum: under XLA
+    on CPU it fuses, where ``take_along_axis`` is a gather (and its transpose a scatter)."""
+    return jnp.sum(jnp.where(k[..., None] == jnp.arange(n), x, 0.0), -1)
+
+
+def _box_edges_closest(o, r, size):
+    """``_edges_closest`` over ``_box_edges(size)``: the nearest edge is found without gradients
+    (per coordinate, with no minor axis of 3 or 12), then only its ``line_segment`` is
+    differentiated: the same values and gradients as differentiating all 12 and picking one,
+    without 12 edges' worth of reverse pass."""
+    o_, r_, h_ = (jax.lax.stop_gradient(x) for x in _broadcast(o, r, size))
+    o_, r_, h_ = ([x[..., i] for i in range(3)] for x in (o_, r_, h_))
+    ta, tb = _box_edge_table()
+    te = tb - ta
+    rr = r_[0] * r_[0] + r_[1] * r_[1] + r_[2] * r_[2]
+    irr = 1.0 / rr
+    ta_, te_ = jnp.asarray(ta, size.dtype), jnp.asarray(te, size.dtype)
+
+    # a loop, not an unrolled chain of selects: XLA on CPU splits a long unrolled chain into
+    # fusions that each recompute most of it
+    def edge(k, best):
+        best_k, best_d = best
+        a = [ta_[k, i] * h_[i] for i in range(3)]
+        e = [te_[k, i] * h_[i] for i in range(3)]
+        s0 = ((a[0] - o_[0]) * r_[0] + (a[1] - o_[1]) * r_[1] + (a[2] - o_[2]) * r_[2]) * irr
+        ds = (e[0] * r_[0] + e[1] * r_[1] + e[2] * r_[2]) * irr
+        u = [o_[i] + s0 * r_[i] - a[i] for i in range(3)]
+        v = [ds * r_[i] - e[i] for i in range(3)]
+        vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        uv = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+        z = jnp.clip(-uv / jnp.maximum(vv, _EPS), 0.0, 1.0)
+        d = (u[0] + z * v[0]) ** 2 + (u[1] + z * v[1]) ** 2 + (u[2] + z * v[2]) ** 2
+        better = d < best_d
+        return jnp.where(better, k, best_k), jnp.where(better, d, best_d)
+
+    best_k, _ = jax.lax.fori_loop(0, 12, edge, (jnp.zeros(rr.shape, jnp.int32),
+                                                jnp.full(rr.shape, INF, rr.dtype)))
+    a = ta_[best_k] * size  # a gather from a constant table: nothing to differentiate
+    e = te_[best_k] * size
+    return line_segment(o, r, a, a + e)
+
+
+def box_depth(o, r, size):
+    """Deepest point of the line ``o + s r`` in a box: ``(s, min_s max_i (|o_i + s r_i| -
+    size_i))``, exact (no search).
+
+    Per axis ``|o_i + s r_i| - size_i`` is a rising piece (slope ``|r_i|``) and a falling one;
+    the minimum of their maximum lies where a rising piece ``i`` meets a falling piece ``j``, and
+    its value is the largest of those 9 crossings (a 1-D linear programme is decided by two
+    constraints). The active pair is found without gradients and its crossing then solved
+    differentiably, as in ``polyhedral_depth``; ``s`` is held constant (as a search result
+    would be)."""
+    sg = jnp.where(r >= 0, 1.0, -1.0)
+    A = sg * r  # slopes |r_i|
+    P = sg * o - size  # rising pieces' intercepts
+    Q = -sg * o - size  # falling pieces' intercepts
+    A_, P_, Q_ = ([jax.lax.stop_gradient(x[..., i]) for i in range(3)] for x in (A, P, Q))
+    best_v, best_s, bi, bj = None, None, None, None
+    for i in range(3):
+        for j in range(3):
+            den = A_[i] + A_[j]
+            ok = den > 0
+            den = jnp.where(ok, den, 1.0)
+            v = jnp.where(ok, (A_[i] * Q_[j] + A_[j] * P_[i]) / den, -INF)
+            s = (Q_[j] - P_[i]) / den
+            if best_v is None:
+                best_v, best_s = v, s
+                bi, bj = jnp.zeros(v.shape, jnp.int32), jnp.zeros(v.shape, jnp.int32)
+            else:
+                better = v > best_v
+                best_v, best_s = jnp.where(better, v, best_v), jnp.where(better, s, best_s)
+                bi, bj = jnp.where(better, i, bi), jnp.where(better, j, bj)
+    Ai, Pi = _onehot_pick(A, bi, 3), _onehot_pick(P, bi, 3)
+    Aj, Qj = _onehot_pick(A, bj, 3), _onehot_pick(Q, bj, 3)
+    v = (Ai * Qj + Aj * Pi) / (Ai + Aj)
+    return best_s, v
+
+
 def closest_box(o, r, size, iters=16):
     """Outside: the nearest edge (a line missing a convex polytope passes closest to one of its
-    edges), exact and differentiable in ``s`` too. Inside: the deepest point of the ray (search,
-    then the exact crossing of the two active faces)."""
-    a, b = _box_edges(size)
-    s_out, d_out = _edges_closest(o, r, a, b)
-    s_in, _ = _line_search_sdf(sdf_box, o, r, size, jnp.sqrt(_dot(size, size)), iters)
-    sign = jax.lax.stop_gradient(jnp.where(o + s_in[..., None] * r >= 0, 1.0, -1.0))
-    d_in = polyhedral_depth(sign * r, sign * o - size, s_in)
+    edges), exact and differentiable in ``s`` too. Inside: the deepest point of the ray, exact
+    (``box_depth``)."""
+    s_out, d_out = _box_edges_closest(o, r, size)
+    s_in, d_in = box_depth(o, r, size)
     inside = d_in < 0
     return jnp.where(inside, s_in, s_out), jnp.where(inside, d_in, d_out)
 
@@ -296,7 +421,8 @@ def closest_plane(o, r, size, iters=None):
     qy = jnp.abs(p[..., 1]) - size[..., 1]
     finite = (size[..., 0] > 0) & (size[..., 1] > 0)
     q = jnp.stack([qx, qy], -1)
-    d = jnp.minimum(jnp.max(q, -1), 0.0) + jnp.sqrt(jnp.sum(jnp.maximum(q, 0.0) ** 2, -1) + 1e-20)
+    d = jnp.minimum(jnp.maximum(qx, qy), 0.0) + jnp.sqrt(
+        jnp.maximum(qx, 0.0) ** 2 + jnp.maximum(qy, 0.0) ** 2 + 1e-20)
     d = jnp.where(finite, d, -1e3)
     return jnp.where(front, s, INF), jnp.where(front, d, 1e3)
 

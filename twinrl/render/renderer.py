@@ -139,8 +139,9 @@ class Renderer:
       model: the ``mujoco.MjModel`` (the MJX model's source).
       geom_ids: geoms to draw (default: those MuJoCo draws by default: groups 0-2, alpha > 0).
       shadows: shadow rays for lights with ``castshadow`` (as ``mujoco.Renderer`` draws them).
-      iters: golden-section iterations of the soft closest-approach search (boxes, cylinders,
-        meshes); the soft silhouette is placed to about ``0.62**iters`` of the geom's size.
+      iters: golden-section iterations of the soft closest-approach search (cylinders, meshes;
+        boxes are solved exactly); the soft silhouette is placed to about ``0.62**iters`` of
+        the geom's size.
     """
 
     geom_ids: tuple[int, ...]
@@ -296,7 +297,7 @@ class Renderer:
         p = o_l + s_n[..., None] * r_l
         tn = None if normal_tau is None else normal_tau[..., None] * s_n
         n = jnp.einsum("...gj,gij->...gi", normal(p, size, tn), xmat)
-        n = n / jnp.sqrt(jnp.sum(n * n, -1, keepdims=True) + 1e-20)
+        n = n / jnp.sqrt(prim._dot(n, n) + 1e-20)[..., None]
         return s_hit, s_n, d, n
 
     def _cast_mesh(self, o, r, geoms, xpos, xmat, idx, soft, iters, normal_tau=None):
@@ -374,7 +375,7 @@ class Renderer:
     def _shade(self, p, n, view_o, forward, albedo, own, geoms):
         """OpenGL fixed-function colour of surface points ``p`` (..., G, 3), normals ``n``."""
         v = view_o - p
-        v = v / jnp.sqrt(jnp.sum(v * v, -1, keepdims=True) + 1e-20)
+        v = v / jnp.sqrt(prim._dot(v, v) + 1e-20)[..., None]
         # No two-sided flip: closed geoms are only ever seen from outside, and at a soft
         # silhouette (n . v ~ 0) a flip would make the colour jump.
         rgb = albedo[..., :3]
@@ -383,11 +384,12 @@ class Renderer:
         col = jnp.asarray(self.emission)[:, None] * rgb
 
         def light(col, l, amb, dif, spe, factor):
-            ndl = jnp.sum(n * l, -1)
+            ndl = prim._dot(n, l)
             h = l + v
-            h = h / jnp.sqrt(jnp.sum(h * h, -1, keepdims=True) + 1e-20)
-            ndh = jnp.maximum(jnp.sum(n * h, -1), 0.0)
-            spec = jnp.where(ndl > 0, jnp.power(ndh + 1e-30, shin), 0.0)
+            h = h / jnp.sqrt(prim._dot(h, h) + 1e-20)[..., None]
+            ndh = jnp.maximum(prim._dot(n, h), 0.0)
+            # x ** shin as exp(shin log x): XLA on CPU vectorises exp and log, not pow
+            spec = jnp.where(ndl > 0, jnp.exp(shin * jnp.log(ndh + 1e-30)), 0.0)
             return (col + amb * rgb + factor[..., None] * (
                 dif * jnp.maximum(ndl, 0.0)[..., None] * rgb + spe * spec_m * spec[..., None]))
 
@@ -403,15 +405,16 @@ class Renderer:
                 factor, dist_l = jnp.ones(p.shape[:-1], p.dtype), jnp.full(p.shape[:-1], 1e9)
             else:
                 dl = jnp.asarray(L["pos"][i], p.dtype) - p
-                dist_l = jnp.sqrt(jnp.sum(dl * dl, -1) + 1e-20)
+                dist_l = jnp.sqrt(prim._dot(dl, dl) + 1e-20)
                 l = dl / dist_l[..., None]
                 a = L["attenuation"][i]
                 factor = 1.0 / (a[0] + a[1] * dist_l + a[2] * dist_l ** 2)
                 if L["type"][i] == 0:  # spot: cone and exponent
-                    cosang = -jnp.sum(l * jnp.asarray(L["dir"][i], p.dtype), -1)
+                    cosang = -prim._dot(l, jnp.asarray(L["dir"][i], p.dtype))
                     inside = cosang >= np.cos(np.deg2rad(L["cutoff"][i]))
                     factor = factor * jnp.where(
-                        inside, jnp.power(jnp.maximum(cosang, 1e-30), L["exponent"][i]), 0.0)
+                        inside, jnp.exp(L["exponent"][i] * jnp.log(jnp.maximum(cosang, 1e-30))),
+                        0.0)
             if self.shadows and L["castshadow"][i]:
                 lit = self._unoccluded(p, l, dist_l, own, geoms)
                 factor = factor * jax.lax.stop_gradient(lit)
@@ -424,7 +427,7 @@ class Renderer:
         geoms = jax.tree_util.tree_map(jax.lax.stop_gradient, geoms)
         s = self.cast(p + 1e-5 * l, l, geoms)  # (..., G_pts, G)
         others = ~np.eye(self.ngeom, dtype=bool) if own else True
-        blocked = jnp.any(others & (s < dist_l[..., None]), -1)
+        blocked = prim._reduce_last(jnp.logical_or, others & (s < dist_l[..., None]))
         return 1.0 - blocked.astype(p.dtype)
 
     # ------------------------------------------------------------------ images
@@ -483,9 +486,9 @@ class Renderer:
         def composite(a):
             # w_g = a_g prod_{k != g} (1 - a_k [k in front of g]); background: prod_k (1 - a_k)
             occl = jnp.where(offdiag, 1.0 - a[..., None, :] * ahead, 1.0)
-            w = a * jnp.prod(occl, -1)
-            bg = jnp.prod(1.0 - a, -1)
-            tot = jnp.sum(w, -1) + bg
+            w = a * prim.prod_last(occl)
+            bg = prim.prod_last(1.0 - a)
+            tot = prim.sum_last(w) + bg
             tot = jnp.where(tot > 0, tot, 1.0)
             return w / tot[..., None], bg / tot
 
@@ -494,7 +497,7 @@ class Renderer:
         w_rgb, bg_rgb = composite(cover * alpha)
         rgb = jnp.sum(w_rgb[..., None] * col, -2)  # black background
         if soft:
-            depth = jnp.sum(w * z, -1) + bg * self.far_depth
+            depth = prim.sum_last(w * z) + bg * self.far_depth
         else:
             depth = jnp.where(any_hit, jnp.min(s_hit, -1), self.far_depth)
         return Images(rgb=rgb.reshape(H, W, 3), depth=depth.reshape(H, W), segmentation=seg,
