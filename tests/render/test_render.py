@@ -26,17 +26,20 @@ def push():
     return m, d
 
 
-@pytest.mark.parametrize("scene,cam,qpos", [("push", "top", None),
-                                            ("pendulum", "front", [0.7]),
-                                            ("peg_in_hole", "front", [0.01, -0.02])])
-def test_hard_image_matches_opengl(scene, cam, qpos):
+@pytest.mark.parametrize("scene,cam,qpos,size", [("push", "top", None, 32),
+                                                 ("pendulum", "front", [0.7], 32),
+                                                 ("peg_in_hole", "front", [0.01, -0.02], 32),
+                                                 # a pixel ray here misses the pole by 7 um
+                                                 ("cartpole", "front", [0.3, 0.5], 64)])
+def test_hard_image_matches_opengl(scene, cam, qpos, size):
     m = load_mjcf(scene)
     d = mujoco.MjData(m)
     if qpos is not None:
         d.qpos[:] = qpos
     mujoco.mj_forward(m, d)
-    gl = CameraRenderer(m, 32, 32).images(d, cam)  # EGL, else OSMesa: no skip
-    im = Renderer.create(m).render(Camera.from_mujoco(m, d, cam, 32, 32), Geoms.from_mujoco(m, d))
+    gl = CameraRenderer(m, size, size).images(d, cam)  # EGL, else OSMesa: no skip
+    im = Renderer.create(m).render(Camera.from_mujoco(m, d, cam, size, size),
+                                   Geoms.from_mujoco(m, d))
     seg = np.asarray(im.segmentation)
     assert np.mean(seg == gl["segmentation"]) >= 0.99
     assert np.mean(np.abs(np.asarray(im.depth) - gl["depth"])) <= 1e-3
@@ -44,6 +47,28 @@ def test_hard_image_matches_opengl(scene, cam, qpos):
     np.testing.assert_array_equal(np.asarray(im.body), body)
     psnr = 10 * np.log10(1.0 / np.mean((np.asarray(im.rgb) - gl["rgb"] / 255.0) ** 2))
     assert psnr > 25, psnr
+
+
+def test_grazing_rays_hit_or_miss_as_in_float64():
+    """A ray from 3 m that passes 7 um outside (inside) a 25 mm capsule, sphere or cylinder misses
+    (hits) it in float32: the textbook discriminant lost this to rounding."""
+    from twinrl.render import primitives as P
+
+    rng = np.random.default_rng(0)
+    for gtype, size in ((3, [0.025, 0.3, 0.0]), (5, [0.025, 0.3, 0.0]), (2, [0.025, 0, 0])):
+        for _ in range(20):
+            z = rng.uniform(-0.05, 0.05) if gtype != 2 else 0.0
+            phi = rng.uniform(0, 2 * np.pi)
+            side = np.array([np.cos(phi), np.sin(phi), 0.0])
+            for gap, hits in ((7e-6, False), (-7e-6, True)):
+                p = (0.025 + gap) * side + [0, 0, z]  # the ray's closest point to the axis
+                d = np.cross(side, [0.0, 0.0, 1.0]) + rng.uniform(-0.2, 0.2) * np.array([0, 0, 1])
+                d /= np.linalg.norm(d)
+                o = p - 3.0 * d
+                hit = getattr(P, {2: "hit_sphere", 3: "hit_capsule", 5: "hit_cylinder"}[gtype])
+                s = float(hit(jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32),
+                              jnp.asarray(size, jnp.float32)))
+                assert np.isfinite(s) == hits, (gtype, gap, o, d, s)
 
 
 def test_mesh_renders_like_the_same_box():
