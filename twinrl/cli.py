@@ -177,9 +177,11 @@ def _collect_parser(sub) -> None:
                     "again on the same --out to append more episodes).")
     p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
     p.add_argument("--episodes", type=int, required=True, help="episodes to record")
-    p.add_argument("--policy", default="random",
-                   help="'random' (uniform in the action box) or 'zero'; trained checkpoints "
-                        "arrive with `twinrl train`")
+    p.add_argument("--policy", default="excite", choices=("excite", "random", "zero"),
+                   help="'excite' (default: random levels, each held 3-15 steps, as sysid's "
+                        "excitation: the system travels, so its trajectories and images show it "
+                        "in many states), 'random' (uniform in the action box every step: it "
+                        "jitters in place) or 'zero'")
     p.add_argument("--images", action="store_true",
                    help="also record RGB, depth and segmentation of the default camera")
     p.add_argument("--size", type=int, nargs=2, default=(64, 64), metavar=("W", "H"),
@@ -198,9 +200,6 @@ def _cmd_collect(args) -> int:
     _check_task(args.env)
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
-    if args.policy not in ("random", "zero"):
-        raise UsageError(f"--policy must be 'random' or 'zero' (checkpoint policies come with "
-                         f"`twinrl train`), got {args.policy!r}")
     w, h = args.size
     twin = envs.make_real(args.env, seed=args.seed, width=w, height=h)
     obs, _ = twin.reset(seed=args.seed)
@@ -222,10 +221,20 @@ def _cmd_collect(args) -> int:
         for ep in range(args.episodes):
             if ep:
                 obs, _ = twin.reset(seed=args.seed + ep)
-            ret, done = 0.0, False
+            ret, done, t = 0.0, False, 0
+            if args.policy == "excite":
+                from twinrl.real2sim.sysid import excitation_actions
+
+                levels = excitation_actions(rng, twin.task.episode_length, int(np.prod(act_shape)))
             while not done:
-                a = (rng.uniform(-1, 1, act_shape) if args.policy == "random"
-                     else np.zeros(act_shape)).astype(np.float32)
+                if args.policy == "excite":
+                    a = levels[min(t, len(levels) - 1)].reshape(act_shape)
+                elif args.policy == "random":
+                    a = rng.uniform(-1, 1, act_shape)
+                else:
+                    a = np.zeros(act_shape)
+                a = np.asarray(a, np.float32)
+                t += 1
                 nxt, r, term, trunc, info = twin.step(a)
                 images = (twin.render_images(twin.camera, ("rgb", "depth", "segmentation"))
                           if args.images else None)
@@ -366,7 +375,10 @@ def _sysid_parser(sub) -> None:
                         "common scale that trajectories cannot)")
     p.add_argument("--window", type=int, default=None,
                    help="shooting window, steps (default: SysidConfig's, 20)")
-    p.add_argument("--frames", type=int, default=4, help="frames used with --visual (default 4)")
+    p.add_argument("--frames", type=int, default=12,
+                   help="frames used with --visual, evenly spread over the dataset (default 12: the "
+                        "camera's yaw and sideways position are fixed only by where the moving "
+                        "objects appear, so they need views of them in many places)")
     p.add_argument("--twin-seed", type=int, default=None,
                    help="evaluation only, with --visual: the seed of the real twin the dataset "
                         "was recorded on (`collect --seed`); adds the errors against its hidden "

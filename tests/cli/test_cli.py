@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from twinrl.real.dataset import read
@@ -95,6 +96,11 @@ def test_envs_collect_and_render(tmp_path):
     ds = read(tmp_path / "c/dataset")
     assert len(ds) == summary["steps"] and ds.num_episodes == 2
     assert ds.images["rgb"].shape[1:] == (24, 32, 3)
+    # the default policy excites: levels held for 3-15 steps, so the system travels
+    a = np.asarray(ds.action)
+    assert summary["policy"] == "excite" and np.all(np.abs(a) <= 1)
+    held = np.mean(np.all(a[1:] == a[:-1], axis=-1))
+    assert 0.6 < held < 0.95, held
 
     out = twinrl("render", "--env", "cartpole_swingup", "--real", "--steps", "10",
                  "--size", "64", "48", "--out", str(tmp_path / "r"))

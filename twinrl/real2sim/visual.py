@@ -138,7 +138,7 @@ def state_from_obs(env_name: str, obs: np.ndarray) -> np.ndarray:
                      "'qpos' instead")
 
 
-def frames_from_dataset(env_name: str, dataset, n: int = 4, seed: int = 0) -> list[dict]:
+def frames_from_dataset(env_name: str, dataset, n: int = 12, seed: int = 0) -> list[dict]:
     """``n`` frames evenly spread over a dataset recorded with ``twinrl collect --images``."""
     from twinrl.real.dataset import Dataset, read
 
@@ -679,7 +679,7 @@ def fit_mesh(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
 # ---------------------------------------------------------------------- the command's function
 def visual_sysid(env_name: str, frames_or_dataset, out_dir: str | os.PathLike, seed: int = 0,
                  *, fit: Sequence[str] = ("camera", "object"), object_geom: str | None = None,
-                 camera: str | None = None, n_frames: int = 4,
+                 camera: str | None = None, n_frames: int = 12,
                  config: VisualConfig | None = None) -> dict:
     """Fit the camera, then an object, of task ``env_name`` to real frames; write
     ``out_dir/summary.json`` and ``out_dir/visual_<stage>.png`` (real | rendered before |
