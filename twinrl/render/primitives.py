@@ -293,13 +293,6 @@ def _box_edge_table():
     return np.array(a), np.array(b)
 
 
-def _box_edges(size):
-    """The 12 edges of a box of half-extents ``size`` (..., 3) as endpoints (..., 12, 3)."""
-    a, b = _box_edge_table()
-    a, b = jnp.asarray(a, size.dtype), jnp.asarray(b, size.dtype)
-    return a * size[..., None, :], b * size[..., None, :]
-
-
 def polyhedral_depth(m, c, s0):
     """Deepest point of a ray inside a convex polytope ``max_k (m_k s + c_k) <= 0``.
 
@@ -331,7 +324,7 @@ def _onehot_pick(x, k, n):
 
 
 def _box_edges_closest(o, r, size):
-    """``_edges_closest`` over ``_box_edges(size)``: the nearest edge is found without gradients
+    """``_edges_closest`` over the box's 12 edges (``_box_edge_table`` times ``size``): the nearest edge is found without gradients
     (per coordinate, with no minor axis of 3 or 12), then only its ``line_segment`` is
     differentiated: the same values and gradients as differentiating all 12 and picking one,
     without 12 edges' worth of reverse pass."""
