@@ -5,12 +5,19 @@ Our loop (``twinrl run``) learns in the identified simulator and spends only a f
 (``twinrl.envs.make_real(task, seed=seed)``) spends to get as far. For each task, algorithm
 (sbx-rl ``SAC`` and ``TD3``, JAX implementations of the Stable-Baselines3 algorithms) and seed:
 
-- train on the real twin; every ``--eval-every`` real steps (default 2,500) score the
+- train on the real twin; every ``--eval-every`` real steps (default 500) score the
   deterministic policy with ``twinrl.eval.policy_real_return`` on ``--eval-episodes`` (default 3)
   fresh episodes: a fresh twin with the same hidden perturbation and the loop's fixed start states,
   so scores compare with the loop's. Evaluation steps are not counted;
 - stop when the score reaches 90 % of the oracle return (a policy trained in a simulator with the
-  twin's true parameters), or at ``--max-steps`` real steps.
+  twin's true parameters), or at ``--max-steps`` real steps. TD3 runs first; SAC then stops at the
+  step count TD3 reached the target in (only the better of the two enters the ratio; ``--no-cap``
+  trains both fully).
+
+The loop is counted the same way (``loop_steps_to_target``): its score is the deployed policy's
+return on those same evaluation episodes (``adapted_real_return``), and its count the real steps
+recorded before that policy was made (``data steps``); the count that also includes the round's
+own recorded deployment episodes is reported beside it, with its ratio.
 
 Hyper-parameters: sbx defaults (MLP 256x256, lr 3e-4, batch 256, gamma 0.99, tau 0.005, one
 gradient step per env step, buffer 1e6) except ``learning_starts=1000`` (uniform random actions
@@ -24,7 +31,10 @@ The oracle return and the loop's numbers come from a loop run's ``summary.json``
 evaluation, and the ratio (steps of the better of SAC and TD3) / (loop real steps) -- a lower bound
 ``>= max/loop`` when neither got there; plus the loop's own row and the sim-only policy without
 adaptation (``sim_policy_real_return``). Writes ``bench/results/sim2real.json`` (after every run)
-and ``bench/results/sim2real.png`` (return vs real steps).
+and ``bench/results/sim2real.png`` (return vs real steps). Each finished model-free run is
+also kept in ``sim2real_runs/TASK-ALGO-SEED.json`` beside ``--out`` and reused by a later
+invocation asking the same question (``--fresh`` re-runs), so tasks and seeds can be run in
+separate processes and then tabulated together.
 
 Needs the ``bench`` extra (sbx-rl, stable-baselines3, CPU torch):
 ``pip install -e '.[bench]'`` in a separate environment (it must keep jax 0.9.2).
@@ -76,7 +86,11 @@ def load_summary(path: Path) -> dict:
                "oracle_return": s["rounds"][0]["oracle_return"],
                "loop_real_steps": s["final"]["real_steps"],
                "loop_real_return": s["final"]["real_return"],
-               "sim_policy_real_return": s["final"]["sim_policy_real_return"]}
+               "sim_policy_real_return": s["final"]["sim_policy_real_return"],
+               "rounds": [{k: r.get(k) for k in ("round", "real_steps", "real_return",
+                                                 "sim_policy_real_return",
+                                                 "adapted_real_return")}
+                          for r in s["rounds"]]}
     except (KeyError, IndexError, TypeError) as e:
         raise SystemExit(f"{path} lacks {e} (needs env, seed, rounds[0].oracle_return, "
                          "final.real_steps, final.real_return, final.sim_policy_real_return)")
@@ -86,6 +100,27 @@ def load_summary(path: Path) -> dict:
                          "oracle on?)")
     out["path"] = str(path)
     return out
+
+
+def loop_steps_to_target(loop: dict, target: float) -> dict:
+    """Real steps the loop spent to reach ``target``, counted the way the model-free runs are.
+
+    A model-free run's count is its training steps when an evaluation (unrecorded, uncounted
+    episodes from the fixed start states of ``policy_real_return``) first scores >= target. The
+    loop's like-for-like score is a round's ``adapted_real_return``: the policy it deploys, on
+    those same evaluation episodes. That policy was made from the real steps recorded *before*
+    the round's deployment (the previous round's ``real_steps``): ``data_steps``. The round's own
+    deployment episodes, recorded and counted by the loop, are included in ``all_steps`` (the
+    conservative count). ``round`` None: no round reached it (both counts are then the loop's
+    total, lower bounds)."""
+    rounds = loop["rounds"]
+    for prev, r in zip(rounds, rounds[1:]):
+        score = r.get("adapted_real_return")
+        if score is not None and score >= target:
+            return {"round": r["round"], "score": score, "data_steps": prev["real_steps"],
+                    "all_steps": r["real_steps"]}
+    return {"round": None, "score": None, "data_steps": loop["loop_real_steps"],
+            "all_steps": loop["loop_real_steps"]}
 
 
 def train(algo: str, task: str, seed: int, target: float, max_steps: int, eval_every: int,
@@ -124,6 +159,7 @@ def train(algo: str, task: str, seed: int, target: float, max_steps: int, eval_e
     reached = next((c["real_steps"] for c in curve if c["return"] >= target), None)
     wall = time.perf_counter() - t0
     return {"task": task, "seed": seed, "algo": algo, "target": target, "max_steps": max_steps,
+            "eval_every": eval_every, "eval_episodes": eval_episodes,
             "steps_to_target": reached, "real_steps_trained": int(model.num_timesteps),
             "final_return": curve[-1]["return"] if curve else None,
             "best_return": max(c["return"] for c in curve) if curve else None,
@@ -134,6 +170,8 @@ def train(algo: str, task: str, seed: int, target: float, max_steps: int, eval_e
 
 
 def ratio(runs: list[dict], loop_steps: int) -> dict:
+    """(real steps of the better model-free run) / ``loop_steps``; a lower bound when neither
+    reached the target (then the most steps any of them trained)."""
     reached = [r["steps_to_target"] for r in runs if r["steps_to_target"] is not None]
     if reached:
         return {"value": min(reached) / loop_steps, "lower_bound": False}
@@ -144,14 +182,38 @@ def fmt_ratio(r: dict) -> str:
     return (">= " if r["lower_bound"] else "") + f"{r['value']:.3g}"
 
 
+def cached_run(path: Path, target: float, max_steps: int, eval_every: int,
+               eval_episodes: int) -> dict | None:
+    """A finished run from an earlier invocation, if it answers this one's question: same
+    target, evaluation schedule and episodes, and it either reached the target within
+    ``max_steps`` or trained at least ``max_steps`` without reaching it."""
+    if not path.exists():
+        return None
+    r = json.loads(path.read_text())
+    same = (abs(r["target"] - target) < 1e-9 and r.get("eval_every") == eval_every
+            and r.get("eval_episodes") == eval_episodes)
+    if not same:
+        return None
+    if r["steps_to_target"] is not None:
+        return r if r["steps_to_target"] <= max_steps else None
+    return r if r["real_steps_trained"] >= max_steps else None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tasks", nargs="+", default=["cartpole_swingup"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
-    ap.add_argument("--algos", nargs="+", choices=["sac", "td3"], default=["sac", "td3"])
+    ap.add_argument("--algos", nargs="+", choices=["sac", "td3"], default=["td3", "sac"],
+                    help="run in this order; each later one stops at the fewest steps an "
+                         "earlier one reached the target in (only the better one counts) "
+                         "unless --no-cap")
+    ap.add_argument("--no-cap", action="store_true",
+                    help="train every algorithm to --max-steps or its target")
+    ap.add_argument("--fresh", action="store_true",
+                    help="ignore the runs kept from earlier invocations (--out stem + _runs/)")
     ap.add_argument("--max-steps", type=int, default=25_000,
                     help="real-twin steps per run, at most")
-    ap.add_argument("--eval-every", type=int, default=2_500, help="real steps between evaluations")
+    ap.add_argument("--eval-every", type=int, default=500, help="real steps between evaluations")
     ap.add_argument("--eval-episodes", type=int, default=3)
     ap.add_argument("--loop-summary", nargs="+", type=Path,
                     default=[Path("runs/main/summary.json")],
@@ -171,6 +233,7 @@ def main(argv=None) -> int:
                 raise SystemExit(f"no --loop-summary for {task} seed {seed} "
                                  f"(have: {sorted(loops)})")
 
+    runs_dir = args.out.with_name(args.out.stem + "_runs")
     runs: list[dict] = []
     comparisons: list[dict] = []
     out = {"fraction_of_oracle": FRACTION, "max_steps": args.max_steps,
@@ -182,12 +245,27 @@ def main(argv=None) -> int:
             target = FRACTION * loop["oracle_return"]
             these = []
             for algo in args.algos:
-                these.append(train(algo, task, seed, target, args.max_steps, args.eval_every,
-                                   args.eval_episodes))
-                runs.append(these[-1])
+                cap = args.max_steps
+                reached = [r["steps_to_target"] for r in these if r["steps_to_target"]]
+                if reached and not args.no_cap:
+                    cap = min(cap, min(reached))
+                path = runs_dir / f"{task}-{algo}-{seed}.json"
+                r = None if args.fresh else cached_run(path, target, cap, args.eval_every,
+                                                       args.eval_episodes)
+                if r is None:
+                    r = train(algo, task, seed, target, cap, args.eval_every,
+                              args.eval_episodes)
+                    report.write_json(path, r)
+                else:
+                    print(f"  {task} {algo} seed {seed}: kept from {path}")
+                these.append(r)
+                runs.append(r)
                 report.write_json(args.out, out)  # durable after every run
-            comparisons.append({**loop, "target": target,
-                                "ratio_best_to_loop": ratio(these, loop["loop_real_steps"])})
+            loop_reach = loop_steps_to_target(loop, target)
+            comparisons.append({**loop, "target": target, "loop_reach": loop_reach,
+                                "ratio_best_to_loop": ratio(these, loop_reach["data_steps"]),
+                                "ratio_best_to_loop_all_steps":
+                                    ratio(these, loop_reach["all_steps"])})
             report.write_json(args.out, out)
 
     rows = []
@@ -199,17 +277,26 @@ def main(argv=None) -> int:
                          else f"> {r['real_steps_trained']}",
                          r["final_return"], r["best_return"], r["wall_s"],
                          " ".join(f"{p['real_steps']}:{p['return']:.1f}" for p in r["curve"])])
-        rows.append([task, seed, "loop (twinrl run)", c["loop_real_steps"], c["loop_real_return"],
-                     None, None, ""])
+        lr = c["loop_reach"]
+        rows.append([task, seed, "loop (twinrl run), data before the deployed policy",
+                     lr["data_steps"] if lr["round"] is not None else f"> {lr['data_steps']}",
+                     lr["score"], None, None, f"round {lr['round']}"])
+        rows.append([task, seed, "loop, incl. that round's deployment",
+                     lr["all_steps"] if lr["round"] is not None else f"> {lr['all_steps']}",
+                     c["loop_real_return"], None, None, "recorded episodes' mean"])
         rows.append([task, seed, "(d) sim-only policy, no adaptation", 0,
                      c["sim_policy_real_return"], None, None, ""])
     report.print_table(f"real-twin steps to {FRACTION:.0%} of the oracle return",
                        ["task", "seed", "method", "real steps to target", "final return",
                         "best return", "wall s", "return at eval (steps:return)"], rows)
-    report.print_table("model-free vs loop", ["task", "seed", "oracle", "target",
-                                              "loop real steps", "best model-free / loop steps"],
+    report.print_table("model-free vs loop",
+                       ["task", "seed", "oracle", "target", "loop data steps",
+                        "best model-free / loop data steps", "loop steps incl. deployment",
+                        "best model-free / loop steps incl. deployment"],
                        [[c["task"], c["seed"], c["oracle_return"], c["target"],
-                         c["loop_real_steps"], fmt_ratio(c["ratio_best_to_loop"])]
+                         c["loop_reach"]["data_steps"], fmt_ratio(c["ratio_best_to_loop"]),
+                         c["loop_reach"]["all_steps"],
+                         fmt_ratio(c["ratio_best_to_loop_all_steps"])]
                         for c in comparisons])
 
     plot = args.plot or args.out.with_suffix(".png")
@@ -217,7 +304,8 @@ def main(argv=None) -> int:
         curves = {f"{r['algo']} seed {r['seed']}": ([p["real_steps"] for p in r["curve"]],
                                                     [p["return"] for p in r["curve"]])
                   for r in runs if r["task"] == c["task"] and r["seed"] == c["seed"]}
-        curves[f"loop seed {c['seed']}"] = ([c["loop_real_steps"]], [c["loop_real_return"]])
+        curves[f"loop seed {c['seed']}"] = ([c["loop_reach"]["data_steps"]],
+                                            [c["loop_reach"]["score"] or c["loop_real_return"]])
         path = plot if len(comparisons) == 1 else plot.with_name(
             f"{plot.stem}_{c['task']}_s{c['seed']}{plot.suffix}")
         report.plot_curves(path, curves, "real-twin steps", "return (deterministic policy)",
