@@ -185,17 +185,17 @@ def fmt_ratio(r: dict) -> str:
 def cached_run(path: Path, target: float, max_steps: int, eval_every: int,
                eval_episodes: int) -> dict | None:
     """A finished run from an earlier invocation, if it answers this one's question: same
-    target, evaluation schedule and episodes, and it either reached the target within
-    ``max_steps`` or trained at least ``max_steps`` without reaching it."""
+    target and evaluation episodes, and either it reached the target within ``max_steps`` with
+    the same evaluation interval, or it trained at least ``max_steps`` without reaching it (then
+    its own interval, kept in the run's JSON, stands: it is a lower bound either way)."""
     if not path.exists():
         return None
     r = json.loads(path.read_text())
-    same = (abs(r["target"] - target) < 1e-9 and r.get("eval_every") == eval_every
-            and r.get("eval_episodes") == eval_episodes)
-    if not same:
+    if abs(r["target"] - target) > 1e-9 or r.get("eval_episodes") != eval_episodes:
         return None
     if r["steps_to_target"] is not None:
-        return r if r["steps_to_target"] <= max_steps else None
+        ok = r.get("eval_every") == eval_every and r["steps_to_target"] <= max_steps
+        return r if ok else None
     return r if r["real_steps_trained"] >= max_steps else None
 
 

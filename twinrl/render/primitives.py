@@ -29,7 +29,8 @@ _EPS = 1e-12
 # Reductions over a short last axis (xyz, the faces of a box, the geoms of a scene) are written
 # out element by element: XLA on CPU then fuses them with their neighbours, where a reduce over a
 # minor axis of 3 is a kernel of its own (and slow); the arithmetic is the same.
-def _reduce_last(op, x):
+def reduce_last(op, x):
+    """``op`` (binary, elementwise) folded over the last axis of ``x``, written out."""
     out = x[..., 0]
     for i in range(1, x.shape[-1]):
         out = op(out, x[..., i])
@@ -43,7 +44,7 @@ def _unrolled(op, reference):
 
     @jax.custom_jvp
     def f(x):
-        return _reduce_last(op, x)
+        return reduce_last(op, x)
 
     @f.defjvp
     def _jvp(primals, tangents):
@@ -58,7 +59,8 @@ min_last = _unrolled(jnp.minimum, lambda x: jnp.min(x, -1))
 prod_last = _unrolled(jnp.multiply, lambda x: jnp.prod(x, -1))
 
 
-def _dot(a, b):
+def dot(a, b):
+    """Inner product over the last axis (``sum_last(a * b)``)."""
     return sum_last(a * b)
 
 
@@ -87,11 +89,11 @@ def _line_roots(o, r, rad):
     difference, ~``A (rad^2 - d^2)``, drowns in float32 rounding (a ray missing a 25 mm pole by
     7 um, 3 m away, was a hit). ``A (rad^2 - |l|^2)``, with ``l`` the line's closest point to the
     origin, is the same number computed without the cancellation."""
-    A = _dot(r, r)
-    B = _dot(o, r)
+    A = dot(r, r)
+    B = dot(o, r)
     A = jnp.where(A > _EPS, A, _EPS)
     lc = o - (B / A)[..., None] * r
-    disc = A * (rad * rad - _dot(lc, lc))
+    disc = A * (rad * rad - dot(lc, lc))
     sq = _safe_sqrt(disc)
     return (-B - sq) / A, (-B + sq) / A, disc >= 0
 
@@ -109,7 +111,7 @@ def _hit_tube(o, r, rad, h):
     """Side of a z-aligned cylinder of radius ``rad``, ``|z| <= h``."""
     s0, _, ok = _line_roots(o[..., :2], r[..., :2], rad)
     z = o[..., 2] + s0 * r[..., 2]
-    return jnp.where(ok & (jnp.abs(z) <= h) & (_dot(r[..., :2], r[..., :2]) > _EPS),
+    return jnp.where(ok & (jnp.abs(z) <= h) & (dot(r[..., :2], r[..., :2]) > _EPS),
                      _first_positive(s0), INF)
 
 
@@ -171,14 +173,14 @@ def sdf(gtype: int, p, size):
     """Signed distance of local points to a primitive (ellipsoid: scaled-sphere approximation;
     plane: distance to its rectangle, 0 thickness)."""
     if gtype == 2:
-        return jnp.sqrt(_dot(p, p) + 1e-20) - size[..., 0]
+        return jnp.sqrt(dot(p, p) + 1e-20) - size[..., 0]
     if gtype == 3:
         z = jnp.clip(p[..., 2], -size[..., 1], size[..., 1])
         q = p.at[..., 2].add(-z)
-        return jnp.sqrt(_dot(q, q) + 1e-20) - size[..., 0]
+        return jnp.sqrt(dot(q, q) + 1e-20) - size[..., 0]
     if gtype == 4:
         q = p / size
-        return (jnp.sqrt(_dot(q, q) + 1e-20) - 1.0) * min_last(size)
+        return (jnp.sqrt(dot(q, q) + 1e-20) - 1.0) * min_last(size)
     if gtype == 5:
         return sdf_cylinder(p, size)
     if gtype == 6:
@@ -188,7 +190,7 @@ def sdf(gtype: int, p, size):
         q = jnp.stack([jnp.abs(p[..., 0]) - size[..., 0], jnp.abs(p[..., 1]) - size[..., 1],
                        jnp.zeros_like(p[..., 0])], -1)
         q = jnp.where(finite[..., None], jnp.maximum(q, 0.0), 0.0).at[..., 2].set(p[..., 2])
-        return jnp.sqrt(_dot(q, q) + 1e-20)
+        return jnp.sqrt(dot(q, q) + 1e-20)
     raise ValueError(f"no SDF for geom type {gtype}")
 
 
@@ -216,11 +218,11 @@ def golden_min(f, lo, hi, iters: int):
     return 0.5 * (st[0] + st[1])
 
 
-def _line_search_sdf(sdf, o, r, size, rbound, iters):
+def line_search_sdf(sdf, o, r, size, rbound, iters):
     """(s*, sdf at s*) along the ray for a convex ``sdf`` of a geom of bounding radius ``rbound``."""
     o_, r_, size_, rb = (jax.lax.stop_gradient(x) for x in (o, r, size, rbound))
-    rr = _dot(r_, r_)
-    sc = -_dot(o_, r_) / rr
+    rr = dot(r_, r_)
+    sc = -dot(o_, r_) / rr
     half = rb / jnp.sqrt(rr) * 1.05 + 1e-6
     lo, hi = jnp.maximum(sc - half, 1e-6), jnp.maximum(sc + half, 2e-6)
     s = golden_min(lambda s: sdf(o_ + s[..., None] * r_, size_), lo, hi, iters)
@@ -229,10 +231,10 @@ def _line_search_sdf(sdf, o, r, size, rbound, iters):
 
 
 def closest_sphere(o, r, size, iters=None):
-    rr = _dot(r, r)
-    s = -_dot(o, r) / rr
+    rr = dot(r, r)
+    s = -dot(o, r) / rr
     p = o + s[..., None] * r
-    return s, jnp.sqrt(_dot(p, p) + 1e-20) - size[..., 0]
+    return s, jnp.sqrt(dot(p, p) + 1e-20) - size[..., 0]
 
 
 def closest_ellipsoid(o, r, size, iters=None):
@@ -248,15 +250,15 @@ def line_segment(o, r, a, b):
     Exact and differentiable: for each point ``a + z (b - a)`` of the segment the best ``s`` is
     linear in ``z``, so the squared distance is quadratic in ``z``; it is minimised over
     ``z in [0, 1]``."""
-    rr = _dot(r, r)
+    rr = dot(r, r)
     e = b - a
-    s0 = _dot(a - o, r) / rr  # best s for z = 0
-    ds = _dot(e, r) / rr  # ds/dz
+    s0 = dot(a - o, r) / rr  # best s for z = 0
+    ds = dot(e, r) / rr  # ds/dz
     u = o + s0[..., None] * r - a  # line point minus segment point at z = 0
     v = ds[..., None] * r - e  # d(u)/dz
-    z = jnp.clip(-_dot(u, v) / jnp.maximum(_dot(v, v), _EPS), 0.0, 1.0)
+    z = jnp.clip(-dot(u, v) / jnp.maximum(dot(v, v), _EPS), 0.0, 1.0)
     p = u + z[..., None] * v
-    return s0 + ds * z, jnp.sqrt(_dot(p, p) + 1e-20)
+    return s0 + ds * z, jnp.sqrt(dot(p, p) + 1e-20)
 
 
 def closest_capsule(o, r, size, iters=None):
@@ -408,7 +410,7 @@ def closest_box(o, r, size, iters=16):
 
 def closest_cylinder(o, r, size, iters=16):
     rb = jnp.sqrt(size[..., 0] ** 2 + size[..., 1] ** 2)
-    return _line_search_sdf(sdf_cylinder, o, r, size, rb, iters)
+    return line_search_sdf(sdf_cylinder, o, r, size, rb, iters)
 
 
 def closest_plane(o, r, size, iters=None):
@@ -480,7 +482,7 @@ def rbound(gtype: int, size):
     if gtype == 3:
         return size[..., 0] + size[..., 1]
     if gtype in (4, 6):
-        return jnp.sqrt(_dot(size, size))
+        return jnp.sqrt(dot(size, size))
     if gtype == 5:
         return jnp.sqrt(size[..., 0] ** 2 + size[..., 1] ** 2)
     raise ValueError(gtype)
@@ -505,12 +507,12 @@ def hit_triangles(o, r, v0, v1, v2):
     ``o`` (3,), ``r`` (..., 1, 3), triangles (T, 3) -> (..., T)."""
     e1, e2 = v1 - v0, v2 - v0
     pv = jnp.cross(r, e2)
-    det = _dot(e1, pv)
+    det = dot(e1, pv)
     inv = 1.0 / jnp.where(jnp.abs(det) > 1e-15, det, 1e-15)
     tv = o - v0
-    u = _dot(tv, pv) * inv
+    u = dot(tv, pv) * inv
     qv = jnp.cross(tv, e1)
-    v = _dot(r, qv) * inv
-    s = _dot(e2, qv) * inv
+    v = dot(r, qv) * inv
+    s = dot(e2, qv) * inv
     ok = (jnp.abs(det) > 1e-15) & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > 0)
     return jnp.where(ok, s, INF)

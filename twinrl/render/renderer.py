@@ -297,7 +297,7 @@ class Renderer:
         p = o_l + s_n[..., None] * r_l
         tn = None if normal_tau is None else normal_tau[..., None] * s_n
         n = jnp.einsum("...gj,gij->...gi", normal(p, size, tn), xmat)
-        n = n / jnp.sqrt(prim._dot(n, n) + 1e-20)[..., None]
+        n = n / jnp.sqrt(prim.dot(n, n) + 1e-20)[..., None]
         return s_hit, s_n, d, n
 
     def _cast_mesh(self, o, r, geoms, xpos, xmat, idx, soft, iters, normal_tau=None):
@@ -324,7 +324,7 @@ class Renderer:
         corner = jnp.linalg.norm(tri - xpos[k][:, None, :], axis=-1).max(-1)  # (T,)
         rb = jax.lax.stop_gradient(jnp.max(jnp.where(sel, corner, 0.0), -1))  # (Gm,)
         sdf = lambda p, c: jnp.max(planes(p + c), -1)  # noqa: E731 - p relative to the centre
-        s_in, _ = prim._line_search_sdf(sdf, o_b - cen, r_b,
+        s_in, _ = prim.line_search_sdf(sdf, o_b - cen, r_b,
                                         jnp.broadcast_to(cen, o_b.shape), rb, iters)
         m_f = jnp.where(sel, jnp.einsum("...gi,ti->...gt", r_b, fn), 0.0)
         c_f = jnp.where(sel, jnp.einsum("...gi,ti->...gt", o_b, fn) - off, -jnp.inf)
@@ -375,7 +375,7 @@ class Renderer:
     def _shade(self, p, n, view_o, forward, albedo, own, geoms):
         """OpenGL fixed-function colour of surface points ``p`` (..., G, 3), normals ``n``."""
         v = view_o - p
-        v = v / jnp.sqrt(prim._dot(v, v) + 1e-20)[..., None]
+        v = v / jnp.sqrt(prim.dot(v, v) + 1e-20)[..., None]
         # No two-sided flip: closed geoms are only ever seen from outside, and at a soft
         # silhouette (n . v ~ 0) a flip would make the colour jump.
         rgb = albedo[..., :3]
@@ -384,10 +384,10 @@ class Renderer:
         col = jnp.asarray(self.emission)[:, None] * rgb
 
         def light(col, l, amb, dif, spe, factor):
-            ndl = prim._dot(n, l)
+            ndl = prim.dot(n, l)
             h = l + v
-            h = h / jnp.sqrt(prim._dot(h, h) + 1e-20)[..., None]
-            ndh = jnp.maximum(prim._dot(n, h), 0.0)
+            h = h / jnp.sqrt(prim.dot(h, h) + 1e-20)[..., None]
+            ndh = jnp.maximum(prim.dot(n, h), 0.0)
             # x ** shin as exp(shin log x): XLA on CPU vectorises exp and log, not pow
             spec = jnp.where(ndl > 0, jnp.exp(shin * jnp.log(ndh + 1e-30)), 0.0)
             return (col + amb * rgb + factor[..., None] * (
@@ -405,12 +405,12 @@ class Renderer:
                 factor, dist_l = jnp.ones(p.shape[:-1], p.dtype), jnp.full(p.shape[:-1], 1e9)
             else:
                 dl = jnp.asarray(L["pos"][i], p.dtype) - p
-                dist_l = jnp.sqrt(prim._dot(dl, dl) + 1e-20)
+                dist_l = jnp.sqrt(prim.dot(dl, dl) + 1e-20)
                 l = dl / dist_l[..., None]
                 a = L["attenuation"][i]
                 factor = 1.0 / (a[0] + a[1] * dist_l + a[2] * dist_l ** 2)
                 if L["type"][i] == 0:  # spot: cone and exponent
-                    cosang = -prim._dot(l, jnp.asarray(L["dir"][i], p.dtype))
+                    cosang = -prim.dot(l, jnp.asarray(L["dir"][i], p.dtype))
                     inside = cosang >= np.cos(np.deg2rad(L["cutoff"][i]))
                     factor = factor * jnp.where(
                         inside, jnp.exp(L["exponent"][i] * jnp.log(jnp.maximum(cosang, 1e-30))),
@@ -427,7 +427,7 @@ class Renderer:
         geoms = jax.tree_util.tree_map(jax.lax.stop_gradient, geoms)
         s = self.cast(p + 1e-5 * l, l, geoms)  # (..., G_pts, G)
         others = ~np.eye(self.ngeom, dtype=bool) if own else True
-        blocked = prim._reduce_last(jnp.logical_or, others & (s < dist_l[..., None]))
+        blocked = prim.reduce_last(jnp.logical_or, others & (s < dist_l[..., None]))
         return 1.0 - blocked.astype(p.dtype)
 
     # ------------------------------------------------------------------ images
