@@ -68,7 +68,7 @@ class LoopConfig:
     reasons (2 cores, ``cartpole_swingup``, seed 0): with SHAC the loop's sim policy stalled at 88
     (balanced, but the cart drifting 5-16 m out, where the ``centered`` reward term is flat and
     gives no gradient back), 68 % of the oracle; SHAC alone ends at 135-189 over 3 seeds, HDS at
-    95-117. With PPO (3.5 M simulated steps, ~4 min beside the oracle's) the loop reached 95 % of
+    165-198 (``bench/learn.py``, one core, ~160 s against PPO's 108 s). With PPO (3.5 M simulated steps, ~4 min beside the oracle's) the loop reached 95 % of
     the oracle. The differentiable simulator still does the sysid and the residual adaptation;
     ``hds`` is the learner that mixes the hybrid model into learning (``model_fraction``)."""
     epochs: int | None = None
