@@ -91,7 +91,7 @@ def test_contract_and_finite(run):
 def test_tuned_cartpole_config():
     from twinrl.learn import runner
     cfg = runner.make_config("hds", "cartpole_swingup")
-    assert cfg.critic and cfg.step_size_bounds == (0.25, 20.0)
+    assert cfg.critic and cfg.step_size_bounds == (1.0, 10.0)
     assert runner.make_config("hds", "pendulum_swingup").critic is False
 
 
