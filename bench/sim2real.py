@@ -178,7 +178,9 @@ def ratio(runs: list[dict], loop_steps: int) -> dict:
     return {"value": max(r["real_steps_trained"] for r in runs) / loop_steps, "lower_bound": True}
 
 
-def fmt_ratio(r: dict) -> str:
+def fmt_ratio(r: dict | None) -> str:
+    if r is None:
+        return "none (the loop did not reach the target)"
     return (">= " if r["lower_bound"] else "") + f"{r['value']:.3g}"
 
 
@@ -262,10 +264,12 @@ def main(argv=None) -> int:
                 runs.append(r)
                 report.write_json(args.out, out)  # durable after every run
             loop_reach = loop_steps_to_target(loop, target)
+            reached = loop_reach["round"] is not None  # else both counts are lower bounds
             comparisons.append({**loop, "target": target, "loop_reach": loop_reach,
-                                "ratio_best_to_loop": ratio(these, loop_reach["data_steps"]),
+                                "ratio_best_to_loop":
+                                    ratio(these, loop_reach["data_steps"]) if reached else None,
                                 "ratio_best_to_loop_all_steps":
-                                    ratio(these, loop_reach["all_steps"])})
+                                    ratio(these, loop_reach["all_steps"]) if reached else None})
             report.write_json(args.out, out)
 
     rows = []
