@@ -196,6 +196,8 @@ def _cmd_collect(args) -> int:
 
     from twinrl import envs, report
     from twinrl.real.dataset import DatasetWriter
+    from twinrl.real.twin import record_episode
+    from twinrl.real2sim.sysid import excitation_actions
 
     _check_task(args.env)
     if args.episodes < 1:
@@ -221,27 +223,16 @@ def _cmd_collect(args) -> int:
         for ep in range(args.episodes):
             if ep:
                 obs, _ = twin.reset(seed=args.seed + ep)
-            ret, done, t = 0.0, False, 0
             if args.policy == "excite":
-                from twinrl.real2sim.sysid import excitation_actions
-
                 levels = excitation_actions(rng, twin.task.episode_length, int(np.prod(act_shape)))
-            while not done:
-                if args.policy == "excite":
-                    a = levels[min(t, len(levels) - 1)].reshape(act_shape)
-                elif args.policy == "random":
-                    a = rng.uniform(-1, 1, act_shape)
-                else:
-                    a = np.zeros(act_shape)
-                a = np.asarray(a, np.float32)
-                t += 1
-                nxt, r, term, trunc, info = twin.step(a)
-                images = (twin.render_images(twin.camera, ("rgb", "depth", "segmentation"))
-                          if args.images else None)
-                writer.add(obs, a, r, nxt, term, trunc,
-                           info={k: v for k, v in info.items() if np.isscalar(v)}, images=images)
-                obs, ret, steps, done = nxt, ret + float(r), steps + 1, term or trunc
+                policy = lambda o, t: levels[min(t, len(levels) - 1)].reshape(act_shape)  # noqa: E731
+            elif args.policy == "random":
+                policy = lambda o, t: rng.uniform(-1, 1, act_shape)  # noqa: E731
+            else:
+                policy = lambda o, t: np.zeros(act_shape)  # noqa: E731
+            ret, n = record_episode(twin, writer, policy, obs, images=args.images)
             returns.append(ret)
+            steps += n
             bar.update(task, advance=1, ret=f"{ret:.2f}")
     summary = {"env": args.env, "policy": args.policy, "seed": args.seed,
                "episodes": args.episodes, "first_episode_id": first_episode, "steps": steps,

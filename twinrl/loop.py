@@ -68,8 +68,8 @@ class LoopConfig:
     reasons (2 cores, ``cartpole_swingup``, seed 0): with SHAC the loop's sim policy stalled at 88
     (balanced, but the cart drifting 5-16 m out, where the ``centered`` reward term is flat and
     gives no gradient back), 68 % of the oracle; SHAC alone ends at 135-189 over 3 seeds, HDS at
-    165-198 (``bench/learn.py``, one core, ~160 s against PPO's 108 s). With PPO (3.5 M simulated steps, ~4 min beside the oracle's) the loop reached 95 % of
-    the oracle. The differentiable simulator still does the sysid and the residual adaptation;
+    165-198 (``bench/learn.py``, one core, ~160 s against PPO's 108 s). With PPO (3.5 M
+    simulated steps, ~4 min beside the oracle's) the loop reached 95 % of the oracle. The differentiable simulator still does the sysid and the residual adaptation;
     ``hds`` is the learner that mixes the hybrid model into learning (``model_fraction``)."""
     epochs: int | None = None
     """Training epochs per round (None: the algorithm's tuned value for the task)."""
@@ -174,16 +174,12 @@ def _collect(twin, writer, episodes: int, policy, seed: int, rng: np.random.Gene
              bar=None) -> list[float]:
     """Run ``policy(obs, t) -> action`` for ``episodes`` real episodes, recording every
     transition; returns the episode returns."""
+    from twinrl.real.twin import record_episode
+
     returns = []
     for ep in range(episodes):
         obs, _ = twin.reset(seed=int(rng.integers(0, 2**31 - 1)))
-        ret, done, t = 0.0, False, 0
-        while not done:
-            a = np.asarray(policy(obs, t), np.float32)
-            nxt, r, term, trunc, info = twin.step(a)
-            writer.add(obs, a, r, nxt, term, trunc,
-                       info={k: v for k, v in info.items() if np.isscalar(v)})
-            obs, ret, done, t = nxt, ret + float(r), term or trunc, t + 1
+        ret, _ = record_episode(twin, writer, policy, obs)
         returns.append(ret)
         if bar is not None:
             bar(f"episode {ep + 1}/{episodes} return {ret:.1f}")

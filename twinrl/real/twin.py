@@ -48,7 +48,7 @@ from twinrl.physics import PhysParams, load_mjcf  # noqa: E402
 from twinrl.real.perturbation import Perturbation  # noqa: E402
 
 __all__ = ["RealTwin", "Oracle", "CameraRenderer", "render_episode", "render_states",
-           "IMAGE_KINDS"]
+           "record_episode", "IMAGE_KINDS"]
 
 IMAGE_KINDS = ("rgb", "depth", "segmentation")
 _INTEGRATORS = {
@@ -365,6 +365,23 @@ class RealTwin(gym.Env):
             qpos=self._data.qpos.copy(),
             qvel=self._data.qvel.copy(),
         )
+
+
+# ---------------------------------------------------------------------- recording
+def record_episode(twin, writer, policy, obs, *, images: bool = False) -> tuple[float, int]:
+    """Run ``policy(obs, t) -> action`` on ``twin`` from ``obs`` (what its last ``reset``
+    returned) until the episode ends, recording every transition with ``writer`` (a
+    ``twinrl.real.dataset.DatasetWriter``; with ``images``, also the RGB, depth and segmentation
+    of the twin's camera). Returns ``(return, steps)``."""
+    ret, done, t = 0.0, False, 0
+    while not done:
+        a = np.asarray(policy(obs, t), np.float32)
+        nxt, r, term, trunc, info = twin.step(a)
+        frames = twin.render_images(twin.camera, IMAGE_KINDS) if images else None
+        writer.add(obs, a, r, nxt, term, trunc,
+                   info={k: v for k, v in info.items() if np.isscalar(v)}, images=frames)
+        obs, ret, done, t = nxt, ret + float(r), term or trunc, t + 1
+    return ret, t
 
 
 # ---------------------------------------------------------------------- episodes to files
