@@ -176,3 +176,42 @@ def test_summary_matches_the_uninterrupted_run(runs):
     # the killed run's dataset also holds the interrupted episode's partial transitions
     assert b["rounds"][-1]["real_steps"] > a["rounds"][-1]["real_steps"]
     assert (killed / "report.md").exists() and (killed / "returns.png").exists()
+
+
+ORACLE_PARENT = textwrap.dedent("""
+    import sys, time
+    from twinrl import loop
+    job = loop._OracleProcess(sys.argv[1], 0, sys.argv[2], loop.LoopConfig(), None)
+    print(job._proc.pid, flush=True)
+    if sys.argv[1] == "cartpole_swingup":
+        time.sleep(600)  # killed by the test while the oracle trains
+    try:
+        job.result()
+    except loop.LoopError as e:
+        print("LoopError:", str(e).strip().splitlines()[-1], flush=True)
+""")
+
+
+def _alive(pid: int) -> bool:
+    try:  # a zombie (exited, not yet reaped) counts as gone
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="the parent-death signal is Linux's prctl")
+def test_oracle_process_reports_its_error_and_dies_with_the_loop(tmp_path):
+    p = subprocess.run([sys.executable, "-c", ORACLE_PARENT, "no_such_task", str(tmp_path / "a")],
+                       capture_output=True, text=True, timeout=300)
+    assert "LoopError: ValueError: unknown task 'no_such_task'" in p.stdout, p.stdout + p.stderr
+    p = subprocess.Popen([sys.executable, "-c", ORACLE_PARENT, "cartpole_swingup",
+                          str(tmp_path / "b")], stdout=subprocess.PIPE, text=True)
+    oracle_pid = int(p.stdout.readline())
+    time.sleep(2.0)
+    assert _alive(oracle_pid)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    deadline = time.time() + 30
+    while time.time() < deadline and _alive(oracle_pid):
+        time.sleep(0.1)
+    assert not _alive(oracle_pid)

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -88,8 +87,8 @@ class LoopConfig:
     oracle: bool = True
     """Train and evaluate the oracle policy (evaluation only)."""
     oracle_in_background: bool = True
-    """Train the oracle in a background thread from the start, while the loop's stages run: it
-    needs nothing the loop records, and on 2 cores it takes the core the stages leave idle."""
+    """Train the oracle in a lower-priority child process from the start, while the loop's stages
+    run: it needs nothing the loop records, and it takes the CPU the stages leave idle."""
     eval_episodes: int = 3
     """Evaluation-only real episodes of the oracle and of the sim policy without adaptation (not
     recorded, not counted as real steps)."""
@@ -132,31 +131,60 @@ class _Progress:
         return self.doc["rounds"].get(f"round{r}", {})
 
 
-class _Background:
-    """``fn(*args)`` in a daemon thread (JAX releases the GIL while XLA compiles and runs, so two
-    trainings overlap); ``result()`` joins and re-raises its error. A daemon thread dies with the
-    process, so an interrupted loop exits at once; the oracle resumes from its own checkpoints."""
+def _oracle_child(conn, env_name, seed, out, config, perturbation, nice):
+    """The oracle's process: lower priority, dies with its parent, sends back the return or the
+    error's text."""
+    import os
+    import signal
+    import traceback
 
-    def __init__(self, fn, *args):
-        self._out: dict[str, Any] = {}
+    try:  # Linux: SIGKILL when the parent dies, so a killed loop leaves no orphan training
+        import ctypes
 
-        def target():
-            try:
-                self._out["value"] = fn(*args)
-            except BaseException as e:  # noqa: BLE001  (handed to the caller by result())
-                self._out["error"] = e
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    os.nice(nice)
+    try:
+        conn.send(("ok", evaluation.oracle_return(env_name, seed, out, config, False,
+                                                  perturbation)))
+    except BaseException:  # noqa: BLE001  (sent to the parent, which raises it)
+        conn.send(("error", traceback.format_exc()))
+    conn.close()
 
-        self._thread = threading.Thread(target=target, name="twinrl-oracle", daemon=True)
-        self._thread.start()
+
+class _OracleProcess:
+    """The oracle trained in a child process at a lower CPU priority (``nice``) while the loop's
+    stages run: it needs nothing the loop records, and the scheduler gives it the CPU the stages
+    leave idle (on 2 cores: sysid's and the residual's single-threaded compiles) instead of
+    halving the stages' share, as a thread in this process did. The child dies with this process
+    (a killed loop leaves no orphan); the oracle resumes from its own checkpoints."""
+
+    def __init__(self, env_name, seed, out, config, perturbation, nice: int = 10):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")  # a fresh interpreter: JAX is not fork-safe
+        self._conn, child = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=_oracle_child, name="twinrl-oracle", daemon=True,
+                                 args=(child, env_name, seed, Path(out), config, perturbation,
+                                       nice))
+        self._proc.start()
+        child.close()
 
     def running(self) -> bool:
-        return self._thread.is_alive()
+        return self._proc.is_alive() and not self._conn.poll()
 
-    def result(self):
-        self._thread.join()
-        if "error" in self._out:
-            raise self._out["error"]
-        return self._out["value"]
+    def result(self) -> float:
+        try:
+            status, value = self._conn.recv()
+        except EOFError:
+            self._proc.join()
+            raise LoopError(f"the oracle's process died (exit code {self._proc.exitcode}) "
+                            f"before reporting") from None
+        self._proc.join()
+        if status == "error":
+            raise LoopError(f"the oracle's training failed:\n{value}")
+        return value
 
 
 def _params_to_json(p) -> dict[str, list]:
@@ -233,8 +261,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     oracle_job = None
     if config.oracle and config.oracle_in_background:
         say("training the oracle (evaluation only) in the background")
-        oracle_job = _Background(evaluation.oracle_return, env_name, seed, out / "oracle", config,
-                                 False, perturbation)
+        oracle_job = _OracleProcess(env_name, seed, out / "oracle", config, perturbation)
 
     twin = envs.make_real(env_name, seed=seed, perturbation=perturbation)
     nominal_env = envs.make(env_name)
@@ -254,10 +281,12 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                 f"{f' ({have} already recorded)' if have else ''}")
             acts = [sysid.excitation_actions(np.random.default_rng([seed, e]), T,
                                              nominal_env.action_size) for e in range(K)]
+            t0 = time.perf_counter()
             for e in range(have, K):
                 _collect(twin, writer, 1, lambda o, t, a=acts[e]: a[min(t, T - 1)], seed,
                          np.random.default_rng([seed, e, 1]))
-            prog.mark("round0/collect", real_steps=_real_steps(out), real_return=None)
+            prog.mark("round0/collect", real_steps=_real_steps(out), real_return=None,
+                      seconds={"collect": time.perf_counter() - t0})
         rounds.append(_round_record(prog, 0))
 
         policy_dir = None
@@ -271,6 +300,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
             # 1. sysid --------------------------------------------------------------------
             if not prog.done(f"{tag}/sysid"):
                 say(f"  sysid on {len(data)} real transitions ...")
+                t0 = time.perf_counter()
                 res = sysid.fit(nominal_env, data, sysid.SysidConfig(
                     **({"window": config.sysid_window} if config.sysid_window else {})))
                 report.write_json(rdir / "sysid.json", {
@@ -279,7 +309,8 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                     "seconds": res.seconds})
                 errs = evaluation.param_errors(twin, res)
                 prog.mark(f"{tag}/sysid", param_rel_error=errs, latency=res.latency,
-                          sysid_rollouts=res.sim_rollouts)
+                          sysid_rollouts=res.sim_rollouts,
+                          seconds=_seconds(prog, r, sysid=time.perf_counter() - t0))
             sys_doc = json.loads((rdir / "sysid.json").read_text())
             params = _params_from_json(sys_doc["params"])
             latency = int(sys_doc["latency"])
@@ -304,15 +335,18 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                     overrides["model_fraction"] = config.model_fraction
                 from twinrl.learn.runner import continue_run
 
+                t0 = time.perf_counter()
                 s = continue_run(env_name, config.algo, policy_dir, seed=seed + r,
                                  epochs=config.epochs, overrides=overrides, progress=progress,
                                  env=env, train_kwargs=kwargs,
                                  checkpoint_every=config.checkpoint_every)
                 prog.mark(f"{tag}/learn", sim_return=s["final"].get("return"),
-                          train_epochs=s["epochs"])
+                          train_epochs=s["epochs"],
+                          seconds=_seconds(prog, r, learn=time.perf_counter() - t0))
 
             # 4. residual + deploy ---------------------------------------------------------
             if not prog.done(f"{tag}/deploy"):
+                t0 = time.perf_counter()
                 act = _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed + r, say)
                 have = _episodes_in(out / "dataset") - _episodes_before(prog, r, K)
                 say(f"  deploying on the real twin ({K - have} episodes) ...")
@@ -321,6 +355,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                     rets += _collect(twin, writer, 1, lambda o, t: act(o), seed,
                                      np.random.default_rng([seed, r, e]))
                     prog.mark(f"{tag}/deploy_partial", deploy_returns_partial=rets)
+                t_eval = time.perf_counter()
                 # evaluation only: pi_sim alone and the deployed policy on the same unrecorded
                 # episodes (same start states), a like-for-like before/after of the adaptation;
                 # without an accepted residual the deployed policy is pi_sim (scored once)
@@ -332,7 +367,9 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                            if gate["residual_accepted"] else no_adapt)
                 prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
                           real_returns=rets, real_steps=_real_steps(out),
-                          sim_policy_real_return=no_adapt, adapted_real_return=adapted, **gate)
+                          sim_policy_real_return=no_adapt, adapted_real_return=adapted,
+                          seconds=_seconds(prog, r, deploy=t_eval - t0,
+                                           evaluation=time.perf_counter() - t_eval), **gate)
             rounds.append(_round_record(prog, r))
     finally:
         writer.close()
@@ -340,6 +377,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
 
     # ------------------------------------------------------------------------- oracle
     oracle_return = None
+    t_wait = time.perf_counter()
     if oracle_job is not None:
         if oracle_job.running():
             say("waiting for the oracle's training ...")
@@ -354,10 +392,13 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
         final["fraction_of_oracle"] = (final.get("real_return") or 0.0) / oracle_return
     summary = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config),
                "rounds": rounds, "final": final,
+               "oracle_wait_s": time.perf_counter() - t_wait,
                "wall_s_this_process": time.perf_counter() - t_start}
     if config.video and policy_dir is not None:
+        t0 = time.perf_counter()
         summary["video"] = str(_final_video(out, env_name, seed, config, perturbation))
-        report.write_json(out / "summary.json", summary)
+        summary["video_s"] = time.perf_counter() - t0
+        summary["wall_s_this_process"] = time.perf_counter() - t_start
     _write_outputs(out, summary, config, env_name, seed, policy_dir)
     return summary
 
@@ -379,15 +420,19 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
     hyb = _load_hybrid(rdir) if config.hybrid else None
     act = _deployed_policy(config, env, hyb, None, rdir / "train", rdir, seed + r,
                            lambda *a, **k: None)
+    # Both sides without shadows: in software OpenGL (no GPU) shadow mapping is ~90 % of a frame
+    # (cartpole 320x240: 80 ms -> 6 ms), and the video is for looking at, not for fitting.
     twin = envs.make_real(env_name, seed=seed, perturbation=perturbation, width=size[0],
-                          height=size[1])
-    renderer = CameraRenderer(env.sim.mj_model, *size)
+                          height=size[1], shadows=False)
+    renderer = CameraRenderer(env.sim.mj_model, *size, shadows=False)
     frames = []
     try:
         obs, _ = twin.reset(seed=20_000 + seed)
         qpos, qvel = env.state_from_obs(jnp.asarray(obs))
         state = env.reset(jax.random.key(0))
         state = state.replace(pipeline_state=env.sim.init(qpos, qvel), obs=env.observe(qpos, qvel))
+        # committed to the device like step's outputs, so step compiles once, not twice
+        state = jax.device_put(state, jax.devices()[0])
         step = jax.jit(env.step)
         d = mujoco.MjData(env.sim.mj_model)
         done = False
@@ -421,6 +466,12 @@ def _episodes_before(prog: _Progress, r: int, K: int) -> int:
     return K * r
 
 
+def _seconds(prog: _Progress, r: int, **stages: float) -> dict[str, float]:
+    """Round ``r``'s wall-clock seconds per stage so far, with ``stages`` added (a resumed
+    stage counts only this process's part)."""
+    return {**prog.record(r).get("seconds", {}), **stages}
+
+
 def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
     rec = prog.record(r)
     return {"round": r, "real_steps": rec.get("real_steps"), "real_return": rec.get("real_return"),
@@ -429,7 +480,7 @@ def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
             "sim_policy_real_return": rec.get("sim_policy_real_return"),
             "adapted_real_return": rec.get("adapted_real_return"),
             "residual_accepted": rec.get("residual_accepted"),
-            "latency": rec.get("latency")}
+            "latency": rec.get("latency"), "seconds": rec.get("seconds", {})}
 
 
 def _hybrid_stage(prog, tag, rdir, env, data, latency, seed, say):
@@ -438,13 +489,15 @@ def _hybrid_stage(prog, tag, rdir, env, data, latency, seed, say):
 
     if not prog.done(f"{tag}/hybrid"):
         say("  fitting the hybrid residual dynamics ...")
+        t0 = time.perf_counter()
         fit = hybrid.fit(env, data, latency=latency, rng=jax.random.key(seed))
         m = fit.model
         save_policy(rdir / "hybrid", m.network, m.params, kind="hybrid_residual",
                     in_mean=m.in_mean, in_std=m.in_std, out_scale=m.out_scale,
                     latency=m.latency, metrics=fit.metrics)
         prog.mark(f"{tag}/hybrid", hybrid_sim_rmse=fit.metrics["sim_val_rmse"],
-                  hybrid_rmse=fit.metrics["hybrid_val_rmse"])
+                  hybrid_rmse=fit.metrics["hybrid_val_rmse"],
+                  seconds=_seconds(prog, int(tag[5:]), hybrid=time.perf_counter() - t0))
     return _load_hybrid(rdir)
 
 

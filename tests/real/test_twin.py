@@ -160,6 +160,22 @@ def test_camera_offset_moves_the_image():
     offset.close()
 
 
+def test_shadows_off_changes_only_the_shading():
+    # videos switch shadows off (software OpenGL renders ~13x faster); geometry must not move
+    on = RealTwin("cartpole_balance", seed=0, width=160, height=120)
+    off = RealTwin("cartpole_balance", seed=0, width=160, height=120, shadows=False)
+    for t in (on, off):
+        t.reset(seed=0)
+    a, b = on.render_images(kinds=("rgb", "segmentation")), off.render_images(
+        kinds=("rgb", "segmentation"))
+    np.testing.assert_array_equal(a["segmentation"], b["segmentation"])
+    shaded = np.any(a["rgb"] != b["rgb"], -1)
+    assert shaded.mean() > 0.005  # the shadows that were drawn
+    assert b["rgb"][shaded].astype(int).sum() > a["rgb"][shaded].astype(int).sum()  # lighter
+    on.close()
+    off.close()
+
+
 def test_latency_delays_actions():
     base = Perturbation.none()
     late = Perturbation(latency_steps=2)
