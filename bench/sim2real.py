@@ -187,19 +187,28 @@ def fmt_ratio(r: dict | None) -> str:
 
 def cached_run(path: Path, target: float, max_steps: int, eval_every: int,
                eval_episodes: int) -> dict | None:
-    """A finished run from an earlier invocation, if it answers this one's question: same
-    target and evaluation episodes, and either it reached the target within ``max_steps`` with
-    the same evaluation interval, or it trained at least ``max_steps`` without reaching it (then
-    its own interval, kept in the run's JSON, stands: it is a lower bound either way)."""
+    """A finished run from an earlier invocation, scored against this invocation's ``target``
+    from its evaluation curve when the curve answers the question (same evaluation episodes):
+
+    - an evaluation within ``max_steps`` scored >= ``target``: the first such step, if the run
+      evaluated every ``eval_every`` steps (else a finer interval might have found an earlier one);
+    - none did, and the run trained ``max_steps`` or more without stopping at a target of its own:
+      not reached (a lower bound, whatever its evaluation interval).
+
+    A run that stopped early at its own lower target says nothing about a higher one: None."""
     if not path.exists():
         return None
     r = json.loads(path.read_text())
-    if abs(r["target"] - target) > 1e-9 or r.get("eval_episodes") != eval_episodes:
+    if r.get("eval_episodes") != eval_episodes:
         return None
-    if r["steps_to_target"] is not None:
-        ok = r.get("eval_every") == eval_every and r["steps_to_target"] <= max_steps
-        return r if ok else None
-    return r if r["real_steps_trained"] >= max_steps else None
+    rescored = {"target": target, "rescored_from_target": r["target"]}
+    hit = next((c["real_steps"] for c in r.get("curve", []) if c["return"] >= target), None)
+    if hit is not None:
+        ok = r.get("eval_every") == eval_every and hit <= max_steps
+        return {**r, **rescored, "steps_to_target": hit} if ok else None
+    if r["steps_to_target"] is not None or r["real_steps_trained"] < max_steps:
+        return None
+    return {**r, **rescored, "steps_to_target": None}
 
 
 def main(argv=None) -> int:
