@@ -59,7 +59,8 @@ class LoopConfig:
 
     rounds: int = 1
     """Rounds of sysid -> hybrid -> learn -> deploy after the round-0 collection (1 by default:
-    one round on cartpole is ~7 of the 10 minutes ``make run`` has on 2 cores)."""
+    the default cartpole loop takes ~7 min 50 s on 2 cores with a cold compilation cache, of the
+    10 minutes ``make run`` has; ``summary.json`` gives each stage's seconds)."""
     episodes_per_round: int = 2
     """Real episodes recorded per round (round 0: exciting open-loop actions)."""
     algo: str = "ppo"
@@ -68,7 +69,7 @@ class LoopConfig:
     (balanced, but the cart drifting 5-16 m out, where the ``centered`` reward term is flat and
     gives no gradient back), 68 % of the oracle; SHAC alone ends at 135-189 over 3 seeds, HDS at
     165-198 (``bench/learn.py``, one core, ~160 s against PPO's 108 s). With PPO (3.5 M
-    simulated steps, ~4 min beside the oracle's) the loop reached 95 % of the oracle. The differentiable simulator still does the sysid and the residual adaptation;
+    simulated steps, ~3.5 min beside the oracle's) the loop reached 95 % of the oracle. The differentiable simulator still does the sysid and the residual adaptation;
     ``hds`` is the learner that mixes the hybrid model into learning (``model_fraction``)."""
     epochs: int | None = None
     """Training epochs per round (None: the algorithm's tuned value for the task)."""
