@@ -31,8 +31,9 @@ The oracle return and the loop's numbers come from a loop run's ``summary.json``
 evaluation, and the ratio (steps of the better of SAC and TD3) / (loop steps), for both loop counts
 -- a lower bound ``>= max/loop`` when neither model-free run got there, none when the loop did
 not; plus the loop's own rows and the sim-only policy without adaptation
-(``sim_policy_real_return``, made from round 0's real steps). Writes ``bench/results/sim2real.json`` (after every run)
-and ``bench/results/sim2real.png`` (return vs real steps). Each finished model-free run is
+(``sim_policy_real_return``, made from round 0's real steps). Writes
+``bench/results/sim2real.json`` (after every run) and ``bench/results/sim2real.png`` (return vs
+real steps). Each finished model-free run is
 also kept in ``sim2real_runs/TASK-ALGO-SEED.json`` beside ``--out`` and reused by a later
 invocation asking the same question (``--fresh`` re-runs), so tasks and seeds can be run in
 separate processes and then tabulated together.

@@ -323,7 +323,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
             # 2. hybrid -------------------------------------------------------------------
             hyb = None
             if config.hybrid:
-                hyb = _hybrid_stage(prog, tag, rdir, env, data, latency, seed + r, say)
+                hyb = _hybrid_stage(prog, r, rdir, env, data, latency, seed + r, say)
 
             # 3. learn in sim -------------------------------------------------------------
             policy_dir = rdir / "train"
@@ -486,10 +486,11 @@ def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
             "latency": rec.get("latency"), "seconds": rec.get("seconds", {})}
 
 
-def _hybrid_stage(prog, tag, rdir, env, data, latency, seed, say):
+def _hybrid_stage(prog, r, rdir, env, data, latency, seed, say):
     from twinrl.learn.checkpoint import save_policy
     from twinrl.sim2real import hybrid
 
+    tag = f"round{r}"
     if not prog.done(f"{tag}/hybrid"):
         say("  fitting the hybrid residual dynamics ...")
         t0 = time.perf_counter()
@@ -500,7 +501,7 @@ def _hybrid_stage(prog, tag, rdir, env, data, latency, seed, say):
                     latency=m.latency, metrics=fit.metrics)
         prog.mark(f"{tag}/hybrid", hybrid_sim_rmse=fit.metrics["sim_val_rmse"],
                   hybrid_rmse=fit.metrics["hybrid_val_rmse"],
-                  seconds=_seconds(prog, int(tag[5:]), hybrid=time.perf_counter() - t0))
+                  seconds=_seconds(prog, r, hybrid=time.perf_counter() - t0))
     return _load_hybrid(rdir)
 
 
