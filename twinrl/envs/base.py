@@ -281,4 +281,4 @@ def _with_friction_rows(sim: Sim, params: PhysParams | None) -> Sim:
         return sim
     mj = copy.deepcopy(sim.mj_model)
     mj.dof_frictionloss[need] = fl[need]
-    return Sim(mj_model=mj, model=mjx.put_model(mj), frame_skip=sim.frame_skip, name=sim.name)
+    return sim.recompiled(mj)

@@ -101,7 +101,7 @@ def _implicit(m, d):
     return _advance(m, d, d.act_dot, qacc)
 
 
-def _rk4(m, d, iterations):
+def _rk4(m, d, iterations, gradient):
     a, b = _fwd._RK4_A, _fwd._RK4_B
     times = d.time + jnp.tril(a).sum(axis=0) * m.opt.timestep
     d0 = d
@@ -112,7 +112,8 @@ def _rk4(m, d, iterations):
         kqpos = _scan.flat(m, integrate, "jqv", "q", m.jnt_type, d0.qpos, a[i, i] * kqvel)
         kact = d0.act + a[i, i] * d.act_dot * m.opt.timestep
         kqvel = d0.qvel + a[i, i] * d.qacc * m.opt.timestep
-        d = forward(m, d.replace(qpos=kqpos, qvel=kqvel, act=kact, time=times[i]), iterations)
+        d = forward(m, d.replace(qpos=kqpos, qvel=kqvel, act=kact, time=times[i]), iterations,
+                    gradient)
         qvel += b[i + 1] * kqvel
         qacc += b[i + 1] * d.qacc
         act_dot += b[i + 1] * d.act_dot
@@ -120,13 +121,16 @@ def _rk4(m, d, iterations):
     return _advance(m, d, act_dot, qacc, qvel)
 
 
-def step(m, d, iterations: int | None = None):
-    """``mjx.step`` with the differentiable solve (Euler, implicitfast or RK4 integrator)."""
-    d = forward(m, d, iterations)
+def step(m, d, iterations: int | None = None, gradient: str = "implicit"):
+    """``mjx.step`` with the differentiable solve (Euler, implicitfast or RK4 integrator).
+
+    ``gradient``: how reverse mode goes through the constraint solve (``twinrl.physics.solver``).
+    """
+    d = forward(m, d, iterations, gradient)
     if m.opt.integrator == IntegratorType.EULER:
         return _euler(m, d)
     if m.opt.integrator == IntegratorType.IMPLICITFAST:
         return _implicit(m, d)
     if m.opt.integrator == IntegratorType.RK4:
-        return _rk4(m, d, iterations)
+        return _rk4(m, d, iterations, gradient)
     raise NotImplementedError(f"integrator {m.opt.integrator} is not supported by MJX")

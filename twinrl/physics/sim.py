@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from twinrl.physics import gradients, integrator
+from twinrl.physics import gradients, integrator, solver
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, scene_path
 
@@ -83,18 +83,31 @@ class Sim:
         The differentiable solve always runs this many (no-ops after convergence), so keep it
         small; MuJoCo's default of 100 is far more than small scenes need.
       ls_iterations: line-search iterations (default: the MJCF's).
+      gradient: how reverse mode goes through the constraint solve: ``"implicit"`` (default:
+        the derivative of the converged solution, by the implicit function theorem) or
+        ``"unrolled"`` (the derivative of the fixed iterations; wrong by orders of magnitude
+        where a solve's line search switches pieces, e.g. a box landing flat). The forward is
+        the same either way. See ``twinrl.physics.solver``.
     """
 
     mj_model: mujoco.MjModel
     model: mjx.Model
     frame_skip: int = 1
     name: str = "mjcf"
+    gradient: str = "implicit"
 
     @classmethod
     def load(cls, mjcf, *, frame_skip: int = 1, iterations: int | None = None,
-             ls_iterations: int | None = None, name: str | None = None) -> "Sim":
+             ls_iterations: int | None = None, name: str | None = None,
+             gradient: str = "implicit") -> "Sim":
         if frame_skip < 1:
             raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
+        if gradient not in solver.GRADIENTS:
+            raise ValueError(f"gradient must be one of {', '.join(solver.GRADIENTS)}, "
+                             f"got {gradient!r}")
+        for what, n in (("iterations", iterations), ("ls_iterations", ls_iterations)):
+            if n is not None and int(n) < 1:
+                raise ValueError(f"{what} must be >= 1, got {n}")
         mj_model = load_mjcf(mjcf)
         if iterations is not None:
             mj_model.opt.iterations = int(iterations)
@@ -104,7 +117,11 @@ class Sim:
             name = str(mjcf) if (isinstance(mjcf, str) and mjcf in SCENES) else (
                 Path(str(mjcf)).stem if not str(mjcf).lstrip().startswith("<") else "mjcf")
         return cls(mj_model=mj_model, model=mjx.put_model(mj_model), frame_skip=frame_skip,
-                   name=name)
+                   name=name, gradient=gradient)
+
+    def recompiled(self, mj_model: mujoco.MjModel) -> "Sim":
+        """The same simulator (frame skip, name, gradient mode) on an edited ``mj_model``."""
+        return dataclasses.replace(self, mj_model=mj_model, model=mjx.put_model(mj_model))
 
     # ------------------------------------------------------------------ shapes
     @property
@@ -148,10 +165,10 @@ class Sim:
         """One control step (``frame_skip`` physics steps) with ``ctrl = action``."""
         m = self.model_with(params)
         d = data.replace(ctrl=jnp.asarray(action, data.ctrl.dtype).reshape(self.nu))
+        step = lambda d: integrator.step(m, d, iterations, self.gradient)
         if self.frame_skip == 1:
-            return integrator.step(m, d, iterations)
-        d, _ = jax.lax.scan(lambda d, _: (integrator.step(m, d, iterations), None), d, None,
-                            length=self.frame_skip)
+            return step(d)
+        d, _ = jax.lax.scan(lambda d, _: (step(d), None), d, None, length=self.frame_skip)
         return d
 
     def stock_step(self, data: mjx.Data, action: jax.Array,

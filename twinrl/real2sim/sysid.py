@@ -471,8 +471,7 @@ class Problem:
         for f, i in self.spec:
             if f == "frictionloss" and mj.dof_frictionloss[i] <= 0:
                 mj.dof_frictionloss[i] = c.frictionloss_floor
-        self.sim = Sim(mj_model=mj, model=mjx.put_model(mj), frame_skip=env.sim.frame_skip,
-                       name=env.sim.name)
+        self.sim = env.sim.recompiled(mj)
 
         # Nominal: the env's parameters (identified earlier, or the MJCF's); initial: nominal
         # with near-zero non-negative fitted values lifted to nonneg_init; known: given values.
