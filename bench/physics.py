@@ -7,10 +7,15 @@ Per bundled scene (T = 100-step open-loop rollouts, float32, CPU unless JAX find
 - gradient/forward cost ratio (time of value-and-gradient / time of forward, same batch);
 - MuJoCo C ``mj_step`` steps/s (``mujoco.rollout``, one thread).
 
+``--gradient implicit unrolled`` measures both derivatives of the constraint solve in one run
+(``twinrl.physics.solver``: the implicit-function-theorem derivative, the default, adds one
+nv x nv solve per step to the backward pass); the table then has a row per scene and mode.
+
 Timings are the best of ``--repeats`` calls after a warm-up call. Prints a table, writes JSON.
 
     python bench/physics.py --out bench/results            # all scenes
     python bench/physics.py --scenes cartpole push --repeats 5
+    python bench/physics.py --scenes push --gradient implicit unrolled
 """
 
 from __future__ import annotations
@@ -51,8 +56,8 @@ def _compile(fn, *args) -> tuple[float, object]:
     return time.perf_counter() - t0, fn
 
 
-def bench_scene(name: str, repeats: int) -> dict:
-    sim = Sim.load(name)
+def bench_scene(name: str, repeats: int, gradient: str = "implicit") -> dict:
+    sim = Sim.load(name, gradient=gradient)
     sc = scenario(name, sim.nq, sim.nv, sim.nu, sim.mj_model.qpos0, horizon=T)
     q0, v0 = jnp.asarray(sc.qpos, jnp.float32), jnp.asarray(sc.qvel, jnp.float32)
     acts = jnp.asarray(sc.actions, jnp.float32)
@@ -67,7 +72,7 @@ def bench_scene(name: str, repeats: int) -> dict:
     batch = lambda f: jax.jit(jax.vmap(f))
     a256, a16 = jnp.broadcast_to(acts, (256,) + acts.shape), jnp.broadcast_to(acts, (16,) + acts.shape)
 
-    out: dict = {"scene": name, "T": T, "nv": sim.nv, "nu": sim.nu,
+    out: dict = {"scene": name, "gradient": gradient, "T": T, "nv": sim.nv, "nu": sim.nu,
                  "solver_iterations": int(sim.mj_model.opt.iterations)}
     out["compile_forward_s"], _ = _compile(ours, acts)
     out["compile_grad_s"], _ = _compile(grad, acts)
@@ -114,17 +119,20 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="*", default=list(SCENES), choices=SCENES)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--gradient", nargs="*", default=["implicit"], choices=("implicit", "unrolled"),
+                   help="derivative(s) of the constraint solve to measure (default implicit)")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
     rows = []
     for name in args.scenes:
-        print(f"[bench] {name} ...", flush=True)
-        rows.append(bench_scene(name, args.repeats))
+        for gradient in args.gradient:
+            print(f"[bench] {name} ({gradient}) ...", flush=True)
+            rows.append(bench_scene(name, args.repeats, gradient))
     print_table(f"physics throughput (env-steps/s, T={T}, {jax.devices()[0].platform})",
-                ["scene", "compile fwd s", "compile grad s", "fwd 1", "fwd vmap256",
+                ["scene", "gradient", "compile fwd s", "compile grad s", "fwd 1", "fwd vmap256",
                  "grad 1", "grad vmap16", "grad/fwd 1", "grad/fwd 16", "stock fwd 1",
                  "stock vmap256", "MuJoCo C"],
-                [[r["scene"], r["compile_forward_s"], r["compile_grad_s"],
+                [[r["scene"], r["gradient"], r["compile_forward_s"], r["compile_grad_s"],
                   r["forward_steps_per_s_single"], r["forward_steps_per_s_vmap256"],
                   r["grad_steps_per_s_single"], r["grad_steps_per_s_vmap16"],
                   r["grad_forward_ratio_single"], r["grad_forward_ratio_vmap16"],

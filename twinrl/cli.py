@@ -50,6 +50,20 @@ def _gradcheck_parser(sub) -> None:
                    help="relative tolerance (default 1e-4 with --x64, 2e-2 without)")
     p.add_argument("--iterations", type=int, default=None,
                    help="constraint-solver iterations (default: the MJCF's option)")
+    p.add_argument("--scenario", default=None, metavar="NAME",
+                   help="initial state and actions: 'wave' (smooth random actions from the "
+                        "model's qpos0 at rest; the default for your MJCF), 'zero' (no actuation: "
+                        "a dropped object), or a bundled scene's name for its own scenario "
+                        "(cartpole, pendulum, push, peg_in_hole; the default for that scene)")
+    p.add_argument("--tolerance", type=float, default=None,
+                   help="constraint-solver tolerance during the check (default 1e-12 with --x64 "
+                        "so differences see the solution, not the stopping rule; else the MJCF's)")
+    p.add_argument("--gradient", default="implicit", choices=("implicit", "unrolled"),
+                   help="derivative of the constraint solve: of its converged solution (implicit "
+                        "function theorem, default) or of its fixed iterations")
+    p.add_argument("--strict", action="store_true",
+                   help="also exit 1 when an input group has no resolved entry (nothing judged "
+                        "through it) and is not inert")
     _common(p, "runs/gradcheck")
     p.set_defaults(func=_cmd_gradcheck)
 
@@ -66,9 +80,17 @@ def _cmd_gradcheck(args) -> int:
     targets = list(SCENES) if args.targets == ["all"] else args.targets
     if args.horizon is not None and args.horizon < 1:
         raise UsageError(f"--horizon must be >= 1, got {args.horizon}")
-    rtol = args.rtol or (1e-4 if args.x64 else 2e-2)
+    rtol = args.rtol if args.rtol is not None else (1e-4 if args.x64 else 2e-2)
+    if not rtol > 0:
+        raise UsageError(f"--rtol must be > 0, got {args.rtol}")
+    tolerance = args.tolerance if args.tolerance is not None else (1e-12 if args.x64 else None)
+    if tolerance is not None and not tolerance >= 0:
+        raise UsageError(f"--tolerance must be >= 0, got {args.tolerance}")
+    if args.iterations is not None and args.iterations < 1:
+        raise UsageError(f"--iterations must be >= 1, got {args.iterations}")
     h = 1e-6 if args.x64 else 1e-3
-    sims = [Sim.load(t, iterations=args.iterations) for t in targets]  # fail fast on bad input
+    # fail fast on bad input
+    sims = [Sim.load(t, iterations=args.iterations, gradient=args.gradient) for t in targets]
     if not args.x64:
         report.console.print("[yellow]float32: finite differences are coarse; use --x64 for the "
                              "real check[/yellow]")
@@ -76,22 +98,33 @@ def _cmd_gradcheck(args) -> int:
     for sim in sims:
         t0 = time.perf_counter()
         with report.console.status(f"{sim.name}: compiling and differencing the rollout..."):
-            r = gradcheck(sim, horizon=args.horizon, h=h, rtol=rtol, seed=args.seed)
+            try:
+                r = gradcheck(sim, horizon=args.horizon, h=h, rtol=rtol, seed=args.seed,
+                              scenario=args.scenario, tolerance=tolerance)
+            except ValueError as e:
+                raise UsageError(f"{sim.name}: {e}") from None
         secs = time.perf_counter() - t0
         report.print_table(
-            f"gradcheck {sim.name}  T={r.horizon}  {r.dtype}  "
+            f"gradcheck {sim.name}  T={r.horizon}  {r.dtype}  scenario {r.scenario}  "
             f"(constrained steps {r.constrained_steps}, free {r.free_steps})",
             ["input", "n", "resolved", "noise-lim", "kinks", "max |grad|", "max rel err",
-             "max abs err", "fail"],
+             "max abs err", "fail", "judged"],
             [[g["group"], g["entries"], g["resolved"], g["noise_limited"], g["kinks"],
-              g["max_abs_grad"], g["max_rel_err"], g["max_abs_err"], g["failures"]]
+              g["max_abs_grad"], g["max_rel_err"], g["max_abs_err"], g["failures"],
+              "yes" if g["resolved"] else ("inert" if g["inert"] else "NO")]
              for g in r.groups])
-        verdict = "[green]PASS[/green]" if r.passed else "[red]FAIL[/red]"
+        ok = r.passed_strict if args.strict else r.passed
+        verdict = "[green]PASS[/green]" if ok else "[red]FAIL[/red]"
         report.console.print(f"{verdict} {sim.name}: max rel error {r.max_rel_error:.2e} "
                              f"(tol {rtol:g}) over {r.count('resolved')} resolved entries, "
                              f"non-finite {r.nan_count}, failures {len(r.failures)}, "
-                             f"{secs:.0f} s\n")
-        summ = r.summary() | {"seconds": secs}
+                             f"{secs:.0f} s")
+        if r.unjudged:
+            report.console.print(f"[yellow]not judged (no resolved entry): "
+                                 f"{', '.join(r.unjudged)}[/yellow]"
+                                 + ("" if args.strict else " (--strict fails on this)"))
+        report.console.print("")
+        summ = r.summary() | {"seconds": secs, "passed": ok}
         results.append(summ)
         if len(sims) > 1:
             report.write_json(args.out / sim.name / "summary.json", summ)

@@ -40,3 +40,30 @@ def test_classify_catches_wrong_gradients_and_kinks():
     status, ok, rel, _ = classify(g, fd, fd4, fwd, bwd, rounding, rtol=1e-4)
     assert list(status) == ["resolved", "resolved", "noise", "resolved", "kink"]
     assert list(ok) == [True, False, True, False, True]
+
+
+def test_user_mjcf_gets_tangent_space_orientations_and_coverage_per_group(x64, tmp_path):
+    # A user's file named like a bundled scene gets the generic scenario (it used to get push's,
+    # an IndexError on another model), orientations are 3 rotation coordinates, and a group with
+    # nothing resolved is reported (here: a free-flying box, 5 steps from rest: damping's effect
+    # is below rounding; friction never acts, exactly).
+    path = tmp_path / "push.xml"
+    path.write_text('<mujoco><worldbody><body pos="0 0 1" euler="10 20 30"><freejoint name="b"/>'
+                    '<geom type="box" size="0.1 0.2 0.3" mass="1"/></body></worldbody></mujoco>')
+    with jax.enable_x64(True):
+        sim = Sim.load(path)
+        assert not sim.bundled
+        r = gradcheck(sim, horizon=5)
+    assert r.scenario == "wave" and r.passed
+    qpos = [row for row in r.rows if row["group"] == "qpos"]
+    assert [row["index"] for row in qpos] == ["0:b.x", "1:b.y", "2:b.z", "3:b.rx", "4:b.ry",
+                                               "5:b.rz"]
+    assert all(row["status"] == "resolved" for row in qpos[3:])  # rotations are judged
+    groups = {g["group"]: g for g in r.groups}
+    assert groups["params.frictionloss"]["inert"]  # no friction-loss rows: exactly no effect
+    assert groups["params.friction"]["inert"]  # no contact
+    assert r.unjudged == ["params.damping"] and not r.passed_strict
+    with pytest.raises(ValueError, match="scenario 'push' is the bundled push scene's"):
+        gradcheck(sim, horizon=5, scenario="push")
+    with pytest.raises(ValueError, match="rtol must be > 0"):
+        gradcheck(sim, horizon=5, rtol=0)

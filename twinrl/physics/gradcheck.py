@@ -14,20 +14,41 @@ derivative at all. Each scalar is differenced with two step sizes, ``h`` and ``4
 rounding noise is bounded by ``r = 4 eps max(|L|, 1) / h``. With ``s = |fd(h) - fd(4h)|`` and
 ``k = |forward(h) - backward(h)|`` (one-sided quotients at ``h``):
 
-- *kink*: ``s > max(1e-6 |fd|, 10 r)`` or ``k > max(1e-3 |fd|, 20 r)`` -- the estimates disagree
-  beyond rounding, so a contact or limit switched inside the window. The one-sided test catches
-  symmetric kinks, e.g. a box resting flat whose tilt either way lifts different corners, where
-  central differences at every step size agree on the mean of the two slopes. Reported, not judged;
-- *resolved*: otherwise, when ``s + r <= 0.1 rtol |fd|`` -- the estimate is good to a tenth of the
-  tolerance: judged by relative error ``|g - fd| / max(|g|, |fd|) <= rtol``;
+- *resolved*: ``s + r <= 0.1 rtol |fd|`` and ``k <= max(1e-3 |fd|, 20 r)`` -- the estimate is
+  good to a tenth of the tolerance: judged by relative error ``|g - fd| / max(|g|, |fd|) <= rtol``;
+- *kink*: otherwise, when ``s > max(1e-6 |fd|, 10 r)`` or ``k > max(1e-3 |fd|, 20 r)`` -- the
+  estimates disagree beyond rounding, so a contact or limit switched inside the window. The
+  one-sided test catches symmetric kinks, e.g. a box resting flat whose tilt either way lifts
+  different corners, where central differences at every step size agree on the mean of the two
+  slopes. Reported, not judged;
 - *noise-limited*: the rest (gradients so small that rounding dominates the quotient): judged in
   absolute terms, ``|g - fd| <= 10 (s + r)``.
 
 ``max_rel_error`` is the largest relative error over resolved entries. Non-finite gradients fail.
+
+Coverage. A check that resolves no entry of a group has judged nothing through it (a friction
+coefficient through a rollout that never slides, say). Each group reports how many entries were
+resolved; a group with none is *unjudged* (``GradcheckResult.unjudged``), unless it is *inert*:
+every entry's gradient and both difference quotients exactly zero (the input does not reach the
+loss, e.g. friction loss on a dof without a friction-loss row), which is checked exactly. ``passed``
+ignores unjudged groups; ``passed_strict`` (``twinrl gradcheck --strict``) fails on them.
+
+Orientations. A free or ball joint's quaternion has 4 numbers and 3 degrees of freedom; a
+perturbation of one component leaves the unit sphere and measures nothing physical. The initial
+state is therefore perturbed in the tangent space, ``qpos = qpos0 (+) dq`` with ``dq`` of size nv
+(position for slides, hinges and free translations; a body-frame rotation vector for each
+quaternion, ``q0 * exp(dq / 2)``), and reported as the group ``qpos`` with ``nv`` entries.
+
+Solver tolerance. Finite differences see the forward solve's stopping rule: a solve that stops at
+MuJoCo's default tolerance (1e-8) moves the loss by ~1e-9 when a perturbation changes its
+iteration count, which swamps a difference quotient at h = 1e-6. ``gradcheck`` therefore solves
+to ``tolerance`` (default 1e-12 in float64) so that the differenced function is the solution the
+implicit derivative describes.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 from typing import Any
@@ -37,11 +58,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from mujoco.mjx._src.types import JointType
+
+from twinrl.physics.integrator import quat_integrate
 from twinrl.physics.params import PhysParams
-from twinrl.physics.scenes import SCENES, Scenario, scenario as default_scenario
+from twinrl.physics.scenes import SCENES, Scenario, scenario as make_scenario
 from twinrl.physics.sim import Sim
 
-__all__ = ["GradcheckResult", "gradcheck"]
+__all__ = ["GradcheckResult", "gradcheck", "tangent_qpos"]
 
 
 @dataclasses.dataclass
@@ -55,6 +79,8 @@ class GradcheckResult:
     constrained_steps: int
     free_steps: int
     seconds_compile_and_grad: float = 0.0
+    scenario: str = ""
+    tolerance: float | None = None
 
     @property
     def nan_count(self) -> int:
@@ -76,10 +102,22 @@ class GradcheckResult:
     def passed(self) -> bool:
         return self.nan_count == 0 and not self.failures
 
+    @property
+    def unjudged(self) -> list[str]:
+        """Groups with no resolved entry that are not inert (module docstring)."""
+        return [g["group"] for g in self.groups if g["resolved"] == 0 and not g["inert"]]
+
+    @property
+    def passed_strict(self) -> bool:
+        """``passed``, and every group judged on at least one resolved entry (or inert)."""
+        return self.passed and not self.unjudged
+
     def summary(self) -> dict[str, Any]:
         return {
             "scene": self.scene, "horizon": self.horizon, "dtype": self.dtype, "rtol": self.rtol,
+            "scenario": self.scenario, "tolerance": self.tolerance,
             "max_rel_error": self.max_rel_error, "nan_count": self.nan_count,
+            "unjudged": self.unjudged, "passed_strict": self.passed_strict,
             "resolved": self.count("resolved"), "noise_limited": self.count("noise"),
             "kinks": self.count("kink"), "failures": len(self.failures), "entries": len(self.rows),
             "constrained_steps": self.constrained_steps, "free_steps": self.free_steps,
@@ -87,15 +125,51 @@ class GradcheckResult:
         }
 
 
-def _labels(inputs: dict[str, Any]) -> list[tuple[str, str]]:
+def _labels(inputs: dict[str, Any], dof_names: list[str]) -> list[tuple[str, str]]:
     """(group, index) per scalar, in the order ``ravel_pytree`` lays them out (leaf order)."""
     labels = []
     leaves_with_path = jax.tree_util.tree_flatten_with_path(inputs)[0]
     for path, leaf in leaves_with_path:
         name = ".".join(str(getattr(k, "key", getattr(k, "name", k))) for k in path)
         for idx in np.ndindex(*leaf.shape):
-            labels.append((name, ",".join(map(str, idx))))
+            index = ",".join(map(str, idx))
+            if name == "qpos":  # tangent coordinates: name the dof
+                index = f"{index}:{dof_names[idx[0]]}"
+            labels.append((name, index))
     return labels
+
+
+def _dof_names(mj_model) -> list[str]:
+    """A label per dof: joint name (or index) and, for free/ball joints, x/y/z or rx/ry/rz."""
+    names = []
+    for j in range(mj_model.njnt):
+        jn = mj_model.joint(j).name or f"joint{j}"
+        t = mj_model.jnt_type[j]
+        if t == JointType.FREE:
+            names += [f"{jn}.{a}" for a in ("x", "y", "z", "rx", "ry", "rz")]
+        elif t == JointType.BALL:
+            names += [f"{jn}.{a}" for a in ("rx", "ry", "rz")]
+        else:
+            names.append(jn)
+    return names
+
+
+def tangent_qpos(jnt_types, qpos0: jax.Array, dq: jax.Array) -> jax.Array:
+    """``qpos0 (+) dq``: ``dq`` (nv,) moves slides/hinges/translations additively and rotates
+    each quaternion by the body-frame rotation vector ``dq`` (``q0 * exp(dq / 2)``)."""
+    out, qi, vi = [], 0, 0
+    for jt in jnt_types:
+        if jt == JointType.FREE:
+            out += [qpos0[qi:qi + 3] + dq[vi:vi + 3],
+                    quat_integrate(qpos0[qi + 3:qi + 7], dq[vi + 3:vi + 6], 1.0)]
+            qi, vi = qi + 7, vi + 6
+        elif jt == JointType.BALL:
+            out.append(quat_integrate(qpos0[qi:qi + 4], dq[vi:vi + 3], 1.0))
+            qi, vi = qi + 4, vi + 3
+        else:
+            out.append(qpos0[qi:qi + 1] + dq[vi:vi + 1])
+            qi, vi = qi + 1, vi + 1
+    return jnp.concatenate(out) if out else qpos0
 
 
 def classify(g, fd1, fd4, fwd, bwd, rounding, rtol):
@@ -110,37 +184,65 @@ def classify(g, fd1, fd4, fwd, bwd, rounding, rtol):
     spread, sided = np.abs(fd1 - fd4), np.abs(fwd - bwd)
     err = np.abs(g - fd1)
     rel = err / np.maximum(np.maximum(np.abs(g), np.abs(fd1)), 1e-300)
-    kink = ((spread > np.maximum(1e-6 * np.abs(fd1), 10 * rounding))
-            | (sided > np.maximum(1e-3 * np.abs(fd1), 20 * rounding)))
-    resolved = ~kink & (spread + rounding <= 0.1 * rtol * np.abs(fd1))
+    one_sided_kink = sided > np.maximum(1e-3 * np.abs(fd1), 20 * rounding)
+    # Resolved first: two step sizes that agree to a tenth of the tolerance are a derivative
+    # estimate good enough to judge, even where their spread (h^2 truncation) exceeds 1e-6.
+    resolved = ~one_sided_kink & (spread + rounding <= 0.1 * rtol * np.abs(fd1))
+    kink = ~resolved & ((spread > np.maximum(1e-6 * np.abs(fd1), 10 * rounding))
+                        | one_sided_kink)
     status = np.where(kink, "kink", np.where(resolved, "resolved", "noise"))
     ok = np.where(kink, True, np.where(resolved, rel <= rtol, err <= 10 * (spread + rounding)))
     return status, ok & np.isfinite(g), rel, err
 
 
-def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | None = None,
-              h: float = 1e-6, rtol: float = 1e-4, seed: int = 0) -> GradcheckResult:
+def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str | None = None,
+              h: float = 1e-6, rtol: float = 1e-4, seed: int = 0,
+              tolerance: float | None = 1e-12) -> GradcheckResult:
     """Compare ``jax.grad`` of a rollout loss with central finite differences.
 
     Args:
       sim: the simulator (build it with x64 enabled for a meaningful check).
-      horizon: rollout length T (default: the scene's scenario; 100, 50 for peg_in_hole).
-      scenario: initial state and actions (default: the bundled scene's, or generic).
+      horizon: rollout length T (default: the scenario's; 100, 50 for peg_in_hole).
+      scenario: initial state and actions, or the name of one (``twinrl.physics.scenes.SCENARIOS``:
+        ``"wave"``, ``"zero"``, or a bundled scene's own). Default: the bundled scene's own
+        scenario when ``sim`` was loaded by a bundled scene's name, else ``"wave"``. A named
+        generic scenario starts from the MJCF's first keyframe (qpos, qvel) when it has one,
+        else from ``qpos0`` at rest.
       h: finite-difference step, relative to ``max(1, |x|)``.
       rtol: tolerance on the relative error of stable entries.
       seed: seed of the loss weights and of generic scenarios.
+      tolerance: constraint-solver tolerance for the check (``None``: the MJCF's); see the
+        module docstring.
     """
-    name = sim.name if sim.name in SCENES else "mjcf"
-    sc = scenario or default_scenario(name, sim.nq, sim.nv, sim.nu,
-                                      np.array(sim.mj_model.qpos0), horizon, seed)
+    if not rtol > 0:
+        raise ValueError(f"rtol must be > 0, got {rtol}")
+    if not h > 0:
+        raise ValueError(f"h must be > 0, got {h}")
+    if tolerance is not None:
+        if not tolerance >= 0:
+            raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+        mj = copy.deepcopy(sim.mj_model)
+        mj.opt.tolerance = tolerance
+        sim = sim.recompiled(mj)
+    if scenario is None or isinstance(scenario, str):
+        name = scenario or (sim.name if sim.bundled else "wave")
+        sc = make_scenario(name, sim.nq, sim.nv, sim.nu, np.array(sim.mj_model.qpos0), horizon,
+                           seed)
+        if name not in SCENES and sim.mj_model.nkey:  # a user's MJCF: start at its keyframe 0
+            sc = dataclasses.replace(sc, qpos=np.array(sim.mj_model.key_qpos[0], np.float64),
+                                     qvel=np.array(sim.mj_model.key_qvel[0], np.float64))
+    else:
+        name, sc = "custom", scenario
     dtype = jnp.asarray(0.0).dtype
     rng = np.random.default_rng(seed + 1)
     c_q = jnp.asarray(rng.normal(size=sim.nq), dtype)
     c_v = jnp.asarray(rng.normal(size=sim.nv), dtype)
+    jnt_types = tuple(int(t) for t in sim.mj_model.jnt_type)
+    qpos0 = jnp.asarray(sc.qpos, dtype)
 
     inputs = {
         "actions": jnp.asarray(sc.actions, dtype),
-        "qpos": jnp.asarray(sc.qpos, dtype),
+        "qpos": jnp.zeros(sim.nv, dtype),  # tangent coordinates around the scenario's qpos
         "qvel": jnp.asarray(sc.qvel, dtype),
         "params": sim.default_params(),
     }
@@ -148,7 +250,8 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | None
 
     def loss(x):
         z = unflatten(x)
-        _, tr = sim.rollout(sim.init(z["qpos"], z["qvel"]), z["actions"], z["params"])
+        qpos = tangent_qpos(jnt_types, qpos0, z["qpos"])
+        _, tr = sim.rollout(sim.init(qpos, z["qvel"]), z["actions"], z["params"])
         per_step = tr.qpos @ c_q + tr.qvel @ c_v + 0.05 * jnp.sum(tr.qvel ** 2, axis=-1)
         return jnp.mean(per_step), tr.n_active
 
@@ -183,7 +286,7 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | None
     eps = float(jnp.finfo(dtype).eps)
     rounding = 4 * eps * max(l0, 1.0) / steps64
 
-    labels = _labels(inputs)
+    labels = _labels(inputs, _dof_names(sim.mj_model))
     status, ok, rel, err = classify(g, fd1, fd4, fwd1, bwd1, rounding, rtol)
     rows = [{"group": grp, "index": index, "grad": float(g[i]), "fd": float(fd1[i]),
              "abs_err": float(err[i]), "rel_err": float(rel[i]), "status": str(status[i]),
@@ -193,8 +296,10 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | None
     for grp in dict.fromkeys(lbl[0] for lbl in labels):
         rs = [r for r in rows if r["group"] == grp]
         res = [r for r in rs if r["status"] == "resolved"]
+        idx = [i for i, lbl in enumerate(labels) if lbl[0] == grp]
+        inert = bool(np.all(g[idx] == 0) and np.all(fd1[idx] == 0) and np.all(fd4[idx] == 0))
         group_rows.append({
-            "group": grp, "entries": len(rs), "resolved": len(res),
+            "group": grp, "entries": len(rs), "resolved": len(res), "inert": inert,
             "noise_limited": sum(r["status"] == "noise" for r in rs),
             "kinks": sum(r["status"] == "kink" for r in rs),
             "max_abs_grad": float(max(abs(r["grad"]) for r in rs)),
@@ -209,4 +314,4 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | None
     return GradcheckResult(
         scene=sim.name, horizon=int(sc.actions.shape[0]), dtype=str(dtype), rtol=rtol, rows=rows,
         groups=group_rows, constrained_steps=int((na > 0).sum()), free_steps=int((na == 0).sum()),
-        seconds_compile_and_grad=seconds)
+        seconds_compile_and_grad=seconds, scenario=name, tolerance=tolerance)

@@ -95,6 +95,8 @@ class Sim:
     frame_skip: int = 1
     name: str = "mjcf"
     gradient: str = "implicit"
+    bundled: bool = False
+    """Loaded by a bundled scene's name (not a user's file that happens to share it)."""
 
     @classmethod
     def load(cls, mjcf, *, frame_skip: int = 1, iterations: int | None = None,
@@ -117,7 +119,8 @@ class Sim:
             name = str(mjcf) if (isinstance(mjcf, str) and mjcf in SCENES) else (
                 Path(str(mjcf)).stem if not str(mjcf).lstrip().startswith("<") else "mjcf")
         return cls(mj_model=mj_model, model=mjx.put_model(mj_model), frame_skip=frame_skip,
-                   name=name, gradient=gradient)
+                   name=name, gradient=gradient,
+                   bundled=isinstance(mjcf, str) and mjcf in SCENES)
 
     def recompiled(self, mj_model: mujoco.MjModel) -> "Sim":
         """The same simulator (frame skip, name, gradient mode) on an edited ``mj_model``."""

@@ -15,10 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SCENES", "Scenario", "scene_path", "scenario"]
+__all__ = ["SCENES", "SCENARIOS", "Scenario", "scene_path", "scenario"]
 
 _DIR = Path(__file__).parent
 SCENES = ("cartpole", "pendulum", "push", "peg_in_hole")
+# Gradient-check scenarios: generic ones for any MJCF, and each bundled scene's own.
+SCENARIOS = ("wave", "zero") + SCENES
 
 
 def scene_path(name: str) -> Path:
@@ -48,13 +50,27 @@ def _wave(t: np.ndarray, nu: int, rng: np.random.Generator, scale: float) -> np.
 
 def scenario(name: str, nq: int, nv: int, nu: int, qpos0: np.ndarray, horizon: int | None = None,
              seed: int = 0) -> Scenario:
-    """The gradient-check scenario of a bundled scene, or a generic one for a user's MJCF."""
+    """A gradient-check scenario by name (``SCENARIOS``), from ``qpos0`` at rest.
+
+    ``"wave"``: smooth pseudo-random actions (a few sines per actuator, amplitude 0.5);
+    ``"zero"``: no actuation (a dropped object, a passive mechanism); a bundled scene's name: that
+    scene's own scenario (it needs that scene's sizes).
+    """
+    if name not in SCENARIOS and name != "mjcf":
+        raise ValueError(f"unknown gradcheck scenario {name!r}; choose one of "
+                         f"{', '.join(SCENARIOS)}")
+    if name in SCENES:
+        want = {"cartpole": (2, 2, 1), "pendulum": (1, 1, 1), "push": (9, 8, 2),
+                "peg_in_hole": (2, 2, 2)}[name]
+        if (nq, nv, nu) != want:
+            raise ValueError(f"scenario {name!r} is the bundled {name} scene's (nq, nv, nu) = "
+                             f"{want}; this model has {(nq, nv, nu)}: use --scenario wave or zero")
     rng = np.random.default_rng(seed)
     default_t = {"peg_in_hole": 50}.get(name, 100)
     T = horizon or default_t
     t = np.arange(T, dtype=np.float64)
     qpos, qvel = np.array(qpos0, dtype=np.float64), np.zeros(nv)
-    actions = _wave(t, nu, rng, 0.5) if nu else np.zeros((T, 0))
+    actions = _wave(t, nu, rng, 0.5) if nu and name != "zero" else np.zeros((T, nu))
     if name == "cartpole":
         qpos[:] = [0.0, 0.3]
         qvel[:] = [0.2, -0.5]
