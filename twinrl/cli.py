@@ -490,6 +490,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="twinrl",
         description="Robot learning through differentiable digital twins "
                     "(Real2Sim -> Learn@Sim -> Sim2Real).")
+    parser.add_argument("--verbose", "-v", action="store_true",
+                        help="show the XLA/absl runtime log (warnings and errors, e.g. about "
+                             "executables loaded from the compilation cache), hidden by default")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _envs_parser(sub)
     _collect_parser(sub)
@@ -504,13 +507,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from twinrl import _jaxconfig
     from twinrl.learn.checkpoint import CheckpointError
     from twinrl.learn.runner import RunError
-    from twinrl.physics import MJCFError
+    from twinrl.physics import MJCFError, PhysParamsError
+    from twinrl.real.dataset import DatasetError
 
+    if args.verbose:
+        _jaxconfig.set_verbose()
     try:
         return args.func(args)
-    except (UsageError, MJCFError, FileNotFoundError, RunError, CheckpointError) as e:
+    except (UsageError, MJCFError, PhysParamsError, DatasetError, FileNotFoundError, RunError,
+            CheckpointError) as e:
         print(f"twinrl {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
