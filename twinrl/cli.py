@@ -410,9 +410,13 @@ def _cmd_sysid(args) -> int:
     if not (source / "meta.json").exists():
         raise UsageError(f"--from {args.source}: no dataset there (no meta.json)")
     try:
-        data = ds.read(source)
-    except ds.DatasetError as e:
+        data = ds.read(source, strict=False)
+    except ds.DatasetError as e:  # no dataset there, or its meta.json is unreadable
         raise UsageError(f"--from {source}: {e}") from None
+    if data.problems:  # damage costs the records it hit; the fit uses every intact one
+        more = f" (and {len(data.problems) - 1} more)" if len(data.problems) > 1 else ""
+        print(f"twinrl sysid: warning: dataset damaged, using its {len(data)} intact "
+              f"transitions: {data.problems[0]}{more}", file=sys.stderr)
     if data.meta.get("env") not in (None, args.env):
         raise UsageError(f"--from {source} was recorded on {data.meta.get('env')!r}, "
                          f"not {args.env!r}")

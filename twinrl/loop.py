@@ -222,7 +222,7 @@ def _episodes_in(dataset_dir: Path) -> int:
 
     if not (dataset_dir / "meta.json").exists():
         return 0
-    data = ds.read(dataset_dir)
+    data = ds.read(dataset_dir, strict=False)  # damage is reported where the rounds read it
     return int(np.sum(data.episode_complete))
 
 
@@ -298,7 +298,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
             rdir = out / tag
             rdir.mkdir(exist_ok=True)
             say(f"[bold]round {r}[/] ({time.perf_counter() - t_start:.0f} s)")
-            data = _read(out / "dataset")
+            data = _read(out / "dataset", say)
 
             # 1. sysid --------------------------------------------------------------------
             if not prog.done(f"{tag}/sysid"):
@@ -454,10 +454,18 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
     return report.write_video(out / "final.mp4", frames, fps=1.0 / env.dt)
 
 
-def _read(path: Path):
+def _read(path: Path, say=None):
+    """Every intact transition of the dataset. Damage (a flipped byte, a truncated closed chunk)
+    costs the records it hit, not the run: ``say`` gets one line saying what was dropped, and the
+    loop goes on with the rest (a strict read would stop ``--resume`` for good)."""
     from twinrl.real import dataset as ds
 
-    return ds.read(path)
+    data = ds.read(path, strict=False)
+    if data.problems and say is not None:
+        more = f" (and {len(data.problems) - 1} more)" if len(data.problems) > 1 else ""
+        say(f"  [yellow]dataset damaged, continuing with its {len(data)} intact transitions:[/] "
+            f"{data.problems[0]}{more}", markup=True, highlight=False, soft_wrap=True)
+    return data
 
 
 def _real_steps(out: Path) -> int:

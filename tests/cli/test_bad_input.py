@@ -142,3 +142,28 @@ def test_gradcheck_of_an_empty_path_says_it_is_empty(tmp_path, capsys):
     code, _, err = run(capsys, "gradcheck", "", "--out", tmp_path / "g")
     assert code == 2
     one_line_error(err, "the MJCF path is empty")
+
+
+def test_sysid_reads_past_a_damaged_chunk_saying_what_was_dropped(tmp_path, capsys, monkeypatch):
+    from twinrl.real2sim import sysid
+
+    code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
+                       "--out", tmp_path)
+    assert code == 0, err
+    (chunk,) = (tmp_path / "dataset").glob("chunk-*.twr")
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    seen = []
+
+    def fit(env, data, config):  # stands in for the fit: what it was given is what matters
+        seen.append(len(data))
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(sysid, "fit", fit)
+    code, _, err = run(capsys, "sysid", "--env", "pendulum_swingup", "--from", tmp_path,
+                       "--out", tmp_path / "s")
+    assert seen == [249] and code == 2, err
+    warning, error = err.strip().splitlines()
+    assert warning.startswith("twinrl sysid: warning: dataset damaged, using its 249 intact")
+    assert str(chunk) in warning and error == "twinrl sysid: error: stop here"
