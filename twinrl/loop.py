@@ -134,7 +134,7 @@ class _Progress:
         return self.doc["rounds"].get(f"round{r}", {})
 
 
-def _oracle_child(conn, env_name, seed, out, config, perturbation, nice):
+def _oracle_child(conn, env_name, seed, out, config, perturbation, nice, parent):
     """The oracle's process: lower priority, dies with its parent, sends back the return or the
     error's text."""
     import os
@@ -147,6 +147,10 @@ def _oracle_child(conn, env_name, seed, out, config, perturbation, nice):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+    # A spawned child gets here after seconds of imports; a parent killed before the prctl sent
+    # no signal, so check it is still the parent.
+    if os.getppid() != parent:
+        os._exit(1)
     os.nice(nice)
     try:
         conn.send(("ok", evaluation.oracle_return(env_name, seed, out, config, False,
@@ -165,12 +169,13 @@ class _OracleProcess:
 
     def __init__(self, env_name, seed, out, config, perturbation, nice: int = 10):
         import multiprocessing as mp
+        import os
 
         ctx = mp.get_context("spawn")  # a fresh interpreter: JAX is not fork-safe
         self._conn, child = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(target=_oracle_child, name="twinrl-oracle", daemon=True,
                                  args=(child, env_name, seed, Path(out), config, perturbation,
-                                       nice))
+                                       nice, os.getpid()))
         self._proc.start()
         child.close()
 
