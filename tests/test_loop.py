@@ -215,3 +215,23 @@ def test_oracle_process_reports_its_error_and_dies_with_the_loop(tmp_path):
     while time.time() < deadline and _alive(oracle_pid):
         time.sleep(0.1)
     assert not _alive(oracle_pid)
+
+
+def test_a_damaged_chunk_costs_its_records_not_the_run(tmp_path):
+    # what `run --resume` reads at each round: the intact transitions, and one line on the damage
+    from twinrl import loop
+
+    with ds.DatasetWriter(tmp_path, env="fake", obs_shape=(2,), action_shape=(1,),
+                          chunk_size=5) as w:
+        for t in range(15):
+            w.add(np.full(2, t), [0.0], 1.0, np.full(2, t + 1), False, t == 14)
+    chunk = tmp_path / "chunk-00000-00001.twr"
+    data = bytearray(chunk.read_bytes())
+    data[-60] ^= 0xFF  # inside the body of the chunk's last step record
+    chunk.write_bytes(bytes(data))
+    said = []
+    got = loop._read(tmp_path, lambda *a, **k: said.append(" ".join(map(str, a))))
+    assert len(got) == 14 and got.step.tolist() == [*range(9), *range(10, 15)]
+    assert len(said) == 1 and "\n" not in said[0]
+    assert "14 intact transitions" in said[0] and "chunk-00000-00001.twr" in said[0]
+    assert loop._episodes_in(tmp_path) == 0  # the episode has a gap: incomplete, re-recorded

@@ -5,10 +5,14 @@ command (and the test suite) skip it. It lives in ``$TWINRL_CACHE_DIR`` if set, 
 ``$XDG_CACHE_HOME/twinrl/jax`` (``~/.cache/twinrl/jax``). ``TWINRL_CACHE_DIR=off`` disables it.
 A cache directory the user already configured for JAX (``JAX_COMPILATION_CACHE_DIR``) is left alone.
 
-XLA's C++ runtime logs a warning ("Assume version compatibility. PjRt-IFRT does not track XLA
-executable versions") for every executable it loads from that cache: dozens of lines per command.
-Unless ``TF_CPP_MIN_LOG_LEVEL`` is set, it is set to 2 (errors only) here, before JAX is first
-imported; a process that imported JAX before twinrl keeps its own setting.
+XLA's C++ runtime logs, for every executable it loads from that cache, a warning ("W... Assume
+version compatibility. PjRt-IFRT does not track XLA executable versions") and, on CPUs without
+some tuning features, two errors ("E... cpu_aot_loader.cc:220] Loading XLA:CPU AOT result. Target
+machine feature +prefer-no-scatter is not supported ... SIGILL") that are harmless here (the
+entries were compiled on this machine): dozens of lines per command. Unless
+``TF_CPP_MIN_LOG_LEVEL`` is set, it is set to 3 (fatal only) here, before JAX is first imported,
+so child processes inherit it too; a process that imported JAX before twinrl keeps its own
+setting. ``set_verbose()`` (``twinrl --verbose``) shows warnings and errors again.
 """
 
 from __future__ import annotations
@@ -20,9 +24,16 @@ import sys
 from pathlib import Path
 
 if "jax" not in sys.modules:
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 import jax  # noqa: E402
+
+
+def set_verbose() -> None:
+    """Show the XLA/absl runtime's warnings and errors (and JAX's Python warnings), from now on
+    and in child processes started later."""
+    os.environ["TF_CPP_MIN_LOG_LEVEL"] = "1"
+    jax.config.update("jax_logging_level", "WARNING")  # sets absl's minimum level at run time
 
 
 def import_mjx_quietly() -> None:

@@ -228,6 +228,7 @@ def _cmd_collect(args) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from twinrl import envs, report
+    from twinrl.real import dataset as ds
     from twinrl.real.dataset import DatasetWriter
     from twinrl.real.twin import record_episode
     from twinrl.real2sim.sysid import excitation_actions
@@ -238,35 +239,55 @@ def _cmd_collect(args) -> int:
     w, h = args.size
     twin = envs.make_real(args.env, seed=args.seed, width=w, height=h)
     obs, _ = twin.reset(seed=args.seed)
-    rng = np.random.default_rng(args.seed)
     act_shape = twin.action_space.shape
     image_shapes = None
     if args.images:
+        # Rendered once before the dataset is touched, so a size the renderer refuses fails here
+        # instead of after meta.json has been written claiming that size.
+        from twinrl.real.twin import IMAGE_KINDS
+
+        try:
+            twin.render_images(twin.camera, IMAGE_KINDS)
+        except ValueError as e:
+            raise UsageError(f"--size {w} {h}: {e}") from None
         image_shapes = {"rgb": (h, w, 3), "depth": (h, w), "segmentation": (h, w)}
-    writer = DatasetWriter(args.out / "dataset", env=args.env, obs_shape=obs.shape,
-                           action_shape=act_shape, image_shapes=image_shapes,
-                           obs_dtype=np.float32, action_dtype=np.float32,
-                           metadata=None)
+    dataset_dir = args.out / "dataset"
+    try:
+        writer = DatasetWriter(dataset_dir, env=args.env, obs_shape=obs.shape,
+                               action_shape=act_shape, image_shapes=image_shapes,
+                               obs_dtype=np.float32, action_dtype=np.float32,
+                               metadata=None)
+    except (ValueError, OSError, ds.DatasetError) as e:  # another env, a live writer, ...
+        raise UsageError(f"--out {args.out}: {e}") from None
     returns, steps = [], 0
     first_episode = writer.episode_id
     columns = [TextColumn("[bold]collect"), BarColumn(), MofNCompleteColumn(),
                TextColumn("episodes  return {task.fields[ret]}"), TimeElapsedColumn()]
-    with writer, Progress(*columns, console=report.console) as bar:
-        task = bar.add_task("collect", total=args.episodes, ret="-")
-        for ep in range(args.episodes):
-            if ep:
-                obs, _ = twin.reset(seed=args.seed + ep)
-            if args.policy == "excite":
-                levels = excitation_actions(rng, twin.task.episode_length, int(np.prod(act_shape)))
-                policy = lambda o, t: levels[min(t, len(levels) - 1)].reshape(act_shape)  # noqa: E731
-            elif args.policy == "random":
-                policy = lambda o, t: rng.uniform(-1, 1, act_shape)  # noqa: E731
-            else:
-                policy = lambda o, t: np.zeros(act_shape)  # noqa: E731
-            ret, n = record_episode(twin, writer, policy, obs, images=args.images)
-            returns.append(ret)
-            steps += n
-            bar.update(task, advance=1, ret=f"{ret:.2f}")
+    try:
+        with writer, Progress(*columns, console=report.console) as bar:
+            task = bar.add_task("collect", total=args.episodes, ret="-")
+            for ep in range(args.episodes):
+                # Each episode's randomness is a function of (--seed, its id in the dataset):
+                # re-running on the same --out appends new episodes, not copies of the first ones.
+                seq = np.random.SeedSequence([args.seed, first_episode + ep])
+                obs, _ = twin.reset(seed=int(seq.generate_state(1)[0]))
+                rng = np.random.default_rng(seq.spawn(1)[0])
+                if args.policy == "excite":
+                    levels = excitation_actions(rng, twin.task.episode_length,
+                                                int(np.prod(act_shape)))
+                    policy = lambda o, t: levels[min(t, len(levels) - 1)].reshape(act_shape)  # noqa: E731
+                elif args.policy == "random":
+                    policy = lambda o, t: rng.uniform(-1, 1, act_shape)  # noqa: E731
+                else:
+                    policy = lambda o, t: np.zeros(act_shape)  # noqa: E731
+                ret, n = record_episode(twin, writer, policy, obs, images=args.images)
+                returns.append(ret)
+                steps += n
+                bar.update(task, advance=1, ret=f"{ret:.2f}")
+    except OSError as e:  # disk full, quota, I/O error: what was recorded before stays readable
+        raise UsageError(f"writing {dataset_dir} failed after {len(returns)} complete "
+                         f"episode(s) of this run: {e.strerror or e}; the dataset keeps every "
+                         f"transition recorded before") from None
     summary = {"env": args.env, "policy": args.policy, "seed": args.seed,
                "episodes": args.episodes, "first_episode_id": first_episode, "steps": steps,
                "returns": returns, "mean_return": float(np.mean(returns)),
@@ -422,9 +443,13 @@ def _cmd_sysid(args) -> int:
     if not (source / "meta.json").exists():
         raise UsageError(f"--from {args.source}: no dataset there (no meta.json)")
     try:
-        data = ds.read(source)
-    except ds.DatasetError as e:
+        data = ds.read(source, strict=False)
+    except ds.DatasetError as e:  # no dataset there, or its meta.json is unreadable
         raise UsageError(f"--from {source}: {e}") from None
+    if data.problems:  # damage costs the records it hit; the fit uses every intact one
+        more = f" (and {len(data.problems) - 1} more)" if len(data.problems) > 1 else ""
+        print(f"twinrl sysid: warning: dataset damaged, using its {len(data)} intact "
+              f"transitions: {data.problems[0]}{more}", file=sys.stderr)
     if data.meta.get("env") not in (None, args.env):
         raise UsageError(f"--from {source} was recorded on {data.meta.get('env')!r}, "
                          f"not {args.env!r}")
@@ -523,6 +548,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="twinrl",
         description="Robot learning through differentiable digital twins "
                     "(Real2Sim -> Learn@Sim -> Sim2Real).")
+    parser.add_argument("--verbose", "-v", action="store_true",
+                        help="show the XLA/absl runtime log (warnings and errors, e.g. about "
+                             "executables loaded from the compilation cache), hidden by default")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _envs_parser(sub)
     _collect_parser(sub)
@@ -537,13 +565,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from twinrl import _jaxconfig
     from twinrl.learn.checkpoint import CheckpointError
     from twinrl.learn.runner import RunError
-    from twinrl.physics import MJCFError
+    from twinrl.physics import MJCFError, PhysParamsError
+    from twinrl.real.dataset import DatasetError
 
+    if args.verbose:
+        _jaxconfig.set_verbose()
     try:
         return args.func(args)
-    except (UsageError, MJCFError, FileNotFoundError, RunError, CheckpointError) as e:
+    except (UsageError, MJCFError, PhysParamsError, DatasetError, FileNotFoundError, RunError,
+            CheckpointError) as e:
         print(f"twinrl {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

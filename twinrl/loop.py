@@ -134,7 +134,7 @@ class _Progress:
         return self.doc["rounds"].get(f"round{r}", {})
 
 
-def _oracle_child(conn, env_name, seed, out, config, perturbation, nice):
+def _oracle_child(conn, env_name, seed, out, config, perturbation, nice, parent):
     """The oracle's process: lower priority, dies with its parent, sends back the return or the
     error's text."""
     import os
@@ -147,6 +147,10 @@ def _oracle_child(conn, env_name, seed, out, config, perturbation, nice):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+    # A spawned child gets here after seconds of imports; a parent killed before the prctl sent
+    # no signal, so check it is still the parent.
+    if os.getppid() != parent:
+        os._exit(1)
     os.nice(nice)
     try:
         conn.send(("ok", evaluation.oracle_return(env_name, seed, out, config, False,
@@ -165,12 +169,13 @@ class _OracleProcess:
 
     def __init__(self, env_name, seed, out, config, perturbation, nice: int = 10):
         import multiprocessing as mp
+        import os
 
         ctx = mp.get_context("spawn")  # a fresh interpreter: JAX is not fork-safe
         self._conn, child = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(target=_oracle_child, name="twinrl-oracle", daemon=True,
                                  args=(child, env_name, seed, Path(out), config, perturbation,
-                                       nice))
+                                       nice, os.getpid()))
         self._proc.start()
         child.close()
 
@@ -222,7 +227,7 @@ def _episodes_in(dataset_dir: Path) -> int:
 
     if not (dataset_dir / "meta.json").exists():
         return 0
-    data = ds.read(dataset_dir)
+    data = ds.read(dataset_dir, strict=False)  # damage is reported where the rounds read it
     return int(np.sum(data.episode_complete))
 
 
@@ -298,7 +303,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
             rdir = out / tag
             rdir.mkdir(exist_ok=True)
             say(f"[bold]round {r}[/] ({time.perf_counter() - t_start:.0f} s)")
-            data = _read(out / "dataset")
+            data = _read(out / "dataset", say)
 
             # 1. sysid --------------------------------------------------------------------
             if not prog.done(f"{tag}/sysid"):
@@ -454,10 +459,18 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
     return report.write_video(out / "final.mp4", frames, fps=1.0 / env.dt)
 
 
-def _read(path: Path):
+def _read(path: Path, say=None):
+    """Every intact transition of the dataset. Damage (a flipped byte, a truncated closed chunk)
+    costs the records it hit, not the run: ``say`` gets one line saying what was dropped, and the
+    loop goes on with the rest (a strict read would stop ``--resume`` for good)."""
     from twinrl.real import dataset as ds
 
-    return ds.read(path)
+    data = ds.read(path, strict=False)
+    if data.problems and say is not None:
+        more = f" (and {len(data.problems) - 1} more)" if len(data.problems) > 1 else ""
+        say(f"  [yellow]dataset damaged, continuing with its {len(data)} intact transitions:[/] "
+            f"{data.problems[0]}{more}", markup=True, highlight=False, soft_wrap=True)
+    return data
 
 
 def _real_steps(out: Path) -> int:

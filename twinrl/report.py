@@ -47,12 +47,22 @@ def to_jsonable(x: Any) -> Any:
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
-    """Write ``data`` as indented JSON, atomically."""
+    """Write ``data`` as indented JSON, atomically and durably: the temporary file is fsync'd
+    before the rename (else a power loss can leave the new name on empty or partial contents) and
+    the directory after it (else the rename itself can be lost)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(to_jsonable(data), indent=2) + "\n")
+    with open(tmp, "w") as f:
+        f.write(json.dumps(to_jsonable(data), indent=2) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
     os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
     return path
 
 
@@ -66,7 +76,14 @@ def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]
     console.print(table)
 
 
+MISSING = "—"
+"""How a table shows a missing value (None: a figure that was not measured). NaN stays "nan": it
+is a result (a diverged run), not an absence."""
+
+
 def _fmt(v: Any) -> str:
+    if v is None:
+        return MISSING
     if isinstance(v, (float, np.floating)):
         v = float(v)
         if v == 0:

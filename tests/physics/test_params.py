@@ -75,3 +75,32 @@ def test_gradient_trees_are_not_validated(push):
     p = push.default_params()
     g = jax.grad(lambda q: -jnp.sum(q.mass) - jnp.sum(q.friction))(p)
     assert isinstance(g, PhysParams) and float(g.mass[0]) == -1.0
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("mass", jnp.zeros((0,)), r"PhysParams.mass has shape \(0,\); push needs \(2,\) \(nbody-1"),
+    ("mass", jnp.ones((3,)), r"PhysParams.mass has shape \(3,\); push needs \(2,\)"),
+    ("bias", jnp.ones((1,)), r"PhysParams.bias has shape \(1,\); push needs \(2, 3\)"),
+    ("gravity", jnp.ones(()), r"PhysParams.gravity has shape \(\); push needs \(3,\)"),
+])
+def test_shapes_are_checked_against_a_model_naming_the_field(push, field, value, match):
+    p = push.default_params()
+    assert p.check_shapes(push.mj_model) is p
+    with pytest.raises(ValueError, match=match):
+        p.replace(**{field: value}).check_shapes(push.mj_model, "push")
+
+
+def test_a_massless_body_is_named_in_one_line():
+    # a valid MJCF: MuJoCo allows a body without dofs to have no mass (here a bare mount)
+    sim = Sim.load("""<mujoco><worldbody><body name="mount" pos="0 0 1">
+        <body name="link"><joint type="hinge"/><geom size="0.1"/></body>
+        </body></worldbody></mujoco>""")
+    with pytest.raises(ValueError, match=r"^body 'mount' \(id 1\) has mass 0; PhysParams needs "
+                                         r"every body to have a positive mass") as e:
+        sim.default_params()
+    assert "\n" not in str(e.value)
+
+
+def test_an_empty_mjcf_path_says_so():
+    with pytest.raises(ValueError, match=r"the MJCF path is empty"):
+        Sim.load("")

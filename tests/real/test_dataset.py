@@ -472,6 +472,35 @@ def test_torn_tail_of_a_killed_writer_is_dropped_silently(tmp_path):
     assert chunk.read_bytes() == data[: last + 30]
 
 
+def test_zero_filled_tail_of_a_power_loss_is_a_torn_tail(tmp_path):
+    """Power loss after unsynced appends: the file has its new length but the unwritten blocks
+    read back as zeros. In an open chunk that is a torn tail (read strictly, records before kept);
+    in a closed chunk, and with a record after the zeros, it is damage."""
+    live = tmp_path / "live"
+    with open_writer(live, sync="none") as w:
+        write_episode(w)
+        for t in range(3):
+            w.add(**step_args(1, t))
+        snapshot = tmp_path / "snapshot"
+        shutil.copytree(live, snapshot)
+    chunk = snapshot / "chunk-00000-00000.twr.open"
+    data = chunk.read_bytes()
+    spans = record_spans(data)
+    whole = transitions(read(snapshot))
+    for k, at in ((len(spans) - 1, spans[-1][0]),            # the last record all zeros
+                  (len(spans) - 1, spans[-1][0] + 10),       # zeros from inside its prefix
+                  (len(spans) - 1, spans[-1][1] - 7),        # zeros from inside its body
+                  (len(spans) - 2, spans[-2][0] + 40)):      # two records, from a header on
+        chunk.write_bytes(data[:at] + bytes(len(data) - at + 100))  # + zeros past the end
+        ds = read(snapshot)
+        assert ds.problems == [] and transitions(ds) == whole[:k], at
+    # zeros in the middle, with an intact record after them, are damage
+    a, b = spans[-2]
+    chunk.write_bytes(data[:a] + bytes(b - a) + data[b:])
+    with pytest.raises(DatasetError, match="damaged record header"):
+        read(snapshot)
+
+
 # -------------------------------------------------------------------------------------------------
 # The acceptance criterion: SIGKILL at random moments
 

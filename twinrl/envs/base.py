@@ -146,8 +146,13 @@ class Env(brax_base.Env):
             raise TypeError(f"config must be a {self.Config.__name__}, got {type(config).__name__}")
         self.config = config
         self.name = name or type(self).__name__
-        self.sim = _with_friction_rows(
-            Sim.load(self.scene, frame_skip=int(config.frame_skip), name=self.scene), params)
+        sim = Sim.load(self.scene, frame_skip=int(config.frame_skip), name=self.scene)
+        if params is not None:
+            if not isinstance(params, PhysParams):
+                raise TypeError(f"params must be a PhysParams, got {type(params).__name__}")
+            # Caught here, by name, rather than as an IndexError deep inside a jitted step.
+            params.check_shapes(sim.mj_model, f"task {self.name!r} (scene {self.scene!r})")
+        self.sim = _with_friction_rows(sim, params)
         self.params = params
         r = self.sim.ctrl_range
         if not np.all(np.isfinite(r)):

@@ -100,18 +100,30 @@ def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
         raise CheckpointError(f"{path}: no checkpoint.json (not a twinrl policy checkpoint)")
     try:
         meta = json.loads(meta_file.read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CheckpointError(f"{meta_file}: not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{meta_file}: holds a JSON {type(meta).__name__}, expected an "
+                              f"object with format, network, env, ...")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"{meta_file}: format {meta.get('format')!r}, expected {FORMAT!r}")
-    spec = meta["network"]
+    spec = meta.get("network")
+    if not isinstance(spec, dict):
+        raise CheckpointError(f"{meta_file}: no 'network' object (kind, in/out sizes, config); "
+                              f"found {spec!r}: the network cannot be rebuilt")
     kind = spec.get("kind", "mlp")
+    if not isinstance(kind, str):
+        raise CheckpointError(f"{meta_file}: network kind {kind!r} is not a string")
     if kind not in _BUILDERS and kind.startswith("brax"):
         import twinrl.learn.baselines  # noqa: F401  (registers the Brax network kinds)
     if kind not in _BUILDERS:
         raise CheckpointError(f"{meta_file}: unknown network kind {kind!r}; "
                               f"known: {sorted(_BUILDERS)}")
-    network = _BUILDERS[kind](spec)
+    try:
+        network = _BUILDERS[kind](spec)
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{meta_file}: network {kind!r} cannot be rebuilt from its JSON "
+                              f"({type(e).__name__}: {e})") from None
     if not (path / "params").exists():
         raise CheckpointError(f"{path}: params/ missing (checkpoint incomplete)")
     template = jax.eval_shape(network.init, jax.random.key(0))

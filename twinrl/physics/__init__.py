@@ -5,8 +5,8 @@
 ``gradcheck`` (reverse mode against central finite differences).
 """
 
-from twinrl.physics.params import PhysParams
+from twinrl.physics.params import PhysParams, PhysParamsError
 from twinrl.physics.scenes import SCENES, scene_path
 from twinrl.physics.sim import MJCFError, Sim, Trajectory, load_mjcf
 
-__all__ = ["Sim", "PhysParams", "Trajectory", "MJCFError", "load_mjcf", "SCENES", "scene_path"]
+__all__ = ["Sim", "PhysParams", "PhysParamsError", "Trajectory", "MJCFError", "load_mjcf", "SCENES", "scene_path"]

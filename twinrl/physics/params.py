@@ -25,13 +25,18 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-__all__ = ["PhysParams", "POSITIVE", "NONNEGATIVE", "REAL"]
+__all__ = ["PhysParams", "PhysParamsError", "POSITIVE", "NONNEGATIVE", "REAL"]
 
 POSITIVE = ("mass", "friction", "gain")
 NONNEGATIVE = ("damping", "armature", "frictionloss")
 REAL = ("bias", "gravity")
 # Floor for non-negative fields in unconstrained form (softplus^-1 of 0 is -inf).
 _SOFTPLUS_FLOOR = 1e-9
+
+
+class PhysParamsError(ValueError):
+    """Parameters that do not fit a model (a field's shape, a massless body); one line, naming
+    the field or the body."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +69,16 @@ class PhysParams:
     def from_model(cls, model: mujoco.MjModel, dtype=None) -> "PhysParams":
         """The nominal parameters written in an MJCF (compiled ``mujoco.MjModel``)."""
         dtype = dtype or (jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+        massless = np.flatnonzero(np.asarray(model.body_mass[1:]) <= 0)
+        if massless.size:
+            i = int(massless[0]) + 1
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, i) or f"#{i}"
+            more = f" (and {massless.size - 1} more)" if massless.size > 1 else ""
+            # mass is a positive (log-parameterised) field, so a body of mass 0 has no valid value
+            raise PhysParamsError(
+                f"body {name!r} (id {i}) has mass {model.body_mass[i]:g}{more}; PhysParams needs "
+                "every body to have a positive mass: give it a geom or an <inertial mass=...>, or "
+                "merge it into its parent")
         a = lambda x: jnp.asarray(np.array(x, dtype=np.float64), dtype=dtype)
         return cls(
             mass=a(model.body_mass[1:]),
@@ -75,6 +90,24 @@ class PhysParams:
             bias=a(model.actuator_biasprm[:, :3]),
             gravity=a(model.opt.gravity),
         )
+
+    def expected_shapes(self, model: mujoco.MjModel) -> dict[str, tuple[int, ...]]:
+        """The shape of each field for ``model`` (a compiled ``mujoco.MjModel``)."""
+        return {"mass": (model.nbody - 1,), "damping": (model.nv,), "armature": (model.nv,),
+                "frictionloss": (model.nv,), "friction": (model.ngeom,), "gain": (model.nu,),
+                "bias": (model.nu, 3), "gravity": (3,)}
+
+    def check_shapes(self, model: mujoco.MjModel, what: str = "this model") -> "PhysParams":
+        """``self`` if every field has the shape ``model`` needs, else ``PhysParamsError`` naming
+        the first field that does not, with the expected and given shapes (e.g. parameters of
+        another task, or ``mass=[]``). Returns ``self`` so it can be chained."""
+        for name, want in self.expected_shapes(model).items():
+            got = tuple(np.shape(getattr(self, name)))
+            if got != want:
+                raise PhysParamsError(
+                    f"PhysParams.{name} has shape {got}; {what} needs {want} "
+                    f"({_SHAPE_RULE[name]}): parameters of another model?")
+        return self
 
     def replace(self, **fields) -> "PhysParams":
         return dataclasses.replace(self, **fields)
@@ -130,6 +163,9 @@ class PhysParams:
 
 
 _FIELDS = tuple(f.name for f in dataclasses.fields(PhysParams))
+_SHAPE_RULE = {"mass": "nbody-1: every body but the world", "damping": "nv", "armature": "nv",
+               "frictionloss": "nv", "friction": "ngeom", "gain": "nu", "bias": "nu, 3",
+               "gravity": "3"}
 
 
 def _flatten(p: PhysParams):

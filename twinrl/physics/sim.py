@@ -35,6 +35,10 @@ class MJCFError(ValueError):
 def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
     """Compile an MJCF given as a bundled scene name, a file path, or an XML string."""
     text = str(mjcf)
+    if not text.strip():
+        # Path("") is ".", which would be reported as "a directory"
+        raise MJCFError(f"the MJCF path is empty: give a bundled scene ({', '.join(SCENES)}), "
+                        "the path of an MJCF file, or an XML string")
     if isinstance(mjcf, str) and text in SCENES:
         path = scene_path(text)
     elif isinstance(mjcf, str) and text.lstrip().startswith("<"):

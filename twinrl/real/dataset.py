@@ -715,7 +715,9 @@ def read(path: str | os.PathLike[str], strict: bool = True) -> Dataset:
     """Reads every transition of the dataset at ``path``.
 
     A torn tail left by a killed writer (in a ``.twr.open`` chunk) is dropped silently: that is the
-    transition in flight, and its episode reads back incomplete. Any other damage (flipped bytes, a
+    transition in flight, and its episode reads back incomplete. So is the zero-filled tail that a
+    power loss leaves after appends that were not yet fsync'd (unreadable records followed only by
+    zeros to the end of an ``.open`` chunk). Any other damage (flipped bytes, a
     truncated closed chunk, a missing chunk, a record that disagrees with ``meta.json``) raises
     ``DatasetError`` naming the file when ``strict``; with ``strict=False`` every intact transition
     is returned and the damage is listed in ``Dataset.problems``. A missing directory or an
@@ -912,6 +914,12 @@ def _scan_chunk(
         if closed:
             problems.append(f"{file}: truncated: {why}")
 
+    def zero_filled_tail(pos: int) -> bool:
+        # Power loss after unsynced appends leaves the file at its new length with the unwritten
+        # blocks read back as zeros: an unreadable record at ``pos`` with no record after it, in a
+        # file that ends in zero bytes. In an ``.open`` chunk that is a torn tail, not damage.
+        return not closed and data[-1:] == b"\0" and _resync(data, pos + 1) == len(data)
+
     while pos < len(data):
         if footer is not None:
             problems.append(
@@ -925,6 +933,8 @@ def _scan_chunk(
             torn(pos, f"the file ends {remaining} bytes into the record header at offset {pos}")
             break
         prefix = _read_prefix(data, pos)
+        if prefix is None and zero_filled_tail(pos):
+            break
         if prefix is None:
             nxt = _resync(data, pos + 1)
             problems.append(
@@ -945,6 +955,8 @@ def _scan_chunk(
         hbytes = data[start : start + hlen]
         body = view[start + hlen : end]
         if zlib.crc32(hbytes) != hcrc or zlib.crc32(body) != bcrc:
+            if zero_filled_tail(pos):
+                break
             part = "header" if zlib.crc32(hbytes) != hcrc else "body"
             problems.append(
                 f"{file}: record at offset {pos} fails its {part} checksum (damaged); skipped"

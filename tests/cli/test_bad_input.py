@@ -1,0 +1,169 @@
+"""Bad input to the ``twinrl`` command gets one clear line and exit status 2 (or the right
+behaviour), never a traceback. Run in process (``cli.main``): these fail before any compile."""
+
+import errno
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from twinrl import cli
+from twinrl.real.dataset import read
+
+
+def run(capsys, *args):
+    code = cli.main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def one_line_error(err, *fragments):
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for f in fragments:
+        assert f in lines[0], lines[0]
+    return lines[0]
+
+
+def test_collect_again_appends_new_episodes_not_copies(tmp_path, capsys):
+    for _ in range(2):
+        code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
+                           "--out", tmp_path)
+        assert code == 0, err
+    ds = read(tmp_path / "dataset")
+    first, second = list(ds.episodes())
+    assert (first.id, second.id) == (0, 1) and first.complete and second.complete
+    assert not np.array_equal(first.obs[0], second.obs[0])      # another initial state
+    assert not np.array_equal(first.action, second.action)      # another excitation
+    # the episode with id i is the same whether recorded in one run or appended by a second
+    code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "2",
+                       "--out", tmp_path / "once")
+    assert code == 0, err
+    once = list(read(tmp_path / "once/dataset").episodes())
+    assert np.array_equal(once[1].obs, second.obs) and np.array_equal(once[1].action,
+                                                                      second.action)
+
+
+def test_collect_into_a_dataset_another_process_writes_is_refused(tmp_path, capsys):
+    code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
+                       "--out", tmp_path)
+    assert code == 0, err
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, os, sys, time; "
+         "fd = os.open(sys.argv[1], os.O_RDWR); fcntl.flock(fd, fcntl.LOCK_EX); "
+         "print('locked', flush=True); time.sleep(120)", str(tmp_path / "dataset/.lock")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
+                           "--out", tmp_path)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert code == 2
+    one_line_error(err, "twinrl collect: error:", "is being written by another DatasetWriter")
+    assert read(tmp_path / "dataset").num_episodes == 1
+
+
+def test_collect_of_another_env_into_a_dataset_is_refused(tmp_path, capsys):
+    code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
+                       "--out", tmp_path)
+    assert code == 0, err
+    code, _, err = run(capsys, "collect", "--env", "cartpole_swingup", "--episodes", "1",
+                       "--out", tmp_path)
+    assert code == 2
+    one_line_error(err, "env='cartpole_swingup' does not match 'pendulum_swingup'")
+    assert read(tmp_path / "dataset").num_episodes == 1
+
+
+def test_collect_with_an_image_size_the_renderer_refuses_writes_nothing(tmp_path, capsys):
+    code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
+                       "--images", "--size", "4000", "4000", "--out", tmp_path / "c")
+    assert code == 2
+    one_line_error(err, "--size 4000 4000:", "offscreen buffer 640x480")
+    assert not (tmp_path / "c").exists()  # no meta.json claiming 4000x4000 images
+
+
+def test_disk_full_during_collect_is_one_line_and_the_dataset_stays_readable(
+        tmp_path, capsys, monkeypatch):
+    real_write, calls = os.write, []
+
+    def write(fd, data):  # the disk fills up after 100 records of the second episode's run
+        if "chunk-" in os.readlink(f"/proc/self/fd/{fd}"):
+            calls.append(fd)
+            if len(calls) > 100:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_write(fd, data)
+
+    code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
+                       "--out", tmp_path)
+    assert code == 0, err
+    monkeypatch.setattr(os, "write", write)
+    code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "2",
+                       "--out", tmp_path)
+    monkeypatch.undo()
+    assert code == 2
+    one_line_error(err, "No space left on device", "the dataset keeps every transition")
+    ds = read(tmp_path / "dataset")  # strict: no damage, only an episode cut short
+    assert ds.problems == [] and ds.num_episodes == 2
+    assert list(ds.episode_complete) == [True, False] and len(ds) == 250 + 99
+
+
+@pytest.mark.parametrize("doc, message", [
+    ([1, 2], "holds a JSON list, expected an object"),
+    ({"format": "twinrl.policy/1", "env": "pendulum_swingup"}, "no 'network' object"),
+])
+def test_eval_of_a_malformed_checkpoint_json_is_one_line(tmp_path, capsys, doc, message):
+    from twinrl.learn.checkpoint import FORMAT
+
+    if isinstance(doc, dict):
+        doc["format"] = FORMAT
+    (tmp_path / "checkpoint.json").write_text(json.dumps(doc))
+    code, _, err = run(capsys, "eval", "--checkpoint", tmp_path, "--out", tmp_path / "e")
+    assert code == 2
+    one_line_error(err, "twinrl eval: error:", str(tmp_path / "checkpoint.json"), message)
+
+
+def test_gradcheck_of_a_massless_body_names_the_body(tmp_path, capsys):
+    mjcf = tmp_path / "arm.xml"
+    mjcf.write_text("""<mujoco><worldbody><body name="mount" pos="0 0 1">
+        <body name="link"><joint type="hinge"/><geom size="0.1"/></body>
+        </body></worldbody></mujoco>""")
+    code, _, err = run(capsys, "gradcheck", mjcf, "--horizon", "2", "--out", tmp_path / "g")
+    assert code == 2
+    one_line_error(err, "body 'mount' (id 1) has mass 0")
+
+
+def test_gradcheck_of_an_empty_path_says_it_is_empty(tmp_path, capsys):
+    code, _, err = run(capsys, "gradcheck", "", "--out", tmp_path / "g")
+    assert code == 2
+    one_line_error(err, "the MJCF path is empty")
+
+
+def test_sysid_reads_past_a_damaged_chunk_saying_what_was_dropped(tmp_path, capsys, monkeypatch):
+    from twinrl.real2sim import sysid
+
+    code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
+                       "--out", tmp_path)
+    assert code == 0, err
+    (chunk,) = (tmp_path / "dataset").glob("chunk-*.twr")
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    seen = []
+
+    def fit(env, data, config):  # stands in for the fit: what it was given is what matters
+        seen.append(len(data))
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(sysid, "fit", fit)
+    code, _, err = run(capsys, "sysid", "--env", "pendulum_swingup", "--from", tmp_path,
+                       "--out", tmp_path / "s")
+    assert seen == [249] and code == 2, err
+    warning, error = err.strip().splitlines()
+    assert warning.startswith("twinrl sysid: warning: dataset damaged, using its 249 intact")
+    assert str(chunk) in warning and error == "twinrl sysid: error: stop here"
