@@ -48,8 +48,15 @@ class TaskConfig:
     """Control steps per episode (the trainer's ``episode_length``; the real twin truncates here)."""
     frame_skip: int = 2
     """Physics steps of the scene's timestep per control step (control period = dt * frame_skip)."""
+    observation: str = "task"
+    """``"task"``: the task's observation (what a policy sees); ``"state"``: the full physical
+    state ``[qpos, qvel]``, as a motion-capture system records it -- for identifying tasks whose
+    observation does not determine the state (push: the box's height, tilt and spin), where
+    Real2Sim's shooting windows must start from recorded states."""
 
     def __post_init__(self):
+        if self.observation not in ("task", "state"):
+            raise ValueError(f"observation must be 'task' or 'state', got {self.observation!r}")
         if int(self.episode_length) < 1:
             raise ValueError(f"episode_length must be >= 1, got {self.episode_length}")
         if int(self.frame_skip) < 1:
@@ -159,6 +166,14 @@ class Env(brax_base.Env):
             raise ValueError(f"scene {self.scene!r}: every actuator needs a ctrlrange, got {r}")
         self._ctrl_lo = jnp.asarray(r[:, 0], jnp.float32)
         self._ctrl_hi = jnp.asarray(r[:, 1], jnp.float32)
+        if config.observation == "state":  # instance attributes shadow the task's hooks
+            self.observe, self.state_from_obs = self._full_state, self._split_state
+
+    def _full_state(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+        return jnp.concatenate([qpos, qvel], axis=-1).astype(jnp.float32)
+
+    def _split_state(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        return obs[..., :self.sim.nq], obs[..., self.sim.nq:]
 
     @classmethod
     def default_config(cls) -> TaskConfig:

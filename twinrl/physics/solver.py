@@ -51,6 +51,8 @@ from mujoco.mjx._src import sensor as _sensor
 from mujoco.mjx._src import solver as _stock
 from mujoco.mjx._src.types import DisableBit, SolverType
 
+from twinrl.physics import collision as _collision
+
 __all__ = ["solve", "forward", "GRADIENTS"]
 
 # How reverse mode goes through the constraint solve (module docstring).
@@ -163,8 +165,9 @@ def solve(m, d, iterations: int | None = None, gradient: str = "implicit"):
 
 
 def forward(m, d, iterations: int | None = None, gradient: str = "implicit"):
-    """``mjx.forward`` with the differentiable solve."""
-    d = _fwd.fwd_position(m, d)
+    """``mjx.forward`` with the differentiable solve (and differentiable SDF contacts,
+    ``twinrl.physics.collision``)."""
+    d = _collision.fwd_position(m, d)
     d = _sensor.sensor_pos(m, d)
     d = _fwd.fwd_velocity(m, d)
     d = _sensor.sensor_vel(m, d)
