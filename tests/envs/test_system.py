@@ -150,3 +150,17 @@ def test_randomization_fn_batches_masses_and_frictions(identified):
     assert np.ptp(qvel) > 1e-4                 # same start, same actions, other masses
     assert s.info["latency/queue"].shape == (4, 2, 1)
     assert env.env.params is identified.params  # restored after the randomised step
+
+
+def test_brax_ppo_trains_on_the_delayed_env_unmodified():
+    from twinrl.learn import baselines
+    from twinrl.learn.baselines import PPOConfig
+
+    env = envs.make(TASK, system=System.nominal(TASK).replace(latency=1))
+    tiny = PPOConfig(num_timesteps=1024, num_envs=8, batch_size=8, num_minibatches=4,
+                     unroll_length=8, num_updates_per_batch=1, policy_hidden=(8,),
+                     value_hidden=(8,), num_evals=2, num_eval_envs=2, episode_length=16)
+    policy, params, metrics = baselines.ppo_train(env, tiny, jax.random.PRNGKey(0))
+    assert len(metrics["return"]) == 2 and np.all(np.isfinite(metrics["return"]))
+    a = policy.apply(params, jnp.zeros(env.observation_size))
+    assert a.shape == (1,) and bool(jnp.all(jnp.abs(a) <= 1))
