@@ -31,6 +31,7 @@ CHILD = textwrap.dedent("""
     from twinrl.learn import runner
     from twinrl.learn.common import MetricLog
     from twinrl.learn.networks import make_policy
+    from twinrl.envs import System
     from twinrl.real2sim import sysid
 
     out, resume = Path(sys.argv[1]), sys.argv[2] == "resume"
@@ -44,6 +45,7 @@ CHILD = textwrap.dedent("""
         def __init__(self, env):
             self.params, self.latency, self.table = env.sim.default_params(), 0, []
             self.loss, self.sim_rollouts, self.seconds = 0.0, 0, 0.0
+            self.system = System(params=self.params, latency=0, task=env.name)
 
     def fit(env, data, config=None, **kw):
         note(f"sysid {len(data)}")

@@ -195,14 +195,11 @@ class _OracleProcess:
         return value
 
 
-def _params_to_json(p) -> dict[str, list]:
-    return {k: np.asarray(v, np.float64).tolist() for k, v in p.as_dict().items()}
+def _identified_system(rdir: Path):
+    """The ``System`` (parameters + action latency) the round's sysid wrote to ``sysid.json``."""
+    from twinrl.envs.system import System
 
-
-def _params_from_json(d: dict[str, list]):
-    from twinrl.physics import PhysParams
-
-    return PhysParams(**{k: jnp.asarray(np.asarray(v), jnp.float32) for k, v in d.items()})
+    return System.from_json(json.loads((rdir / "sysid.json").read_text())["system"])
 
 
 # ------------------------------------------------------------------------------ the stages
@@ -312,18 +309,17 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                 res = sysid.fit(nominal_env, data, sysid.SysidConfig(
                     **({"window": config.sysid_window} if config.sysid_window else {})))
                 report.write_json(rdir / "sysid.json", {
-                    "latency": res.latency, "params": _params_to_json(res.params),
+                    "latency": res.latency, "system": res.system.to_json(),
                     "table": res.table, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
                     "seconds": res.seconds})
                 errs = evaluation.param_errors(twin, res)
                 prog.mark(f"{tag}/sysid", param_rel_error=errs, latency=res.latency,
                           sysid_rollouts=res.sim_rollouts,
                           seconds=_seconds(prog, r, sysid=time.perf_counter() - t0))
-            sys_doc = json.loads((rdir / "sysid.json").read_text())
-            params = _params_from_json(sys_doc["params"])
-            latency = int(sys_doc["latency"])
-            env = sysid.identified_env(env_name, params) if hasattr(
-                sysid, "identified_env") else envs.make(env_name, params=params)
+            # the identified twin, latency included, is what every later stage simulates
+            system = _identified_system(rdir)
+            latency = system.latency
+            env = envs.make(env_name, system=system)
 
             # 2. hybrid -------------------------------------------------------------------
             hyb = None
@@ -423,8 +419,7 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
 
     r = config.rounds
     rdir = out / f"round{r}"
-    sys_doc = json.loads((rdir / "sysid.json").read_text())
-    env = envs.make(env_name, params=_params_from_json(sys_doc["params"]))
+    env = envs.make(env_name, system=_identified_system(rdir))
     hyb = _load_hybrid(rdir) if config.hybrid else None
     act = _deployed_policy(config, env, hyb, None, rdir / "train", rdir, seed + r,
                            lambda *a, **k: None)

@@ -129,3 +129,54 @@ def test_metrics_writer_rewrite_drops_epochs_past_the_restored_state(tmp_path):
     w.write(1, {"epoch": 1, "return": 1.0})
     assert (tmp_path / "metrics.csv").read_text().splitlines() == ["epoch,return", "0.0,0.0",
                                                                    "1.0,1.0"]
+
+
+# ------------------------------------------------------------------ the System a policy learnt in
+def test_policy_trained_in_a_system_is_evaluated_in_that_system(tmp_path):
+    """Acceptance (issue 18): a policy trained in an identified ``System`` (heavier, more damped
+    pendulum, two steps of action latency), saved, and run by ``twinrl eval --checkpoint DIR``,
+    runs in that system, not in the task's nominal simulator."""
+    from twinrl import cli, envs
+    from twinrl.envs import System, system_of
+    from twinrl.learn.common import make_evaluator
+
+    nominal = System.nominal(ENV)
+    p = nominal.params
+    system = nominal.replace(params=p.replace(mass=np.asarray(p.mass) * 1.7,
+                                              damping=np.asarray(p.damping) + 0.05), latency=2)
+    run = tmp_path / "run"
+    runner.train_run(ENV, "toy", run, epochs=2, seed=1, progress=False,
+                     env=envs.make(ENV, system=system))
+    saved = checkpoint.load_system(run)
+    assert saved.to_json() == system.to_json()            # exact, latency included
+    assert (run / "policy" / "system.json").exists()
+
+    out = tmp_path / "eval"
+    assert cli.main(["eval", "--checkpoint", str(run), "--episodes", "3", "--no-video",
+                     "--seed", "4", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["system"]["from"] == "checkpoint"
+    assert summary["system"]["latency"] == 2
+    assert summary["system"]["params"] == system.to_json()["params"]
+    # the eval env the runner rebuilds is that system; its returns are that system's, and
+    # differ from the same policy's in the nominal simulator
+    net, params, meta = checkpoint.load_policy(run)
+    rebuilt = runner._env_from_meta(meta, saved)
+    assert rebuilt.latency == 2 and system_of(rebuilt).to_json() == system.to_json()
+    key = jax.random.key(4)
+    in_system = np.asarray(make_evaluator(envs.make(ENV, system=system), net.apply, 3)(params, key))
+    in_nominal = np.asarray(make_evaluator(envs.make(ENV), net.apply, 3)(params, key))
+    np.testing.assert_allclose(summary["returns"], in_system, rtol=1e-5)
+    assert np.max(np.abs(in_system - in_nominal)) > 1e-3 * max(1.0, np.max(np.abs(in_nominal)))
+
+
+def test_checkpoint_without_a_system_is_evaluated_in_the_nominal_task(full_run, tmp_path):
+    out, _ = full_run
+    assert checkpoint.load_system(out).latency == 0      # trained on envs.make(ENV): nominal
+    (out / "policy" / "system.json").rename(tmp_path / "kept.json")
+    try:
+        assert checkpoint.load_system(out) is None       # written before checkpoints had one
+        s = runner.eval_run(out, tmp_path / "eval", episodes=1, video=False, progress=False)
+        assert s["system"]["from"].startswith("nominal") and s["system"]["latency"] == 0
+    finally:
+        (tmp_path / "kept.json").rename(out / "policy" / "system.json")

@@ -25,6 +25,13 @@ def config(cart_mass, **kw):
                              max_latency=1, batch_windows=32, **kw)
 
 
+def _exact_twin():
+    """A real twin of our own model (Euler, 4 solver iterations, no noise), one step of latency."""
+    pert = Perturbation(mass_scale=(1.0, 1.1), damping_scale=(1.0, 1.0), extra_damping=(0.2, 0.0),
+                        extra_frictionloss=(0.5, 0.0), gain_scale=(0.95,), latency_steps=1)
+    return envs.make_real(TASK, seed=0, perturbation=pert, integrator="euler", iterations=4)
+
+
 @pytest.fixture(scope="module")
 def env():
     return envs.make(TASK)
@@ -34,9 +41,7 @@ def env():
 def exact(env):
     """Data from our own model (Euler, 4 solver iterations, no noise) with known parameters and
     one step of latency: sysid must recover them to rounding."""
-    pert = Perturbation(mass_scale=(1.0, 1.1), damping_scale=(1.0, 1.0), extra_damping=(0.2, 0.0),
-                        extra_frictionloss=(0.5, 0.0), gain_scale=(0.95,), latency_steps=1)
-    twin = envs.make_real(TASK, seed=0, perturbation=pert, integrator="euler", iterations=4)
+    twin = _exact_twin()
     data = sysid.collect(twin, episodes=2, seed=0, steps=60)
     result = sysid.fit(env, data, config(1.0))
     truth = twin.oracle().params  # evaluation only
@@ -187,3 +192,62 @@ def test_excitation_actions_hold_levels():
     assert a.shape == (200, 2) and a.dtype == np.float32 and np.all(np.abs(a) <= 1)
     changes = np.count_nonzero(np.diff(a[:, 0]))
     assert 200 / 8 - 2 <= changes <= 200 / 4
+
+
+# ------------------------------------------------------------------ the identified System
+def _sim_from(e, obs0):
+    """``e``'s state at the real twin's recorded observation ``obs0`` (fresh delay queue)."""
+    import jax
+    import jax.numpy as jnp
+
+    qpos, qvel = e.state_from_obs(jnp.asarray(obs0, jnp.result_type(float)))
+    s = e.reset(jax.random.key(0))
+    return s.replace(pipeline_state=e.sim.init(qpos, qvel), obs=e.observe(qpos, qvel))
+
+
+def test_identified_system_delays_actions_like_the_real_twin(exact):
+    """Acceptance (issue 18): sysid on a real twin with latency 1 returns a ``System`` whose env
+    delays actions by one step: its open-loop trajectory follows the real twin's under the same
+    actions, one without the delay does not, and gradients go through the delay (float64 central
+    differences on a short horizon)."""
+    import jax
+    import jax.numpy as jnp
+
+    _, result, _ = exact
+    system = result.system
+    assert system.latency == 1 and system.task == TASK
+    np.testing.assert_array_equal(system.params.mass, result.params.mass)
+    twin = _exact_twin()
+    obs0, _ = twin.reset(seed=11)
+    actions = sysid.excitation_actions(np.random.default_rng(7), 40, 1)
+    real = np.stack([twin.step(a)[0] for a in actions])
+
+    def open_loop(e):
+        def body(s, a):
+            s = e.step(s, a)
+            return s, s.obs
+        return np.asarray(jax.lax.scan(body, _sim_from(e, obs0), jnp.asarray(actions))[1])
+
+    delayed = envs.make(TASK, system=system)
+    undelayed = envs.make(TASK, system=system.replace(latency=0))
+    err = np.abs(open_loop(delayed) - real).max()
+    err0 = np.abs(open_loop(undelayed) - real).max()
+    assert err < 0.02, err
+    assert err0 > 10 * err, (err, err0)
+
+    with jax.enable_x64(True):
+        e64 = envs.make(TASK, system=system)
+        s0 = _sim_from(e64, np.asarray(obs0, np.float64))
+        s0 = s0.replace(pipeline_state=jax.tree.map(
+            lambda x: x.astype(jnp.float64) if jnp.issubdtype(x.dtype, jnp.floating) else x,
+            s0.pipeline_state))
+        a = jnp.asarray(actions[:6], jnp.float64) * 0.7        # inside [-1, 1]: no clipping kink
+        ret = jax.jit(lambda a: e64.unroll(s0, a)[1].sum())
+        g = np.asarray(jax.grad(lambda a: e64.unroll(s0, a)[1].sum())(a))
+        eps = 1e-6
+        fd = np.zeros_like(g)
+        for i in range(a.shape[0]):
+            d = jnp.zeros_like(a).at[i, 0].set(eps)
+            fd[i, 0] = (float(ret(a + d)) - float(ret(a - d))) / (2 * eps)
+    assert np.all(np.isfinite(g)) and np.abs(g[:-1]).min() > 0, g
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-8)

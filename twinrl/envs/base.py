@@ -161,6 +161,7 @@ class Env(brax_base.Env):
             params.check_shapes(sim.mj_model, f"task {self.name!r} (scene {self.scene!r})")
         self.sim = _with_friction_rows(sim, params)
         self.params = params
+        self._sys = None
         r = self.sim.ctrl_range
         if not np.all(np.isfinite(r)):
             raise ValueError(f"scene {self.scene!r}: every actuator needs a ctrlrange, got {r}")
@@ -178,6 +179,19 @@ class Env(brax_base.Env):
     @classmethod
     def default_config(cls) -> TaskConfig:
         return cls.Config()
+
+    @property
+    def sys(self):
+        """The ``twinrl.envs.system.System`` this task was built from (``envs.make(name,
+        system=...)``), else None. Brax's domain randomisation sets it to a (traced) randomised
+        system inside its vmap; setting it sets ``params``, what ``step`` simulates with."""
+        return self._sys
+
+    @sys.setter
+    def sys(self, value) -> None:
+        self._sys = value
+        if value is not None:
+            self.params = value.params
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, config={self.config!r})"
@@ -238,7 +252,8 @@ class Env(brax_base.Env):
         )
 
     def step(self, state: State, action: jax.Array) -> State:
-        action = jnp.asarray(action, jnp.float32).reshape(self.action_size)
+        # JAX's default float (float32; float64 under x64, for finite-difference checks)
+        action = jnp.asarray(action, jnp.result_type(float)).reshape(self.action_size)
         data = self.sim.step(state.pipeline_state, self.action_to_ctrl(action), self.params)
         reward, terms = self.reward(data.qpos, data.qvel, action)
         # A diverged simulation ends the episode instead of feeding NaN to the learner.

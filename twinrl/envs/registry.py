@@ -15,6 +15,7 @@ from twinrl.envs.base import Env, TaskConfig, replace_config
 from twinrl.envs.cartpole import Cartpole, CartpoleConfig
 from twinrl.envs.pendulum import PendulumSwingup
 from twinrl.envs.push import Push
+from twinrl.envs.wrappers import LatencyWrapper
 from twinrl.physics import PhysParams
 
 __all__ = ["names", "make", "make_real", "default_config", "TASKS"]
@@ -50,11 +51,29 @@ def default_config(name: str) -> TaskConfig:
     return _entry(name).config()
 
 
-def make(name: str, *, params: PhysParams | None = None, **overrides: Any) -> Env:
+def make(name: str, *, params: PhysParams | None = None, system: Any = None,
+         **overrides: Any) -> Env:
     """The simulated task ``name`` with config fields overridden, e.g.
-    ``make("cartpole_swingup", episode_length=100)``; ``params`` sets its physical parameters."""
+    ``make("cartpole_swingup", episode_length=100)``; ``params`` sets its physical parameters.
+
+    ``system`` (a ``twinrl.envs.system.System``, e.g. Real2Sim's) builds the task it describes:
+    its ``params``, and its action ``latency`` applied by a ``LatencyWrapper`` (latency 0: the
+    bare task). The env's ``sys`` is that system. Give ``params`` or ``system``, not both.
+    """
     e = _entry(name)
-    return e.env_class(replace_config(e.config(), **overrides), params=params, name=name)
+    if system is None:
+        return e.env_class(replace_config(e.config(), **overrides), params=params, name=name)
+    # duck-typed: system.py sits above the registry (System.nominal reads TASKS)
+    if not all(hasattr(system, k) for k in ("params", "latency", "task")):
+        raise TypeError(f"system must be a twinrl.envs.system.System, got "
+                        f"{type(system).__name__}")
+    if params is not None:
+        raise ValueError("give params or system, not both (a System carries its params)")
+    if system.task is not None and system.task != name:
+        raise ValueError(f"system was identified for task {system.task!r}, not {name!r}")
+    env = e.env_class(replace_config(e.config(), **overrides), params=system.params, name=name)
+    env.sys = system
+    return LatencyWrapper(env, system.latency) if system.latency else env
 
 
 def make_real(name: str, *, seed: int = 0, perturbation: Any = None, **kwargs: Any):

@@ -4,6 +4,8 @@
 
     checkpoint.json   format, network (kind, in/out sizes, NetworkConfig), algo, env name and its
                       config overrides, the trainer's config, final metrics
+    system.json       the ``twinrl.envs.System`` the policy was trained in (parameters, action
+                      latency, ...): evaluation rebuilds exactly that simulator (``load_system``)
     params/           orbax StandardCheckpointer tree of the network parameters
 
 ``load_policy(dir)`` rebuilds the network from the JSON alone (Brax's habit: params + a JSON
@@ -31,10 +33,11 @@ import numpy as np
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 from twinrl.report import to_jsonable
 
-__all__ = ["save_policy", "load_policy", "register_network_kind", "TrainStateCheckpointer",
-           "CheckpointError", "FORMAT"]
+__all__ = ["save_policy", "load_policy", "load_system", "register_network_kind",
+           "TrainStateCheckpointer", "CheckpointError", "FORMAT"]
 
 FORMAT = "twinrl-policy-1"
+SYSTEM_FILE = "system.json"
 
 _BUILDERS: dict[str, Callable[[dict[str, Any]], Network]] = {}
 
@@ -64,11 +67,13 @@ def network_spec(policy: Network) -> dict[str, Any]:
             "config": policy.config.to_dict()}
 
 
-def save_policy(path: str | Path, policy: Network, params: Any, **meta: Any) -> Path:
+def save_policy(path: str | Path, policy: Network, params: Any, *, system: Any = None,
+                **meta: Any) -> Path:
     """Write a policy checkpoint to ``path`` (created; an existing checkpoint is replaced).
 
     ``meta`` (algo, env, env_config, config, metrics, ...) goes into ``checkpoint.json`` after
-    conversion to JSON (dataclasses become dicts, arrays lists, non-finite floats null).
+    conversion to JSON (dataclasses become dicts, arrays lists, non-finite floats null);
+    ``system`` (a ``twinrl.envs.System``) into ``system.json``, exactly.
     """
     import orbax.checkpoint as ocp
 
@@ -80,6 +85,10 @@ def save_policy(path: str | Path, policy: Network, params: Any, **meta: Any) -> 
     ckptr = ocp.StandardCheckpointer()
     ckptr.save(path / "params", params, force=True)
     ckptr.wait_until_finished()
+    if system is not None:
+        system.save(path / SYSTEM_FILE)
+    elif (path / SYSTEM_FILE).exists():
+        (path / SYSTEM_FILE).unlink()      # a replaced checkpoint keeps no stale system
     doc = {"format": FORMAT, "network": network_spec(policy), **to_jsonable(meta)}
     tmp = path / "checkpoint.json.tmp"
     tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))
@@ -91,10 +100,7 @@ def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
     """``(network, params, meta)`` from a policy checkpoint written by ``save_policy``."""
     import orbax.checkpoint as ocp
 
-    path = Path(path).absolute()
-    # A training run's output directory holds the policy under policy/.
-    if not (path / "checkpoint.json").exists() and (path / "policy" / "checkpoint.json").exists():
-        path = path / "policy"
+    path = _policy_dir(path)   # a training run's output directory holds the policy under policy/
     meta_file = path / "checkpoint.json"
     if not meta_file.exists():
         raise CheckpointError(f"{path}: no checkpoint.json (not a twinrl policy checkpoint)")
@@ -129,6 +135,27 @@ def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
     template = jax.eval_shape(network.init, jax.random.key(0))
     params = ocp.StandardCheckpointer().restore(path / "params", template)
     return network, params, meta
+
+
+def _policy_dir(path: str | Path) -> Path:
+    path = Path(path).absolute()
+    if not (path / "checkpoint.json").exists() and (path / "policy" / "checkpoint.json").exists():
+        path = path / "policy"
+    return path
+
+
+def load_system(path: str | Path):
+    """The ``twinrl.envs.System`` a policy checkpoint (or a training run's directory) was trained
+    in, or None for a checkpoint written without one (its task's nominal simulator)."""
+    from twinrl.envs.system import System, SystemError
+
+    f = _policy_dir(path) / SYSTEM_FILE
+    if not f.exists():
+        return None
+    try:
+        return System.load(f)
+    except (SystemError, ValueError) as e:
+        raise CheckpointError(f"{f}: {e}") from None
 
 
 def _is_key(x) -> bool:

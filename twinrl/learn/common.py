@@ -24,6 +24,7 @@ The trainer contract (Brax's, made resumable)::
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any, Callable
 
@@ -31,11 +32,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn", "RestoreFn"]
+__all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn", "RestoreFn",
+           "compile_key"]
 
 ProgressFn = Callable[[int, dict[str, float]], None]
 CheckpointFn = Callable[[int, Any, dict[str, list[float]]], None]
 RestoreFn = Callable[[Any], tuple[Any, dict[str, list[float]]]]
+
+
+def compile_key(config) -> Any:
+    """The part of a trainer's frozen config its compiled functions depend on (a cache key):
+    ``epochs`` changes no compiled function, so a longer or resumed run reuses them."""
+    return dataclasses.replace(config, epochs=1)
 
 
 def raw_key(rng) -> jax.Array:

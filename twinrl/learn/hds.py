@@ -49,9 +49,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.learn import trajopt
-from twinrl.learn.common import CheckpointFn, MetricLog, ProgressFn, RestoreFn
+from twinrl.learn.common import CheckpointFn, MetricLog, ProgressFn, RestoreFn, compile_key
 from twinrl.learn.networks import Network
-from twinrl.learn.pods import (Compiled, PODSConfig, _compile_key, check_batch, check_restored,
+from twinrl.learn.pods import (Compiled, PODSConfig, check_batch, check_restored,
                                compile_parts, critic_stats, epoch_update, improve_window,
                                init_state, restore_state, window_stats)
 from twinrl.physics.gradients import guard_stats
@@ -211,7 +211,7 @@ def train(env, config: HDSConfig = HDSConfig(), rng: jax.Array | int | None = No
         raise TypeError(f"dynamics must be a callable (state, action) -> State, "
                         f"got {type(dynamics).__name__}")
     check_batch(c.batch_size)
-    compiled = _build(env, _compile_key(c), dynamics if n_model else None, tuple(jax.devices()))
+    compiled = _build(env, compile_key(c), dynamics if n_model else None, tuple(jax.devices()))
     mesh = batch_mesh()
     W, H = c.lengths(env)
     params, opt_state, k_run, k_eval, cparams, copt = init_state(compiled, rng)

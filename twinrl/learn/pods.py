@@ -71,8 +71,8 @@ import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
 from twinrl.learn import trajopt
-from twinrl.learn.common import (CheckpointFn, MetricLog, ProgressFn, RestoreFn, make_evaluator,
-                                 raw_key)
+from twinrl.learn.common import (CheckpointFn, MetricLog, ProgressFn, RestoreFn, compile_key,
+                                 make_evaluator, raw_key)
 from twinrl.learn.networks import Network, make_policy, make_value
 from twinrl.learn.shac import td_lambda_targets
 from twinrl.physics.gradients import global_norm, guard_stats, hygiene
@@ -560,11 +560,6 @@ class Compiled(NamedTuple):
     critic_optimizer: optax.GradientTransformation
 
 
-def _compile_key(config) -> Any:
-    # ``epochs`` changes no compiled function: a longer or resumed run reuses them.
-    return dataclasses.replace(config, epochs=1)
-
-
 def make_critic(env, c: PODSConfig
                 ) -> tuple[Network, optax.GradientTransformation, Callable | None]:
     """``(critic, critic_optimizer, critic_update or None)`` of the config."""
@@ -660,7 +655,7 @@ def train(env, config: PODSConfig = PODSConfig(), rng: jax.Array | int | None = 
                         f"train), got {type(config).__name__}")
     c = config
     check_batch(c.batch_size)
-    compiled = _build(env, _compile_key(c), tuple(jax.devices()))
+    compiled = _build(env, compile_key(c), tuple(jax.devices()))
     mesh = batch_mesh()
     params, opt_state, k_run, k_eval, cparams, copt = init_state(compiled, rng)
     state = PODSState(params=params, opt_state=opt_state, rng=k_run, eval_key=k_eval,

@@ -143,10 +143,12 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
               checkpoint_every: int = 1) -> dict[str, Any]:
     """Train ``algo`` on ``env_name`` into ``out`` (see the module docstring); returns the summary.
 
-    ``env`` may be given to train in a specific simulator (identified parameters, the loop);
-    ``train_kwargs`` are passed to the trainer (HDS's ``dynamics``).
+    ``env`` may be given to train in a specific simulator (``envs.make(name, system=...)``: an
+    identified system, the loop); the policy checkpoint keeps that system (``system.json``), so
+    ``eval_run`` rebuilds it. ``train_kwargs`` are passed to the trainer (HDS's ``dynamics``).
     """
     from twinrl import envs, report
+    from twinrl.envs.system import system_of
     from twinrl.learn.checkpoint import TrainStateCheckpointer, save_policy
 
     entry, train_fn, _ = algorithm(algo)
@@ -222,7 +224,7 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
             ckpt.close()
     wall = time.perf_counter() - t0
     writer.rewrite(metrics)
-    save_policy(out / "policy", policy, params, algo=algo, env=env_name,
+    save_policy(out / "policy", policy, params, system=system_of(env), algo=algo, env=env_name,
                 env_config=_env_config(env), config=config, seed=int(seed),
                 metrics={k: v[-1] for k, v in metrics.items() if v})
     curve = _plot_training(out / "curve.png", metrics, f"{algo} on {env_name}")
@@ -295,7 +297,9 @@ def _plot_training(path: Path, metrics: dict[str, list[float]], title: str) -> P
 
 
 # ------------------------------------------------------------------------------------ eval
-def _env_from_meta(meta: dict[str, Any]):
+def _env_from_meta(meta: dict[str, Any], system=None):
+    """The simulator a checkpoint's policy was trained in: its task and config, built from the
+    ``system`` it saved (None, for checkpoints without one: the task's nominal simulator)."""
     from twinrl import envs
 
     name = meta.get("env")
@@ -304,7 +308,10 @@ def _env_from_meta(meta: dict[str, Any]):
     cfg = meta.get("env_config") or {}
     default = dataclasses.asdict(envs.default_config(name))
     overrides = {k: v for k, v in cfg.items() if k in default and default[k] != v}
-    return envs.make(name, **overrides)
+    try:
+        return envs.make(name, system=system, **overrides)
+    except ValueError as e:       # a system of another task
+        raise RunError(f"checkpoint's system cannot build {name!r}: {e}") from None
 
 
 def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, episodes: int = 5,
@@ -313,12 +320,14 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
     """Evaluate a policy checkpoint in the simulator or (``real``) its real twin; write
     ``summary.json`` and an MP4 of the first episode. Returns the summary."""
     from twinrl import report
-    from twinrl.learn.checkpoint import load_policy
+    from twinrl.envs.system import system_of
+    from twinrl.learn.checkpoint import load_policy, load_system
 
     if episodes < 1:
         raise RunError(f"--episodes must be >= 1, got {episodes}")
     network, params, meta = load_policy(checkpoint)
-    env = _env_from_meta(meta)
+    saved = load_system(checkpoint)
+    env = _env_from_meta(meta, saved)
     out = Path(out)
     act = jax.jit(network.apply)
     frames: list[np.ndarray] = []
@@ -340,6 +349,8 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
                "where": "real twin" if real else "sim", "seed": int(seed),
                "episodes": int(episodes), "returns": returns,
                "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)),
+               "system": {"from": "checkpoint" if saved is not None else "nominal (none saved)",
+                          **system_of(env).to_json()},
                "files": files}
     report.print_table(f"eval {meta.get('algo')} on {meta['env']} ({summary['where']})",
                        ["episodes", "mean return", "std", "min", "max"],

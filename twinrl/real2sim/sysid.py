@@ -68,6 +68,7 @@ Example::
     data = collect(twin, episodes=5, seed=0)          # excitation actions on the real twin
     result = fit(twinrl.envs.make("cartpole_swingup"), data, SysidConfig())
     print_result(result)
+    env = twinrl.envs.make("cartpole_swingup", system=result.system)  # params + latency
 """
 
 from __future__ import annotations
@@ -85,6 +86,8 @@ import optax
 from mujoco import mjx
 
 from twinrl.envs.base import Env
+from twinrl.envs.registry import TASKS
+from twinrl.envs.system import System
 from twinrl.physics import PhysParams, Sim
 from twinrl.physics.params import NONNEGATIVE, POSITIVE
 
@@ -753,6 +756,14 @@ class SysidResult:
     bound_tests: dict[str, float] = dataclasses.field(default_factory=dict)
     """Each non-negative parameter tested at its bound 0: the (window-robust) likelihood ratio
     of holding it there; below ``config.bound_lr`` it was held (status ``at bound 0``)."""
+    task: str | None = None
+    """Registered task name of the env the fit ran on (None for an unregistered one)."""
+
+    @property
+    def system(self) -> System:
+        """The identified twin: ``params`` and ``latency`` as a ``twinrl.envs.System``; pass to
+        ``twinrl.envs.make(name, system=...)``."""
+        return System(params=self.params, latency=self.latency, task=self.task)
 
     @property
     def table(self) -> list[dict[str, Any]]:
@@ -869,7 +880,12 @@ def fit(env: Env, data, config: SysidConfig | None = None, rng: jax.Array | None
             loss_history=tuple(loss_hist), history=tuple(hist), sim_rollouts=int(prob.rollouts),
             n_windows=prob.n_windows, residual_sd=resid_sd, seconds=time.perf_counter() - t_start,
             config=c, theta_u=np.asarray(theta), cov_u=info["cov"], cov_u_data=info["cov_data"],
-            bound_tests=tests)
+            bound_tests=tests, task=_task_name(env))
+
+
+def _task_name(env) -> str | None:
+    name = getattr(env, "name", None)
+    return name if name in TASKS else None
 
 
 # ---------------------------------------------------------------------------------- optimisers

@@ -33,6 +33,7 @@ import mujoco
 import numpy as np
 import optax
 
+from twinrl.envs.wrappers import QUEUE_KEY
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
 __all__ = ["HybridConfig", "HybridModel", "HybridFit", "Transitions", "transitions",
@@ -258,15 +259,17 @@ def make_dynamics(env, model: HybridModel) -> Callable:
     build ``env`` with the identified parameters) plus the hybrid model's correction: the drop-in
     replacement that ``twinrl.learn.hds.train(..., dynamics=...)`` mixes in.
 
-    The executed action is the policy's: the residual was fitted on executed actions, so it
-    corrects the dynamics, not the delay.
+    The residual was fitted on executed (applied) actions, so it corrects the dynamics, not the
+    delay: on a bare ``env`` the executed action is the policy's; on an env that delays actions
+    (``envs.make(name, system=...)`` with a latency) it is the one leaving the delay's queue now.
     """
     nq = env.sim.nq
 
     def dynamics(state, action):
         action = jnp.asarray(action, jnp.float32).reshape(env.action_size)
         data = state.pipeline_state
-        d = model.residual(env.observe(data.qpos, data.qvel), jnp.clip(action, -1.0, 1.0))
+        executed = state.info[QUEUE_KEY][0] if QUEUE_KEY in state.info else action
+        d = model.residual(env.observe(data.qpos, data.qvel), jnp.clip(executed, -1.0, 1.0))
         stepped = env.step(state, action)
         nd = stepped.pipeline_state.replace(qpos=stepped.pipeline_state.qpos + d[:nq],
                                             qvel=stepped.pipeline_state.qvel + d[nq:])
