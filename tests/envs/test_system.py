@@ -12,7 +12,7 @@ from brax.envs.wrappers import training as brax_training
 
 from twinrl import envs
 from twinrl.envs import LatencyWrapper, System, randomization_fn, system_of
-from twinrl.envs.system import SystemError
+from twinrl.envs.system import SystemFormatError
 
 TASK = "pendulum_swingup"
 
@@ -49,9 +49,9 @@ def test_json_round_trip_is_exact_in_float64(identified, tmp_path):
     assert back.to_json() == identified.to_json()
     identified.save(tmp_path)
     _leaves_equal(identified, System.load(tmp_path / "system.json"))
-    with pytest.raises(SystemError, match="format"):
+    with pytest.raises(SystemFormatError, match="format"):
         System.from_json({**doc, "format": "other"})
-    with pytest.raises(SystemError, match="params"):
+    with pytest.raises(SystemFormatError, match="params"):
         System.from_json({k: v for k, v in doc.items() if k != "params"})
 
 

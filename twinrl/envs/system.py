@@ -32,14 +32,14 @@ from twinrl.physics.sim import load_mjcf
 from twinrl.render import Camera
 from twinrl.render.camera import mat_to_quat
 
-__all__ = ["System", "SystemError", "randomization_fn", "system_of", "FORMAT", "FILENAME"]
+__all__ = ["System", "SystemFormatError", "randomization_fn", "system_of", "FORMAT", "FILENAME"]
 
 FORMAT = "twinrl-system-1"
 FILENAME = "system.json"
 """Name of a ``System``'s file beside a checkpoint's ``checkpoint.json``."""
 
 
-class SystemError(ValueError):
+class SystemFormatError(ValueError):
     """A ``System`` document that cannot be read (format, missing field, wrong type)."""
 
 
@@ -123,9 +123,9 @@ class System:
     def from_json(cls, doc: Mapping[str, Any]) -> "System":
         """The ``System`` of a ``to_json`` dict (arrays as float64 NumPy)."""
         if not isinstance(doc, Mapping):
-            raise SystemError(f"a System document must be a JSON object, got {type(doc).__name__}")
+            raise SystemFormatError(f"a System document must be a JSON object, got {type(doc).__name__}")
         if doc.get("format") != FORMAT:
-            raise SystemError(f"System document format {doc.get('format')!r}, expected {FORMAT!r}")
+            raise SystemFormatError(f"System document format {doc.get('format')!r}, expected {FORMAT!r}")
         try:
             params = PhysParams(**{k: _array(v) for k, v in doc["params"].items()})
             cams = doc.get("cameras")
@@ -142,7 +142,7 @@ class System:
             return cls(params=params, latency=int(doc.get("latency", 0)), task=doc.get("task"),
                        cameras=cams, objects=objs)
         except (KeyError, TypeError) as e:
-            raise SystemError(f"System document is missing or has a malformed field: "
+            raise SystemFormatError(f"System document is missing or has a malformed field: "
                               f"{type(e).__name__}: {e}") from None
 
     def save(self, path: str | Path) -> Path:
@@ -163,7 +163,7 @@ class System:
         try:
             doc = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise SystemError(f"{path}: cannot read a System ({e})") from None
+            raise SystemFormatError(f"{path}: cannot read a System ({e})") from None
         return cls.from_json(doc)
 
 

@@ -147,14 +147,14 @@ def _policy_dir(path: str | Path) -> Path:
 def load_system(path: str | Path):
     """The ``twinrl.envs.System`` a policy checkpoint (or a training run's directory) was trained
     in, or None for a checkpoint written without one (its task's nominal simulator)."""
-    from twinrl.envs.system import System, SystemError
+    from twinrl.envs.system import System, SystemFormatError
 
     f = _policy_dir(path) / SYSTEM_FILE
     if not f.exists():
         return None
     try:
         return System.load(f)
-    except (SystemError, ValueError) as e:
+    except (SystemFormatError, ValueError) as e:
         raise CheckpointError(f"{f}: {e}") from None
 
 
