@@ -15,8 +15,8 @@ For every task (``pendulum_swingup``, ``cartpole_swingup``; simulated) and algor
 - a plot of return against wall-clock and against env steps (``learn.png``), a printed table and
   ``learn.json`` in ``--out``.
 
-Configs are the CLI's (``twinrl.learn.runner.make_config``: class defaults, then each trainer
-module's ``TUNED[task]``). Algorithms whose module is not there yet (``twinrl.learn.pods``/``hds`` are imported lazily) are
+Configs are the CLI's (``twinrl.learn.runner.make_config``: class defaults, then
+``twinrl.learn.tuned.TUNED[algo][task]``). Algorithms whose module is not there yet (``twinrl.learn.pods``/``hds`` are imported lazily) are
 reported as skipped. ``--quick`` runs tiny configurations (a smoke test of this script, numbers
 meaningless). The full run takes long on a CPU; run it on an otherwise idle machine::
 

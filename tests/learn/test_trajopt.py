@@ -263,3 +263,30 @@ def test_improve_vmaps_over_a_batch_of_sequences(order):
         one = single(batch[i])
         np.testing.assert_allclose(res.actions[i], one.actions, rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(res.value[i], one.value, rtol=1e-4)
+
+
+def test_env_problem_goes_through_the_latency_of_the_system():
+    """On a latency-2 System, trajopt's return of an action sequence is the wrapped env's
+    ``unroll`` return (from a state whose queue holds sent, not yet applied actions), not the
+    undelayed one, and its gradient matches float64 central differences."""
+    with jax.enable_x64(True):
+        system = envs.System.nominal("pendulum_swingup").replace(latency=2)
+        env = envs.make("pendulum_swingup", system=system)
+        assert isinstance(env, envs.LatencyWrapper)
+        state = env.reset(jax.random.PRNGKey(0))
+        state = env.step(env.step(state, jnp.array([0.7])), jnp.array([-0.4]))  # queue != 0
+        a0 = 0.5 * jax.random.uniform(jax.random.PRNGKey(1), (8, env.action_size),
+                                      jnp.float64, -1.0, 1.0)
+        ret = jax.jit(lambda s, a: trajopt.trajectory_return(*env_problem(env, s), a))
+        v = ret(state, a0)
+        _, rewards = jax.jit(env.unroll)(state, a0)
+        np.testing.assert_allclose(v, rewards.sum(), rtol=1e-12)
+        _, undelayed = jax.jit(env.env.unroll)(state, a0)
+        assert abs(float(undelayed.sum()) - float(v)) > 1e-4   # the delay matters here
+
+        g = np.asarray(jax.jit(jax.grad(lambda a: ret(state, a)))(a0))
+        eps, fd = 1e-6, np.zeros_like(g)
+        for i in np.ndindex(g.shape):
+            e = jnp.zeros_like(a0).at[i].set(eps)
+            fd[i] = (float(ret(state, a0 + e)) - float(ret(state, a0 - e))) / (2 * eps)
+        np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-8)

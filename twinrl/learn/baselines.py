@@ -25,8 +25,9 @@ deterministic evaluation: mean episode return over ``num_eval_envs`` full episod
 reports them, its training losses. Brax's trainers keep their state in closures, so runs cannot be
 resumed: passing ``checkpoint_fn`` or ``restore`` raises ``NotImplementedError``.
 
-Tuned settings for our 250-step swing-ups (per-step reward in [0, 1]) are ``TUNED[task][algo]``
-(applied by ``twinrl.learn.runner.make_config``; ``ppo_config(task)``/``apg_config(task)`` here).
+Tuned settings for our 250-step swing-ups (per-step reward in [0, 1]) are
+``twinrl.learn.tuned.TUNED["ppo"|"apg"][task]`` (applied by ``twinrl.learn.runner.make_config``;
+``ppo_config(task)``/``apg_config(task)`` here).
 """
 
 from __future__ import annotations
@@ -43,12 +44,13 @@ from brax.training.agents.apg import train as apg
 from brax.training.agents.ppo import networks as ppo_networks
 from brax.training.agents.ppo import train as ppo
 
+from twinrl.learn import tuned
 from twinrl.learn.checkpoint import register_network_kind
 from twinrl.learn.common import MetricLog, ProgressFn
 from twinrl.learn.networks import ACTIVATIONS, Network, NetworkConfig
 
 __all__ = ["PPOConfig", "APGConfig", "ppo_train", "apg_train", "ppo_policy", "apg_policy",
-           "ppo_config", "apg_config", "TUNED"]
+           "ppo_config", "apg_config"]
 
 
 def _check_hidden(obj, *names):
@@ -173,27 +175,14 @@ class APGConfig(_JSONConfig):
                              f"num_evals - 1 = {self.num_evals - 1}")
 
 
-TUNED: dict[str, dict[str, dict[str, Any]]] = {
-    "cartpole_swingup": {"ppo": {"entropy_cost": 0.03}, "apg": {}},
-    "pendulum_swingup": {"ppo": {}, "apg": {}},
-}
-"""Per-task overrides of the config defaults, ``TUNED[task][algo]`` (the registry of
-``twinrl.learn.runner`` applies them), measured to learn in a few CPU minutes (``bench/learn.py``).
-
-``cartpole_swingup`` PPO, ``entropy_cost`` 0.03 (default 0.01): on the simulator identified from
-cartpole real twin 2 (``twinrl run --seed 2``), PPO with 0.01 stalled on 3 of 4 seeds (sim
-returns 88, 94, 41; seed 5: 170.5) -- the policy's noise collapses before it finds the swing-up.
-With 0.03 the three failing seeds reached 169.5, 167.3 and 166.7 (3.5 M steps each)."""
-
-
 def ppo_config(task: str, **overrides) -> PPOConfig:
-    """PPO's config for ``task``: defaults, the task's ``TUNED`` values, then ``overrides``."""
-    return PPOConfig(**{**TUNED.get(task, {}).get("ppo", {}), **overrides})
+    """PPO's config for ``task``: defaults, ``tuned.TUNED["ppo"][task]``, then ``overrides``."""
+    return PPOConfig(**{**tuned.overrides("ppo", task), **overrides})
 
 
 def apg_config(task: str, **overrides) -> APGConfig:
-    """APG's config for ``task``: defaults, the task's ``TUNED`` values, then ``overrides``."""
-    return APGConfig(**{**TUNED.get(task, {}).get("apg", {}), **overrides})
+    """APG's config for ``task``: defaults, ``tuned.TUNED["apg"][task]``, then ``overrides``."""
+    return APGConfig(**{**tuned.overrides("apg", task), **overrides})
 
 
 # ------------------------------------------------------------------------------ policies

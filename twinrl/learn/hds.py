@@ -49,15 +49,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.learn import trajopt
-from twinrl.learn.common import CheckpointFn, MetricLog, ProgressFn, RestoreFn, compile_key
+from twinrl.learn.common import CheckpointFn, ProgressFn, RestoreFn, compile_key
 from twinrl.learn.networks import Network
-from twinrl.learn.pods import (Compiled, PODSConfig, check_batch, check_restored,
-                               compile_parts, critic_stats, epoch_update, improve_window,
-                               init_state, restore_state, window_stats)
+from twinrl.learn.pods import (Compiled, PODSConfig, compile_parts, critic_stats, epoch_update,
+                               improve_window, init_state, window_stats)
+from twinrl.learn.trainer import check_batch, resume, run_epochs
 from twinrl.physics.gradients import guard_stats
 from twinrl.physics.parallel import batch_mesh
 
-__all__ = ["HDSConfig", "HDSState", "train", "improve_scaled", "TUNED"]
+__all__ = ["HDSConfig", "HDSState", "train", "improve_scaled"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,20 +109,6 @@ class HDSConfig(PODSConfig):
         return int(round(self.model_fraction * self.batch_size))
 
 
-TUNED: dict[str, dict[str, Any]] = {
-    "pendulum_swingup": {},
-    # The critic (``PODSConfig.critic``), slower noise decay, and the annealed step size kept in
-    # [1, 10]: its floor is PODS's fixed step (1.0, whose line search already tries down to
-    # 1/128). With the floor at 0.25 the chain settled there on seed 1 and the return stayed at
-    # ~80 for 120 epochs (0.05: 92.9 at epoch 80; without the critic the best was 117.2 in 300).
-    # With [1, 10]: 130 first at epoch 24 / 31 / 23 and the 10-epoch mean >= 130 from epoch 31 /
-    # 37 / 38 (seeds 0 / 1 / 2; final 198.1 / 165.3 / 170.3 at 150; ~175 s on one core each);
-    # the chain wanders up to 7-10 in the first epochs and sits near 1-2.3 later.
-    "cartpole_swingup": {"critic": True, "step_size_bounds": (1.0, 10.0), "noise_decay": 0.97,
-                         "epochs": 150},
-    "push": {"horizon": 20},
-}
-"""Per-task overrides of ``HDSConfig`` (``twinrl.learn.runner.make_config``)."""
 
 
 class HDSState(NamedTuple):
@@ -220,15 +206,13 @@ def train(env, config: HDSConfig = HDSConfig(), rng: jax.Array | int | None = No
                      epoch=jnp.zeros((), jnp.int32), env_steps=zero,
                      step_size=jnp.asarray(c.step_size, jnp.float32), model_rollouts=zero,
                      model_steps=zero, critic_params=cparams, critic_opt_state=copt)
-    state, history = restore_state(restore, state, HDSState)
-    log = MetricLog(history)
-    done = check_restored(state, log)
+    state, log, done = resume(restore, state, HDSState)
     steps_per_epoch = c.steps_per_epoch(env)
     model_steps_per_epoch = steps_per_epoch * n_model // c.batch_size
     lo, hi = c.step_size_bounds
     log_lo, log_hi = math.log(lo), math.log(hi)
 
-    for e in range(done, c.epochs):
+    def epoch(e, state):
         rng_next, k_batch, k_prop, k_acc = jax.random.split(state.rng, 4)
         sigma = c.noise_std * c.noise_decay ** e
         temperature = c.anneal_temperature * c.anneal_cooling ** e
@@ -254,19 +238,18 @@ def train(env, config: HDSConfig = HDSConfig(), rng: jax.Array | int | None = No
             model_steps=np.asarray(int(state.model_steps) + model_steps_per_epoch, np.int64),
             critic_params=cparams, critic_opt_state=copt)
         returns = np.asarray(compiled.evaluate(params, state.eval_key))
-        row = log.record(epoch=e + 1, env_steps=state.env_steps, **{"return": returns.mean()},
-                         return_std=returns.std(), **window_stats(batch.result),
-                         rollout_return=np.asarray(batch.rollout_return).mean(), loss=loss,
-                         loss_before=loss0, policy_grad_norm=pgn,
-                         skipped=guard_stats(opt_state)["grad/skipped"],
-                         **critic_stats(batch, c.critic),
-                         noise_scale=sigma, step_size=alpha, step_size_proposal=proposal,
-                         temperature=temperature, sa_accept=float(take), energy=energy,
-                         energy_proposal=energy_prop, model_rollouts=n_model,
-                         model_rollouts_total=state.model_rollouts,
-                         model_steps=state.model_steps)
-        if progress_fn is not None:
-            progress_fn(e + 1, row)
-        if checkpoint_fn is not None:
-            checkpoint_fn(e + 1, state, log.as_dict())
+        return state, dict(env_steps=state.env_steps, **{"return": returns.mean()},
+                           return_std=returns.std(), **window_stats(batch.result),
+                           rollout_return=np.asarray(batch.rollout_return).mean(), loss=loss,
+                           loss_before=loss0, policy_grad_norm=pgn,
+                           skipped=guard_stats(opt_state)["grad/skipped"],
+                           **critic_stats(batch, c.critic),
+                           noise_scale=sigma, step_size=alpha, step_size_proposal=proposal,
+                           temperature=temperature, sa_accept=float(take), energy=energy,
+                           energy_proposal=energy_prop, model_rollouts=n_model,
+                           model_rollouts_total=state.model_rollouts,
+                           model_steps=state.model_steps)
+
+    state = run_epochs(state, log, done, c.epochs, epoch, progress_fn=progress_fn,
+                       checkpoint_fn=checkpoint_fn)
     return compiled.policy, state.params, log.as_dict()

@@ -68,23 +68,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jax.sharding import NamedSharding, PartitionSpec
 
 from twinrl.learn import trajopt
-from twinrl.learn.common import (CheckpointFn, MetricLog, ProgressFn, RestoreFn, compile_key,
-                                 make_evaluator, raw_key)
+from twinrl.learn.common import (CheckpointFn, ProgressFn, RestoreFn, compile_key, make_evaluator,
+                                 raw_key)
 from twinrl.learn.networks import Network, make_policy, make_value
 from twinrl.learn.shac import td_lambda_targets
 from twinrl.physics.gradients import global_norm, guard_stats, hygiene
+from twinrl.learn.trainer import check_batch, replicate, resume, run_epochs
 from twinrl.physics.parallel import batch_mesh, shard_batch
 
-__all__ = ["PODSConfig", "PODSState", "train", "TUNED", "Windows", "rollout_windows",
+__all__ = ["PODSConfig", "PODSState", "train", "Windows", "rollout_windows",
            "regression_loss", "critic_targets"]
 
 
 @dataclasses.dataclass(frozen=True)
 class PODSConfig:
-    """PODS hyper-parameters (defaults tuned on ``pendulum_swingup``; ``TUNED`` per task)."""
+    """PODS hyper-parameters (defaults tuned on ``pendulum_swingup``; ``learn.tuned`` per task)."""
 
     epochs: int = 40
     """Number of epochs (sample, improve, regress); pendulum_swingup levels off at ~140-150 by
@@ -195,28 +195,6 @@ class PODSConfig:
         W, H = self.lengths(env)
         per_window = self.iterations * H * (1 + self.line_search_steps)
         return self.batch_size * W * (H + per_window)
-
-
-TUNED: dict[str, dict[str, dict[str, Any]]] = {
-    # pods2: the damped Gauss-Newton step with regularization 1e-2 is ~g / 1e-2 where the reward
-    # is flat in the action (hanging: the upright factor zeroes the control cost's curvature),
-    # more than the policy can follow; with 1.0 and the critic, seed 0 solves (return 160.3 at
-    # epoch 60, 10-epoch mean >= 130 from epoch 16); without the critic it stays at 120-126.
-    "pendulum_swingup": {"pods": {},
-                         "pods2": {"critic": True, "regularization": 1.0, "epochs": 60}},
-    # The critic (module docstring): without it pods stalls at ~85 (30 epochs). With it the
-    # 10-epoch mean is >= 130 from epoch 35 / 97 / 39 (seeds 0 / 1 / 2; final 176.7 at 80 /
-    # 133.0 at 150 / 185.8 at 80): 150 epochs, ~3 min on one core.
-    # pods2: regularization 1.0 (1e-2, and 0.3 or 0.1 with max_step_norm 2, collapse to ~0 and
-    # recover only partly); 10-epoch mean >= 130 from epoch 44 / 157 / 111 (seeds 0 / 1 / 2;
-    # final 160.1 at 100 / 127.8 at 200 / 137.7 at 200): 200 epochs, ~5 min on one core.
-    "cartpole_swingup": {"pods": {"critic": True, "epochs": 150},
-                         "pods2": {"critic": True, "regularization": 1.0, "epochs": 200}},
-    "push": {"pods": {"horizon": 20}, "pods2": {"horizon": 20}},
-}
-"""Per-task overrides of ``PODSConfig`` for the ``pods`` and ``pods2`` algorithms
-(``twinrl.learn.runner.make_config``); the figures are ``python bench/learn.py``-style single
-runs on one CPU core."""
 
 
 class PODSState(NamedTuple):
@@ -353,34 +331,6 @@ def state_problem(env, step_fn: Callable, state) -> tuple[trajopt.RolloutFn, tra
         return env.reward(s[:nq], s[nq:], a)[0]
 
     return rollout_fn, reward_fn
-
-
-def replicate(tree, mesh):
-    """Place ``tree`` on every device of ``mesh`` (the same placement every epoch, so the jitted
-    epoch functions compile once: a fresh init and a jit output would otherwise differ)."""
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
-
-
-def check_batch(batch_size: int, what: str = "batch_size") -> int:
-    """The device count, after checking that ``batch_size`` splits evenly over it."""
-    n = len(jax.devices())
-    if batch_size % n:
-        raise ValueError(f"{what} ({batch_size}) must be a multiple of the device count ({n}) "
-                         f"to shard the rollouts over jax.devices()")
-    return n
-
-
-def restore_state(restore: RestoreFn | None, state, cls):
-    """Apply the contract's ``restore``; returns ``(state, history)``."""
-    if restore is None:
-        return state, None
-    restored, history = restore(state)
-    if isinstance(restored, dict):
-        restored = cls(**restored)
-    restored = jax.tree_util.tree_map(lambda x, t: np.asarray(x, np.asarray(t).dtype)
-                                      if isinstance(t, np.ndarray) else jnp.asarray(x),
-                                      restored, state)
-    return restored, history
 
 
 def critic_stats(batch, critic: bool) -> dict[str, float]:
@@ -624,14 +574,6 @@ def epoch_update(compiled: Compiled, mesh, params, opt_state, key, sigma=0.0, sc
     return params, opt_state, batch, loss, pgn, loss0, critic_params, critic_opt_state
 
 
-def check_restored(state, log: MetricLog) -> int:
-    done = len(log.history.get("epoch", []))
-    if int(state.epoch) != done:
-        raise ValueError(f"restored state is at epoch {int(state.epoch)} but its metrics record "
-                         f"{done} epochs")
-    return done
-
-
 def train(env, config: PODSConfig = PODSConfig(), rng: jax.Array | int | None = None, *,
           progress_fn: ProgressFn | None = None, checkpoint_fn: CheckpointFn | None = None,
           restore: RestoreFn | None = None) -> tuple[Network, Any, dict[str, list[float]]]:
@@ -661,12 +603,10 @@ def train(env, config: PODSConfig = PODSConfig(), rng: jax.Array | int | None = 
     state = PODSState(params=params, opt_state=opt_state, rng=k_run, eval_key=k_eval,
                       epoch=jnp.zeros((), jnp.int32), env_steps=np.zeros((), np.int64),
                       critic_params=cparams, critic_opt_state=copt)
-    state, history = restore_state(restore, state, PODSState)
-    log = MetricLog(history)
-    done = check_restored(state, log)
+    state, log, done = resume(restore, state, PODSState)
     steps_per_epoch = c.steps_per_epoch(env)
 
-    for e in range(done, c.epochs):
+    def epoch(e, state):
         rng_next, k_batch = jax.random.split(state.rng)
         params, opt_state, batch, loss, pgn, loss0, cparams, copt = epoch_update(
             compiled, mesh, state.params, state.opt_state, k_batch, batch_size=c.batch_size,
@@ -676,14 +616,13 @@ def train(env, config: PODSConfig = PODSConfig(), rng: jax.Array | int | None = 
                           eval_key=state.eval_key, epoch=state.epoch + 1, env_steps=env_steps,
                           critic_params=cparams, critic_opt_state=copt)
         returns = np.asarray(compiled.evaluate(params, state.eval_key))
-        row = log.record(epoch=e + 1, env_steps=env_steps, **{"return": returns.mean()},
-                         return_std=returns.std(), **window_stats(batch.result),
-                         rollout_return=np.asarray(batch.rollout_return).mean(), loss=loss,
-                         loss_before=loss0, policy_grad_norm=pgn,
-                         skipped=guard_stats(opt_state)["grad/skipped"],
-                         **critic_stats(batch, c.critic))
-        if progress_fn is not None:
-            progress_fn(e + 1, row)
-        if checkpoint_fn is not None:
-            checkpoint_fn(e + 1, state, log.as_dict())
+        return state, dict(env_steps=env_steps, **{"return": returns.mean()},
+                           return_std=returns.std(), **window_stats(batch.result),
+                           rollout_return=np.asarray(batch.rollout_return).mean(), loss=loss,
+                           loss_before=loss0, policy_grad_norm=pgn,
+                           skipped=guard_stats(opt_state)["grad/skipped"],
+                           **critic_stats(batch, c.critic))
+
+    state = run_epochs(state, log, done, c.epochs, epoch, progress_fn=progress_fn,
+                       checkpoint_fn=checkpoint_fn)
     return compiled.policy, state.params, log.as_dict()

@@ -15,8 +15,8 @@ with the same parameters and metrics as an uninterrupted one.
 
 The algorithm registry maps the CLI's names to trainers: ``pods`` and ``pods2`` (PODS, first and
 second order), ``hds``, ``shac`` and the Brax baselines ``ppo`` and ``apg``. Per-task tuned
-defaults live beside each trainer (``TUNED[env_name]``, MuJoCo Playground's habit of keeping RL
-configs apart from task configs) and are applied before the user's overrides.
+defaults are one table, ``twinrl.learn.tuned.TUNED[algo][env_name]`` (MuJoCo Playground's
+habit of keeping RL configs apart from task configs), applied before the user's overrides.
 """
 
 from __future__ import annotations
@@ -30,6 +30,8 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
+
+from twinrl.learn import tuned
 
 __all__ = ["ALGORITHMS", "Algorithm", "algorithm", "make_config", "parse_overrides", "train_run",
            "continue_run", "eval_run", "RunError"]
@@ -109,14 +111,8 @@ def make_config(algo: str, env_name: str, overrides: dict[str, Any] | None = Non
     """The algorithm's config for a task: class defaults, then the task's tuned values, then the
     algorithm entry's (``pods2``: order 2), then the user's ``overrides``."""
     entry, _, cls = algorithm(algo)
-    module = importlib.import_module(entry.module)
     config = cls()
-    tuned = getattr(module, "TUNED", {}).get(env_name, {})
-    if isinstance(tuned, dict) and algo in tuned and isinstance(tuned[algo], dict):
-        tuned = tuned[algo]
-    config = _replace(config, {k: v for k, v in tuned.items() if not isinstance(v, dict)
-                               or dataclasses.is_dataclass(getattr(config, k, None))},
-                      f"tuned for {env_name}")
+    config = _replace(config, tuned.overrides(algo, env_name), f"tuned for {env_name}")
     config = _replace(config, entry.overrides, f"algorithm {algo}")
     return _replace(config, overrides or {}, "override")
 

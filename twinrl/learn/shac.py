@@ -43,29 +43,29 @@ the train state (``SHACState``), so ``restore`` continues a killed run exactly.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
-from twinrl.learn.common import (CheckpointFn, MetricLog, ProgressFn, RestoreFn, raw_key,
-                                 make_evaluator)
+from twinrl.learn.common import CheckpointFn, ProgressFn, RestoreFn, make_evaluator, raw_key
 from twinrl.learn.networks import Network, NetworkConfig, make_network, make_value
+from twinrl.learn.trainer import replicate, resume, run_epochs
 from twinrl.physics.gradients import clip_by_global_norm, global_norm, guard_stats, nan_guard
 from twinrl.physics.parallel import batch_mesh, shard_batch
 
-__all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networks",
-           "fold_normaliser", "TUNED"]
+__all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networks", "Parts",
+           "make_parts", "init_state", "actor_loss", "critic_update", "epoch_step", "deployed",
+           "fold_normaliser"]
 
 
 @dataclasses.dataclass(frozen=True)
 class SHACConfig:
     """Hyper-parameters of SHAC (defaults: SHAC's cartpole settings, Appendix A.4, except the
-    learning rates, 2e-3 for both, which ``pendulum_swingup`` is solved with; ``TUNED`` sets
-    SHAC's actor 1e-2 / critic 1e-3 for ``cartpole_swingup``)."""
+    learning rates, 2e-3 for both, which ``pendulum_swingup`` is solved with;
+    ``twinrl.learn.tuned`` sets SHAC's actor 1e-2 / critic 1e-3 for ``cartpole_swingup``)."""
 
     epochs: int = 300
     """Number of epochs; each is one actor update on ``num_envs * horizon`` simulated steps."""
@@ -147,18 +147,6 @@ class SHACConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "SHACConfig":
         return cls(**d)
-
-
-TUNED: dict[str, dict[str, Any]] = {
-    "pendulum_swingup": {"epochs": 150},
-    # SHAC's own cartpole learning rates (actor 1e-2, critic 1e-3). With the defaults (2e-3
-    # for both) the return stalled at 73 after 300 epochs; either change alone stayed below 95
-    # after 200 epochs; both together: final return 134.9 / 156.9 / 188.5 (seeds 0 / 1 / 2; mean
-    # of the last 50 epochs 134.6 / 165.9 / 188.4), 10-epoch mean >= 130 from epoch 75 / 139 / 23.
-    "cartpole_swingup": {"epochs": 300, "actor_lr": 1e-2, "critic_lr": 1e-3},
-}
-"""Per-task overrides of the ``SHACConfig`` defaults (applied by ``twinrl.learn.runner``),
-measured in ``bench/learn.py``."""
 
 
 class SHACState(NamedTuple):
@@ -268,6 +256,156 @@ def _select(mask: jax.Array, a, b):
         lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
+class Parts(NamedTuple):
+    """What SHAC's pieces share for one (env, config): networks, optimisers, the vmapped env."""
+
+    config: SHACConfig
+    policy: Network
+    """The deterministic policy (tanh output), the one ``train`` returns."""
+    pre: Network
+    """The same MLP without the tanh: the Gaussian's mean."""
+    critic: Network
+    actor_tx: optax.GradientTransformation
+    critic_tx: optax.GradientTransformation
+    v_reset: Callable
+    """``jax.vmap(env.reset)``."""
+    v_step: Callable
+    """``jax.vmap(env.step)``."""
+    obs_size: int
+    act_size: int
+    episode_length: int
+    """T, the time limit of training and evaluation episodes."""
+
+
+def make_parts(env, c: SHACConfig) -> Parts:
+    """The ``Parts`` of ``env`` under the config ``c``."""
+    obs_size, act_size = int(env.observation_size), int(env.action_size)
+    policy, pre, critic = make_networks(obs_size, act_size, c)
+    return Parts(c, policy, pre, critic, _optimizer(c.actor_lr, c, c.epochs),
+                 _optimizer(c.critic_lr, c, c.epochs * c.critic_iterations * c.critic_minibatches),
+                 jax.vmap(env.reset), jax.vmap(env.step), obs_size, act_size,
+                 int(c.episode_length or env.episode_length))
+
+
+def init_state(p: Parts, key) -> SHACState:
+    """The train state of a fresh run from ``key``."""
+    c, N = p.config, int(p.config.num_envs)
+    k_pi, k_v, k_env, key = jax.random.split(key, 4)
+    actor = {"policy": p.policy.init(k_pi),
+             "log_std": jnp.full((p.act_size,), c.init_log_std, jnp.float32)}
+    vparams = p.critic.init(k_v)
+    return SHACState(
+        actor=actor, critic=vparams, target_critic=vparams,
+        actor_opt=p.actor_tx.init(actor), critic_opt=p.critic_tx.init(vparams),
+        env_state=p.v_reset(jax.random.split(k_env, N)), ep_step=jnp.zeros((N,), jnp.int32),
+        obs_norm={"mean": jnp.zeros((p.obs_size,)), "var": jnp.ones((p.obs_size,)),
+                  "count": jnp.full((), 1e-4)},
+        rng=key, epoch=jnp.zeros((), jnp.int32))
+
+
+def actor_loss(p: Parts, actor, target_critic, env_state, ep_step, obs_norm, key):
+    """SHAC's short-horizon actor loss (Eq. 2) and the window's data for the critic:
+    ``(loss, (next env_state, next ep_step, obs, rewards, next values, boundaries))``."""
+    c, N, h, T = p.config, int(p.config.num_envs), int(p.config.horizon), p.episode_length
+    k_noise, k_reset = jax.random.split(key)
+    # One fresh state per environment serves any episode that ends inside this window
+    # (h <= T, so at most one ends per window unless the simulation diverges twice).
+    fresh = jax.lax.stop_gradient(p.v_reset(jax.random.split(k_reset, N)))
+    noise = jax.random.normal(k_noise, (h, N, p.act_size))
+    std = jnp.exp(actor["log_std"])
+    mean_o, std_o = obs_norm["mean"], _std(obs_norm)
+    norm = lambda o: (o - mean_o) / std_o  # noqa: E731
+
+    def step(carry, xs):
+        s, t, acc, disc = carry
+        eps, i = xs
+        a = jnp.tanh(p.pre.apply(actor["policy"], norm(s.obs)) + std * eps)
+        s2 = p.v_step(s, a)
+        t2 = t + 1
+        terminated = s2.done > 0
+        ended = terminated | (t2 >= T)
+        boundary = ended | (i == h - 1)
+        v_next = jnp.where(terminated, 0.0, p.critic.apply(target_critic, norm(s2.obs)))
+        acc = acc + disc * s2.reward
+        disc = disc * c.gamma
+        contrib = jnp.where(boundary, acc + disc * v_next, 0.0)
+        acc = jnp.where(boundary, 0.0, acc)
+        disc = jnp.where(boundary, 1.0, disc)
+        out = (jax.lax.stop_gradient(norm(s.obs)), jax.lax.stop_gradient(s2.reward),
+               jax.lax.stop_gradient(v_next), boundary, contrib)
+        return (_select(ended, fresh, s2), jnp.where(ended, 0, t2), acc, disc), out
+
+    zeros = jnp.zeros((N,))
+    (s_end, t_end, _, _), (obs, rew, v_next, bnd, contrib) = jax.lax.scan(
+        step, (env_state, ep_step, zeros, jnp.ones((N,))), (noise, jnp.arange(h)))
+    loss = -jnp.sum(contrib) / (h * N)
+    return loss, (jax.lax.stop_gradient(s_end), t_end, obs, rew, v_next, bnd)
+
+
+def critic_update(p: Parts, params, opt, obs, targets, key):
+    """``critic_iterations`` passes of ``critic_minibatches`` shuffled minibatches regressing the
+    critic on the window's targets (SHAC Sec. 3.3, Eq. 4); returns ``(params, opt, last pass's
+    mean loss)``."""
+    c, nh = p.config, int(p.config.num_envs) * int(p.config.horizon)
+    obs = obs.reshape(nh, p.obs_size)
+    targets = targets.reshape(nh)
+
+    def loss_fn(q, o, y):
+        return jnp.mean(jnp.square(p.critic.apply(q, o) - y))
+
+    def minibatch(carry, idx):
+        q, o = carry
+        loss, g = jax.value_and_grad(loss_fn)(q, obs[idx], targets[idx])
+        u, o = p.critic_tx.update(g, o, q)
+        return (optax.apply_updates(q, u), o), loss
+
+    def one_pass(carry, k):
+        perm = jax.random.permutation(k, nh).reshape(c.critic_minibatches, -1)
+        return jax.lax.scan(minibatch, carry, perm)
+
+    (params, opt), losses = jax.lax.scan(one_pass, (params, opt),
+                                         jax.random.split(key, c.critic_iterations))
+    return params, opt, jnp.mean(losses[-1])
+
+
+def epoch_step(p: Parts, s: SHACState):
+    """One epoch of Algorithm 1 (actor, critic, target critic, observation statistics):
+    ``(next state, metrics, evaluation key)``."""
+    c = p.config
+    key, k_actor, k_critic, k_eval = jax.random.split(s.rng, 4)
+    (loss, aux), grads = jax.value_and_grad(
+        lambda *a: actor_loss(p, *a), has_aux=True)(
+        s.actor, s.target_critic, s.env_state, s.ep_step, s.obs_norm, k_actor)
+    env_state, ep_step, obs, rew, v_next, bnd = aux
+    updates, actor_opt = p.actor_tx.update(grads, s.actor_opt, s.actor)
+    actor = optax.apply_updates(s.actor, updates)
+
+    # Critic targets: the window always ends in a bootstrap (SHAC's done mask at t = h - 1).
+    targets = td_lambda_targets(rew, v_next, bnd, c.gamma, c.lam)
+    vparams, critic_opt, closs = critic_update(p, s.critic, s.critic_opt, obs, targets, k_critic)
+    target = jax.tree_util.tree_map(lambda t, v: c.target_alpha * t
+                                    + (1.0 - c.target_alpha) * v, s.target_critic, vparams)
+    # The statistics move after the update, so actor and critic always saw one fixed
+    # standardisation within a window (the critic's inputs were standardised with it too).
+    raw_obs = obs * _std(s.obs_norm) + s.obs_norm["mean"]
+    obs_norm = _update_stats(s.obs_norm, raw_obs) if c.normalize_observations else s.obs_norm
+    new = SHACState(actor=actor, critic=vparams, target_critic=target, actor_opt=actor_opt,
+                    critic_opt=critic_opt, env_state=env_state, ep_step=ep_step,
+                    obs_norm=obs_norm, rng=key, epoch=s.epoch + 1)
+    metrics = {
+        "grad_norm": global_norm(grads), "actor_loss": loss, "critic_loss": closs,
+        "train_reward": jnp.mean(rew), "std": jnp.mean(jnp.exp(actor["log_std"])),
+        "skipped": guard_stats(actor_opt)["grad/skipped"],
+        "critic_skipped": guard_stats(critic_opt)["grad/skipped"],
+    }
+    return new, metrics, k_eval
+
+
+def deployed(s: SHACState):
+    """The deterministic policy's params acting on raw observations (normaliser folded in)."""
+    return fold_normaliser(s.actor["policy"], s.obs_norm["mean"], _std(s.obs_norm))
+
+
 def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, *,
           progress_fn: ProgressFn | None = None, checkpoint_fn: CheckpointFn | None = None,
           restore: RestoreFn | None = None) -> tuple[Network, Any, dict[str, list[float]]]:
@@ -283,150 +421,28 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
     c = config
     rng = jax.random.PRNGKey(0) if rng is None else raw_key(rng)
     N, h = int(c.num_envs), int(c.horizon)
-    T = int(c.episode_length or env.episode_length)
     mesh = batch_mesh()
     if N % mesh.devices.size:
         raise ValueError(f"num_envs = {N} must be a multiple of the device count "
                          f"{mesh.devices.size}")
-    obs_size, act_size = int(env.observation_size), int(env.action_size)
-    policy, pre, critic = make_networks(obs_size, act_size, c)
-    actor_tx = _optimizer(c.actor_lr, c, c.epochs)
-    critic_tx = _optimizer(c.critic_lr, c, c.epochs * c.critic_iterations * c.critic_minibatches)
-    v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
-
-    def init_state(key) -> SHACState:
-        k_pi, k_v, k_env, key = jax.random.split(key, 4)
-        actor = {"policy": policy.init(k_pi),
-                 "log_std": jnp.full((act_size,), c.init_log_std, jnp.float32)}
-        vparams = critic.init(k_v)
-        return SHACState(
-            actor=actor, critic=vparams, target_critic=vparams,
-            actor_opt=actor_tx.init(actor), critic_opt=critic_tx.init(vparams),
-            env_state=v_reset(jax.random.split(k_env, N)),
-            ep_step=jnp.zeros((N,), jnp.int32),
-            obs_norm={"mean": jnp.zeros((obs_size,)), "var": jnp.ones((obs_size,)),
-                      "count": jnp.full((), 1e-4)},
-            rng=key, epoch=jnp.zeros((), jnp.int32))
-
-    def actor_loss(actor, target_critic, env_state, ep_step, obs_norm, key):
-        """SHAC's short-horizon actor loss (Eq. 2) and the window's data for the critic."""
-        k_noise, k_reset = jax.random.split(key)
-        # One fresh state per environment serves any episode that ends inside this window
-        # (h <= T, so at most one ends per window unless the simulation diverges twice).
-        fresh = jax.lax.stop_gradient(v_reset(jax.random.split(k_reset, N)))
-        noise = jax.random.normal(k_noise, (h, N, act_size))
-        std = jnp.exp(actor["log_std"])
-        mean_o, std_o = obs_norm["mean"], _std(obs_norm)
-        norm = lambda o: (o - mean_o) / std_o  # noqa: E731
-
-        def step(carry, xs):
-            s, t, acc, disc = carry
-            eps, i = xs
-            a = jnp.tanh(pre.apply(actor["policy"], norm(s.obs)) + std * eps)
-            s2 = v_step(s, a)
-            t2 = t + 1
-            terminated = s2.done > 0
-            ended = terminated | (t2 >= T)
-            boundary = ended | (i == h - 1)
-            v_next = jnp.where(terminated, 0.0, critic.apply(target_critic, norm(s2.obs)))
-            acc = acc + disc * s2.reward
-            disc = disc * c.gamma
-            contrib = jnp.where(boundary, acc + disc * v_next, 0.0)
-            acc = jnp.where(boundary, 0.0, acc)
-            disc = jnp.where(boundary, 1.0, disc)
-            out = (jax.lax.stop_gradient(norm(s.obs)), jax.lax.stop_gradient(s2.reward),
-                   jax.lax.stop_gradient(v_next), boundary, contrib)
-            return (_select(ended, fresh, s2), jnp.where(ended, 0, t2), acc, disc), out
-
-        zeros = jnp.zeros((N,))
-        (s_end, t_end, _, _), (obs, rew, v_next, bnd, contrib) = jax.lax.scan(
-            step, (env_state, ep_step, zeros, jnp.ones((N,))), (noise, jnp.arange(h)))
-        loss = -jnp.sum(contrib) / (h * N)
-        return loss, (jax.lax.stop_gradient(s_end), t_end, obs, rew, v_next, bnd)
-
-    def critic_update(params, opt, obs, targets, key):
-        obs = obs.reshape(h * N, obs_size)
-        targets = targets.reshape(h * N)
-        M = c.critic_minibatches
-
-        def loss_fn(p, o, y):
-            return jnp.mean(jnp.square(critic.apply(p, o) - y))
-
-        def minibatch(carry, idx):
-            p, o = carry
-            loss, g = jax.value_and_grad(loss_fn)(p, obs[idx], targets[idx])
-            u, o = critic_tx.update(g, o, p)
-            return (optax.apply_updates(p, u), o), loss
-
-        def one_pass(carry, k):
-            perm = jax.random.permutation(k, h * N).reshape(M, -1)
-            return jax.lax.scan(minibatch, carry, perm)
-
-        (params, opt), losses = jax.lax.scan(one_pass, (params, opt),
-                                             jax.random.split(key, c.critic_iterations))
-        return params, opt, jnp.mean(losses[-1])
-
-    def epoch_fn(s: SHACState):
-        key, k_actor, k_critic, k_eval = jax.random.split(s.rng, 4)
-        (loss, aux), grads = jax.value_and_grad(actor_loss, has_aux=True)(
-            s.actor, s.target_critic, s.env_state, s.ep_step, s.obs_norm, k_actor)
-        env_state, ep_step, obs, rew, v_next, bnd = aux
-        updates, actor_opt = actor_tx.update(grads, s.actor_opt, s.actor)
-        actor = optax.apply_updates(s.actor, updates)
-
-        # Critic targets: the window always ends in a bootstrap (SHAC's done mask at t = h - 1).
-        targets = td_lambda_targets(rew, v_next, bnd, c.gamma, c.lam)
-        vparams, critic_opt, closs = critic_update(s.critic, s.critic_opt, obs, targets,
-                                                   k_critic)
-        target = jax.tree_util.tree_map(lambda t, v: c.target_alpha * t
-                                        + (1.0 - c.target_alpha) * v, s.target_critic, vparams)
-        # The statistics move after the update, so actor and critic always saw one fixed
-        # standardisation within a window (the critic's inputs were standardised with it too).
-        raw_obs = obs * _std(s.obs_norm) + s.obs_norm["mean"]
-        obs_norm = _update_stats(s.obs_norm, raw_obs) if c.normalize_observations else s.obs_norm
-        new = SHACState(actor=actor, critic=vparams, target_critic=target, actor_opt=actor_opt,
-                        critic_opt=critic_opt, env_state=env_state, ep_step=ep_step,
-                        obs_norm=obs_norm, rng=key, epoch=s.epoch + 1)
-        metrics = {
-            "grad_norm": global_norm(grads), "actor_loss": loss, "critic_loss": closs,
-            "train_reward": jnp.mean(rew), "std": jnp.mean(jnp.exp(actor["log_std"])),
-            "skipped": guard_stats(actor_opt)["grad/skipped"],
-            "critic_skipped": guard_stats(critic_opt)["grad/skipped"],
-        }
-        return new, metrics, k_eval
-
-    state = init_state(rng)
-    history = None
-    if restore is not None:
-        state, history = restore(state)
-        state = jax.tree_util.tree_map(jnp.asarray, state)
-        if isinstance(state, dict):
-            state = SHACState(**state)
+    p = make_parts(env, c)
+    state, log, done = resume(restore, init_state(p, rng), SHACState)
     # Environments split over the devices, everything else replicated; the jitted epoch keeps
     # that layout (explicit shardings: an output laid out differently from its input would
     # recompile the epoch on the second call).
-    replicated = NamedSharding(mesh, PartitionSpec())
-    state = jax.device_put(state, replicated)._replace(
+    state = replicate(state, mesh)._replace(
         env_state=shard_batch(state.env_state, mesh), ep_step=shard_batch(state.ep_step, mesh))
     layout = jax.tree_util.tree_map(lambda x: x.sharding, state)
-    epoch_fn = jax.jit(epoch_fn, in_shardings=(layout,),
+    replicated = NamedSharding(mesh, PartitionSpec())
+    epoch_fn = jax.jit(lambda s: epoch_step(p, s), in_shardings=(layout,),
                        out_shardings=(layout, replicated, replicated))
-    log = MetricLog(history)
-    done_epochs = len(log.history.get("epoch", []))
-    if int(state.epoch) != done_epochs:
-        raise ValueError(f"restored state is at epoch {int(state.epoch)} but its metrics record "
-                         f"{done_epochs} epochs")
-    evaluate = make_evaluator(env, policy.apply, c.eval_episodes, T)
+    evaluate = make_evaluator(env, p.policy.apply, c.eval_episodes, p.episode_length)
 
-    def deployed(s):
-        return fold_normaliser(s.actor["policy"], s.obs_norm["mean"], _std(s.obs_norm))
-
-    for e in range(done_epochs, c.epochs):
+    def epoch(e, state):
         state, m, k_eval = epoch_fn(state)
         ret = jnp.mean(evaluate(deployed(state), k_eval))
-        row = log.record(epoch=e + 1, env_steps=(e + 1) * N * h, **{"return": ret}, **m)
-        if progress_fn is not None:
-            progress_fn(e + 1, row)
-        if checkpoint_fn is not None:
-            checkpoint_fn(e + 1, state, log.as_dict())
-    return policy, deployed(state), log.as_dict()
+        return state, dict(env_steps=(e + 1) * N * h, **{"return": ret}, **m)
+
+    state = run_epochs(state, log, done, c.epochs, epoch, progress_fn=progress_fn,
+                       checkpoint_fn=checkpoint_fn)
+    return p.policy, deployed(state), log.as_dict()

@@ -55,6 +55,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from twinrl.envs.wrappers import QUEUE_KEY, LatencyWrapper
 from twinrl.physics.gradients import all_finite, global_norm
 
 __all__ = ["TrajoptConfig", "TrajoptResult", "RolloutFn", "RewardFn", "TerminalFn", "env_problem",
@@ -163,16 +164,28 @@ def env_problem(env, state) -> tuple[RolloutFn, RewardFn]:
     ``env.step`` does (``env.action_to_ctrl``, ``env.params``), and the reward is ``env.reward``,
     so ``trajectory_return`` equals ``env.unroll(state, actions)[1].sum()``. Call it inside a jit
     with the state as an argument, so one compile serves every start state.
+
+    A ``LatencyWrapper``-ed env (an identified ``System`` with latency L) is simulated through its
+    delay: step t applies the action sent at t - L, the first L from the queue in ``state.info``
+    (actions sent before the window), and the reward's control term sees the sent action, clipped,
+    as the wrapper's ``step`` does. So PODS/HDS optimise the actions of the system they run in;
+    the last L actions of a window move no state in it, only their control cost.
     """
     nq = env.sim.nq
     data0 = state.pipeline_state
+    queue = state.info[QUEUE_KEY] if isinstance(env, LatencyWrapper) else None
 
     def rollout_fn(actions):
+        if queue is not None:
+            sent = jnp.clip(actions.astype(queue.dtype), -1.0, 1.0)
+            actions = jnp.concatenate([queue, sent], axis=0)[:actions.shape[0]]
         ctrl = jax.vmap(env.action_to_ctrl)(actions)
         _, traj = env.sim.rollout(data0, ctrl, env.params)
         return jnp.concatenate([traj.qpos, traj.qvel], axis=-1)
 
     def reward_fn(s, a):
+        if queue is not None:
+            a = jnp.clip(a, -1.0, 1.0)
         return env.reward(s[:nq], s[nq:], a)[0]
 
     return rollout_fn, reward_fn
