@@ -70,7 +70,7 @@ class LoopConfig:
     gives no gradient back), 68 % of the oracle; SHAC alone ends at 135-189 over 3 seeds, HDS at
     165-198 (``bench/learn.py``, one core, ~160 s against PPO's 108 s). With PPO (3.5 M
     simulated steps, ~3.5 min beside the oracle's) the default loop reaches 99.5-101.7 % of the
-    oracle on cartpole real twins 0-2 (entropy cost 0.03, ``baselines.TUNED``). The
+    oracle on cartpole real twins 0-2 (entropy cost 0.03, ``learn.tuned.TUNED``). The
     differentiable simulator still does the sysid and the residual adaptation; ``hds`` is the
     learner that mixes the hybrid model into learning (``model_fraction``)."""
     epochs: int | None = None
