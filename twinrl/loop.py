@@ -456,6 +456,7 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
     finally:
         renderer.close()
         twin.close()
+    frames = report.label_frames(frames, ["real twin", "identified simulator"])
     return report.write_video(out / "final.mp4", frames, fps=1.0 / env.dt)
 
 
@@ -491,7 +492,8 @@ def _seconds(prog: _Progress, r: int, **stages: float) -> dict[str, float]:
 def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
     rec = prog.record(r)
     return {"round": r, "real_steps": rec.get("real_steps"), "real_return": rec.get("real_return"),
-            "sim_return": rec.get("sim_return"), "oracle_return": None,
+            "real_returns": rec.get("real_returns"), "sim_return": rec.get("sim_return"),
+            "oracle_return": None,
             "param_rel_error": rec.get("param_rel_error", {}),
             "sim_policy_real_return": rec.get("sim_policy_real_return"),
             "adapted_real_return": rec.get("adapted_real_return"),
@@ -570,6 +572,8 @@ def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
 # ------------------------------------------------------------------------------ outputs
 def _write_outputs(out: Path, summary, config, env_name, seed, policy_dir) -> None:
     rounds = summary["rounds"]
+    for rec in rounds:  # what the report draws: each round's learning curve and fit
+        _add_round_details(out, rec)
     rows = [[r["round"], r["real_steps"], r["sim_return"], r["real_return"],
              r["sim_policy_real_return"], r.get("adapted_real_return"), r["oracle_return"],
              max(r["param_rel_error"].values()) if r["param_rel_error"] else None]
@@ -578,26 +582,35 @@ def _write_outputs(out: Path, summary, config, env_name, seed, policy_dir) -> No
             "oracle", "max param err"]
     report.print_table(f"twinrl run {env_name} (seed {seed})", cols, rows)
     report.write_json(out / "summary.json", summary)
-    done = [r for r in rounds if r["real_return"] is not None]
-    files = {}
-    if done:
-        files["returns"] = report.plot_curves(
-            out / "returns.png",
-            {"real return (deployed)": ([r["real_steps"] for r in done],
-                                        [r["real_return"] for r in done])},
-            "real env steps used", "episode return", f"{env_name}: return vs real steps",
-            hline=(rounds[0]["oracle_return"], "oracle") if rounds[0]["oracle_return"] else None)
-    errs = [r for r in rounds if r["param_rel_error"]]
-    if errs:
-        names = sorted(errs[0]["param_rel_error"])
-        files["params"] = report.plot_curves(
-            out / "params.png",
-            {n: ([r["round"] for r in errs], [r["param_rel_error"].get(n, np.nan) for r in errs])
-             for n in names}, "round", "relative error", "identified parameters vs truth")
-    md = [f"# twinrl run: {env_name} (seed {seed})", "",
-          "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    md += ["| " + " | ".join(report._fmt(v) if v is not None else "-" for v in row) + " |"
-           for row in rows]
-    md += ["", f"Final: {json.dumps(report.to_jsonable(summary['final']))}", ""]
-    md += [f"![{k}]({Path(v).name})" for k, v in files.items()]
-    (out / "report.md").write_text("\n".join(md) + "\n")
+    report.loop_report(out, summary, _model_free_runs(env_name, seed))
+
+
+def _add_round_details(out: Path, rec: dict[str, Any]) -> None:
+    """Round ``rec["round"]``'s learning curve in its identified simulator (``env_steps``,
+    ``return`` of its ``train/metrics.csv``) and its sysid table (value, sd, status per
+    parameter), for the report."""
+    import csv
+
+    rdir = out / f"round{rec['round']}"
+    f = rdir / "train" / "metrics.csv"
+    if f.exists():
+        rows = list(csv.DictReader(open(f)))
+        pick = lambda k: [float(r[k]) for r in rows if r.get(k) not in (None, "")]  # noqa: E731
+        rec["learning_curve"] = {"env_steps": pick("env_steps"), "return": pick("return")}
+    f = rdir / "sysid.json"
+    if f.exists():
+        rec["identified"] = json.loads(f.read_text()).get("table", [])
+
+
+def _model_free_runs(env_name: str, seed: int) -> list[dict]:
+    """``bench/sim2real.py``'s model-free runs on this task and twin seed, when its results file
+    exists (in the working directory's or the source tree's ``bench/results/``)."""
+    for base in (Path.cwd(), Path(__file__).resolve().parents[1]):
+        f = base / "bench" / "results" / "sim2real.json"
+        if f.exists():
+            try:
+                runs = json.loads(f.read_text()).get("runs", [])
+            except (OSError, json.JSONDecodeError):
+                return []
+            return [r for r in runs if r.get("task") == env_name and r.get("seed") == seed]
+    return []
