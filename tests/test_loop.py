@@ -77,7 +77,7 @@ CHILD = textwrap.dedent("""
         return pol, state["params"], log.as_dict()
 
     sysid.fit = fit
-    evaluation.param_errors = lambda twin, res: {"cart_mass": 0.0}
+    evaluation.param_errors = lambda *a: {"cart_mass": 0.0}
     loop._deployed_policy = slow_deployed
     runner.ALGORITHMS["toy"] = runner.Algorithm("__main__", "train", "Config", {}, True)
     config = loop.LoopConfig(rounds=%d, episodes_per_round=%d, algo="toy", epochs=2,
@@ -111,6 +111,10 @@ def runs(tmp_path_factory):
     text, _ = p.communicate(timeout=600)
     assert p.returncode == 0, text
 
+    # the same real twin for both runs: its hidden perturbation's secret salt copied over (a
+    # fresh run draws its own, twinrl.real.remote)
+    (killed / "eval").mkdir(parents=True)
+    (killed / "eval" / "twin.json").write_bytes((full / "eval" / "twin.json").read_bytes())
     p = _child(killed, "fresh")
     deadline = time.time() + 600
     # wait for round 1's first deployed episode to be recorded: the second is then under way
@@ -176,6 +180,30 @@ def test_summary_matches_the_uninterrupted_run(runs):
     # the killed run's dataset also holds the interrupted episode's partial transitions
     assert b["rounds"][-1]["real_steps"] > a["rounds"][-1]["real_steps"]
     assert (killed / "report.md").exists() and (killed / "returns.png").exists()
+
+
+def test_the_loops_inputs_hold_no_evaluation_output(runs):
+    """What the stages read (the dataset, progress.json, loop.json, the rounds' artefacts) holds
+    none of evaluation's outputs or the twin's secret: those are in eval/, which no stage opens;
+    summary.json and report.md, written after the last stage, merge them in."""
+    full, _, _, _ = runs
+    ev = json.loads((full / "eval" / "evaluation.json").read_text())
+    assert ev["rounds"]["round1"]["param_rel_error"] == {"cart_mass": 0.0}
+    assert "sim_policy_real_return" in ev["rounds"]["round2"]
+    salt = json.loads((full / "eval" / "twin.json").read_text())["salt"]
+    outputs = {full / "summary.json", full / "report.md"}
+    inputs = [p for p in full.rglob("*") if p.is_file() and "eval" not in p.relative_to(
+        full).parts and p not in outputs and p.suffix not in (".png", ".mp4", ".gif")]
+    assert any(p.name == "progress.json" for p in inputs) and any(
+        p.parent.name == "dataset" for p in inputs)
+    for p in inputs:
+        text = p.read_bytes()
+        for word in (b"param_rel_error", b"sim_policy_real_return", b"adapted_real_return",
+                     b"oracle_return", b"perturbation", salt.encode()):
+            assert word not in text, (p, word)
+    s = json.loads((full / "summary.json").read_text())
+    assert s["rounds"][1]["param_rel_error"] == {"cart_mass": 0.0}
+    assert s["rounds"][2]["sim_policy_real_return"] is not None
 
 
 ORACLE_PARENT = textwrap.dedent("""

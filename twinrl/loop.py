@@ -24,6 +24,13 @@ parameter errors likewise read the twin's hidden truth. Both happen in evaluatio
 (``twinrl.eval``, the only module
 outside ``twinrl/real`` allowed to read the twin's oracle) that the learning stages never call.
 
+The real twin is served in another process (``twinrl.real.remote.TwinClient``): the loop holds a
+``gymnasium.Env`` client with no model or perturbation in it, whose hidden perturbation is seeded
+by the public seed and a secret salt. Everything evaluation writes (the salt, ``twin.json``; the
+oracle's training, ``oracle/``; the per-round evaluation records, ``evaluation.json``) goes to
+``OUT/eval/``, a directory the stages never read; ``summary.json`` and the report merge it in at
+the end.
+
 Resume: every stage writes its outputs, then marks itself done in ``progress.json`` (atomically).
 Real episodes go to ``dataset/`` as they happen (``twinrl.real.dataset``), so a run killed at any
 moment loses nothing recorded; ``resume=True`` skips the finished stages, counts the episodes the
@@ -134,7 +141,7 @@ class _Progress:
         return self.doc["rounds"].get(f"round{r}", {})
 
 
-def _oracle_child(conn, env_name, seed, out, config, perturbation, nice, parent):
+def _oracle_child(conn, env_name, seed, out, config, perturbation, nice, parent, secret=None):
     """The oracle's process: lower priority, dies with its parent, sends back the return or the
     error's text."""
     import os
@@ -154,7 +161,7 @@ def _oracle_child(conn, env_name, seed, out, config, perturbation, nice, parent)
     os.nice(nice)
     try:
         conn.send(("ok", evaluation.oracle_return(env_name, seed, out, config, False,
-                                                  perturbation)))
+                                                  perturbation, secret)))
     except BaseException:  # noqa: BLE001  (sent to the parent, which raises it)
         conn.send(("error", traceback.format_exc()))
     conn.close()
@@ -167,7 +174,7 @@ class _OracleProcess:
     halving the stages' share, as a thread in this process did. The child dies with this process
     (a killed loop leaves no orphan); the oracle resumes from its own checkpoints."""
 
-    def __init__(self, env_name, seed, out, config, perturbation, nice: int = 10):
+    def __init__(self, env_name, seed, out, config, perturbation, nice: int = 10, secret=None):
         import multiprocessing as mp
         import os
 
@@ -175,7 +182,7 @@ class _OracleProcess:
         self._conn, child = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(target=_oracle_child, name="twinrl-oracle", daemon=True,
                                  args=(child, env_name, seed, Path(out), config, perturbation,
-                                       nice, os.getpid()))
+                                       nice, os.getpid(), secret))
         self._proc.start()
         child.close()
 
@@ -248,9 +255,9 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
         raise LoopError(f"unknown task {env_name!r}; registered: {', '.join(envs.names())}")
     algorithm(config.algo)
     out = Path(out)
+    # The perturbation (a custom twin's) is not a setting the loop may read back: the twin's
+    # server keeps it with the salt in eval/twin.json and refuses a resume with another one.
     settings = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config)}
-    if perturbation is not None:
-        settings["perturbation"] = report.to_jsonable(perturbation)
     settings_file = out / "loop.json"
     if settings_file.exists():
         previous = json.loads(settings_file.read_text())
@@ -266,12 +273,19 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     say = report.console.print if progress else (lambda *a, **k: None)
     t_start = time.perf_counter()
 
+    # Evaluation only, never read by the stages: the twin's secret, the oracle, the records.
+    ev_dir = out / "eval"
+    secret = ev_dir / "twin.json"
+    ev = _Progress(ev_dir / "evaluation.json")
+    # The twin's server first: it creates the secret the oracle's process then reads.
+    from twinrl.real.remote import TwinClient
+
+    twin = TwinClient(env_name, seed=seed, secret=secret, perturbation=perturbation)
     oracle_job = None
     if config.oracle and config.oracle_in_background:
         say("training the oracle (evaluation only) in the background")
-        oracle_job = _OracleProcess(env_name, seed, out / "oracle", config, perturbation)
-
-    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation)
+        oracle_job = _OracleProcess(env_name, seed, ev_dir / "oracle", config, perturbation,
+                                    secret=secret)
     nominal_env = envs.make(env_name)
     K, T = config.episodes_per_round, nominal_env.episode_length
     rng = np.random.default_rng(seed)
@@ -315,8 +329,9 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                     "latency": res.latency, "params": _params_to_json(res.params),
                     "table": res.table, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
                     "seconds": res.seconds})
-                errs = evaluation.param_errors(twin, res)
-                prog.mark(f"{tag}/sysid", param_rel_error=errs, latency=res.latency,
+                ev.mark(f"{tag}/sysid", param_rel_error=evaluation.param_errors(
+                    env_name, seed, res, perturbation, secret))
+                prog.mark(f"{tag}/sysid", latency=res.latency,
                           sysid_rollouts=res.sim_rollouts,
                           seconds=_seconds(prog, r, sysid=time.perf_counter() - t0))
             sys_doc = json.loads((rdir / "sysid.json").read_text())
@@ -368,14 +383,16 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                 # episodes (same start states), a like-for-like before/after of the adaptation;
                 # without an accepted residual the deployed policy is pi_sim (scored once)
                 no_adapt = evaluation.real_return(env_name, seed, policy_dir,
-                                                   config.eval_episodes, perturbation)
+                                                   config.eval_episodes, perturbation, secret)
                 gate = _residual_gate(rdir)
                 adapted = (evaluation.policy_real_return(env_name, seed, act,
-                                                         config.eval_episodes, perturbation)
+                                                         config.eval_episodes, perturbation,
+                                                         secret)
                            if gate["residual_accepted"] else no_adapt)
+                ev.mark(f"{tag}/deploy", sim_policy_real_return=no_adapt,
+                        adapted_real_return=adapted)
                 prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
                           real_returns=rets, real_steps=_real_steps(out),
-                          sim_policy_real_return=no_adapt, adapted_real_return=adapted,
                           seconds=_seconds(prog, r, deploy=t_eval - t0,
                                            evaluation=time.perf_counter() - t_eval), **gate)
             rounds.append(_round_record(prog, r))
@@ -391,9 +408,10 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
             say("waiting for the oracle's training ...")
         oracle_return = oracle_job.result()
     elif config.oracle:
-        oracle_return = evaluation.oracle_return(env_name, seed, out / "oracle", config, progress,
-                                                 perturbation)
-    for rec in rounds:
+        oracle_return = evaluation.oracle_return(env_name, seed, ev_dir / "oracle", config,
+                                                 progress, perturbation, secret)
+    for rec in rounds:  # the evaluation records merged in, now that the stages are done
+        rec.update({k: v for k, v in ev.record(rec["round"]).items()})
         rec["oracle_return"] = oracle_return
     final = dict(rounds[-1]) if rounds else {}
     if oracle_return:
@@ -404,7 +422,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                "wall_s_this_process": time.perf_counter() - t_start}
     if config.video and policy_dir is not None:
         t0 = time.perf_counter()
-        summary["video"] = str(_final_video(out, env_name, seed, config, perturbation))
+        summary["video"] = str(_final_video(out, env_name, seed, config, perturbation, secret))
         summary["video_s"] = time.perf_counter() - t0
         summary["wall_s_this_process"] = time.perf_counter() - t_start
     _write_outputs(out, summary, config, env_name, seed, policy_dir)
@@ -412,7 +430,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
 
 
 def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, perturbation=None,
-                 size: tuple[int, int] = (320, 240)) -> Path:
+                 secret=None, size: tuple[int, int] = (320, 240)) -> Path:
     """``final.mp4``: an episode of the final deployed policy on the real twin (left, its true
     camera) beside the identified simulator's episode from the same recorded start (right).
     Neither episode is recorded in the dataset."""
@@ -430,8 +448,10 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
                            lambda *a, **k: None)
     # Both sides without shadows: in software OpenGL (no GPU) shadow mapping is ~90 % of a frame
     # (cartpole 320x240: 80 ms -> 6 ms), and the video is for looking at, not for fitting.
-    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation, width=size[0],
-                          height=size[1], shadows=False)
+    from twinrl.real.remote import TwinClient
+
+    twin = TwinClient(env_name, seed=seed, secret=secret, perturbation=perturbation,
+                      width=size[0], height=size[1], shadows=False)
     renderer = CameraRenderer(env.sim.mj_model, *size, shadows=False)
     frames = []
     try:
