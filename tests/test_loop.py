@@ -263,3 +263,19 @@ def test_a_damaged_chunk_costs_its_records_not_the_run(tmp_path):
     assert len(said) == 1 and "\n" not in said[0]
     assert "14 intact transitions" in said[0] and "chunk-00000-00001.twr" in said[0]
     assert loop._episodes_in(tmp_path) == 0  # the episode has a gap: incomplete, re-recorded
+
+
+def test_resume_without_the_twins_secret_is_refused(tmp_path):
+    # a run recorded by a twin whose secret is gone (or by a version of twinrl before it): a
+    # new salt would be another twin mid-run, so --resume stops with one line
+    from twinrl import loop
+
+    out = tmp_path / "run"
+    (out / "dataset").mkdir(parents=True)
+    config = loop.LoopConfig(oracle=False, video=False)
+    from twinrl import report
+
+    report.write_json(out / "loop.json", {"env": "pendulum_swingup", "seed": 0,
+                                          "config": report.to_jsonable(config)})
+    with pytest.raises(loop.LoopError, match="no eval/twin.json"):
+        loop.run("pendulum_swingup", out, config, resume=True, progress=False)

@@ -267,6 +267,11 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
         if previous != report.to_jsonable(settings):
             raise LoopError(f"--resume: {settings_file} was started with other settings "
                             f"({previous}); resume with the same ones")
+        # the dataset is made after the twin's server has written its secret: data without a
+        # secret came from a twin that cannot be rebuilt (a new salt would be another twin)
+        if (out / "dataset").exists() and not (out / "eval" / "twin.json").exists():
+            raise LoopError(f"--resume: {out} has no eval/twin.json (the real twin's secret; "
+                            f"the run predates it or it was removed): start a new --out")
     out.mkdir(parents=True, exist_ok=True)
     report.write_json(settings_file, settings)
     prog = _Progress(out / "progress.json")
