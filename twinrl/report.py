@@ -287,10 +287,10 @@ def plot_loop_returns(path: str | os.PathLike, summary: dict,
         if vals:
             pad = 0.03 * max(abs(max(vals)), abs(min(vals)), 1e-9)
             ax2.set_ylim(min(vals) - pad, max(vals) + pad)
-    for ax in (ax1, ax2):
+    for ax, where in ((ax1, "lower right"), (ax2, "best")):  # best: off the few points
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7, loc="lower right")
+            ax.legend(fontsize=7, loc=where)
     fig.suptitle(f"{summary['env']} (seed {summary['seed']})", fontsize=11)
     fig.tight_layout()
     path = Path(path)
