@@ -2,7 +2,8 @@
 
 Our loop (``twinrl run``) learns in the identified simulator and spends only a few real-twin steps
 (1,000 in ``runs/main``). This asks what a model-free learner trained *directly on the real twin*
-(``twinrl.envs.make_real(task, seed=seed)``) spends to get as far. For each task, algorithm
+(the loop run's own: a ``twinrl.real.remote.TwinClient`` with the run's ``eval/twin.json``)
+spends to get as far. For each task, algorithm
 (sbx-rl ``SAC`` and ``TD3``, JAX implementations of the Stable-Baselines3 algorithms) and seed:
 
 - train on the real twin; every ``--eval-every`` real steps (default 500) score the
@@ -101,6 +102,10 @@ def load_summary(path: Path) -> dict:
         raise SystemExit(f"{path}: {', '.join(missing)} is null (was the loop run with the "
                          "oracle on?)")
     out["path"] = str(path)
+    # The loop's twin: seeded by the run's secret salt (twinrl.real.remote), which the run keeps
+    # in eval/ beside its summary; a run from before the salt used the public-seed twin.
+    secret = path.parent / "eval" / "twin.json"
+    out["secret"] = str(secret) if secret.exists() else None
     return out
 
 
@@ -126,9 +131,11 @@ def loop_steps_to_target(loop: dict, target: float) -> dict:
 
 
 def train(algo: str, task: str, seed: int, target: float, max_steps: int, eval_every: int,
-          eval_episodes: int) -> dict:
+          eval_episodes: int, secret: str | None = None) -> dict:
+    from twinrl.real.remote import TwinClient
+
     sbx, BaseCallback, NormalActionNoise = import_sbx()
-    twin = envs.make_real(task, seed=seed)
+    twin = TwinClient(task, seed=seed, secret=secret)  # the loop's twin, in its own process
     if algo == "sac":
         model = sbx.SAC("MlpPolicy", twin, learning_starts=LEARNING_STARTS, seed=seed)
     else:
@@ -142,7 +149,7 @@ def train(algo: str, task: str, seed: int, target: float, max_steps: int, eval_e
 
     def evaluate(steps: int) -> bool:
         t = time.perf_counter()
-        ret = policy_real_return(task, seed, act, eval_episodes)
+        ret = policy_real_return(task, seed, act, eval_episodes, None, secret)
         eval_s[0] += time.perf_counter() - t
         curve.append({"real_steps": steps, "return": ret, "wall_s": time.perf_counter() - t0})
         print(f"  {task} {algo} seed {seed}: {steps:>6} real steps  return {ret:8.2f}"
@@ -161,7 +168,7 @@ def train(algo: str, task: str, seed: int, target: float, max_steps: int, eval_e
     reached = next((c["real_steps"] for c in curve if c["return"] >= target), None)
     wall = time.perf_counter() - t0
     return {"task": task, "seed": seed, "algo": algo, "target": target, "max_steps": max_steps,
-            "eval_every": eval_every, "eval_episodes": eval_episodes,
+            "eval_every": eval_every, "eval_episodes": eval_episodes, "twin_secret": secret,
             "steps_to_target": reached, "real_steps_trained": int(model.num_timesteps),
             "final_return": curve[-1]["return"] if curve else None,
             "best_return": max(c["return"] for c in curve) if curve else None,
@@ -187,7 +194,7 @@ def fmt_ratio(r: dict | None) -> str:
 
 
 def cached_run(path: Path, target: float, max_steps: int, eval_every: int,
-               eval_episodes: int) -> dict | None:
+               eval_episodes: int, secret: str | None = None) -> dict | None:
     """A finished run from an earlier invocation, scored against this invocation's ``target``
     from its evaluation curve when the curve answers the question (same evaluation episodes):
 
@@ -200,8 +207,8 @@ def cached_run(path: Path, target: float, max_steps: int, eval_every: int,
     if not path.exists():
         return None
     r = json.loads(path.read_text())
-    if r.get("eval_episodes") != eval_episodes:
-        return None
+    if r.get("eval_episodes") != eval_episodes or r.get("twin_secret") != secret:
+        return None  # other evaluation episodes, or another twin
     rescored = {"target": target, "rescored_from_target": r["target"]}
     hit = next((c["real_steps"] for c in r.get("curve", []) if c["return"] >= target), None)
     if hit is not None:
@@ -264,10 +271,10 @@ def main(argv=None) -> int:
                     cap = min(cap, min(reached))
                 path = runs_dir / f"{task}-{algo}-{seed}.json"
                 r = None if args.fresh else cached_run(path, target, cap, args.eval_every,
-                                                       args.eval_episodes)
+                                                       args.eval_episodes, loop["secret"])
                 if r is None:
                     r = train(algo, task, seed, target, cap, args.eval_every,
-                              args.eval_episodes)
+                              args.eval_episodes, loop["secret"])
                     report.write_json(path, r)
                 else:
                     print(f"  {task} {algo} seed {seed}: kept from {path}")

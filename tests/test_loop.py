@@ -79,7 +79,7 @@ CHILD = textwrap.dedent("""
         return pol, state["params"], log.as_dict()
 
     sysid.fit = fit
-    evaluation.param_errors = lambda twin, res: {"cart_mass": 0.0}
+    evaluation.param_errors = lambda *a: {"cart_mass": 0.0}
     loop._deployed_policy = slow_deployed
     runner.ALGORITHMS["toy"] = runner.Algorithm("__main__", "train", "Config", {}, True)
     config = loop.LoopConfig(rounds=%d, episodes_per_round=%d, algo="toy", epochs=2,
@@ -113,6 +113,10 @@ def runs(tmp_path_factory):
     text, _ = p.communicate(timeout=600)
     assert p.returncode == 0, text
 
+    # the same real twin for both runs: its hidden perturbation's secret salt copied over (the
+    # default salt is seeded, but a TWINRL_TWIN_SALT=random run draws its own)
+    (killed / "eval").mkdir(parents=True)
+    (killed / "eval" / "twin.json").write_bytes((full / "eval" / "twin.json").read_bytes())
     p = _child(killed, "fresh")
     deadline = time.time() + 600
     # wait for round 1's first deployed episode to be recorded: the second is then under way
@@ -180,6 +184,30 @@ def test_summary_matches_the_uninterrupted_run(runs):
     assert (killed / "report.md").exists() and (killed / "returns.png").exists()
 
 
+def test_the_loops_inputs_hold_no_evaluation_output(runs):
+    """What the stages read (the dataset, progress.json, loop.json, the rounds' artefacts) holds
+    none of evaluation's outputs or the twin's secret: those are in eval/, which no stage opens;
+    summary.json and report.md, written after the last stage, merge them in."""
+    full, _, _, _ = runs
+    ev = json.loads((full / "eval" / "evaluation.json").read_text())
+    assert ev["rounds"]["round1"]["param_rel_error"] == {"cart_mass": 0.0}
+    assert "sim_policy_real_return" in ev["rounds"]["round2"]
+    salt = json.loads((full / "eval" / "twin.json").read_text())["salt"]
+    outputs = {full / "summary.json", full / "report.md"}
+    inputs = [p for p in full.rglob("*") if p.is_file() and "eval" not in p.relative_to(
+        full).parts and p not in outputs and p.suffix not in (".png", ".mp4", ".gif")]
+    assert any(p.name == "progress.json" for p in inputs) and any(
+        p.parent.name == "dataset" for p in inputs)
+    for p in inputs:
+        text = p.read_bytes()
+        for word in (b"param_rel_error", b"sim_policy_real_return", b"adapted_real_return",
+                     b"oracle_return", b"perturbation", salt.encode()):
+            assert word not in text, (p, word)
+    s = json.loads((full / "summary.json").read_text())
+    assert s["rounds"][1]["param_rel_error"] == {"cart_mass": 0.0}
+    assert s["rounds"][2]["sim_policy_real_return"] is not None
+
+
 ORACLE_PARENT = textwrap.dedent("""
     import sys, time
     from twinrl import loop
@@ -237,3 +265,19 @@ def test_a_damaged_chunk_costs_its_records_not_the_run(tmp_path):
     assert len(said) == 1 and "\n" not in said[0]
     assert "14 intact transitions" in said[0] and "chunk-00000-00001.twr" in said[0]
     assert loop._episodes_in(tmp_path) == 0  # the episode has a gap: incomplete, re-recorded
+
+
+def test_resume_without_the_twins_secret_is_refused(tmp_path):
+    # a run recorded by a twin whose secret is gone (or by a version of twinrl before it): a
+    # new salt would be another twin mid-run, so --resume stops with one line
+    from twinrl import loop
+
+    out = tmp_path / "run"
+    (out / "dataset").mkdir(parents=True)
+    config = loop.LoopConfig(oracle=False, video=False)
+    from twinrl import report
+
+    report.write_json(out / "loop.json", {"env": "pendulum_swingup", "seed": 0,
+                                          "config": report.to_jsonable(config)})
+    with pytest.raises(loop.LoopError, match="no eval/twin.json"):
+        loop.run("pendulum_swingup", out, config, resume=True, progress=False)

@@ -237,7 +237,14 @@ def _cmd_collect(args) -> int:
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
     w, h = args.size
-    twin = envs.make_real(args.env, seed=args.seed, width=w, height=h)
+    # The real twin runs in its own process, as a robot would (twinrl.real.remote); its hidden
+    # perturbation's seed includes a secret salt kept in OUT/eval/, beside the dataset, for
+    # evaluation only (`twinrl sysid --visual --twin-seed` reads it).
+    from twinrl.real.remote import TwinClient, secret_file
+
+    fresh_out = not args.out.exists()
+    twin = TwinClient(args.env, seed=args.seed, secret=secret_file(args.out, args.env, args.seed),
+                      width=w, height=h)
     obs, _ = twin.reset(seed=args.seed)
     act_shape = twin.action_space.shape
     image_shapes = None
@@ -249,6 +256,11 @@ def _cmd_collect(args) -> int:
         try:
             twin.render_images(twin.camera, IMAGE_KINDS)
         except ValueError as e:
+            twin.close()
+            if fresh_out:  # nothing recorded: leave no directory behind (the twin's secret)
+                import shutil
+
+                shutil.rmtree(args.out, ignore_errors=True)
             raise UsageError(f"--size {w} {h}: {e}") from None
         image_shapes = {"rgb": (h, w, 3), "depth": (h, w), "segmentation": (h, w)}
     dataset_dir = args.out / "dataset"
@@ -273,7 +285,7 @@ def _cmd_collect(args) -> int:
                 obs, _ = twin.reset(seed=int(seq.generate_state(1)[0]))
                 rng = np.random.default_rng(seq.spawn(1)[0])
                 if args.policy == "excite":
-                    levels = excitation_actions(rng, twin.task.episode_length,
+                    levels = excitation_actions(rng, twin.episode_length,
                                                 int(np.prod(act_shape)))
                     policy = lambda o, t: levels[min(t, len(levels) - 1)].reshape(act_shape)  # noqa: E731
                 elif args.policy == "random":
@@ -288,6 +300,7 @@ def _cmd_collect(args) -> int:
         raise UsageError(f"writing {dataset_dir} failed after {len(returns)} complete "
                          f"episode(s) of this run: {e.strerror or e}; the dataset keeps every "
                          f"transition recorded before") from None
+    twin.close()
     summary = {"env": args.env, "policy": args.policy, "seed": args.seed,
                "episodes": args.episodes, "first_episode_id": first_episode, "steps": steps,
                "returns": returns, "mean_return": float(np.mean(returns)),
@@ -464,9 +477,12 @@ def _cmd_sysid(args) -> int:
         summary = visual_sysid(args.env, data, args.out, seed=args.seed, n_frames=args.frames)
         if args.twin_seed is not None:
             from twinrl.eval import visual_errors
+            from twinrl.real.remote import secret_file
 
-            summary["evaluation"] = {"twin_seed": args.twin_seed,
-                                     **visual_errors(args.env, args.twin_seed, summary)}
+            # `twinrl collect` keeps the twin's secret beside the dataset (evaluation only)
+            secret = secret_file(source.parent, args.env, args.twin_seed)
+            summary["evaluation"] = {"twin_seed": args.twin_seed, **visual_errors(
+                args.env, args.twin_seed, summary, secret if secret.exists() else None)}
             report.print_table(f"evaluation only: errors against real twin seed {args.twin_seed}",
                                ["error", "value"],
                                [[k, v] for k, v in summary["evaluation"].items()

@@ -5,6 +5,11 @@ images). Judging it needs the truth the real twin hides: its true parameters (to
 identification) and a policy trained on them (the *oracle*, to score returns). Those reads live
 here, the only module outside ``twinrl/real`` allowed to call ``RealTwin.oracle`` (a test greps the
 package for it); nothing here is ever fed back into learning.
+
+The loop's real twin is served in another process (``twinrl.real.remote.TwinClient``) with its
+perturbation seeded by a secret salt kept in the run's evaluation directory; the functions here
+take that file as ``secret`` and rebuild the same twin in this process, where its truth can be
+read. ``secret=None`` is the public-seed twin ``make_real(env_name, seed=seed)``.
 """
 
 from __future__ import annotations
@@ -16,19 +21,35 @@ __all__ = ["param_errors", "real_return", "policy_real_return", "oracle_return",
            "visual_errors"]
 
 
-def param_errors(twin, result) -> dict[str, float]:
+def _twin(env_name, seed, perturbation=None, secret=None, **kwargs):
+    """The real twin ``(env_name, seed)`` in this process: the one a ``TwinClient`` with the same
+    ``secret`` and ``perturbation`` talks to."""
+    from twinrl import envs
+
+    if secret is not None:
+        from twinrl.real.remote import hidden_perturbation
+
+        perturbation = hidden_perturbation(env_name, seed, secret, perturbation)
+    return envs.make_real(env_name, seed=seed, perturbation=perturbation, **kwargs)
+
+
+def param_errors(env_name, seed, result, perturbation=None, secret=None) -> dict[str, float]:
     """Relative error of every fitted parameter against the twin's hidden truth (parameters the
     data fix only up to a common scale are compared after that scale: ``aligned_rel_err``;
     parameters left at nominal as not identifiable are left out)."""
     from twinrl.real2sim.sysid import compare_to_truth
 
-    truth = twin.oracle()
+    twin = _twin(env_name, seed, perturbation, secret)
+    try:
+        truth = twin.oracle()
+    finally:
+        twin.close()
     rows = compare_to_truth(result, truth.params, truth.perturbation.latency_steps)
     return {row["parameter"]: float(row.get("aligned_rel_err", row["rel_err"]))
             for row in rows if not str(row.get("status", "")).startswith(("known", "not ident"))}
 
 
-def visual_errors(env_name: str, twin_seed: int, summary: dict) -> dict[str, float]:
+def visual_errors(env_name: str, twin_seed: int, summary: dict, secret=None) -> dict[str, float]:
     """Errors of a visual fit (``twinrl.real2sim.visual.visual_sysid``'s summary) against the
     hidden truth of the real twin ``make_real(env_name, seed=twin_seed)`` the frames came from:
     camera position (mm) and rotation (deg) against its offset camera; the object's position
@@ -40,7 +61,7 @@ def visual_errors(env_name: str, twin_seed: int, summary: dict) -> dict[str, flo
     from twinrl import envs
     from twinrl.render import Camera
 
-    twin = envs.make_real(env_name, seed=twin_seed)
+    twin = _twin(env_name, twin_seed, secret=secret)
     try:
         model = twin.oracle().model
     finally:
@@ -72,23 +93,22 @@ def visual_errors(env_name: str, twin_seed: int, summary: dict) -> dict[str, flo
     return out
 
 
-def real_return(env_name, seed, policy_dir, episodes, perturbation=None):
+def real_return(env_name, seed, policy_dir, episodes, perturbation=None, secret=None):
     """Mean return of a policy checkpoint on a fresh copy of the real twin (same hidden
     perturbation), not recorded and not counted."""
     from twinrl.learn.checkpoint import load_policy
 
     net, params, _ = load_policy(policy_dir)
     f = jax.jit(net.apply)
-    return policy_real_return(env_name, seed, lambda o: f(params, o), episodes, perturbation)
+    return policy_real_return(env_name, seed, lambda o: f(params, o), episodes, perturbation,
+                              secret)
 
 
-def policy_real_return(env_name, seed, act, episodes, perturbation=None):
+def policy_real_return(env_name, seed, act, episodes, perturbation=None, secret=None):
     """Mean return of ``act: obs -> action`` over ``episodes`` episodes of a fresh copy of the real
     twin, started from the same states as ``real_return``'s (so two policies compare on equal
     terms), not recorded and not counted."""
-    from twinrl import envs
-
-    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation)
+    twin = _twin(env_name, seed, perturbation, secret)
     rets = []
     try:
         for e in range(episodes):
@@ -103,16 +123,16 @@ def policy_real_return(env_name, seed, act, episodes, perturbation=None):
     return float(np.mean(rets))
 
 
-def oracle_return(env_name, seed, out, config, progress, perturbation=None) -> float:
+def oracle_return(env_name, seed, out, config, progress, perturbation=None, secret=None) -> float:
     """The oracle: trained in a simulator with the twin's true parameters (evaluation only)."""
     from twinrl import envs
     from twinrl.learn.runner import continue_run
 
-    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation)
+    twin = _twin(env_name, seed, perturbation, secret)
     truth = twin.oracle().params
     twin.close()
     env = envs.make(env_name, params=truth)
     if not (out / "policy" / "checkpoint.json").exists():
         continue_run(env_name, config.algo, out, seed=seed, epochs=config.epochs,
                      progress=progress, env=env, checkpoint_every=config.checkpoint_every)
-    return real_return(env_name, seed, out / "policy", config.eval_episodes, perturbation)
+    return real_return(env_name, seed, out / "policy", config.eval_episodes, perturbation, secret)

@@ -24,6 +24,13 @@ parameter errors likewise read the twin's hidden truth. Both happen in evaluatio
 (``twinrl.eval``, the only module
 outside ``twinrl/real`` allowed to read the twin's oracle) that the learning stages never call.
 
+The real twin is served in another process (``twinrl.real.remote.TwinClient``): the loop holds a
+``gymnasium.Env`` client with no model or perturbation in it, whose hidden perturbation is seeded
+by the public seed and a secret salt. Everything evaluation writes (the salt, ``twin.json``; the
+oracle's training, ``oracle/``; the per-round evaluation records, ``evaluation.json``) goes to
+``OUT/eval/``, a directory the stages never read; ``summary.json`` and the report merge it in at
+the end.
+
 Resume: every stage writes its outputs, then marks itself done in ``progress.json`` (atomically).
 Real episodes go to ``dataset/`` as they happen (``twinrl.real.dataset``), so a run killed at any
 moment loses nothing recorded; ``resume=True`` skips the finished stages, counts the episodes the
@@ -134,7 +141,7 @@ class _Progress:
         return self.doc["rounds"].get(f"round{r}", {})
 
 
-def _oracle_child(conn, env_name, seed, out, config, perturbation, nice, parent):
+def _oracle_child(conn, env_name, seed, out, config, perturbation, nice, parent, secret=None):
     """The oracle's process: lower priority, dies with its parent, sends back the return or the
     error's text."""
     import os
@@ -154,7 +161,7 @@ def _oracle_child(conn, env_name, seed, out, config, perturbation, nice, parent)
     os.nice(nice)
     try:
         conn.send(("ok", evaluation.oracle_return(env_name, seed, out, config, False,
-                                                  perturbation)))
+                                                  perturbation, secret)))
     except BaseException:  # noqa: BLE001  (sent to the parent, which raises it)
         conn.send(("error", traceback.format_exc()))
     conn.close()
@@ -167,7 +174,7 @@ class _OracleProcess:
     halving the stages' share, as a thread in this process did. The child dies with this process
     (a killed loop leaves no orphan); the oracle resumes from its own checkpoints."""
 
-    def __init__(self, env_name, seed, out, config, perturbation, nice: int = 10):
+    def __init__(self, env_name, seed, out, config, perturbation, nice: int = 10, secret=None):
         import multiprocessing as mp
         import os
 
@@ -175,7 +182,7 @@ class _OracleProcess:
         self._conn, child = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(target=_oracle_child, name="twinrl-oracle", daemon=True,
                                  args=(child, env_name, seed, Path(out), config, perturbation,
-                                       nice, os.getpid()))
+                                       nice, os.getpid(), secret))
         self._proc.start()
         child.close()
 
@@ -245,9 +252,9 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
         raise LoopError(f"unknown task {env_name!r}; registered: {', '.join(envs.names())}")
     algorithm(config.algo)
     out = Path(out)
+    # The perturbation (a custom twin's) is not a setting the loop may read back: the twin's
+    # server keeps it with the salt in eval/twin.json and refuses a resume with another one.
     settings = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config)}
-    if perturbation is not None:
-        settings["perturbation"] = report.to_jsonable(perturbation)
     settings_file = out / "loop.json"
     if settings_file.exists():
         previous = json.loads(settings_file.read_text())
@@ -257,18 +264,30 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
         if previous != report.to_jsonable(settings):
             raise LoopError(f"--resume: {settings_file} was started with other settings "
                             f"({previous}); resume with the same ones")
+        # the dataset is made after the twin's server has written its secret: data without a
+        # secret came from a twin that cannot be rebuilt (a new salt would be another twin)
+        if (out / "dataset").exists() and not (out / "eval" / "twin.json").exists():
+            raise LoopError(f"--resume: {out} has no eval/twin.json (the real twin's secret; "
+                            f"the run predates it or it was removed): start a new --out")
     out.mkdir(parents=True, exist_ok=True)
     report.write_json(settings_file, settings)
     prog = _Progress(out / "progress.json")
     say = report.console.print if progress else (lambda *a, **k: None)
     t_start = time.perf_counter()
 
+    # Evaluation only, never read by the stages: the twin's secret, the oracle, the records.
+    ev_dir = out / "eval"
+    secret = ev_dir / "twin.json"
+    ev = _Progress(ev_dir / "evaluation.json")
+    # The twin's server first: it creates the secret the oracle's process then reads.
+    from twinrl.real.remote import TwinClient
+
+    twin = TwinClient(env_name, seed=seed, secret=secret, perturbation=perturbation)
     oracle_job = None
     if config.oracle and config.oracle_in_background:
         say("training the oracle (evaluation only) in the background")
-        oracle_job = _OracleProcess(env_name, seed, out / "oracle", config, perturbation)
-
-    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation)
+        oracle_job = _OracleProcess(env_name, seed, ev_dir / "oracle", config, perturbation,
+                                    secret=secret)
     nominal_env = envs.make(env_name)
     K, T = config.episodes_per_round, nominal_env.episode_length
     rng = np.random.default_rng(seed)
@@ -312,8 +331,9 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                     "latency": res.latency, "system": res.system.to_json(),
                     "table": res.table, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
                     "seconds": res.seconds})
-                errs = evaluation.param_errors(twin, res)
-                prog.mark(f"{tag}/sysid", param_rel_error=errs, latency=res.latency,
+                ev.mark(f"{tag}/sysid", param_rel_error=evaluation.param_errors(
+                    env_name, seed, res, perturbation, secret))
+                prog.mark(f"{tag}/sysid", latency=res.latency,
                           sysid_rollouts=res.sim_rollouts,
                           seconds=_seconds(prog, r, sysid=time.perf_counter() - t0))
             # the identified twin, latency included, is what every later stage simulates
@@ -364,14 +384,16 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                 # episodes (same start states), a like-for-like before/after of the adaptation;
                 # without an accepted residual the deployed policy is pi_sim (scored once)
                 no_adapt = evaluation.real_return(env_name, seed, policy_dir,
-                                                   config.eval_episodes, perturbation)
+                                                   config.eval_episodes, perturbation, secret)
                 gate = _residual_gate(rdir)
                 adapted = (evaluation.policy_real_return(env_name, seed, act,
-                                                         config.eval_episodes, perturbation)
+                                                         config.eval_episodes, perturbation,
+                                                         secret)
                            if gate["residual_accepted"] else no_adapt)
+                ev.mark(f"{tag}/deploy", sim_policy_real_return=no_adapt,
+                        adapted_real_return=adapted)
                 prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
                           real_returns=rets, real_steps=_real_steps(out),
-                          sim_policy_real_return=no_adapt, adapted_real_return=adapted,
                           seconds=_seconds(prog, r, deploy=t_eval - t0,
                                            evaluation=time.perf_counter() - t_eval), **gate)
             rounds.append(_round_record(prog, r))
@@ -387,9 +409,10 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
             say("waiting for the oracle's training ...")
         oracle_return = oracle_job.result()
     elif config.oracle:
-        oracle_return = evaluation.oracle_return(env_name, seed, out / "oracle", config, progress,
-                                                 perturbation)
-    for rec in rounds:
+        oracle_return = evaluation.oracle_return(env_name, seed, ev_dir / "oracle", config,
+                                                 progress, perturbation, secret)
+    for rec in rounds:  # the evaluation records merged in, now that the stages are done
+        rec.update({k: v for k, v in ev.record(rec["round"]).items()})
         rec["oracle_return"] = oracle_return
     final = dict(rounds[-1]) if rounds else {}
     if oracle_return:
@@ -400,7 +423,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                "wall_s_this_process": time.perf_counter() - t_start}
     if config.video and policy_dir is not None:
         t0 = time.perf_counter()
-        summary["video"] = str(_final_video(out, env_name, seed, config, perturbation))
+        summary["video"] = str(_final_video(out, env_name, seed, config, perturbation, secret))
         summary["video_s"] = time.perf_counter() - t0
         summary["wall_s_this_process"] = time.perf_counter() - t_start
     _write_outputs(out, summary, config, env_name, seed, policy_dir)
@@ -408,7 +431,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
 
 
 def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, perturbation=None,
-                 size: tuple[int, int] = (320, 240)) -> Path:
+                 secret=None, size: tuple[int, int] = (320, 240)) -> Path:
     """``final.mp4``: an episode of the final deployed policy on the real twin (left, its true
     camera) beside the identified simulator's episode from the same recorded start (right).
     Neither episode is recorded in the dataset."""
@@ -425,8 +448,10 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
                            lambda *a, **k: None)
     # Both sides without shadows: in software OpenGL (no GPU) shadow mapping is ~90 % of a frame
     # (cartpole 320x240: 80 ms -> 6 ms), and the video is for looking at, not for fitting.
-    twin = envs.make_real(env_name, seed=seed, perturbation=perturbation, width=size[0],
-                          height=size[1], shadows=False)
+    from twinrl.real.remote import TwinClient
+
+    twin = TwinClient(env_name, seed=seed, secret=secret, perturbation=perturbation,
+                      width=size[0], height=size[1], shadows=False)
     renderer = CameraRenderer(env.sim.mj_model, *size, shadows=False)
     frames = []
     try:
@@ -451,6 +476,7 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
     finally:
         renderer.close()
         twin.close()
+    frames = report.label_frames(frames, ["real twin", "identified simulator"])
     return report.write_video(out / "final.mp4", frames, fps=1.0 / env.dt)
 
 
@@ -486,7 +512,8 @@ def _seconds(prog: _Progress, r: int, **stages: float) -> dict[str, float]:
 def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
     rec = prog.record(r)
     return {"round": r, "real_steps": rec.get("real_steps"), "real_return": rec.get("real_return"),
-            "sim_return": rec.get("sim_return"), "oracle_return": None,
+            "real_returns": rec.get("real_returns"), "sim_return": rec.get("sim_return"),
+            "oracle_return": None,
             "param_rel_error": rec.get("param_rel_error", {}),
             "sim_policy_real_return": rec.get("sim_policy_real_return"),
             "adapted_real_return": rec.get("adapted_real_return"),
@@ -565,6 +592,8 @@ def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
 # ------------------------------------------------------------------------------ outputs
 def _write_outputs(out: Path, summary, config, env_name, seed, policy_dir) -> None:
     rounds = summary["rounds"]
+    for rec in rounds:  # what the report draws: each round's learning curve and fit
+        _add_round_details(out, rec)
     rows = [[r["round"], r["real_steps"], r["sim_return"], r["real_return"],
              r["sim_policy_real_return"], r.get("adapted_real_return"), r["oracle_return"],
              max(r["param_rel_error"].values()) if r["param_rel_error"] else None]
@@ -573,26 +602,35 @@ def _write_outputs(out: Path, summary, config, env_name, seed, policy_dir) -> No
             "oracle", "max param err"]
     report.print_table(f"twinrl run {env_name} (seed {seed})", cols, rows)
     report.write_json(out / "summary.json", summary)
-    done = [r for r in rounds if r["real_return"] is not None]
-    files = {}
-    if done:
-        files["returns"] = report.plot_curves(
-            out / "returns.png",
-            {"real return (deployed)": ([r["real_steps"] for r in done],
-                                        [r["real_return"] for r in done])},
-            "real env steps used", "episode return", f"{env_name}: return vs real steps",
-            hline=(rounds[0]["oracle_return"], "oracle") if rounds[0]["oracle_return"] else None)
-    errs = [r for r in rounds if r["param_rel_error"]]
-    if errs:
-        names = sorted(errs[0]["param_rel_error"])
-        files["params"] = report.plot_curves(
-            out / "params.png",
-            {n: ([r["round"] for r in errs], [r["param_rel_error"].get(n, np.nan) for r in errs])
-             for n in names}, "round", "relative error", "identified parameters vs truth")
-    md = [f"# twinrl run: {env_name} (seed {seed})", "",
-          "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    md += ["| " + " | ".join(report._fmt(v) if v is not None else "-" for v in row) + " |"
-           for row in rows]
-    md += ["", f"Final: {json.dumps(report.to_jsonable(summary['final']))}", ""]
-    md += [f"![{k}]({Path(v).name})" for k, v in files.items()]
-    (out / "report.md").write_text("\n".join(md) + "\n")
+    report.loop_report(out, summary, _model_free_runs(env_name, seed))
+
+
+def _add_round_details(out: Path, rec: dict[str, Any]) -> None:
+    """Round ``rec["round"]``'s learning curve in its identified simulator (``env_steps``,
+    ``return`` of its ``train/metrics.csv``) and its sysid table (value, sd, status per
+    parameter), for the report."""
+    import csv
+
+    rdir = out / f"round{rec['round']}"
+    f = rdir / "train" / "metrics.csv"
+    if f.exists():
+        rows = list(csv.DictReader(open(f)))
+        pick = lambda k: [float(r[k]) for r in rows if r.get(k) not in (None, "")]  # noqa: E731
+        rec["learning_curve"] = {"env_steps": pick("env_steps"), "return": pick("return")}
+    f = rdir / "sysid.json"
+    if f.exists():
+        rec["identified"] = json.loads(f.read_text()).get("table", [])
+
+
+def _model_free_runs(env_name: str, seed: int) -> list[dict]:
+    """``bench/sim2real.py``'s model-free runs on this task and twin seed, when its results file
+    exists (in the working directory's or the source tree's ``bench/results/``)."""
+    for base in (Path.cwd(), Path(__file__).resolve().parents[1]):
+        f = base / "bench" / "results" / "sim2real.json"
+        if f.exists():
+            try:
+                runs = json.loads(f.read_text()).get("runs", [])
+            except (OSError, json.JSONDecodeError):
+                return []
+            return [r for r in runs if r.get("task") == env_name and r.get("seed") == seed]
+    return []

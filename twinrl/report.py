@@ -13,6 +13,7 @@ import json
 import math
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -192,9 +193,301 @@ def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: floa
     if not frames:
         raise ValueError(f"{path}: no frames to write")
     try:
-        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
+        with warnings.catch_warnings():
+            # imageio starts ffmpeg with subprocess (fork + exec at once): JAX's at-fork hook
+            # warns of a deadlock that an exec'd child cannot reach
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called",
+                                    category=RuntimeWarning)
+            imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
         return path
     except Exception:  # noqa: BLE001 - no ffmpeg backend
         gif = path.with_suffix(".gif")
         imageio.mimsave(gif, frames, duration=1000.0 / fps)
         return gif
+
+
+# ------------------------------------------------------------------------------ the loop's report
+def _pct(x: float | None) -> str:
+    return MISSING if x is None or not math.isfinite(float(x)) else f"{100 * float(x):.1f} %"
+
+
+def _cell(v: Any) -> str:
+    s = _fmt(v)
+    return MISSING if s in ("nan", "None") else s
+
+
+def _md_table(columns: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
+    out = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    out += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in rows]
+    return out
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_loop_returns(path: str | os.PathLike, summary: dict,
+                      model_free: Sequence[dict] = ()) -> Path:
+    """``returns.png`` of a loop run, informative with a single round: left, each round's learning
+    curve in its identified simulator (return vs simulated steps); right, the real twin: every
+    recorded episode of each deployed policy and their mean, the sim policy without adaptation
+    (evaluation), against the real steps used so far, with the oracle's return as a dashed line
+    and, when given, the model-free learners' curves on the real twin (``bench/sim2real.py``'s
+    runs: ``{"algo", "seed", "curve": [{"real_steps", "return"}]}``)."""
+    plt = _pyplot()
+    rounds = [r for r in summary["rounds"] if r.get("round", 0) >= 1]
+    oracle = summary["rounds"][0].get("oracle_return") if summary["rounds"] else None
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    for r in rounds:
+        c = r.get("learning_curve") or {}
+        if c.get("env_steps"):
+            ax1.plot(np.asarray(c["env_steps"], float) / 1e6, c["return"], marker=".",
+                     label=f"round {r['round']} ({summary['config'].get('algo', '')})")
+    if oracle is not None:
+        for ax in (ax1, ax2):
+            ax.axhline(oracle, ls="--", color="k", lw=1, label="oracle (real twin)")
+    ax1.set_xlabel("simulated steps (millions)")
+    ax1.set_ylabel("episode return")
+    ax1.set_title("learning in the identified simulator", fontsize=10)
+    for i, r in enumerate(rounds):
+        x = r.get("real_steps")
+        if x is None or r.get("real_return") is None:
+            continue
+        eps = r.get("real_returns") or []
+        ax2.scatter([x] * len(eps), eps, s=14, color="C0", alpha=0.5,
+                    label="deployed: each real episode" if i == 0 else None)
+        ax2.scatter([x], [r["real_return"]], s=70, marker="D", color="C0", zorder=3,
+                    label="deployed: mean" if i == 0 else None)
+        if r.get("sim_policy_real_return") is not None:
+            ax2.scatter([x], [r["sim_policy_real_return"]], s=60, marker="x", color="C3",
+                        zorder=3, label="sim policy, no adaptation (eval)" if i == 0 else None)
+        ax2.annotate(f"round {r['round']}", (x, r["real_return"]), textcoords="offset points",
+                     xytext=(6, -12), fontsize=8)
+    for j, m in enumerate(model_free):
+        curve = m.get("curve") or []
+        if curve:
+            ax2.plot([p["real_steps"] for p in curve], [p["return"] for p in curve],
+                     color=f"C{4 + j}", lw=1.2, label=f"{m.get('algo', '?')} (model-free, "
+                     f"seed {m.get('seed', '?')})")
+    ax2.set_xlabel("real-twin steps used")
+    ax2.set_ylabel("episode return on the real twin")
+    ax2.set_title("deployed on the real twin", fontsize=10)
+    steps = [r["real_steps"] for r in rounds if r.get("real_steps")]
+    if steps and not model_free:
+        ax2.set_xlim(0, max(steps) * 1.25)
+        # the deployed returns and the oracle, a few per cent apart, with room around them
+        vals = [v for r in rounds for v in ([r.get("real_return"), r.get("sim_policy_real_return"),
+                                             oracle] + list(r.get("real_returns") or []))
+                if v is not None and math.isfinite(float(v))]
+        if vals:
+            pad = 0.03 * max(abs(max(vals)), abs(min(vals)), 1e-9)
+            ax2.set_ylim(min(vals) - pad, max(vals) + pad)
+    for ax, where in ((ax1, "lower right"), (ax2, "best")):  # best: off the few points
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, loc=where)
+    fig.suptitle(f"{summary['env']} (seed {summary['seed']})", fontsize=11)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_param_errors(path: str | os.PathLike, identified: Sequence[dict],
+                      errors: dict[str, float], title: str = "") -> Path:
+    """``params.png``: a horizontal bar per identified parameter, its relative error against the
+    hidden truth (evaluation only), with the fit's own uncertainty as an error bar (``sd`` over
+    the larger of the identified and nominal values, so a value at its bound 0 does not divide by
+    0). Parameters the data fix only in combination are hatched and carry no bar: their error is
+    after the common scale, and their sd (written beside them) is along the flat direction, the
+    scale the data do not fix."""
+    plt = _pyplot()
+    by_name = {row["parameter"]: row for row in identified}
+    names = list(errors)
+    err = np.array([100 * abs(float(errors[n])) for n in names])
+
+    def rel_sd(n):
+        row = by_name.get(n)
+        if row is None or row.get("sd") is None:
+            return np.nan
+        scale = max(abs(float(row.get("identified") or 0)), abs(float(row.get("initial") or 0)))
+        return 100 * float(row["sd"]) / scale if scale > 0 else np.nan
+
+    sd = np.array([rel_sd(n) for n in names])
+    combo = np.array([str(by_name.get(n, {}).get("status", "")).startswith("only in combination")
+                      for n in names])
+    bar_sd = np.where(np.isfinite(sd) & ~combo, sd, 0.0)
+    fig, ax = plt.subplots(figsize=(7.5, 0.45 * len(names) + 1.6), dpi=110)
+    y = np.arange(len(names))
+    bars = ax.barh(y, err, color=["C1" if c else "C0" for c in combo], alpha=0.85,
+                   label="|identified - truth| / truth")
+    for b, c in zip(bars, combo):
+        if c:
+            b.set_hatch("//")
+    ax.errorbar(err, y, xerr=bar_sd, fmt="none", ecolor="k", elinewidth=1, capsize=3,
+                label="+- the fit's sd (relative)")
+    for yi, n in enumerate(names):
+        if not np.isfinite(sd[yi]):
+            note = f"{err[yi]:.2g} %"
+        elif combo[yi]:
+            note = f"{err[yi]:.2g} %  (alone: sd {sd[yi]:.0f} %, flat direction)"
+        else:
+            note = f"{err[yi]:.2g} %  (sd {sd[yi]:.2g} %)"
+        ax.text(err[yi] + bar_sd[yi], yi, "  " + note, va="center", fontsize=7)
+    ax.set_yticks(y, names, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("relative error (%)")
+    ax.set_xlim(0, max(float(np.max(err + bar_sd)) * 1.8 if len(err) else 1.0, 1.0))
+    ax.set_title(title or "identified parameters vs the hidden truth (evaluation only)",
+                 fontsize=10)
+    from matplotlib.patches import Patch
+
+    handles, labels = ax.get_legend_handles_labels()
+    if combo.any():
+        handles.append(Patch(facecolor="C1", hatch="//", alpha=0.85))
+        labels.append("identified only in combination (error after the common scale)")
+    ax.legend(handles, labels, fontsize=7, loc="lower right")
+    ax.grid(alpha=0.3, axis="x")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def label_frames(frames: Sequence[np.ndarray], labels: Sequence[str],
+                 band: int = 22) -> list[np.ndarray]:
+    """Burn one label per horizontal panel into each frame (a dark band at the top of each
+    panel, white text rendered once with matplotlib). ``frames`` are side-by-side panels of equal
+    width, ``len(labels)`` of them."""
+    if not frames:
+        return []
+    h, w = frames[0].shape[:2]
+    pw = w // len(labels)
+    plt = _pyplot()
+    stamps = []
+    for text in labels:
+        fig = plt.figure(figsize=(pw / 100, band / 100), dpi=100)
+        fig.patch.set_facecolor("black")
+        fig.text(0.02, 0.5, text, color="white", fontsize=max(7, band * 0.45), va="center",
+                 ha="left", family="DejaVu Sans")
+        fig.canvas.draw()
+        img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+        plt.close(fig)
+        stamps.append(img[:band, :pw])
+    out = []
+    for f in frames:
+        f = np.array(f, np.uint8, copy=True)
+        for i, s in enumerate(stamps):
+            f[:s.shape[0], i * pw:i * pw + s.shape[1]] = s
+        out.append(f)
+    return out
+
+
+def loop_report(out: str | os.PathLike, summary: dict,
+                model_free: Sequence[dict] = ()) -> dict[str, Path]:
+    """``report.md`` of a ``twinrl run`` (plus ``returns.png`` and, when the summary has
+    evaluation errors, ``params.png``) from its summary dict alone: what was run, the verdict
+    (fraction of the oracle, real steps), what was identified with its uncertainty, the figures
+    inline. Returns the files written."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = summary.get("config", {})
+    rounds = summary["rounds"]
+    final = summary.get("final", {})
+    done = [r for r in rounds if r.get("round", 0) >= 1]
+    files: dict[str, Path] = {}
+    if done:
+        files["returns"] = plot_loop_returns(out / "returns.png", summary, model_free)
+    last = done[-1] if done else {}
+    if last.get("param_rel_error") and last.get("identified"):
+        files["params"] = plot_param_errors(out / "params.png", last["identified"],
+                                            last["param_rel_error"])
+    env, seed = summary["env"], summary["seed"]
+    md = [f"# twinrl run: {env} (seed {seed})", ""]
+
+    # the verdict
+    frac, oracle = final.get("fraction_of_oracle"), rounds[0].get("oracle_return")
+    if final.get("real_return") is not None:
+        v = (f"**Verdict:** after {len(done)} round{'s' * (len(done) != 1)} and "
+             f"{final.get('real_steps')} real-twin steps, the deployed policy returns "
+             f"{_cell(final['real_return'])} on the real twin")
+        v += (f", **{_pct(frac)} of the oracle** ({_cell(oracle)}: a policy trained the same way "
+              f"on the twin's true parameters, evaluation only)." if frac is not None else
+              " (no oracle was trained: `--no-oracle`).")
+        md += [v, ""]
+    else:
+        md += ["**Verdict:** no round finished; nothing was deployed.", ""]
+
+    # what was run
+    K = cfg.get("episodes_per_round")
+    steps0 = rounds[0].get("real_steps")
+    md += ["## What was run", "",
+           f"- **Round 0**: {K} episodes of exciting open-loop actions on the real twin "
+           f"({steps0} steps).",
+           f"- **Each of {len(done)} round(s)**: system identification on every real transition "
+           f"so far; {'the hybrid residual dynamics refit; ' if cfg.get('hybrid') else ''}"
+           f"learning with `{cfg.get('algo')}` in the identified simulator"
+           + ("; a residual policy trained through the hybrid model, kept only if it does not "
+              "lower the return there" if cfg.get("residual") else "") +
+           f"; {K} deployed episodes recorded on the real twin.",
+           f"- **Evaluation only** (never fed back): the oracle, the parameter errors against "
+           f"the hidden truth, and {cfg.get('eval_episodes')} unrecorded episodes per policy.",
+           ""]
+    rows = [[r["round"], r.get("real_steps"), r.get("sim_return"), r.get("real_return"),
+             r.get("sim_policy_real_return"), r.get("adapted_real_return"),
+             {True: "accepted", False: "rejected"}.get(r.get("residual_accepted")),
+             sum((r.get("seconds") or {}).values()) or None] for r in rounds]
+    md += _md_table(["round", "real steps (total)", "sim return", "real return (deployed)",
+                     "sim policy, no adaptation (eval)", "adapted (eval)", "residual",
+                     "seconds"], rows)
+    md += [""]
+    if "returns" in files:
+        md += ["![returns: learning curve in the identified simulator; real returns of each "
+               "deployed policy vs the oracle](returns.png)", ""]
+
+    # what was identified
+    if last.get("identified"):
+        errs = last.get("param_rel_error") or {}
+        md += [f"## What was identified (round {last['round']})", "",
+               "Values the fit found, with its own standard deviation (from the curvature of "
+               "the loss); the error against the hidden truth is evaluation only.", ""]
+        prow = [[row["parameter"], row.get("initial"),
+                 f"{_cell(row.get('identified'))} ± {_cell(row.get('sd'))}", row.get("status"),
+                 _pct(errs.get(row["parameter"]))] for row in last["identified"]]
+        if last.get("latency") is not None:
+            prow.append(["latency (steps)", None, last["latency"], "searched",
+                         _pct(errs.get("latency"))])
+        md += _md_table(["parameter", "nominal", "identified ± sd", "status",
+                         "error vs truth (eval)"], prow)
+        md += [""]
+        if any(str(row.get("status", "")).startswith("only in combination")
+               for row in last["identified"]):
+            md += ["*Only in combination*: the data fix these parameters' ratios, not their "
+                   "common scale (a flat direction of the loss), so each one's sd alone is "
+                   "large; their errors are measured after that common scale.", ""]
+        if "params" in files:
+            md += ["![params: relative error of each identified parameter with the fit's "
+                   "uncertainty](params.png)", ""]
+    if summary.get("video"):
+        md += ["## Video", "",
+               f"[{Path(summary['video']).name}]({Path(summary['video']).name}): the final "
+               "deployed policy on the real twin (left, labelled *real twin*, its true camera) "
+               "beside the identified simulator from the same start state (right, labelled "
+               "*identified simulator*). Neither episode is recorded.", ""]
+    if model_free:
+        md += [f"Model-free curves in `returns.png`: {len(model_free)} run(s) of "
+               f"`bench/sim2real.py` on this task and seed.", ""]
+    md += [f"Machine-readable figures: `summary.json`. Wall clock of this process: "
+           f"{_cell(summary.get('wall_s_this_process'))} s.", ""]
+    (out / "report.md").write_text("\n".join(md))
+    files["report"] = out / "report.md"
+    return files

@@ -40,6 +40,11 @@ def test_collect_again_appends_new_episodes_not_copies(tmp_path, capsys):
     assert not np.array_equal(first.obs[0], second.obs[0])      # another initial state
     assert not np.array_equal(first.action, second.action)      # another excitation
     # the episode with id i is the same whether recorded in one run or appended by a second
+    # (on the same twin: its hidden perturbation's secret salt copied over, as a run with
+    # TWINRL_TWIN_SALT=random would need; by default the salt is seeded, twinrl.real.remote)
+    import shutil
+
+    shutil.copytree(tmp_path / "eval", tmp_path / "once" / "eval")
     code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "2",
                        "--out", tmp_path / "once")
     assert code == 0, err

@@ -4,7 +4,9 @@ Smoke runs on the pure-JAX ``PointMass`` of ``test_shac`` (compiles in seconds; 
 takes every registered MJX task unmodified is ``tests/envs/test_ppo.py``'s job): the returned
 policy is a deterministic obs -> action in [-1, 1] that ``make_evaluator`` scores, the metrics
 follow the contract, resume is refused, and the policy survives a ``save_policy``/``load_policy``
-round trip from its params and JSON alone.
+round trip from its params and JSON alone. One test checks that something is learned: APG
+(Brax's analytic policy gradient, through ``PointMass``'s differentiable step) against a random
+policy.
 """
 
 import jax
@@ -21,6 +23,9 @@ PPO_TINY = PPOConfig(num_timesteps=2048, num_envs=8, batch_size=8, num_minibatch
                      value_hidden=(8,), num_evals=3, num_eval_envs=4)
 APG_TINY = APGConfig(policy_updates=4, horizon_length=8, num_envs=4, policy_hidden=(8,),
                      num_evals=3, num_eval_envs=4)
+# Learns PointMass in a few seconds: 30 updates through full 20-step episodes.
+APG_LEARNS = APGConfig(policy_updates=30, horizon_length=20, num_envs=8, policy_hidden=(8,),
+                       learning_rate=3e-3, num_evals=3, num_eval_envs=4)
 
 
 @pytest.fixture(scope="module", params=["ppo", "apg"])
@@ -82,3 +87,26 @@ def test_config_errors_name_the_field():
         APGConfig(activation="sigmoid")
     assert baselines.ppo_config("cartpole_swingup").to_dict()["policy_hidden"] == list(
         baselines.ppo_config("cartpole_swingup").policy_hidden)
+
+
+def test_apg_beats_a_random_policy():
+    """Measured (1024 evaluation episodes of 20 steps, rewards in [0, 1]): uniform random actions
+    5.61 (sd 6.31 per episode, so 0.2 for the mean), all-zero actions 5.63, a hand-tuned PD
+    controller 14.2; APG_LEARNS 12.15 / 12.64 / 12.33 on seeds 0 / 1 / 2 (4-19 s each on the
+    shared 2-core machine). The margin, 4 (20 standard errors of the random mean), leaves APG
+    2 to spare; an untrained policy (policy_updates=2) fails it."""
+    env = PointMass()
+
+    def random_return(key):
+        k0, k1 = jax.random.split(key)
+        acts = jax.random.uniform(k1, (env.episode_length, 1), minval=-1.0, maxval=1.0)
+        step = lambda s, a: (env.step(s, a),) * 2  # noqa: E731
+        return jax.lax.scan(step, env.reset(k0), acts)[1].reward.sum()
+
+    random = float(jnp.mean(jax.vmap(random_return)(jax.random.split(jax.random.PRNGKey(7),
+                                                                        1024))))
+    policy, params, _ = baselines.apg_train(env, APG_LEARNS, 0)
+    learned = float(jnp.mean(common.make_evaluator(env, policy.apply, 1024)(
+        params, jax.random.PRNGKey(9))))
+    assert 5.0 < random < 6.3, random
+    assert learned > random + 4.0, (learned, random)
