@@ -28,10 +28,12 @@ def x64():
 # Longest files first (fresh clone, cold cache, 2 workers: each of these took 65-270 s). xdist's
 # --dist loadfile hands files out in collection order, so the long ones start early and the short
 # ones fill the gaps at the end instead of one worker finishing a long file alone.
-_LONG_FIRST = ("physics/test_gradcheck.py", "learn/test_pods.py", "cli/test_train_cli.py",
+_LONG_FIRST = ("physics/test_foreign_arm.py", "physics/test_foreign_cylinder.py",
+               "physics/test_foreign_contact.py", "physics/test_gradcheck.py", "learn/test_pods.py", "cli/test_train_cli.py",
                "physics/test_solver.py", "envs/test_envs.py", "envs/test_ppo.py",
                "real2sim/test_sysid.py", "cli/test_cli.py", "learn/test_hds.py",
-               "sim2real/test_hybrid_residual.py", "learn/test_shac.py")
+               "sim2real/test_hybrid_residual.py", "learn/test_shac.py",
+               "physics/test_foreign_drops.py")
 
 
 def pytest_collection_modifyitems(items):
