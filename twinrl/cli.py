@@ -61,6 +61,9 @@ def _gradcheck_parser(sub) -> None:
     p.add_argument("--gradient", default="implicit", choices=("implicit", "unrolled"),
                    help="derivative of the constraint solve: of its converged solution (implicit "
                         "function theorem, default) or of its fixed iterations")
+    p.add_argument("--settle", type=int, default=0, metavar="N",
+                   help="run N physics steps (MuJoCo C, no actuation) before the check, so it "
+                        "starts where the model has come to rest, e.g. a walker on the ground")
     p.add_argument("--strict", action="store_true",
                    help="also exit 1 when an input group has no resolved entry (nothing judged "
                         "through it) and is not inert")
@@ -100,7 +103,8 @@ def _cmd_gradcheck(args) -> int:
         with report.console.status(f"{sim.name}: compiling and differencing the rollout..."):
             try:
                 r = gradcheck(sim, horizon=args.horizon, h=h, rtol=rtol, seed=args.seed,
-                              scenario=args.scenario, tolerance=tolerance)
+                              scenario=args.scenario, tolerance=tolerance,
+                              settle=args.settle)
             except ValueError as e:
                 raise UsageError(f"{sim.name}: {e}") from None
         secs = time.perf_counter() - t0

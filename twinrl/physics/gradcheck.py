@@ -55,6 +55,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
@@ -197,7 +198,7 @@ def classify(g, fd1, fd4, fwd, bwd, rounding, rtol):
 
 def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str | None = None,
               h: float = 1e-6, rtol: float = 1e-4, seed: int = 0,
-              tolerance: float | None = 1e-12) -> GradcheckResult:
+              tolerance: float | None = 1e-12, settle: int = 0) -> GradcheckResult:
     """Compare ``jax.grad`` of a rollout loss with central finite differences.
 
     Args:
@@ -213,6 +214,9 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
       seed: seed of the loss weights and of generic scenarios.
       tolerance: constraint-solver tolerance for the check (``None``: the MJCF's); see the
         module docstring.
+      settle: physics steps of MuJoCo C, without actuation, from the scenario's initial state
+        before the check starts: a walker dropped from its ``qpos0`` then starts on the ground,
+        so the check goes through its contacts (and its friction) within a short horizon.
     """
     if not rtol > 0:
         raise ValueError(f"rtol must be > 0, got {rtol}")
@@ -233,6 +237,13 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
                                      qvel=np.array(sim.mj_model.key_qvel[0], np.float64))
     else:
         name, sc = "custom", scenario
+    if settle:
+        if settle < 0:
+            raise ValueError(f"settle must be >= 0, got {settle}")
+        mj_data = mujoco.MjData(sim.mj_model)
+        mj_data.qpos[:], mj_data.qvel[:] = sc.qpos, sc.qvel
+        mujoco.mj_step(sim.mj_model, mj_data, nstep=int(settle))
+        sc = dataclasses.replace(sc, qpos=mj_data.qpos.copy(), qvel=mj_data.qvel.copy())
     dtype = jnp.asarray(0.0).dtype
     rng = np.random.default_rng(seed + 1)
     c_q = jnp.asarray(rng.normal(size=sim.nq), dtype)
