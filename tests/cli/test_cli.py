@@ -23,19 +23,26 @@ def twinrl(*args, timeout=900):
 
 @pytest.mark.slow
 def test_gradcheck_command_on_a_user_mjcf_path(tmp_path):
-    # A user's own MJCF by path (here the bundled cartpole file, copied elsewhere; the
-    # constrained scenes are gradchecked in tests/physics/test_gradcheck.py).
-    src = (ROOT / "twinrl/physics/scenes/cartpole.xml").read_text()
-    (tmp_path / "my_robot.xml").write_text(src)
-    out = twinrl("gradcheck", str(tmp_path / "my_robot.xml"), "--x64", "--horizon", "20",
-                 "--out", str(tmp_path / "gc"))
+    # A user's own MJCF by path, with contacts: a free box thrown along a plane (keyframe start),
+    # named like a bundled scene to check it does not get that scene's scenario.
+    src = (ROOT / "tests/physics/foreign/box_sliding.xml").read_text()
+    (tmp_path / "push.xml").write_text(src)
+    out = twinrl("gradcheck", str(tmp_path / "push.xml"), "--x64", "--horizon", "20",
+                 "--scenario", "zero", "--strict", "--out", str(tmp_path / "gc"))
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     summary = json.loads((tmp_path / "gc/summary.json").read_text())
-    assert summary["scene"] == "my_robot" and summary["nan_count"] == 0
-    assert summary["max_rel_error"] <= 1e-4 and summary["passed"] is True
+    assert summary["scene"] == "push" and summary["scenario"] == "zero"
+    assert summary["nan_count"] == 0 and summary["constrained_steps"] >= 10
+    assert summary["max_rel_error"] <= 1e-4 and summary["passed_strict"] is True
+    assert summary["unjudged"] == []
+    groups = {g["group"]: g for g in summary["groups"]}
+    assert groups["params.friction"]["resolved"] >= 1 and groups["qpos"]["entries"] == 6
     assert {"group", "index", "grad", "fd", "rel_err", "status"} <= set(summary["rows"][0])
     assert "PASS" in out.stdout and "max rel err" in out.stdout
     assert "Failed to import warp" not in out.stdout
+    # --rtol 0 is a usage error (it used to mean the default tolerance)
+    bad = twinrl("gradcheck", str(tmp_path / "push.xml"), "--rtol", "0")
+    assert bad.returncode == 2 and "--rtol must be > 0" in bad.stderr
 
 
 def test_xla_cache_warnings_are_quiet_unless_asked_for():

@@ -180,3 +180,10 @@ def test_checkpoint_without_a_system_is_evaluated_in_the_nominal_task(full_run, 
         assert s["system"]["from"].startswith("nominal") and s["system"]["latency"] == 0
     finally:
         (tmp_path / "kept.json").rename(out / "policy" / "system.json")
+
+
+def test_progress_bar_shows_only_reported_finite_figures():
+    from twinrl.learn.runner import _progress_figures
+    assert _progress_figures({"return": 184.04}) == "return 184.04"  # PPO: no 'grad nan'
+    assert _progress_figures({"return": 1.0, "grad_norm": float("nan")}) == "return 1.00"
+    assert _progress_figures({"return": 2.0, "grad_norm": 0.5}) == "return 2.00  grad 5.00e-01"

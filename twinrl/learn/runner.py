@@ -197,9 +197,7 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
         writer.write(epoch, row)
         finished[0] += 1
         if bar is not None:
-            bar.update(task, completed=finished[0],
-                       ret=f"{row.get('return', float('nan')):.2f}",
-                       gn=f"{row.get('grad_norm', float('nan')):.2e}")
+            bar.update(task, completed=finished[0], figures=_progress_figures(row))
 
     kwargs = dict(train_kwargs or {})
     kwargs["progress_fn"] = progress_fn
@@ -262,11 +260,22 @@ def _progress_bar(title: str, total: int, enabled: bool):
     from twinrl import report
 
     bar = Progress(TextColumn(f"[bold]{title}"), BarColumn(), MofNCompleteColumn(),
-                   TextColumn("return {task.fields[ret]}  grad {task.fields[gn]}"),
+                   TextColumn("{task.fields[figures]}"),
                    TimeElapsedColumn(), TimeRemainingColumn(), console=report.console,
                    auto_refresh=True)
-    task = bar.add_task("train", total=total or None, ret="-", gn="-")
+    task = bar.add_task("train", total=total or None, figures="")
     return bar, task
+
+
+def _progress_figures(row) -> str:
+    """The progress bar's figures: only those the trainer reported and that are finite (PPO
+    reports no gradient norm: the bar showed 'grad nan')."""
+    out = []
+    for key, label, fmt in (("return", "return", ".2f"), ("grad_norm", "grad", ".2e")):
+        v = row.get(key)
+        if v is not None and np.isfinite(v):
+            out.append(f"{label} {v:{fmt}}")
+    return "  ".join(out)
 
 
 def _plot_training(path: Path, metrics: dict[str, list[float]], title: str) -> Path:
