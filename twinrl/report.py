@@ -174,13 +174,20 @@ def plot_curves(path: str | os.PathLike, curves: dict[str, tuple[Sequence[float]
         ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+
+def _save(fig, path) -> Path:
+    """Lay out, write (creating the folder) and close a figure."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     plt.close(fig)
     return path
-
 
 def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float) -> Path:
     """Write RGB frames as MP4 (H.264 via imageio-ffmpeg); GIF beside it if ffmpeg is missing.
@@ -292,12 +299,7 @@ def plot_loop_returns(path: str | os.PathLike, summary: dict,
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7, loc=where)
     fig.suptitle(f"{summary['env']} (seed {summary['seed']})", fontsize=11)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_param_errors(path: str | os.PathLike, identified: Sequence[dict],
@@ -355,12 +357,7 @@ def plot_param_errors(path: str | os.PathLike, identified: Sequence[dict],
         labels.append("identified only in combination (error after the common scale)")
     ax.legend(handles, labels, fontsize=7, loc="lower right")
     ax.grid(alpha=0.3, axis="x")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def label_frames(frames: Sequence[np.ndarray], labels: Sequence[str],
