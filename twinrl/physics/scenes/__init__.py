@@ -56,7 +56,7 @@ def scenario(name: str, nq: int, nv: int, nu: int, qpos0: np.ndarray, horizon: i
     ``"zero"``: no actuation (a dropped object, a passive mechanism); a bundled scene's name: that
     scene's own scenario (it needs that scene's sizes).
     """
-    if name not in SCENARIOS and name != "mjcf":
+    if name not in SCENARIOS:
         raise ValueError(f"unknown gradcheck scenario {name!r}; choose one of "
                          f"{', '.join(SCENARIOS)}")
     if name in SCENES:
