@@ -40,8 +40,11 @@ def _gradcheck_parser(sub) -> None:
         description="Reverse-mode gradients of a rollout loss w.r.t. actions, initial state and "
                     "every PhysParams field, against central finite differences. Exits 1 if a "
                     "relative error exceeds the tolerance or a gradient is non-finite.")
-    p.add_argument("targets", nargs="*", default=["all"], metavar="SCENE|MJCF-PATH",
-                   help="bundled scene name, path to your MJCF, or 'all' (default)")
+    p.add_argument("targets", nargs="*", default=["all"], metavar="SCENE|TASK|MJCF-PATH",
+                   help="bundled scene name, a manipulation task's name (peg_insertion, "
+                        "spatula_flipping, needle_threading: its scene through the scripted "
+                        "expert's tool-object contacts), path to your MJCF, or 'all' (default: "
+                        "the bundled scenes)")
     p.add_argument("--horizon", "-T", type=int, default=None,
                    help="rollout steps (default: 100; 50 for peg_in_hole)")
     p.add_argument("--x64", action="store_true",
@@ -71,6 +74,15 @@ def _gradcheck_parser(sub) -> None:
     p.set_defaults(func=_cmd_gradcheck)
 
 
+def _task_scenes() -> tuple[str, ...]:
+    """Tasks whose scene ``gradcheck`` takes by the task's name (the manipulation suite: its
+    MJCF is composed, not a bundled file), with the task's scripted expert as the scenario."""
+    from twinrl.envs import TASKS
+    from twinrl.envs.arm.base import ArmTask
+
+    return tuple(n for n, e in TASKS.items() if issubclass(e.env_class, ArmTask))
+
+
 def _cmd_gradcheck(args) -> int:
     import jax
 
@@ -93,7 +105,18 @@ def _cmd_gradcheck(args) -> int:
         raise UsageError(f"--iterations must be >= 1, got {args.iterations}")
     h = 1e-6 if args.x64 else 1e-3
     # fail fast on bad input
-    sims = [Sim.load(t, iterations=args.iterations, gradient=args.gradient) for t in targets]
+    sims, scenarios = [], {}
+    for t in targets:
+        if t in _task_scenes():  # a manipulation task: its scene, through the expert's contacts
+            from twinrl import envs
+
+            env = envs.make(t)
+            sims.append(Sim.load(env.mjcf(), frame_skip=int(env.config.frame_skip), name=t,
+                                 iterations=args.iterations, gradient=args.gradient))
+            if args.scenario is None:
+                scenarios[t] = env.gradcheck_scenario(args.horizon or 30, seed=args.seed)
+        else:
+            sims.append(Sim.load(t, iterations=args.iterations, gradient=args.gradient))
     if not args.x64:
         report.console.print("[yellow]float32: finite differences are coarse; use --x64 for the "
                              "real check[/yellow]")
@@ -103,7 +126,8 @@ def _cmd_gradcheck(args) -> int:
         with report.console.status(f"{sim.name}: compiling and differencing the rollout..."):
             try:
                 r = gradcheck(sim, horizon=args.horizon, h=h, rtol=rtol, seed=args.seed,
-                              scenario=args.scenario, tolerance=tolerance,
+                              scenario=scenarios.get(sim.name, args.scenario),
+                              tolerance=tolerance,
                               settle=args.settle)
             except ValueError as e:
                 raise UsageError(f"{sim.name}: {e}") from None

@@ -31,7 +31,8 @@ def made():
 
 
 def test_registry_lists_the_tasks():
-    assert set(NAMES) == {"pendulum_swingup", "cartpole_balance", "cartpole_swingup", "push"}
+    assert set(NAMES) == {"pendulum_swingup", "cartpole_balance", "cartpole_swingup", "push",
+                          "peg_insertion", "spatula_flipping", "needle_threading"}
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -134,8 +135,15 @@ def test_task_declares_cameras_and_action_bounds(made):
         m = env.sim.mj_model
         for cam in env.cameras:
             assert m.camera(cam).id >= 0
-        np.testing.assert_array_equal(env.action_to_ctrl(jnp.full(env.action_size, 2.0)),
-                                      env.sim.ctrl_range[:, 1])  # actions are clipped to [-1, 1]
+        s = env.reset(jax.random.PRNGKey(0))
+        q, v = s.pipeline_state.qpos, s.pipeline_state.qvel
+        big, one = jnp.full(env.action_size, 2.0), jnp.ones(env.action_size)
+        ctrl = np.asarray(env.control(q, v, big))
+        np.testing.assert_array_equal(ctrl, env.control(q, v, one))  # actions clip to [-1, 1]
+        r = env.sim.ctrl_range
+        assert ctrl.shape == (env.sim.nu,) and np.all((ctrl >= r[:, 0]) & (ctrl <= r[:, 1]))
+        if type(env).control is envs.Env.control:  # affine onto the actuators' range
+            np.testing.assert_array_equal(ctrl, r[:, 1])
         assert env.episode_length > 0 and env.dt > 0 and env.backend == "mjx"
 
 

@@ -101,6 +101,12 @@ class PerturbationSpec:
     camera_rot_std: float = 0.03
     """Standard deviation (rad) of each component of the cameras' true rotation offset
     (axis-angle, in the camera frame)."""
+    tool_pos_std: float = 0.0
+    """Standard deviation (m) of each axis of the grasp offset: where the tool (body ``tool``, the
+    arm tasks' peg, spatula or thread) truly sits in the hand, from its nominal place."""
+    tool_rot_std: float = 0.0
+    """Standard deviation (rad) of each component of the tool's true rotation in the hand
+    (axis-angle, in the tool's frame)."""
 
 
 def tolerance(x: jax.Array, margin: float, value_at_margin: float = 0.1,
@@ -137,7 +143,8 @@ class Env(brax_base.Env):
     """
 
     scene: ClassVar[str]
-    """Bundled scene name (``twinrl/physics/scenes/<scene>.xml``)."""
+    """Scene name: a bundled scene (``twinrl/physics/scenes/<scene>.xml``) unless ``mjcf`` says
+    otherwise."""
     cameras: ClassVar[tuple[str, ...]]
     """Named cameras of the scene, first one the default view."""
     reward_term_names: ClassVar[tuple[str, ...]]
@@ -153,7 +160,7 @@ class Env(brax_base.Env):
             raise TypeError(f"config must be a {self.Config.__name__}, got {type(config).__name__}")
         self.config = config
         self.name = name or type(self).__name__
-        sim = Sim.load(self.scene, frame_skip=int(config.frame_skip), name=self.scene)
+        sim = Sim.load(self.mjcf(), frame_skip=int(config.frame_skip), name=self.scene)
         if params is not None:
             if not isinstance(params, PhysParams):
                 raise TypeError(f"params must be a PhysParams, got {type(params).__name__}")
@@ -179,6 +186,12 @@ class Env(brax_base.Env):
     @classmethod
     def default_config(cls) -> TaskConfig:
         return cls.Config()
+
+    @classmethod
+    def mjcf(cls) -> str:
+        """The task's MJCF, as ``twinrl.physics.load_mjcf`` takes it (a bundled scene's name, a
+        path or an XML string): the simulator and the real twin are both built from it."""
+        return cls.scene
 
     @property
     def sys(self):
@@ -228,6 +241,20 @@ class Env(brax_base.Env):
             r = r * terms[k]
         return r
 
+    def control(self, qpos: jax.Array, qvel: jax.Array, action: jax.Array) -> jax.Array:
+        """The actuators' ``ctrl`` for ``action`` in the state ``(qpos, qvel)``: the task's
+        controller, run by the simulator and by the real twin alike (a robot's controller sees its
+        measured joints). Default: ``action_to_ctrl`` (state-independent); the arm tasks turn
+        end-effector commands into joint targets here (``twinrl.envs.arm.base``)."""
+        return self.action_to_ctrl(action)
+
+    def sim_step(self, data: mjx.Data, action: jax.Array, params: PhysParams | None = None
+                 ) -> mjx.Data:
+        """One control step of the simulator from ``data`` with ``action`` through ``control``
+        (``params``: the physical parameters; None: the simulator's own). The step every rollout
+        of the task (``step``, trajopt, sysid, the hybrid model) takes."""
+        return self.sim.step(data, self.control(data.qpos, data.qvel, action), params)
+
     def reward(self, qpos, qvel, action) -> tuple[jax.Array, dict[str, jax.Array]]:
         terms = self.reward_terms(qpos, qvel, action)
         return self.combine(terms), terms
@@ -254,7 +281,7 @@ class Env(brax_base.Env):
     def step(self, state: State, action: jax.Array) -> State:
         # JAX's default float (float32; float64 under x64, for finite-difference checks)
         action = jnp.asarray(action, jnp.result_type(float)).reshape(self.action_size)
-        data = self.sim.step(state.pipeline_state, self.action_to_ctrl(action), self.params)
+        data = self.sim_step(state.pipeline_state, action, self.params)
         reward, terms = self.reward(data.qpos, data.qvel, action)
         # A diverged simulation ends the episode instead of feeding NaN to the learner.
         finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))

@@ -11,6 +11,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable
 
+from twinrl.envs.arm.needle_threading import NeedleThreading
+from twinrl.envs.arm.peg_insertion import PegInsertion
+from twinrl.envs.arm.spatula_flipping import SpatulaFlipping
 from twinrl.envs.base import Env, TaskConfig, replace_config
 from twinrl.envs.cartpole import Cartpole, CartpoleConfig
 from twinrl.envs.pendulum import PendulumSwingup
@@ -32,6 +35,9 @@ TASKS: dict[str, _Entry] = {
     "cartpole_balance": _Entry(Cartpole, lambda: CartpoleConfig(swingup=False)),
     "cartpole_swingup": _Entry(Cartpole, lambda: CartpoleConfig(swingup=True)),
     "push": _Entry(Push, Push.default_config),
+    "peg_insertion": _Entry(PegInsertion, PegInsertion.default_config),
+    "spatula_flipping": _Entry(SpatulaFlipping, SpatulaFlipping.default_config),
+    "needle_threading": _Entry(NeedleThreading, NeedleThreading.default_config),
 }
 
 

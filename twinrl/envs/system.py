@@ -88,7 +88,7 @@ class System:
         if env_name not in TASKS:
             raise ValueError(f"unknown task {env_name!r}; registered tasks are {', '.join(TASKS)}")
         env_class = TASKS[env_name].env_class
-        model = load_mjcf(env_class.scene)
+        model = load_mjcf(env_class.mjcf())
         params = _as_f64(PhysParams.from_model(model))
         cams = None
         if cameras:

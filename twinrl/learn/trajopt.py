@@ -161,7 +161,7 @@ def env_problem(env, state) -> tuple[RolloutFn, RewardFn]:
     """``(rollout_fn, reward_fn)`` of a ``twinrl.envs.Env`` from the start ``State``.
 
     The state vector is ``concat(qpos, qvel)`` after each control step, simulated exactly as
-    ``env.step`` does (``env.action_to_ctrl``, ``env.params``), and the reward is ``env.reward``,
+    ``env.step`` does (``env.sim_step``: the task's controller, ``env.params``), and the reward is ``env.reward``,
     so ``trajectory_return`` equals ``env.unroll(state, actions)[1].sum()``. Call it inside a jit
     with the state as an argument, so one compile serves every start state.
 
@@ -179,8 +179,7 @@ def env_problem(env, state) -> tuple[RolloutFn, RewardFn]:
         if queue is not None:
             sent = jnp.clip(actions.astype(queue.dtype), -1.0, 1.0)
             actions = jnp.concatenate([queue, sent], axis=0)[:actions.shape[0]]
-        ctrl = jax.vmap(env.action_to_ctrl)(actions)
-        _, traj = env.sim.rollout(data0, ctrl, env.params)
+        _, traj = env.sim.rollout(data0, actions, env.params, step_fn=env.sim_step)
         return jnp.concatenate([traj.qpos, traj.qvel], axis=-1)
 
     def reward_fn(s, a):

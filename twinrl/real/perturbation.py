@@ -57,6 +57,11 @@ class Perturbation:
     """Offset (m) of every camera's true position from its nominal one, in its parent frame."""
     camera_rot_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Rotation (axis-angle, rad, camera frame) of every camera's true orientation from nominal."""
+    tool_pos_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Grasp offset (m): the true position of body ``tool`` in its parent (the hand) minus the
+    nominal one. Only for scenes with a body named ``tool`` (the arm tasks)."""
+    tool_rot_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Grasp rotation (axis-angle, rad, in the tool's frame) of body ``tool`` from nominal."""
 
     def __post_init__(self):
         for name in _SCALES + _EXTRAS:
@@ -84,7 +89,8 @@ class Perturbation:
             raise ValueError(
                 f"Perturbation.obs_noise_std must be finite and >= 0, got {self.obs_noise_std!r}"
             )
-        for name in ("camera_pos_offset", "camera_rot_offset"):
+        for name in ("camera_pos_offset", "camera_rot_offset", "tool_pos_offset",
+                     "tool_rot_offset"):
             v = np.asarray(getattr(self, name), dtype=np.float64)
             if v.shape != (3,) or not np.all(np.isfinite(v)):
                 raise ValueError(
@@ -148,7 +154,19 @@ class Perturbation:
             obs_noise_std=float(rng.uniform(*spec.obs_noise_std)),
             camera_pos_offset=tuple(rng.normal(0.0, spec.camera_pos_std, size=3)),
             camera_rot_offset=tuple(rng.normal(0.0, spec.camera_rot_std, size=3)),
+            **cls._tool_offsets(spec, m, rng),
         )
+
+    @staticmethod
+    def _tool_offsets(spec: PerturbationSpec, m: mujoco.MjModel, rng) -> dict:
+        # Drawn only where the spec asks for them, so older tasks' draws stay what they were.
+        if not (spec.tool_pos_std or spec.tool_rot_std):
+            return {}
+        if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "tool") < 0:
+            raise ValueError("perturbation_spec.tool_pos_std/tool_rot_std: the scene has no body "
+                             "named 'tool'")
+        return {"tool_pos_offset": tuple(rng.normal(0.0, spec.tool_pos_std, size=3)),
+                "tool_rot_offset": tuple(rng.normal(0.0, spec.tool_rot_std, size=3))}
 
     def is_none(self) -> bool:
         """True when applying this perturbation changes nothing."""
@@ -160,6 +178,8 @@ class Perturbation:
             and self.obs_noise_std == 0.0
             and not any(self.camera_pos_offset)
             and not any(self.camera_rot_offset)
+            and not any(self.tool_pos_offset)
+            and not any(self.tool_rot_offset)
         )
 
     # ------------------------------------------------------------------ application
@@ -182,7 +202,15 @@ class Perturbation:
         )
         model.dof_frictionloss[:] += vec("extra_frictionloss", model.nv, 0.0)
         model.geom_friction[:, 0] *= vec("friction_scale", model.ngeom, 1.0)
-        model.actuator_gainprm[:, 0] *= vec("gain_scale", model.nu, 1.0)
+        gs = vec("gain_scale", model.nu, 1.0)
+        # A position servo (force = kp ctrl - kp q - kv qdot) has its stiffness in the gain and in
+        # the bias; a "gain" error of such a controller scales both, else it would also move the
+        # servo's set point.
+        servo = ((model.actuator_biastype == int(mujoco.mjtBias.mjBIAS_AFFINE))
+                 & np.isclose(model.actuator_biasprm[:, 1], -model.actuator_gainprm[:, 0])
+                 & (model.actuator_gainprm[:, 0] != 0))
+        model.actuator_gainprm[:, 0] *= gs
+        model.actuator_biasprm[servo, 1] *= gs[servo]
         offset = vec("actuator_offset", model.nu, 0.0)
         for i in np.flatnonzero(offset):
             if int(model.actuator_gaintype[i]) != int(mujoco.mjtGain.mjGAIN_FIXED) or (
@@ -193,13 +221,29 @@ class Perturbation:
             # force = gain * ctrl + bias0 (+ bias1 * length + bias2 * velocity, zero for a motor)
             model.actuator_biastype[i] = int(mujoco.mjtBias.mjBIAS_AFFINE)
             model.actuator_biasprm[i, 0] += offset[i] * model.actuator_gainprm[i, 0]
-        rot = np.asarray(self.camera_rot_offset)
-        angle = float(np.linalg.norm(rot))
-        dq = np.array([1.0, 0.0, 0.0, 0.0])
-        if angle > 0:
-            mujoco.mju_axisAngle2Quat(dq, rot / angle, angle)
+        dq = _rotvec_quat(self.camera_rot_offset)
         for c in range(model.ncam):
             model.cam_pos[c] += np.asarray(self.camera_pos_offset)
             q = np.empty(4)
             mujoco.mju_mulQuat(q, model.cam_quat[c].copy(), dq)  # dq in the camera's own frame
             model.cam_quat[c] = q
+        tool = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "tool")
+        if tool >= 0:
+            model.body_pos[tool] += np.asarray(self.tool_pos_offset)
+            q = np.empty(4)
+            mujoco.mju_mulQuat(q, model.body_quat[tool].copy(),
+                               _rotvec_quat(self.tool_rot_offset))
+            model.body_quat[tool] = q
+        elif any(self.tool_pos_offset) or any(self.tool_rot_offset):
+            raise ValueError("Perturbation.tool_pos_offset/tool_rot_offset: the model has no body "
+                             "named 'tool'")
+
+
+def _rotvec_quat(rotvec) -> np.ndarray:
+    """Unit quaternion of an axis-angle vector."""
+    rot = np.asarray(rotvec, np.float64)
+    angle = float(np.linalg.norm(rot))
+    dq = np.array([1.0, 0.0, 0.0, 0.0])
+    if angle > 0:
+        mujoco.mju_axisAngle2Quat(dq, rot / angle, angle)
+    return dq

@@ -142,7 +142,7 @@ def _serve(conn, parent: int) -> None:
         twin.close()
 
 
-_OPS = ("reset", "step", "render", "render_images")
+_OPS = ("reset", "step", "render", "render_images", "move_camera")
 
 
 class TwinClient(gym.Env):
@@ -223,6 +223,10 @@ class TwinClient(gym.Env):
                       kinds: Sequence[str] = ("rgb", "depth", "segmentation")):
         """Camera frames from the twin's (true, unknown) camera pose, as ``RealTwin``'s."""
         return self.__call("render_images", camera, tuple(kinds))
+
+    def move_camera(self, coords) -> int:
+        """Move the camera mount (arm tasks), as ``RealTwin.move_camera``; returns the steps."""
+        return self.__call("move_camera", np.asarray(coords, np.float64))
 
     def close(self) -> None:
         proc = self.__proc

@@ -239,7 +239,7 @@ class RealTwin(gym.Env):
             raise TypeError(f"perturbation must be a Perturbation or None, got {perturbation!r}")
         self._perturbation = perturbation
 
-        model = load_mjcf(self.task.scene)
+        model = load_mjcf(self.task.mjcf())
         model.opt.integrator = _INTEGRATORS[integrator]
         model.opt.iterations = int(iterations)
         model.opt.ls_iterations = max(int(model.opt.ls_iterations), int(iterations))
@@ -253,7 +253,7 @@ class RealTwin(gym.Env):
         self._initial_state = jax.jit(self.task.initial_state)
         self._observe = jax.jit(self.task.observe)
         self._reward = jax.jit(self.task.reward)
-        self._to_ctrl = jax.jit(self.task.action_to_ctrl)
+        self._control = jax.jit(self.task.control)
 
         nu = self.task.action_size
         obs_size = self.task.observation_size
@@ -268,6 +268,13 @@ class RealTwin(gym.Env):
         self._np_random = np.random.default_rng(rngs[1])
         self._pending: collections.deque = collections.deque()
         self._t = 0
+        self.camera_steps = 0
+        """Control steps spent moving the camera mount (``move_camera``) since construction."""
+        self._mount = getattr(self.task, "mount", None)
+        self._mount_coords = None
+        if self._mount is not None:
+            self.move_camera(self._mount.default)
+            self.camera_steps = 0
 
     # ------------------------------------------------------------------ gymnasium API
     @property
@@ -308,7 +315,8 @@ class RealTwin(gym.Env):
         a = np.clip(a, -1.0, 1.0)
         self._pending.append(a)
         applied = self._pending.popleft()
-        self._data.ctrl[:] = np.asarray(self._to_ctrl(applied), np.float64)
+        d = self._data
+        self._data.ctrl[:] = np.asarray(self._control(d.qpos, d.qvel, applied), np.float64)
         for _ in range(self._n_physics):
             mujoco.mj_step(self._model, self._data)
         self._t += 1
@@ -341,9 +349,51 @@ class RealTwin(gym.Env):
                                             shadows=self.shadows)
         return self._renderer.images(self._data, camera or self.camera, kinds)
 
+    def move_camera(self, coords) -> int:
+        """Move the task's camera mount (arm tasks: ``task.mount``) to unconstrained mount
+        coordinates ``coords`` (3,) and return the control steps the move takes at the mount's
+        speed limit (also added to ``camera_steps``). The camera lands at the commanded pose
+        composed with the hidden hand-eye offset (the perturbation's camera offsets, in the
+        camera's frame), as a camera on a robot's hand does."""
+        if self._mount is None:
+            raise ValueError(f"task {self.task_name!r} has no camera mount; its cameras are fixed: "
+                             f"{list(self.task.cameras)}")
+        c = np.asarray(coords, np.float64)
+        if c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise ValueError(f"camera mount coordinates must be 3 finite numbers, got {coords!r}")
+        mount, p = self._mount, self._perturbation
+        steps = 0 if self._mount_coords is None else mount.steps_to_move(self._mount_coords, c)
+        eye = np.asarray(mount.eye(jax.numpy.asarray(c)), np.float64)
+        R = np.asarray(mount.xmat(jax.numpy.asarray(c)), np.float64)
+        off = np.empty(9)
+        quat_off = np.empty(4)
+        rot = np.asarray(p.camera_rot_offset, np.float64)
+        angle = float(np.linalg.norm(rot))
+        quat_off[:] = [1.0, 0.0, 0.0, 0.0]
+        if angle > 0:
+            mujoco.mju_axisAngle2Quat(quat_off, rot / angle, angle)
+        mujoco.mju_quat2Mat(off, quat_off)
+        R_true = R @ off.reshape(3, 3)
+        cid = mujoco.mj_name2id(self._model, mujoco.mjtObj.mjOBJ_CAMERA, "mount")
+        self._model.cam_pos[cid] = eye + R @ np.asarray(p.camera_pos_offset, np.float64)
+        q = np.empty(4)
+        mujoco.mju_mat2Quat(q, R_true.reshape(-1))
+        self._model.cam_quat[cid] = q
+        self._model.cam_fovy[cid] = mount.fovy
+        mujoco.mj_camlight(self._model, self._data)  # the data's camera frame, from the new pose
+        self._mount_coords = c
+        self.camera_steps += steps
+        return steps
+
     def nominal_camera(self, camera: str | None = None) -> dict[str, np.ndarray | float]:
         """A camera's *nominal* pose (from the task's MJCF) and intrinsics: ``pos`` (3,) and
         ``xmat`` (3, 3) in the world frame, ``fovy`` (deg), ``width``, ``height``."""
+        if self._mount is not None and (camera or self.camera) == "mount":
+            # a camera mount's nominal pose is the commanded one (without the hand-eye offset)
+            c = jax.numpy.asarray(self._mount_coords)
+            return {"pos": np.asarray(self._mount.eye(c), np.float64),
+                    "xmat": np.asarray(self._mount.xmat(c), np.float64),
+                    "fovy": float(self._mount.fovy), "width": self.width, "height": self.height}
         m = self.task.sim.mj_model
         d = mujoco.MjData(m)
         mujoco.mj_kinematics(m, d)

@@ -165,7 +165,7 @@ def _sim_next(env, params):
     """``(qpos, qvel, applied) -> (qpos', qvel')`` of the simulator, one control step."""
     def f(qpos, qvel, applied):
         data = env.sim.init(qpos, qvel)
-        data = env.sim.step(data, env.action_to_ctrl(applied), params)
+        data = env.sim_step(data, applied, params)
         return data.qpos, data.qvel
     return f
 

@@ -1,0 +1,187 @@
+"""The manipulation suite's costs and trajectory optimisation's success, per task.
+
+Per task (``peg_insertion``, ``spatula_flipping``, ``needle_threading``; float32, CPU unless JAX
+finds an accelerator):
+- compile seconds of the batched ``step`` and of the episode-return gradient;
+- forward env-steps/s (control steps, each ``frame_skip`` physics steps): single env, vmap 16;
+- gradient env-steps/s of ``jax.value_and_grad`` of an episode's return w.r.t. its actions:
+  single, vmap 16;
+- trajectory optimisation from the privileged state (``twinrl.learn.trajopt``, first order with
+  a line search, ``--iterations`` improvements from zero actions) on ``--starts`` random initial
+  states: success rate (the task's ``success`` at the episode's end) and seconds per solved
+  trajectory (wall time of all the solves / solved ones; compile excluded and reported apart);
+- frames/s of a 64x64 RGB-D + segmentation image of the task's scene from its camera mount
+  (``ArmTask.render``: hard image, and soft with its gradient w.r.t. the mount pose).
+
+Prints a table and writes ``DIR/manipulation.json`` (``--out DIR``); the optimised action
+sequences go to ``DIR/<task>_plans.npz`` (the demonstrations the imitation stage learns from).
+
+    python bench/manipulation.py --out bench/results
+    python bench/manipulation.py --tasks peg_insertion --starts 20 --iterations 40
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+import twinrl
+from twinrl import envs
+from twinrl.learn import trajopt
+from twinrl.report import print_table, write_json
+
+TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
+
+
+def _timed(fn, *args):
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return time.perf_counter() - t0, out
+
+
+def _best(fn, *args, repeats: int) -> float:
+    jax.block_until_ready(fn(*args))
+    return min(_timed(fn, *args)[0] for _ in range(repeats))
+
+
+def throughput(env, repeats: int) -> dict:
+    T = env.episode_length
+    key = jax.random.PRNGKey(0)
+    s1 = env.reset(key)
+    s16 = jax.vmap(env.reset)(jax.random.split(key, 16))
+    a1 = 0.5 * jax.random.uniform(key, (T, env.action_size), minval=-1.0, maxval=1.0)
+    a16 = jnp.broadcast_to(a1, (16,) + a1.shape)
+
+    def ret(s, a):
+        return env.unroll(s, a)[1].sum()
+
+    fwd1, fwd16 = jax.jit(ret), jax.jit(jax.vmap(ret))
+    grad1 = jax.jit(jax.value_and_grad(ret, argnums=1))
+    grad16 = jax.jit(jax.vmap(jax.value_and_grad(ret, argnums=1)))
+    out = {"T": T, "frame_skip": int(env.config.frame_skip), "nv": env.sim.nv,
+           "action_size": env.action_size}
+    out["compile_forward_s"], _ = _timed(fwd16, s16, a16)
+    out["compile_grad_s"], _ = _timed(grad16, s16, a16)
+    _timed(fwd1, s1, a1)
+    _timed(grad1, s1, a1)
+    out["forward_steps_per_s_single"] = T / _best(fwd1, s1, a1, repeats=repeats)
+    out["forward_steps_per_s_vmap16"] = 16 * T / _best(fwd16, s16, a16, repeats=repeats)
+    out["grad_steps_per_s_single"] = T / _best(grad1, s1, a1, repeats=repeats)
+    out["grad_steps_per_s_vmap16"] = 16 * T / _best(grad16, s16, a16, repeats=repeats)
+    return out
+
+
+def render_rate(env, repeats: int) -> dict:
+    s = env.reset(jax.random.PRNGKey(0))
+    coords = jnp.zeros(3, jnp.float32)
+    hard = jax.jit(lambda c: env.render(s, c, size=64).depth)
+    soft = jax.jit(jax.grad(lambda c: jnp.sum(env.render(s, c, tau=1.0, size=64).rgb)))
+    _timed(hard, coords)
+    _timed(soft, coords)
+    return {"render_fps_64": 1.0 / _best(hard, coords, repeats=repeats),
+            "render_grad_fps_64": 1.0 / _best(soft, coords, repeats=repeats),
+            "ngeom_drawn": int(env.renderer.ngeom)}
+
+
+def solve(env, starts: int, iterations: int, batch: int, seed: int, config, say=print) -> dict:
+    """Trajectory optimisation from ``starts`` random initial states, ``batch`` at a time."""
+    T = env.episode_length
+    keys = jax.random.split(jax.random.PRNGKey(seed), starts)
+
+    def one(key):
+        s = env.reset(key)
+        rollout_fn, reward_fn = trajopt.env_problem(env, s)
+        a, hist = trajopt.optimize(rollout_fn, reward_fn, jnp.zeros((T, env.action_size)),
+                                   config, iterations)
+        final, rewards = env.unroll(s, a)
+        q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
+        return a, rewards.sum(), env.success(q, v), hist.value[0]
+
+    f = jax.jit(jax.vmap(one))
+    compile_s, _ = _timed(f.lower(keys[:batch]).compile)
+    plans, returns, success, initial = [], [], [], []
+    t0 = time.perf_counter()
+    for i in range(0, starts, batch):
+        k = keys[i:i + batch]
+        if k.shape[0] < batch:  # pad the last batch to the compiled size
+            k = jnp.concatenate([k, keys[:batch - k.shape[0]]])
+        a, r, s, r0 = jax.block_until_ready(f(k))
+        n = min(batch, starts - i)
+        plans.append(np.asarray(a)[:n])
+        returns.append(np.asarray(r)[:n])
+        success.append(np.asarray(s)[:n])
+        initial.append(np.asarray(r0)[:n])
+        say(f"[bench] {env.name}: {i + n}/{starts} solved "
+            f"{int(np.concatenate(success).sum())} ({time.perf_counter() - t0:.0f} s)")
+    wall = time.perf_counter() - t0
+    success = np.concatenate(success)
+    return {
+        "starts": starts, "iterations": iterations, "trajopt_compile_s": compile_s,
+        "success_rate": float(success.mean()),
+        "seconds_per_solved": wall / max(1, int(success.sum())),
+        "return_initial_mean": float(np.concatenate(initial).mean()),
+        "return_final_mean": float(np.concatenate(returns).mean()),
+        "_plans": np.concatenate(plans), "_keys": np.asarray(keys), "_success": success,
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--tasks", nargs="*", default=list(TASKS), choices=TASKS)
+    p.add_argument("--starts", type=int, default=50, help="random initial states per task")
+    p.add_argument("--iterations", type=int, default=60, help="trajopt improvements per start")
+    p.add_argument("--batch", type=int, default=10, help="starts optimised together (vmap)")
+    p.add_argument("--step-size", type=float, default=0.5, help="trajopt's largest step")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--skip", nargs="*", default=[], choices=("throughput", "render", "trajopt"))
+    p.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = p.parse_args(argv)
+    config = trajopt.TrajoptConfig(order=1, step_size=args.step_size, line_search_steps=6)
+    rows = []
+    for name in args.tasks:
+        env = envs.make(name)
+        row = {"task": name}
+        if "throughput" not in args.skip:
+            print(f"[bench] {name}: throughput ...", flush=True)
+            row.update(throughput(env, args.repeats))
+        if "render" not in args.skip:
+            print(f"[bench] {name}: render ...", flush=True)
+            row.update(render_rate(env, args.repeats))
+        if "trajopt" not in args.skip:
+            print(f"[bench] {name}: trajopt on {args.starts} starts ...", flush=True)
+            res = solve(env, args.starts, args.iterations, args.batch, args.seed, config,
+                        say=lambda s: print(s, flush=True))
+            args.out.mkdir(parents=True, exist_ok=True)
+            np.savez(args.out / f"{name}_plans.npz", actions=res.pop("_plans"),
+                     keys=res.pop("_keys"), success=res.pop("_success"))
+            row.update(res)
+        rows.append(row)
+    cols = [("task", "task"), ("compile fwd s", "compile_forward_s"),
+            ("compile grad s", "compile_grad_s"), ("fwd 1", "forward_steps_per_s_single"),
+            ("fwd vmap16", "forward_steps_per_s_vmap16"), ("grad 1", "grad_steps_per_s_single"),
+            ("grad vmap16", "grad_steps_per_s_vmap16"), ("render fps", "render_fps_64"),
+            ("render+grad fps", "render_grad_fps_64"), ("trajopt success", "success_rate"),
+            ("s / solved", "seconds_per_solved"), ("trajopt compile s", "trajopt_compile_s")]
+    print_table(f"manipulation suite (control steps/s, {jax.devices()[0].platform})",
+                [c for c, _ in cols], [[r.get(k) for _, k in cols] for r in rows])
+    meta = {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
+            "device": str(jax.devices()[0]), "machine": platform.machine(),
+            "python": sys.version.split()[0], "cpu_count": __import__("os").cpu_count(),
+            "trajopt": {"order": 1, "step_size": args.step_size, "line_search_steps": 6,
+                        "iterations": args.iterations}}
+    path = write_json(args.out / "manipulation.json", {"meta": meta, "tasks": rows})
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

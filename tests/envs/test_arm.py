@@ -1,0 +1,179 @@
+"""The manipulation suite's robot: Panda kinematics equal to its MJCF, a Cartesian controller that
+moves the tool where it is told, a camera mount whose differentiable images equal the real twin's
+OpenGL frames, and tasks whose success a scripted expert reaches in the simulator and in the real
+twin.
+
+(The parameterised tests over every task -- jit, no NaN, gradients, Brax PPO, the real twin's
+check_env, determinism and zero-perturbation agreement -- live in tests/envs/test_envs.py,
+tests/envs/test_ppo.py and tests/real/test_twin.py and take these tasks by registration.)
+"""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from twinrl import envs
+from twinrl.envs.arm import base as arm
+from twinrl.real.perturbation import Perturbation
+from twinrl.real.twin import RealTwin
+
+ARM_TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
+
+
+@pytest.fixture(scope="module")
+def made():
+    return {name: envs.make(name) for name in ARM_TASKS}
+
+
+def test_kinematics_equal_the_mjcf_and_its_jacobian():
+    m = mujoco.MjModel.from_xml_path(str(arm.ARM_XML))
+    d = mujoco.MjData(m)
+    site = m.site("tool_mount").id
+    fk = jax.jit(arm.forward_kinematics)
+    jac = jax.jit(arm.jacobian)
+    rng = np.random.default_rng(0)
+    for q in rng.uniform(arm.JOINT_RANGE[:, 0], arm.JOINT_RANGE[:, 1], size=(5, 7)):
+        d.qpos[:] = q
+        mujoco.mj_forward(m, d)
+        p, R = fk(jnp.asarray(q, jnp.float32))
+        np.testing.assert_allclose(p, d.site_xpos[site], atol=2e-6)
+        np.testing.assert_allclose(R, d.site_xmat[site].reshape(3, 3), atol=2e-6)
+        jp, jr = np.zeros((3, 7)), np.zeros((3, 7))
+        mujoco.mj_jacSite(m, d, jp, jr, site)
+        np.testing.assert_allclose(jac(jnp.asarray(q, jnp.float32)), np.vstack([jp, jr]),
+                                   atol=2e-6)
+    # Franka's published 'ready' pose: flange at (0.307, 0, 0.590), pointing down
+    _, _, p, R = arm.joint_frames(jnp.asarray(arm.HOME, jnp.float32))
+    np.testing.assert_allclose(p, [0.3069, 0.0, 0.5903], atol=2e-4)
+    np.testing.assert_allclose(R[:, 2], [0, 0, -1], atol=1e-6)
+
+
+def test_ik_reaches_a_pose_and_says_when_none_reaches_it():
+    q = arm.solve_ik([0.5, 0.1, 0.2], tcp=(0.0, 0.0, 0.1))
+    p, R = arm.forward_kinematics(jnp.asarray(q, jnp.float32), (0.0, 0.0, 0.1))
+    np.testing.assert_allclose(p, [0.5, 0.1, 0.2], atol=1e-4)
+    np.testing.assert_allclose(R[:, 2], [0, 0, -1], atol=1e-3)
+    assert np.all(q >= arm.JOINT_RANGE[:, 0]) and np.all(q <= arm.JOINT_RANGE[:, 1])
+    with pytest.raises(ValueError, match="no joint posture of the arm reaches"):
+        arm.solve_ik([2.0, 0.0, 0.2])
+
+
+@pytest.mark.parametrize("name", ARM_TASKS)
+def test_controller_moves_the_tool_where_it_is_told(name, made):
+    env = made[name]
+    step = jax.jit(env.step)
+    s0 = env.reset(jax.random.PRNGKey(0))
+    p0 = np.asarray(env.tool_point(s0.pipeline_state.qpos))
+    for axis in range(3):
+        a = np.zeros(env.action_size, np.float32)
+        a[axis] = 1.0 if axis < 2 else 0.5
+        s = s0
+        for _ in range(3):
+            s = step(s, a)
+        move = np.asarray(env.tool_point(s.pipeline_state.qpos)) - p0
+        # mostly along the commanded axis, a servo's lag short of 3 full steps
+        assert move[axis] > 0.3 * 3 * env.controller.max_step * a[axis], (name, axis, move)
+        assert abs(move[axis]) > 3 * np.abs(np.delete(move, axis)).max(), (name, axis, move)
+    if env.controller.yaw:
+        turn = np.array([0, 0, 0, 1.0], np.float32)
+        s = s0
+        for _ in range(3):
+            s = step(s, turn)
+        h = lambda st: float(arm.heading(
+            arm.forward_kinematics(st.pipeline_state.qpos[:7], env.controller.tcp)[1],
+            env.controller.nominal))
+        assert h(s) - h(s0) > 0.1, (h(s0), h(s))
+
+
+def test_camera_mount_stays_in_its_workspace_and_looks_at_its_target(made):
+    mount = made["peg_insertion"].mount
+    for coords in ([0.0, 0.0, 0.0], [30.0, -30.0, 5.0], [-3.0, 2.0, -40.0]):
+        c = jnp.asarray(coords, jnp.float32)
+        az, el, dist = np.asarray(mount.spherical(c))
+        assert mount.azimuth[0] <= az <= mount.azimuth[1]
+        assert mount.elevation[0] <= el <= mount.elevation[1]
+        assert mount.distance[0] <= dist <= mount.distance[1]
+        eye, R = np.asarray(mount.eye(c)), np.asarray(mount.xmat(c))
+        np.testing.assert_allclose(np.linalg.norm(eye - mount.target), dist, rtol=1e-5)
+        # the camera looks down its -z axis, at the target, with the world's up in its image up
+        np.testing.assert_allclose(-R[:, 2], (mount.target - eye) / dist, atol=1e-5)
+        assert R[2, 1] > 0 and abs(R[2, 0]) < 1e-5
+    assert mount.steps_to_move([0, 0, 0], [0, 0, 0]) == 0
+    assert mount.steps_to_move([-5, 0, 0], [5, 0, 0]) == int(
+        np.ceil(np.ptp(mount.azimuth) * 0.98 / mount.max_speed))
+    with pytest.raises(ValueError, match="outside the mount's workspace"):
+        mount.coords_of([10.0, 0.5, 0.5])
+
+
+@pytest.mark.parametrize("name", ARM_TASKS)
+def test_rendered_mount_views_equal_the_real_twins_opengl_frames(name, made):
+    """twinrl.render (differentiable) and the real twin's OpenGL camera agree at mount poses."""
+    env = made[name]
+    twin = RealTwin(name, perturbation=Perturbation.none(), width=64, height=64)
+    twin.reset(seed=3)
+    o = twin.oracle()
+    state = env.reset(jax.random.PRNGKey(0))
+    state = state.replace(pipeline_state=env.sim.init(o.qpos, o.qvel))
+    render = jax.jit(lambda s, c: env.render(s, c))
+    for coords in ([0.0, 0.0, 0.0], [1.0, -0.5, 0.3], [-1.5, 1.0, -0.5]):
+        twin.move_camera(coords)
+        gl = twin.render_images("mount")
+        im = render(state, jnp.asarray(coords, jnp.float32))
+        seen = gl["segmentation"] >= 0
+        assert seen.mean() > 0.5, (name, coords)
+        depth_err = np.abs(np.asarray(im.depth) - gl["depth"])[seen].mean()
+        agree = np.mean(np.asarray(im.segmentation) == gl["segmentation"])
+        print(f"\n{name} {coords}: depth {depth_err:.1e} m, segmentation {agree:.4f}")
+        assert depth_err < 1e-3 and agree >= 0.99, (name, coords, depth_err, agree)
+    twin.close()
+
+
+def test_image_gradient_reaches_the_camera_pose(made):
+    env = made["needle_threading"]
+    state = env.reset(jax.random.PRNGKey(0))
+
+    def loss(coords):
+        im = env.render(state, coords, tau=1.0, size=32)
+        return jnp.sum(im.rgb * jnp.array([1.0, 0.5, 0.25]))
+
+    g = jax.jit(jax.grad(loss))(jnp.zeros(3, jnp.float32))
+    assert np.all(np.isfinite(g)) and np.abs(np.asarray(g)).min() > 0, g
+
+
+def test_hand_eye_offset_moves_the_real_camera_and_camera_moves_are_counted():
+    p = Perturbation(camera_pos_offset=(0.01, -0.02, 0.0), camera_rot_offset=(0.0, 0.03, 0.0))
+    twin = RealTwin("peg_insertion", perturbation=p, width=64, height=64)
+    ideal = RealTwin("peg_insertion", perturbation=Perturbation.none(), width=64, height=64)
+    for t in (twin, ideal):
+        t.reset(seed=0)
+        assert t.move_camera([1.0, 0.5, 0.0]) > 0
+        assert t.camera_steps > 0
+    cid = twin.oracle().model.camera("mount").id
+    m_true, m_nominal = twin.oracle().model, ideal.oracle().model
+    assert np.linalg.norm(m_true.cam_pos[cid] - m_nominal.cam_pos[cid]) == pytest.approx(
+        np.linalg.norm([0.01, -0.02, 0.0]), rel=1e-6)
+    assert not np.array_equal(twin.render_images("mount")["depth"],
+                              ideal.render_images("mount")["depth"])
+    nominal = twin.nominal_camera("mount")
+    np.testing.assert_allclose(nominal["pos"], m_nominal.cam_pos[cid], atol=1e-6)
+    with pytest.raises(ValueError, match="3 finite numbers"):
+        twin.move_camera([0.0, np.nan, 0.0])
+    with pytest.raises(ValueError, match="has no camera mount"):
+        RealTwin("push").move_camera([0.0, 0.0, 0.0])
+    twin.close()
+    ideal.close()
+
+
+def test_grasp_offset_moves_the_tool_in_the_hand():
+    p = Perturbation(tool_pos_offset=(0.003, 0.0, -0.002))
+    twin = RealTwin("peg_insertion", perturbation=p)
+    ideal = RealTwin("peg_insertion", perturbation=Perturbation.none())
+    tool = twin.oracle().model.body("tool").id
+    np.testing.assert_allclose(twin.oracle().model.body_pos[tool]
+                               - ideal.oracle().model.body_pos[tool], [0.003, 0.0, -0.002])
+    # drawn for the arm tasks, whose spec asks for it
+    drawn = Perturbation.sample("peg_insertion", 0)
+    assert any(drawn.tool_pos_offset) and any(drawn.tool_rot_offset)
+    assert not any(Perturbation.sample("push", 0).tool_pos_offset)

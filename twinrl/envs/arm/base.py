@@ -1,0 +1,473 @@
+"""The robot of the manipulation tasks: a Panda-kinematics arm, its Cartesian controller, the tool at
+its flange and the camera mount (SAM-RL, Lv et al. 2023, Sec. 4: a Franka Panda does the task while
+a second arm moves an RGB-D camera).
+
+- ``panda.xml`` beside this file is the arm (7 revolute joints, position servos, gravity
+  compensated); ``compose(task_xml)`` puts it into a task's scene and attaches the task's ``tool``
+  body (peg, spatula, thread) at the flange. The result is one plain MJCF string, the same for MJX
+  and for the real twin's MuJoCo C engine.
+- ``forward_kinematics`` and ``jacobian`` are the arm's kinematics from Franka's published modified
+  Denavit-Hartenberg table (``DH``), in JAX: the controller runs them on measured joint angles
+  (as a robot's controller uses its nominal kinematic model), identically in the simulator and on
+  the real twin, and ``jax.grad`` goes through them.
+- ``CartesianController``: an end-effector command (a displacement of the tool centre point, plus
+  a rotation about the vertical where the task needs it) becomes joint targets by damped least
+  squares on that Jacobian, with the tool axis pulled towards the task's nominal direction and a
+  null-space pull towards the home posture. Differentiable end to end, so the gradient of a return
+  w.r.t. end-effector actions goes through the controller, the servos, the arm and the contacts.
+- ``CameraMount``: a camera carried by a second arm, modelled by what matters for sensing: a
+  reachable workspace (a spherical shell patch around a look-at point: azimuth, elevation,
+  distance ranges), a look-at constraint, and a speed limit (``steps_to_move``). Its pose is a
+  controllable input: ``pose(coords)`` gives a ``twinrl.render.Camera`` that is differentiable in
+  the coordinates, which is what the sensing-aware camera choice optimises.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["ARM_XML", "DH", "FLANGE", "HOME", "JOINT_RANGE", "compose", "forward_kinematics",
+           "joint_frames", "jacobian", "heading", "orientation_error", "CartesianController",
+           "CameraMount", "ik", "solve_ik", "ArmTask", "ArmConfig", "DOWN"]
+
+ARM_XML = Path(__file__).with_name("panda.xml")
+
+# Franka's modified DH parameters, one row per joint: (a_{i-1}, d_i, alpha_{i-1}); the flange
+# sits d = 0.107 along joint 7's axis. panda.xml's body offsets are these rows (tested).
+DH = np.array([
+    [0.0, 0.333, 0.0],
+    [0.0, 0.0, -np.pi / 2],
+    [0.0, 0.316, np.pi / 2],
+    [0.0825, 0.0, np.pi / 2],
+    [-0.0825, 0.384, -np.pi / 2],
+    [0.0, 0.0, np.pi / 2],
+    [0.088, 0.0, np.pi / 2],
+])
+FLANGE = 0.107
+TOOL_MOUNT = 0.05
+"""Distance (m) from the flange to the tool's frame along the flange axis (the hand's thickness)."""
+HOME = np.array([0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4])
+"""The Panda's 'ready' posture (flange at (0.307, 0, 0.590), pointing down)."""
+JOINT_RANGE = np.array([
+    [-2.8973, 2.8973], [-1.7628, 1.7628], [-2.8973, 2.8973], [-3.0718, -0.0698],
+    [-2.8973, 2.8973], [-0.0175, 3.7525], [-2.8973, 2.8973]])
+N_JOINTS = 7
+
+
+# ---------------------------------------------------------------------- MJCF composition
+def compose(task_xml: str | Path, base_pos=(0.0, 0.0, 0.0)) -> str:
+    """The MJCF of a task: its scene file with the arm (``panda.xml``) at ``base_pos`` and the
+    scene's top-level ``<body name="tool">`` moved onto the arm's ``tool_mount`` site frame.
+
+    The scene file is itself a valid MJCF (the tool then floats where it is written), so a user can
+    open it alone; its ``<option>``, ``<visual>`` and assets win over the arm's."""
+    scene = ET.parse(task_xml).getroot()
+    arm = ET.parse(ARM_XML).getroot()
+    world = scene.find("worldbody")
+    tool = world.find("body[@name='tool']")
+    if tool is None:
+        raise ValueError(f"{task_xml}: the scene needs a top-level <body name='tool'> to attach "
+                         "at the arm's flange")
+    world.remove(tool)
+    hand = arm.find(".//body[@name='hand']")
+    tool.set("pos", f"0 0 {TOOL_MOUNT}")
+    tool.set("gravcomp", "1")  # the controller compensates its configured payload, as Franka's does
+    tool.attrib.pop("quat", None)
+    hand.append(tool)
+    link0 = arm.find("worldbody/body[@name='link0']")
+    link0.set("pos", " ".join(f"{v:g}" for v in base_pos))
+    world.insert(0, link0)
+    for tag in ("compiler", "default", "actuator"):
+        part = arm.find(tag)
+        if part is None:
+            continue
+        mine = scene.find(tag)
+        if mine is None:
+            scene.insert(0, part)
+        else:
+            mine.extend(list(part))
+    return ET.tostring(scene, encoding="unicode")
+
+
+# ---------------------------------------------------------------------- kinematics
+def _dh_transform(a, d, alpha, theta):
+    """Modified DH: RotX(alpha) TransX(a) RotZ(theta) TransZ(d), as (R, p)."""
+    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
+    ct, st = jnp.cos(theta), jnp.sin(theta)
+    R = jnp.array([[ct, -st, 0.0], [st * ca, ct * ca, -sa], [st * sa, ct * sa, ca]])
+    p = jnp.array([a, -sa * d, ca * d])
+    return R, p
+
+
+def joint_frames(q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """World frames of the 7 joints and the flange for joint angles ``q`` (7,) (base at origin):
+    ``(joint positions (7, 3), joint axes (7, 3), flange position (3,), flange rotation (3, 3))``."""
+    R = jnp.eye(3, dtype=q.dtype)
+    p = jnp.zeros(3, q.dtype)
+    pos, axes = [], []
+    for i in range(N_JOINTS):
+        a, d, alpha = DH[i]
+        Ri, pi = _dh_transform(a, d, alpha, q[i])
+        p = p + R @ pi
+        R = R @ Ri
+        pos.append(p)
+        axes.append(R[:, 2])
+    p = p + R[:, 2] * FLANGE
+    return jnp.stack(pos), jnp.stack(axes), p, R
+
+
+def forward_kinematics(q: jax.Array, tcp=(0.0, 0.0, 0.0), base=(0.0, 0.0, 0.0)):
+    """``(position (3,), rotation (3, 3))`` of the tool centre point: ``tcp`` in the tool frame
+    (which is the flange frame moved ``TOOL_MOUNT`` along its axis)."""
+    _, _, p, R = joint_frames(q)
+    tcp = jnp.asarray(tcp, q.dtype) + jnp.array([0.0, 0.0, TOOL_MOUNT], q.dtype)
+    return p + R @ tcp + jnp.asarray(base, q.dtype), R
+
+
+def jacobian(q: jax.Array, tcp=(0.0, 0.0, 0.0)) -> jax.Array:
+    """Geometric Jacobian (6, 7) of the tool centre point: rows 0-2 linear, 3-5 angular (world)."""
+    pos, axes, _, _ = joint_frames(q)
+    p, _ = forward_kinematics(q, tcp)
+    jp = jnp.cross(axes, p[None, :] - pos)
+    return jnp.concatenate([jp.T, axes.T], axis=0)
+
+
+def _rot_z(angle):
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    z, o = jnp.zeros_like(angle), jnp.ones_like(angle)
+    return jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
+
+
+DOWN = ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
+"""Tool orientation with its z axis pointing down (the flange's in the 'ready' posture)."""
+
+
+def heading(R: jax.Array, nominal) -> jax.Array:
+    """Rotation about the vertical (rad) of tool orientation ``R`` relative to ``nominal``."""
+    rel = R @ jnp.asarray(nominal, R.dtype).T
+    return jnp.arctan2(rel[1, 0] - rel[0, 1], rel[0, 0] + rel[1, 1])
+
+
+def orientation_error(R: jax.Array, R_des: jax.Array) -> jax.Array:
+    """Small-angle rotation vector (world) taking ``R`` towards ``R_des``."""
+    return 0.5 * jnp.sum(jnp.cross(R.T, R_des.T), axis=0)
+
+
+@dataclasses.dataclass(frozen=True)
+class CartesianController:
+    """End-effector command -> joint position targets (damped least squares).
+
+    Action layout: ``[dx, dy, dz]`` in [-1, 1] (times ``max_step`` metres per control step), and,
+    with ``yaw=True``, a fourth entry: rotation about the vertical (times ``max_yaw`` rad per step).
+    The tool's orientation is pulled towards ``nominal`` turned about the vertical by its current
+    heading (plus the commanded turn) with gain ``tilt_gain`` each step, so the tool stays level
+    without the policy spending actions on it.
+    """
+
+    tcp: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The controlled point in the tool frame (the peg's tip, the blade's edge, the thread's end)."""
+    nominal: tuple = DOWN
+    """The tool's nominal orientation (rows of a world rotation matrix) at heading 0."""
+    yaw: bool = False
+    """Whether the action has a fourth entry turning the tool about the vertical."""
+    max_step: float = 0.02
+    """Metres per control step at |action| = 1."""
+    max_yaw: float = 0.1
+    """Radians per control step at |action| = 1."""
+    tilt_gain: float = 0.5
+    """Fraction of the tool's orientation error corrected per step."""
+    damping: float = 0.05
+    """Damped-least-squares damping (lambda, in the 6-D task space's units)."""
+    posture_gain: float = 0.1
+    """Null-space pull towards ``posture`` per step (fraction of the joint error)."""
+    posture: tuple = tuple(HOME)
+    """The joint posture the null space is pulled towards (the task's start posture)."""
+
+    @property
+    def action_size(self) -> int:
+        return 4 if self.yaw else 3
+
+    def __call__(self, q: jax.Array, action: jax.Array) -> jax.Array:
+        """Joint targets (7,) for measured joint angles ``q`` (7,) and ``action`` (clipped)."""
+        a = jnp.clip(action, -1.0, 1.0)
+        J = jacobian(q, self.tcp)
+        _, R = forward_kinematics(q, self.tcp)
+        turn = a[3] * self.max_yaw if self.yaw else jnp.zeros((), q.dtype)
+        R_des = _rot_z(heading(R, self.nominal) + turn) @ jnp.asarray(self.nominal, q.dtype)
+        dx = jnp.concatenate([self.max_step * a[:3],
+                              self.tilt_gain * orientation_error(R, R_des)])
+        if self.yaw:  # the commanded turn itself, not a fraction of it
+            dx = dx.at[5].add((1.0 - self.tilt_gain) * turn)
+        JJt = J @ J.T + self.damping ** 2 * jnp.eye(6, dtype=q.dtype)
+        pinv = J.T @ jnp.linalg.solve(JJt, jnp.eye(6, dtype=q.dtype))
+        dq = pinv @ dx + _null_space(J) @ (self.posture_gain * (jnp.asarray(self.posture, q.dtype) - q))
+        lo, hi = (jnp.asarray(JOINT_RANGE[:, i], q.dtype) for i in (0, 1))
+        return jnp.clip(q + dq, lo, hi)
+
+
+def _null_space(J: jax.Array) -> jax.Array:
+    """Projector onto the null space of ``J`` (6, 7): a posture motion through it leaves the
+    tool where it is (the damped pseudo-inverse's projector would leak into the task space)."""
+    eye = jnp.eye(J.shape[1], dtype=J.dtype)
+    return eye - J.T @ jnp.linalg.solve(J @ J.T + 1e-8 * jnp.eye(6, dtype=J.dtype), J)
+
+
+@functools.lru_cache(maxsize=None)
+def _ik_fn(tcp, nominal, iters):
+    def solve(target, yaw, q0):
+        q = ik(target, q0, tcp, nominal, yaw, iters)
+        p, R = forward_kinematics(q, tcp)
+        R_des = _rot_z(yaw) @ jnp.asarray(nominal, q.dtype)
+        err = jnp.sum(jnp.square(p - target)) + jnp.sum(jnp.square(orientation_error(R, R_des)))
+        lo, hi = (jnp.asarray(JOINT_RANGE[:, i], q.dtype) for i in (0, 1))
+        return q, err, jnp.min(jnp.minimum(q - lo, hi - q) / (hi - lo))
+    return jax.jit(jax.vmap(solve, in_axes=(None, None, 0)))
+
+
+def solve_ik(target, tcp=(0.0, 0.0, 0.0), nominal=DOWN, yaw: float = 0.0, restarts: int = 64,
+             iters: int = 100, seed: int = 0) -> np.ndarray:
+    """Joint angles (NumPy) that put the tool centre point at ``target`` with the tool at
+    ``nominal`` orientation turned by ``yaw`` about the vertical (for a task's start posture).
+
+    Damped Gauss-Newton from ``HOME`` and ``restarts - 1`` random postures; of the solutions that
+    reach the pose (to 1e-3), the one whose closest joint limit is farthest (as a fraction of
+    that joint's range)."""
+    rng = np.random.default_rng(seed)
+    q0 = np.concatenate([HOME[None], rng.uniform(JOINT_RANGE[:, 0], JOINT_RANGE[:, 1],
+                                                 size=(restarts - 1, N_JOINTS))])
+    f = _ik_fn(tuple(tcp), tuple(map(tuple, nominal)), int(iters))
+    q, err, margin = (np.asarray(x, np.float64) for x in f(
+        jnp.asarray(target, jnp.float32), jnp.asarray(yaw, jnp.float32),
+        jnp.asarray(q0, jnp.float32)))
+    ok = err < 1e-6
+    if not ok.any():
+        raise ValueError(f"no joint posture of the arm reaches {np.round(target, 3).tolist()} at "
+                         f"that orientation (best squared error {err.min():.2g})")
+    return q[np.flatnonzero(ok)[np.argmax(margin[ok])]]
+
+
+def ik(target: jax.Array, q_init: jax.Array, tcp=(0.0, 0.0, 0.0), nominal=DOWN, yaw=0.0,
+       iters: int = 30, posture=None) -> jax.Array:
+    """Joint angles putting the tool centre point at ``target`` with the tool at ``nominal``
+    turned by ``yaw``, by ``iters`` damped Gauss-Newton steps from ``q_init`` (JAX; jit/vmap-able,
+    for resets), with a null-space pull to ``posture`` (default ``q_init``)."""
+    dtype = q_init.dtype
+    R_des = _rot_z(jnp.asarray(yaw, dtype)) @ jnp.asarray(nominal, dtype)
+    rest = q_init if posture is None else jnp.asarray(posture, dtype)
+    lo, hi = (jnp.asarray(JOINT_RANGE[:, i], dtype) for i in (0, 1))
+
+    def body(_, q):
+        p, R = forward_kinematics(q, tcp)
+        err = jnp.concatenate([target - p, orientation_error(R, R_des)])
+        J = jacobian(q, tcp)
+        pinv = J.T @ jnp.linalg.solve(J @ J.T + 1e-4 * jnp.eye(6, dtype=dtype),
+                                      jnp.eye(6, dtype=dtype))
+        dq = pinv @ err + _null_space(J) @ (0.1 * (rest - q))
+        return jnp.clip(q + dq, lo, hi)
+
+    return jax.lax.fori_loop(0, iters, body, q_init)
+
+
+# ---------------------------------------------------------------------- the camera mount
+@jax.tree_util.register_static
+@dataclasses.dataclass(frozen=True)
+class CameraMount:
+    """A camera carried by a second arm around a look-at point: its reachable poses are
+    ``target + distance * (cos el cos az, cos el sin az, sin el)`` looking at ``target``, with
+    azimuth, elevation and distance in their ranges.
+
+    ``pose(coords)`` takes *unconstrained* coordinates (3,) mapped into the ranges by a sigmoid,
+    so gradient ascent (sensing: the camera pose that maximises Q) cannot leave the workspace;
+    ``coords = 0`` is the middle of every range. ``box_coords``/``coords_of`` convert from and to
+    ``(azimuth rad, elevation rad, distance m)``.
+    """
+
+    target: tuple[float, float, float] = (0.5, 0.0, 0.05)
+    azimuth: tuple[float, float] = (-2.0, 2.0)
+    elevation: tuple[float, float] = (0.25, 1.35)
+    distance: tuple[float, float] = (0.45, 0.8)
+    default: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The default (fixed-camera baseline) pose's unconstrained coordinates."""
+    fovy: float = 50.0
+    max_speed: float = 0.25
+    """Largest move (rad of azimuth/elevation, or m of distance) the mount makes per control step:
+    moving the camera costs ``steps_to_move`` time steps."""
+
+    def _ranges(self):
+        return np.array([self.azimuth, self.elevation, self.distance], np.float64)
+
+    def spherical(self, coords: jax.Array) -> jax.Array:
+        """``(azimuth, elevation, distance)`` of unconstrained ``coords``."""
+        r = jnp.asarray(self._ranges(), coords.dtype)
+        return r[:, 0] + (r[:, 1] - r[:, 0]) * jax.nn.sigmoid(coords)
+
+    def coords_of(self, spherical) -> np.ndarray:
+        """Unconstrained coordinates of ``(azimuth, elevation, distance)`` (inside the ranges)."""
+        r = self._ranges()
+        u = (np.asarray(spherical, np.float64) - r[:, 0]) / (r[:, 1] - r[:, 0])
+        if np.any(u <= 0) or np.any(u >= 1):
+            raise ValueError(f"camera pose {spherical} is outside the mount's workspace "
+                             f"azimuth {self.azimuth}, elevation {self.elevation}, "
+                             f"distance {self.distance}")
+        return np.log(u) - np.log1p(-u)
+
+    def eye(self, coords: jax.Array) -> jax.Array:
+        az, el, dist = self.spherical(coords)
+        d = jnp.stack([jnp.cos(el) * jnp.cos(az), jnp.cos(el) * jnp.sin(az), jnp.sin(el)])
+        return jnp.asarray(self.target, coords.dtype) + dist * d
+
+    def quat(self, coords: jax.Array) -> jax.Array:
+        """Camera orientation quaternion (w, x, y, z), MuJoCo's convention (looking down its -z,
+        image up its +y): turned by the azimuth about the vertical and tilted down by the
+        elevation, from the pose that looks along -x with the world's z up."""
+        from twinrl.render import quat_mul
+
+        az, el, _ = self.spherical(coords)
+        q_az = jnp.stack([jnp.cos(az / 2), 0.0 * az, 0.0 * az, jnp.sin(az / 2)])
+        q_el = jnp.stack([jnp.cos(-el / 2), 0.0 * el, jnp.sin(-el / 2), 0.0 * el])
+        q0 = jnp.full(4, 0.5, coords.dtype)  # columns (y, z, x): right, up, backwards
+        return quat_mul(quat_mul(q_az, q_el), q0)
+
+    def xmat(self, coords: jax.Array) -> jax.Array:
+        """Camera orientation (columns: image right, image up, backwards)."""
+        from twinrl.render import quat_to_mat
+
+        return quat_to_mat(self.quat(coords))
+
+    def camera(self, coords: jax.Array, width: int = 64, height: int = 64):
+        """The ``twinrl.render.Camera`` at ``coords`` (differentiable in them)."""
+        from twinrl.render import Camera
+
+        coords = jnp.asarray(coords)
+        return Camera(self.eye(coords), self.quat(coords), jnp.asarray(self.fovy, coords.dtype),
+                      int(width), int(height))
+
+    def steps_to_move(self, coords_from, coords_to) -> int:
+        """Control steps the mount needs between two poses at its speed limit."""
+        a = np.asarray(self.spherical(jnp.asarray(coords_from, jnp.float32)))
+        b = np.asarray(self.spherical(jnp.asarray(coords_to, jnp.float32)))
+        return int(np.ceil(np.max(np.abs(b - a)) / self.max_speed))
+
+
+@functools.lru_cache(maxsize=None)
+def composed(task_xml: str) -> str:
+    """``compose(task_xml)``, cached: every task instance shares one string."""
+    return compose(task_xml)
+
+
+
+# ---------------------------------------------------------------------- the arm tasks' Env
+from twinrl.envs.base import Env, TaskConfig  # noqa: E402
+
+
+@dataclasses.dataclass(frozen=True)
+class ArmConfig(TaskConfig):
+    episode_length: int = 50
+    """Control steps per episode (50 * 0.04 s = 2 s)."""
+    frame_skip: int = 4
+    """Physics steps (0.01 s) per control step: 25 Hz control, as Franka's Cartesian interface
+    is commanded at a fraction of its 1 kHz servo rate."""
+    image_size: int = 64
+    """Width and height (pixels) of the mount camera's images (``ArmTask.render``)."""
+
+
+class ArmTask(Env):
+    """A manipulation task: the arm of ``panda.xml`` with a task's tool, scene and camera mount.
+
+    Subclasses set ``task_xml`` (the scene with its ``tool`` body, beside the task's module),
+    ``controller`` (``CartesianController``: the action's meaning and the controlled point),
+    ``mount`` (``CameraMount``) and the usual task hooks. ``qpos[:7]``/``qvel[:7]`` are the arm's.
+    """
+
+    task_xml: Path
+    controller: CartesianController = CartesianController()
+    mount: CameraMount = CameraMount()
+    cameras = ("mount",)
+    Config = ArmConfig
+
+    @classmethod
+    def mjcf(cls) -> str:
+        return composed(str(cls.task_xml))
+
+    @property
+    def action_size(self) -> int:
+        return self.controller.action_size
+
+    def set_posture(self, q_start) -> None:
+        """Hold the controller's null space at ``q_start`` (the task's start posture)."""
+        self.controller = dataclasses.replace(self.controller,
+                                              posture=tuple(float(x) for x in q_start))
+
+    def control(self, qpos, qvel, action):
+        a = jnp.asarray(action, qpos.dtype).reshape(self.controller.action_size)
+        target = self.controller(qpos[:N_JOINTS], a)
+        # any actuators after the arm's 7 servos (none in the bundled tasks) hold 0
+        return jnp.concatenate([target, jnp.zeros(self.sim.nu - N_JOINTS, target.dtype)])
+
+    def tool_point(self, qpos) -> jax.Array:
+        """World position of the controller's tool centre point (from the nominal kinematics)."""
+        return forward_kinematics(qpos[:N_JOINTS], self.controller.tcp)[0]
+
+    # ------------------------------------------------------------------ images
+    @functools.cached_property
+    def renderer(self):
+        """The differentiable renderer of this task's scene (``twinrl.render.Renderer``)."""
+        from twinrl.render import Renderer
+
+        return Renderer.create(self.sim.mj_model, shadows=False)
+
+    def render(self, state, coords: jax.Array | None = None, *, tau: float = 0.0,
+               size: int | None = None):
+        """``twinrl.render.Images`` of ``state`` from the mount camera at ``coords``
+        (unconstrained mount coordinates, default ``mount.default``): RGB, depth, segmentation,
+        and soft coverage when ``tau > 0``. Differentiable w.r.t. ``coords`` and the state."""
+        from twinrl.render import Geoms
+
+        coords = jnp.asarray(self.mount.default if coords is None else coords, jnp.float32)
+        n = int(size or self.config.image_size)
+        cam = self.mount.camera(coords, n, n)
+        data = state.pipeline_state if hasattr(state, "pipeline_state") else state
+        model = self.sim.model_with(self.params)
+        return self.renderer.render(cam, Geoms.from_mjx(model, data), tau=tau)
+
+    # ------------------------------------------------------------------ checks
+    def scripted_action(self, obs: np.ndarray) -> np.ndarray:
+        """A hand-written expert (NumPy, from the privileged observation); each task has one."""
+        raise NotImplementedError(f"{type(self).__name__} has no scripted expert")
+
+    def gradcheck_scenario(self, horizon: int = 30, seed: int = 0, lead: int = 5):
+        """A ``twinrl.physics.scenes.Scenario`` of this task's scene through tool-object contact:
+        the scripted expert's episode from ``reset(PRNGKey(seed))``, as the joint targets its
+        controller sent (the actuators' ``ctrl``), in a window of ``horizon`` control steps that
+        starts ``lead`` steps before the first constrained step. ``twinrl gradcheck TASK`` checks
+        the physics' gradients on it; the controller's own derivative is checked with the task's
+        return (``tests/envs``)."""
+        from twinrl.physics.scenes import Scenario
+
+        if not 1 <= int(horizon) <= self.episode_length:
+            raise ValueError(f"horizon must be in [1, {self.episode_length}] (the episode's "
+                             f"length), got {horizon}")
+        step, control = jax.jit(self.step), jax.jit(self.control)
+        s = jax.jit(self.reset)(jax.random.PRNGKey(seed))
+        qs, vs, ctrls = [], [], []
+        for _ in range(self.episode_length):
+            q, v = s.pipeline_state.qpos, s.pipeline_state.qvel
+            a = jnp.asarray(self.scripted_action(np.asarray(s.obs)), q.dtype)
+            qs.append(np.asarray(q))
+            vs.append(np.asarray(v))
+            ctrls.append(np.asarray(control(q, v, a)))
+            s = step(s, a)
+        ctrls = np.stack(ctrls)
+        _, traj = jax.jit(self.sim.rollout)(self.sim.init(qs[0], vs[0]), jnp.asarray(ctrls))
+        active = np.flatnonzero(np.asarray(traj.n_active) > 0)
+        first = int(active[0]) if active.size else 0
+        start = int(np.clip(first - lead, 0, len(ctrls) - int(horizon)))
+        return Scenario(qpos=qs[start], qvel=vs[start], actions=ctrls[start:start + int(horizon)],
+                        horizon=int(horizon))

@@ -1,0 +1,177 @@
+"""``needle_threading``: pass the thread held by the arm through the eye of a needle whose place,
+height and heading are random (SAM-RL, Lv et al. 2023, Sec. 5.3).
+
+Scene ``needle_threading.xml``: a rigid thread (3 mm capsule, 12 cm) held level at the flange,
+across the workspace (along world y); a needle standing with its eye (an 8 mm x 16 mm slot, 4 mm
+thick) at x in [0.45, 0.6] m, y in [0, 0.1] m, height 0.15-0.25 m, its axis turned by up to
+0.4 rad from the world y axis. The thread starts 10-16 cm short of the eye along y, up to 3 cm off
+its axis, turned by up to 0.3 rad.
+Control (``CartesianController``, yaw on): displacement of the thread's tip (3-D, at most 1.5 cm
+per 0.04 s step) and a turn about the vertical (at most 0.1 rad per step); the thread is held level.
+
+Observation (32, privileged): joint angles (7) and velocities (7), thread tip (3) and base (3), eye
+centre (3), eye axis (3), the tip in the eye's frame (3), the thread's direction in the eye's frame
+(3). Reward (per step, in [0, 1]): ``align * heading * (0.3 + 0.7 through) * small_control``;
+``align`` a Gaussian bump of the tip's distance from the eye's axis line (0.1 at 6 cm),
+``heading`` one of the sine of the angle between thread and axis (0.1 at 0.5), ``through`` one of
+the tip's position along the axis relative to 3.5 cm past the eye (0.1 at 15 cm).
+Success: the tip is at least ``THROUGH`` (2 cm) past the eye's plane and the thread crosses that
+plane inside the slot.
+
+What the camera must reveal: the eye's pose. The slot is open only along its axis: from the side
+(azimuth near +-90 degrees about the needle) the head looks solid, and the thread and the arm hide
+it from behind.
+
+Real twin: grasp offset of the thread (position +-3 mm, tilt), friction, masses, joint damping and
+servo gains, latency, observation noise, the camera's hand-eye offset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twinrl.envs.arm.base import (ArmConfig, ArmTask, CameraMount, CartesianController,
+                                  forward_kinematics, ik, solve_ik)
+from twinrl.envs.base import PerturbationSpec, small_control, tolerance
+
+__all__ = ["NeedleThreading", "NeedleThreadingConfig", "THROUGH"]
+
+SLOT_HALF_WIDTH = 0.004
+SLOT_HALF_HEIGHT = 0.008
+THROUGH = 0.02
+"""How far (m) past the eye's plane the thread's tip must be for success."""
+THREAD_LENGTH = 0.12
+TCP = (0.0, 0.0, THREAD_LENGTH)
+SIDEWAYS = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
+"""Tool orientation with the thread (tool z) along world +y, level: the arm holds it across its
+workspace (pointing the flange forward this low and close is at the Panda's joint limits)."""
+NEEDLE_ORIGIN = np.array([0.52, 0.05, 0.2])
+EYE_HEADING = np.pi / 2
+"""The eye's axis at yaw 0 is world +y (the needle body's MJCF frame is turned by this)."""
+"""The needle body's position in the MJCF: its slide joints are offsets from here."""
+
+
+@dataclasses.dataclass(frozen=True)
+class NeedleThreadingConfig(ArmConfig):
+    episode_length: int = 50
+    """Control steps per episode (2 s)."""
+    eye_x: tuple[float, float] = (0.45, 0.6)
+    eye_y: tuple[float, float] = (0.0, 0.1)
+    eye_z: tuple[float, float] = (0.15, 0.25)
+    eye_yaw: tuple[float, float] = (-0.4, 0.4)
+    """Range (rad) of the eye axis' heading from the world y axis."""
+    start_back: tuple[float, float] = (0.10, 0.16)
+    """Range (m) of how far short of the eye (along world y) the thread's tip starts."""
+    start_offset: float = 0.03
+    """Half-width (m) of the uniform start offset of the tip in y and z from the eye's."""
+    start_yaw: float = 0.3
+    """Half-width (rad) of the uniform start heading of the thread."""
+    align_margin: float = 0.06
+    heading_margin: float = 0.5
+    through_margin: float = 0.15
+
+
+class NeedleThreading(ArmTask):
+    scene = "needle_threading"
+    task_xml = Path(__file__).with_name("needle_threading.xml")
+    controller = CartesianController(tcp=TCP, nominal=SIDEWAYS, yaw=True, max_step=0.015)
+    mount = CameraMount(target=(0.52, 0.05, 0.2), azimuth=(-2.2, 2.2), elevation=(-0.3, 1.3),
+                        distance=(0.3, 0.7), default=(0.0, 0.0, 0.0))
+    reward_term_names = ("align", "heading", "through", "small_control")
+    perturbation_spec = PerturbationSpec(
+        mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.7, 1.3),
+        gain_scale=(0.85, 1.1), latency_steps=(0, 1), obs_noise_std=(0.0005, 0.002),
+        camera_pos_std=0.01, camera_rot_std=0.02, tool_pos_std=0.003, tool_rot_std=0.03)
+    Config = NeedleThreadingConfig
+
+    def __init__(self, config=None, params=None, name=None):
+        super().__init__(config, params, name)
+        mid = NEEDLE_ORIGIN - np.array([0.0, 0.13, 0.0])
+        self._q_start = jnp.asarray(solve_ik(mid, tcp=TCP, nominal=SIDEWAYS), jnp.float32)
+        self.set_posture(self._q_start)
+
+    # ------------------------------------------------------------------ geometry
+    @staticmethod
+    def eye(qpos) -> tuple[jax.Array, jax.Array]:
+        """Eye centre (3,) and rotation (3, 3) (columns: axis, slot width, slot height)."""
+        centre = jnp.asarray(NEEDLE_ORIGIN, qpos.dtype) + qpos[7:10]
+        c, s = jnp.cos(EYE_HEADING + qpos[10]), jnp.sin(EYE_HEADING + qpos[10])
+        z, o = jnp.zeros_like(c), jnp.ones_like(c)
+        R = jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
+        return centre, R
+
+    def thread(self, qpos) -> tuple[jax.Array, jax.Array]:
+        """The thread's tip and base (where it leaves the hand), world."""
+        tip, R = forward_kinematics(qpos[:7], TCP)
+        return tip, tip - THREAD_LENGTH * R[:, 2]
+
+    def _in_eye_frame(self, qpos):
+        tip, base = self.thread(qpos)
+        centre, R = self.eye(qpos)
+        return R.T @ (tip - centre), R.T @ (base - centre)
+
+    def initial_state(self, rng):
+        c = self.config
+        k = jax.random.split(rng, 8)
+        u = lambda key, lo_hi: jax.random.uniform(key, (), minval=lo_hi[0], maxval=lo_hi[1])
+        eye = jnp.stack([u(k[0], c.eye_x), u(k[1], c.eye_y), u(k[2], c.eye_z)])
+        eye_yaw = u(k[3], c.eye_yaw)
+        off = jax.random.uniform(k[4], (2,), minval=-c.start_offset, maxval=c.start_offset)
+        tip = eye + jnp.stack([off[0], -u(k[5], c.start_back), off[1]])
+        yaw = jax.random.uniform(k[6], (), minval=-c.start_yaw, maxval=c.start_yaw)
+        q = ik(tip, self._q_start, TCP, SIDEWAYS, yaw, iters=40)
+        qpos = jnp.concatenate([q, eye - jnp.asarray(NEEDLE_ORIGIN, eye.dtype), eye_yaw[None]])
+        return qpos, jnp.zeros(self.sim.nv)
+
+    def observe(self, qpos, qvel):
+        tip, base = self.thread(qpos)
+        centre, R = self.eye(qpos)
+        tip_e = R.T @ (tip - centre)
+        dir_e = R.T @ (tip - base) / THREAD_LENGTH
+        return jnp.concatenate([qpos[:7], qvel[:7], tip, base, centre, R[:, 0], tip_e,
+                                dir_e]).astype(jnp.float32)
+
+    def reward_terms(self, qpos, qvel, action):
+        c = self.config
+        tip_e, base_e = self._in_eye_frame(qpos)
+        direction = (tip_e - base_e) / THREAD_LENGTH
+        return {
+            "align": tolerance(tip_e[1:], c.align_margin, 0.1, axis=-1),
+            "heading": tolerance(direction[1:], c.heading_margin, 0.1, axis=-1),
+            "through": tolerance(tip_e[0] - (THROUGH + 0.015), c.through_margin, 0.1),
+            "small_control": small_control(action),
+        }
+
+    def combine(self, terms):
+        return (terms["align"] * terms["heading"] * (0.3 + 0.7 * terms["through"])
+                * terms["small_control"])
+
+    def scripted_action(self, obs: np.ndarray) -> np.ndarray:
+        """A hand-written expert from the privileged observation: turn the thread onto the eye's
+        axis, bring its tip onto the axis 5 cm short of the eye, then push it through. For tests
+        and gradient-check scenarios; the demonstrations are trajectory optimisation's."""
+        o = np.asarray(obs, np.float64)
+        axis, tip_e, dir_e = o[23:26], o[26:29], o[29:32]
+        side = np.array([-axis[1], axis[0], 0.0])
+        off_axis = tip_e[1] * side + np.array([0.0, 0.0, tip_e[2]])
+        aligned = np.hypot(tip_e[1], tip_e[2]) < 0.002 and abs(dir_e[1]) < 0.03
+        along = (0.06 - tip_e[0]) if aligned else np.clip(-0.05 - tip_e[0], -0.02, 0.02)
+        a = np.zeros(4)
+        a[:3] = (-off_axis + along * axis) / self.controller.max_step
+        a[3] = -dir_e[1] / self.controller.max_yaw
+        return np.clip(a, -1.0, 1.0).astype(np.float32)
+
+    def success(self, qpos, qvel) -> jax.Array:
+        """1.0 when the tip is ``THROUGH`` past the eye's plane and the thread crosses the plane
+        inside the slot, else 0.0."""
+        tip_e, base_e = self._in_eye_frame(qpos)
+        span = tip_e[0] - base_e[0]
+        lam = jnp.clip(-base_e[0] / jnp.where(span > 0, span, 1.0), 0.0, 1.0)
+        cross = base_e + lam * (tip_e - base_e)
+        inside = (jnp.abs(cross[1]) < SLOT_HALF_WIDTH) & (jnp.abs(cross[2]) < SLOT_HALF_HEIGHT)
+        return ((tip_e[0] > THROUGH) & (base_e[0] < 0) & inside).astype(jnp.float32)

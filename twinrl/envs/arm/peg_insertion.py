@@ -1,0 +1,148 @@
+"""``peg_insertion``: put the peg held by the arm into a hole whose place on the table is random
+(SAM-RL, Lv et al. 2023, Sec. 5.1).
+
+Scene ``peg_insertion.xml``: a 25 mm round peg (a capsule, rounded tip) at the flange, a 32 mm
+square hole 50 mm deep in a fixture drawn uniformly in x in [0.44, 0.56] m, y in [-0.1, 0.1] m at
+reset (3.5 mm clearance per side). The peg starts 15-25 cm above the table over a random point of
+the workspace, pointing down. Control: Cartesian displacement of the peg tip, 3-D, at most 2 cm per
+0.04 s step (``CartesianController``), the peg held vertical.
+
+Observation (24, privileged): joint angles (7) and velocities (7), peg tip position (3), hole
+top-centre position (3), tip minus hole (3), depth of the tip below the hole's top (1).
+Reward (per step, in [0, 1]): ``align * (0.3 + 0.7 insert) * small_control``; ``align`` a Gaussian
+bump of the tip's horizontal distance to the hole axis (0.1 at 8 cm), ``insert`` one of the tip's
+height above the hole's bottom target (0.1 at 15 cm). Depth only pays when aligned, so the optimiser
+centres the peg before it descends; the rounded tip slides off the hole's rim into it.
+Success: the tip is inside the hole (horizontal distance to its axis below the 16 mm half-width)
+and at least 30 mm below the fixture's top (``INSERTED_DEPTH``).
+
+What the camera must reveal: the hole's place (the observation's hole position is privileged;
+an image policy must find it). The peg and the arm hide the hole from above and behind, the walls
+hide its opening from low elevations.
+
+Real twin: grasp offset of the peg (its position in the hand, +-4 mm, and tilt), friction, masses,
+joint damping and servo gains, latency, observation noise, the camera's hand-eye offset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twinrl.envs.arm.base import (ArmConfig, ArmTask, CameraMount, CartesianController, ik,
+                                  solve_ik)
+from twinrl.envs.base import PerturbationSpec, small_control, tolerance
+
+__all__ = ["PegInsertion", "PegInsertionConfig", "INSERTED_DEPTH"]
+
+HOLE_TOP = 0.05
+"""Height (m) of the fixture's top: the hole's opening."""
+HOLE_HALF_WIDTH = 0.016
+INSERTED_DEPTH = 0.03
+"""How far (m) below the hole's top the peg's tip must be for success."""
+PEG_RADIUS = 0.0125
+TCP = (0.0, 0.0, 0.12)
+"""The controlled point: the centre of the peg's rounded tip, in the tool frame."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PegInsertionConfig(ArmConfig):
+    hole_x: tuple[float, float] = (0.44, 0.56)
+    """Range (m) of the fixture's x at reset."""
+    hole_y: tuple[float, float] = (-0.1, 0.1)
+    """Range (m) of the fixture's y at reset."""
+    start_xy_noise: float = 0.08
+    """Half-width (m) of the uniform start offset of the peg tip from (0.5, 0)."""
+    start_height: tuple[float, float] = (0.15, 0.25)
+    """Range (m) of the peg tip's start height above the table."""
+    align_margin: float = 0.08
+    """Horizontal tip-axis distance (m) at which ``align`` has fallen to 0.1."""
+    insert_margin: float = 0.15
+    """Tip height above the target depth (m) at which ``insert`` has fallen to 0.1."""
+
+
+class PegInsertion(ArmTask):
+    scene = "peg_insertion"
+    task_xml = Path(__file__).with_name("peg_insertion.xml")
+    controller = CartesianController(tcp=TCP, max_step=0.02)
+    mount = CameraMount(target=(0.5, 0.0, 0.05), azimuth=(-2.2, 2.2), elevation=(0.2, 1.4),
+                        distance=(0.4, 0.8), default=(0.0, 0.0, 0.0))
+    reward_term_names = ("align", "insert", "small_control")
+    perturbation_spec = PerturbationSpec(
+        mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.7, 1.3),
+        gain_scale=(0.85, 1.1), latency_steps=(0, 1), obs_noise_std=(0.0005, 0.002),
+        camera_pos_std=0.01, camera_rot_std=0.02,
+        tool_pos_std=0.004, tool_rot_std=0.03)
+    Config = PegInsertionConfig
+
+    def __init__(self, config=None, params=None, name=None):
+        super().__init__(config, params, name)
+        c = self.config
+        mid = np.array([0.5, 0.0, float(np.mean(c.start_height))])
+        self._q_start = jnp.asarray(solve_ik(mid, tcp=TCP), jnp.float32)
+        self.set_posture(self._q_start)
+
+    # ------------------------------------------------------------------ geometry
+    @staticmethod
+    def hole(qpos) -> jax.Array:
+        """Top centre of the hole (world) from the fixture's slide joints ``qpos[7:9]``."""
+        return jnp.stack([qpos[7], qpos[8], jnp.full_like(qpos[7], HOLE_TOP)])
+
+    def initial_state(self, rng):
+        c = self.config
+        k1, k2, k3, k4 = jax.random.split(rng, 4)
+        hole = jnp.stack([jax.random.uniform(k1, (), minval=c.hole_x[0], maxval=c.hole_x[1]),
+                          jax.random.uniform(k2, (), minval=c.hole_y[0], maxval=c.hole_y[1])])
+        xy = jnp.array([0.5, 0.0]) + jax.random.uniform(
+            k3, (2,), minval=-c.start_xy_noise, maxval=c.start_xy_noise)
+        z = jax.random.uniform(k4, (), minval=c.start_height[0], maxval=c.start_height[1])
+        q = ik(jnp.concatenate([xy, z[None]]), self._q_start, TCP)
+        # fixture joints are offsets from its body position (0.5, 0) in the MJCF
+        qpos = jnp.concatenate([q, hole - jnp.array([0.5, 0.0])])
+        return qpos, jnp.zeros(self.sim.nv)
+
+    def tip_and_hole(self, qpos):
+        tip = self.tool_point(qpos)
+        hole = self.hole(qpos) + jnp.array([0.5, 0.0, 0.0], qpos.dtype)
+        return tip, hole
+
+    def observe(self, qpos, qvel):
+        tip, hole = self.tip_and_hole(qpos)
+        depth = hole[2] - (tip[2] - PEG_RADIUS)
+        return jnp.concatenate([qpos[:7], qvel[:7], tip, hole, tip - hole,
+                                depth[None]]).astype(jnp.float32)
+
+    def reward_terms(self, qpos, qvel, action):
+        c = self.config
+        tip, hole = self.tip_and_hole(qpos)
+        target_z = hole[2] - INSERTED_DEPTH - 0.005 + PEG_RADIUS
+        return {
+            "align": tolerance(tip[:2] - hole[:2], c.align_margin, 0.1, axis=-1),
+            "insert": tolerance(tip[2] - target_z, c.insert_margin, 0.1),
+            "small_control": small_control(action),
+        }
+
+    def combine(self, terms):
+        return terms["align"] * (0.3 + 0.7 * terms["insert"]) * terms["small_control"]
+
+    def scripted_action(self, obs: np.ndarray) -> np.ndarray:
+        """A hand-written expert from the privileged observation: centre over the hole at 8 cm,
+        then descend. For tests and gradient-check scenarios (it drives the peg into the
+        fixture); the demonstrations are trajectory optimisation's (``bench/manipulation.py``)."""
+        d = np.asarray(obs[20:23], np.float64)  # tip minus hole top
+        step = self.controller.max_step
+        a = np.zeros(3)
+        a[:2] = -d[:2] / step
+        a[2] = -1.0 if np.hypot(*d[:2]) < 0.004 else (0.08 - d[2]) / step
+        return np.clip(a, -1.0, 1.0).astype(np.float32)
+
+    def success(self, qpos, qvel) -> jax.Array:
+        """1.0 when the peg's tip is in the hole, ``INSERTED_DEPTH`` below its top, else 0.0."""
+        tip, hole = self.tip_and_hole(qpos)
+        inside = jnp.sum(jnp.square(tip[:2] - hole[:2])) < HOLE_HALF_WIDTH ** 2
+        deep = (tip[2] - PEG_RADIUS) < hole[2] - INSERTED_DEPTH
+        return (inside & deep).astype(jnp.float32)

@@ -1,0 +1,165 @@
+"""``spatula_flipping``: slide the spatula held by the arm under a pancake lying against a low
+stopper rail and turn it upside down (SAM-RL, Lv et al. 2023, Sec. 5.2).
+
+Scene ``spatula_flipping.xml``: a spatula (a 90 mm round blade, 3 mm thick, on a handle pointing
+forward and down at 70 degrees) at the flange; a pancake (a flat ellipsoid 70 mm across and 18 mm
+thick, 40 g, a dark mark on its top) on the table against a stopper rail (a capsule 12 mm thick)
+drawn at x in [0.66, 0.72] m, y in [-0.08, 0.08] m; the pancake lies 1-4 mm in front of the rail,
+up to 2 cm off its centre. The blade's edge starts 12-18 cm short of the pancake, 2-5 cm above the
+table. Control (``CartesianController``): displacement of the blade's leading edge, 3-D, at most
+2 cm per 0.04 s step; the spatula is held at its nominal angle.
+
+Observation (31, privileged): joint angles (7) and velocities (7), the blade's edge (3), the
+pancake's centre (3), its up axis (3) and velocity (3), the stopper's x, y (2), the pancake's near
+rim minus the blade's edge (3). Reward (per step, in [0, 1]): ``(0.25 reach + 0.75 flip) *
+small_control``; ``reach`` a Gaussian bump of the distance from the blade's edge to the pancake's
+near rim at the table (0.1 at 10 cm), ``flip`` ``(1 - up_z) / 2`` (0 lying as it started, 1/2 on
+its edge, 1 upside down).
+Success: the pancake is upside down (up axis' z below -0.9) and resting (centre below 15 mm).
+
+What the camera must reveal: the pancake's pose and which side is up (the mark on its top); the
+blade, the arm and the rail hide the pancake's near rim from some poses, and from above a tilted
+pancake's side is hard to tell.
+
+Real twin: grasp offset of the spatula (its position in the hand +-3 mm, tilt), friction (the
+pancake's on the table decides whether it pivots or slides), the pancake's mass, joint damping and
+servo gains, latency, observation noise, the camera's hand-eye offset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twinrl.envs.arm.base import (ArmConfig, ArmTask, CameraMount, CartesianController, ik,
+                                  solve_ik)
+from twinrl.envs.base import PerturbationSpec, small_control, tolerance
+
+__all__ = ["SpatulaFlipping", "SpatulaFlippingConfig"]
+
+_C, _S = np.cos(np.deg2rad(70.0)), np.sin(np.deg2rad(70.0))
+SPATULA = ((_S, 0.0, _C), (0.0, -1.0, 0.0), (_C, 0.0, -_S))
+"""Tool orientation with the handle (tool z) pointing forward (+x) and down at 70 degrees (at
+45 degrees the Panda reaches the table near the pancake only at its joint limits)."""
+TCP = (0.07361, 0.0, 0.1925)
+"""The blade's leading edge in the tool frame."""
+STOPPER_ORIGIN = np.array([0.69, 0.0])
+PANCAKE_RADIUS = 0.035
+PANCAKE_HALF_THICKNESS = 0.009
+STOPPER_RADIUS = 0.006
+
+
+@dataclasses.dataclass(frozen=True)
+class SpatulaFlippingConfig(ArmConfig):
+    episode_length: int = 60
+    """Control steps per episode (2.4 s)."""
+    stopper_x: tuple[float, float] = (0.66, 0.72)
+    stopper_y: tuple[float, float] = (-0.08, 0.08)
+    gap: tuple[float, float] = (0.001, 0.004)
+    """Range (m) of the gap between the pancake's rim and the stopper at reset."""
+    pancake_y_noise: float = 0.02
+    """Half-width (m) of the pancake's uniform sideways offset from the stopper's centre."""
+    start_back: tuple[float, float] = (0.12, 0.18)
+    """Range (m) of how far short of the pancake's centre (along x) the blade's edge starts."""
+    start_height: tuple[float, float] = (0.02, 0.05)
+    """Range (m) of the blade edge's start height above the table."""
+    reach_margin: float = 0.1
+
+
+class SpatulaFlipping(ArmTask):
+    scene = "spatula_flipping"
+    task_xml = Path(__file__).with_name("spatula_flipping.xml")
+    controller = CartesianController(tcp=TCP, nominal=SPATULA, max_step=0.02)
+    mount = CameraMount(target=(0.62, 0.0, 0.02), azimuth=(-2.2, 2.2), elevation=(0.2, 1.4),
+                        distance=(0.35, 0.75), default=(0.0, 0.0, 0.0))
+    reward_term_names = ("reach", "flip", "small_control")
+    perturbation_spec = PerturbationSpec(
+        mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.8, 1.25),
+        gain_scale=(0.85, 1.1), latency_steps=(0, 1), obs_noise_std=(0.0005, 0.002),
+        camera_pos_std=0.01, camera_rot_std=0.02, tool_pos_std=0.003, tool_rot_std=0.03)
+    Config = SpatulaFlippingConfig
+
+    def __init__(self, config=None, params=None, name=None):
+        super().__init__(config, params, name)
+        c = self.config
+        mid = np.array([STOPPER_ORIGIN[0] - 0.04 - np.mean(c.start_back), 0.0,
+                        np.mean(c.start_height)])
+        self._q_start = jnp.asarray(solve_ik(mid, tcp=TCP, nominal=SPATULA), jnp.float32)
+        self.set_posture(self._q_start)
+
+    # ------------------------------------------------------------------ geometry
+    @staticmethod
+    def pancake(qpos) -> tuple[jax.Array, jax.Array]:
+        """The pancake's centre (3,) and up axis (3,) (its local z in the world)."""
+        w, x, y, z = qpos[12], qpos[13], qpos[14], qpos[15]
+        up = jnp.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+        return qpos[9:12], up
+
+    def edge(self, qpos) -> jax.Array:
+        return self.tool_point(qpos)
+
+    @staticmethod
+    def near_rim(centre) -> jax.Array:
+        """Where the blade should meet the pancake: its rim nearest the robot, at the table."""
+        return centre + jnp.array([-(PANCAKE_RADIUS + 0.01), 0.0, -PANCAKE_HALF_THICKNESS],
+                                  centre.dtype)
+
+    def initial_state(self, rng):
+        c = self.config
+        k = jax.random.split(rng, 7)
+        u = lambda key, lo_hi: jax.random.uniform(key, (), minval=lo_hi[0], maxval=lo_hi[1])
+        stopper = jnp.stack([u(k[0], c.stopper_x), u(k[1], c.stopper_y)])
+        centre = jnp.stack([
+            stopper[0] - STOPPER_RADIUS - PANCAKE_RADIUS - u(k[2], c.gap),
+            stopper[1] + u(k[3], (-c.pancake_y_noise, c.pancake_y_noise)),
+            jnp.asarray(PANCAKE_HALF_THICKNESS)])
+        tip = jnp.stack([centre[0] - u(k[4], c.start_back), centre[1] + 0.0 * centre[1],
+                         u(k[5], c.start_height)])
+        q = ik(tip, self._q_start, TCP, SPATULA, iters=40)
+        qpos = jnp.concatenate([q, stopper - jnp.asarray(STOPPER_ORIGIN, stopper.dtype), centre,
+                                jnp.array([1.0, 0.0, 0.0, 0.0], centre.dtype)])
+        return qpos, jnp.zeros(self.sim.nv)
+
+    def observe(self, qpos, qvel):
+        edge = self.edge(qpos)
+        centre, up = self.pancake(qpos)
+        stopper = jnp.asarray(STOPPER_ORIGIN, qpos.dtype) + qpos[7:9]
+        return jnp.concatenate([qpos[:7], qvel[:7], edge, centre, up, qvel[9:12], stopper,
+                                self.near_rim(centre) - edge]).astype(jnp.float32)
+
+    def reward_terms(self, qpos, qvel, action):
+        centre, up = self.pancake(qpos)
+        return {
+            "reach": tolerance(self.near_rim(centre) - self.edge(qpos), self.config.reach_margin,
+                               0.1, axis=-1),
+            "flip": 0.5 * (1.0 - up[2]),
+            "small_control": small_control(action),
+        }
+
+    def combine(self, terms):
+        return (0.25 * terms["reach"] + 0.75 * terms["flip"]) * terms["small_control"]
+
+    def scripted_action(self, obs: np.ndarray) -> np.ndarray:
+        """A hand-written expert from the privileged observation: put the blade's edge at the
+        pancake's near rim on the table, push forward along the table (the pancake climbs the
+        blade and tips over the rail), then lift away. For tests and gradient-check scenarios;
+        the demonstrations are trajectory optimisation's."""
+        o = np.asarray(obs, np.float64)
+        d, up_z = o[28:31], o[22]
+        step = self.controller.max_step
+        if up_z < 0.3:
+            a = np.array([0.0, 0.0, 0.5])
+        elif abs(d[1]) > 0.01 or d[0] > 0.015:
+            a = np.array([d[0], d[1], d[2] + 0.002]) / step
+        else:
+            a = np.array([0.8, d[1] / step, 0.1])
+        return np.clip(a, -1.0, 1.0).astype(np.float32)
+
+    def success(self, qpos, qvel) -> jax.Array:
+        """1.0 when the pancake lies upside down on the table, else 0.0."""
+        centre, up = self.pancake(qpos)
+        return ((up[2] < -0.9) & (centre[2] < 0.015)).astype(jnp.float32)
