@@ -8,7 +8,7 @@ Jacobian through MJX dominates the module's time.
 import numpy as np
 import pytest
 
-from twinrl import envs
+from twinrl import envs, real
 from twinrl.real.dataset import DatasetWriter, read
 from twinrl.real.perturbation import Perturbation
 from twinrl.real2sim import baselines, sysid
@@ -29,7 +29,7 @@ def _exact_twin():
     """A real twin of our own model (Euler, 4 solver iterations, no noise), one step of latency."""
     pert = Perturbation(mass_scale=(1.0, 1.1), damping_scale=(1.0, 1.0), extra_damping=(0.2, 0.0),
                         extra_frictionloss=(0.5, 0.0), gain_scale=(0.95,), latency_steps=1)
-    return envs.make_real(TASK, seed=0, perturbation=pert, integrator="euler", iterations=4)
+    return real.make_real(TASK, seed=0, perturbation=pert, integrator="euler", iterations=4)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def exact(env):
 @pytest.fixture(scope="module")
 def real(env):
     """A small dataset from the default real twin (other engine, noise, rail friction)."""
-    twin = envs.make_real(TASK, seed=1)
+    twin = real.make_real(TASK, seed=1)
     data = sysid.collect(twin, episodes=2, seed=1, steps=150)
     o = twin.oracle()  # evaluation only
     result = sysid.fit(env, data, config(float(o.params.mass[0])))

@@ -16,8 +16,9 @@ tanh-Gaussian, ``tanh(loc)``) after Brax's observation normaliser, so ``make_eva
 like any of ours. ``params`` is a plain dict ``{"obs_mean", "obs_std", "policy"}``: what a
 deployed policy needs (the PPO value network is dropped), and with the JSON of the config
 (``config.to_dict()``) ``ppo_policy``/``apg_policy`` rebuild ``policy`` without the training code:
-the returned policy carries that JSON as ``policy.spec`` and the kinds ``brax_ppo``/``brax_apg``
-are registered with ``twinrl.learn.checkpoint``, so ``save_policy``/``load_policy`` round-trip it.
+the returned policy carries that JSON as ``policy.spec``, and ``NETWORK_KINDS`` gives
+``twinrl.learn.checkpoint.load_policy`` the builders of the kinds ``brax_ppo``/``brax_apg``, so
+``save_policy``/``load_policy`` round-trip it.
 
 Metrics: one entry per Brax evaluation (``progress_fn`` call), with ``epoch`` (evaluation index),
 ``env_steps``, ``wall_s`` (since ``*_train`` was called, compile included), ``return`` (Brax's
@@ -45,7 +46,6 @@ from brax.training.agents.ppo import networks as ppo_networks
 from brax.training.agents.ppo import train as ppo
 
 from twinrl.learn import tuned
-from twinrl.learn.checkpoint import register_network_kind
 from twinrl.learn.common import MetricLog, ProgressFn
 from twinrl.learn.networks import ACTIVATIONS, Network, NetworkConfig
 
@@ -252,10 +252,15 @@ def apg_policy(obs_size: int, action_size: int, config: APGConfig) -> Network:
                        apg_networks.make_inference_fn, obs_size, action_size, config, True)
 
 
-register_network_kind("brax_ppo", lambda spec: ppo_policy(
-    int(spec["in_size"]), int(spec["out_size"]), PPOConfig.from_dict(spec["config"])))
-register_network_kind("brax_apg", lambda spec: apg_policy(
-    int(spec["in_size"]), int(spec["out_size"]), APGConfig.from_dict(spec["config"])))
+# What ``twinrl.learn.checkpoint.load_policy`` rebuilds ``brax_*`` networks with. The loader looks
+# this table up (importing this module when it meets such a kind) rather than this module
+# registering into the loader, so the import runs one way: checkpoint -> baselines.
+NETWORK_KINDS = {
+    "brax_ppo": lambda spec: ppo_policy(int(spec["in_size"]), int(spec["out_size"]),
+                                        PPOConfig.from_dict(spec["config"])),
+    "brax_apg": lambda spec: apg_policy(int(spec["in_size"]), int(spec["out_size"]),
+                                        APGConfig.from_dict(spec["config"])),
+}
 
 
 def _plain_params(normaliser, policy_params) -> dict[str, Any]:

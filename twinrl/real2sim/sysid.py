@@ -64,7 +64,7 @@ and lives apart from the fit: learning code never sees the real twin's hidden pe
 
 Example::
 
-    twin = twinrl.envs.make_real("cartpole_swingup", seed=0)
+    twin = twinrl.real.make_real("cartpole_swingup", seed=0)
     data = collect(twin, episodes=5, seed=0)          # excitation actions on the real twin
     result = fit(twinrl.envs.make("cartpole_swingup"), data, SysidConfig())
     print_result(result)
