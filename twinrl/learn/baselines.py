@@ -46,7 +46,7 @@ from brax.training.agents.ppo import networks as ppo_networks
 from brax.training.agents.ppo import train as ppo
 
 from twinrl.learn import tuned
-from twinrl.learn.common import MetricLog, ProgressFn
+from twinrl.learn.common import JSONConfig, MetricLog, ProgressFn
 from twinrl.learn.networks import ACTIVATIONS, Network, NetworkConfig
 
 __all__ = ["PPOConfig", "APGConfig", "ppo_train", "apg_train", "ppo_policy", "apg_policy",
@@ -64,18 +64,8 @@ def _check_hidden(obj, *names):
                          f"got {obj.activation!r}")
 
 
-class _JSONConfig:
-    def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v
-                for k, v in dataclasses.asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]):
-        return cls(**d)
-
-
 @dataclasses.dataclass(frozen=True)
-class PPOConfig(_JSONConfig):
+class PPOConfig(JSONConfig):
     """Brax PPO's settings (names as in ``brax.training.agents.ppo.train.train``)."""
 
     num_timesteps: int = 3_000_000
@@ -133,7 +123,7 @@ class PPOConfig(_JSONConfig):
 
 
 @dataclasses.dataclass(frozen=True)
-class APGConfig(_JSONConfig):
+class APGConfig(JSONConfig):
     """Brax APG's settings (names as in ``brax.training.agents.apg.train.train``)."""
 
     policy_updates: int = 600
