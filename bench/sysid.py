@@ -31,6 +31,8 @@ import numpy as np
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import envs, real, report
 from twinrl.real2sim import baselines, sysid
+from twinrl.real2sim.sysid.config import parse_param
+from twinrl.real2sim.sysid.problem import param_value
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sysid.json"
 # Parameters compared between sysid and CMA-ES (identifiable once the first mass is known).
@@ -59,7 +61,7 @@ def run(task: str, seed: int, episodes: int, cma_evals: int | None) -> dict:
     truth = twin.oracle()  # evaluation only
     env = envs.make(task)
     body0 = sysid.param_names(env, ("mass",))[0]
-    true_of = lambda name: sysid._get(truth.params.as_dict(), *sysid._parse(env, name))  # noqa
+    true_of = lambda name: param_value(truth.params.as_dict(), *parse_param(env, name))  # noqa
     known = ((body0, true_of(body0)),)
     out = {"task": task, "seed": seed, "episodes": episodes,
            "true_latency": truth.perturbation.latency_steps,
