@@ -59,7 +59,7 @@ import numpy as np
 from twinrl import eval as evaluation
 from twinrl import report
 
-__all__ = ["LoopConfig", "run", "LoopError"]
+__all__ = ["LoopConfig", "run", "LoopError", "Stage", "COLLECT", "ROUND"]
 
 
 class LoopError(Exception):
@@ -258,11 +258,16 @@ class Stage:
         if not self.enabled(run.config):
             return dict.fromkeys(self.gives)
         rdir = run.out / f"round{r}"
-        rdir.mkdir(exist_ok=True)
+        if r:  # round 0 records into the dataset only
+            rdir.mkdir(exist_ok=True)
         needs = {k: artefacts[k] for k in self.needs}
         if not run.prog.done(f"round{r}/{self.name}"):
             self.make(run, r, rdir, **needs)
-        return self.load(run, rdir, **needs)
+        given = self.load(run, rdir, **needs)
+        if set(given) != set(self.gives):  # the declaration is what later stages rely on
+            raise LoopError(f"stage {self.name!r} gave {sorted(given)}, but declares "
+                            f"{sorted(self.gives)}")
+        return given
 
 
 def _collect_excitation(run: _Run, r: int, rdir: Path) -> None:
@@ -487,20 +492,20 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     benchmark's custom real twin, e.g. one with an effect the simulator cannot model. Like the drawn
     one it is applied by the twin and never shown to the learning stages."""
     out = _check_settings(env_name, Path(out), config, seed, resume)
-    run, oracle_job = _start(env_name, out, config, seed, progress, perturbation)
+    ctx, oracle_job = _start(env_name, out, config, seed, progress, perturbation)
     rounds: list[dict[str, Any]] = []
     try:
-        COLLECT(run, 0, {})
-        rounds.append(_round_record(run.prog, 0))
+        COLLECT(ctx, 0, {})
+        rounds.append(_round_record(ctx.prog, 0))
         for r in range(1, config.rounds + 1):
-            run.say(f"[bold]round {r}[/] ({time.perf_counter() - run.t_start:.0f} s)")
-            artefacts = {"data": _read(out / "dataset", run.say)}
+            ctx.say(f"[bold]round {r}[/] ({time.perf_counter() - ctx.t_start:.0f} s)")
+            artefacts = {"data": _read(out / "dataset", ctx.say)}
             for stage in ROUND:
-                artefacts.update(stage(run, r, artefacts))
-            rounds.append(_round_record(run.prog, r))
+                artefacts.update(stage(ctx, r, artefacts))
+            rounds.append(_round_record(ctx.prog, r))
     finally:
-        run.close()
-    return _finish(run, rounds, oracle_job)
+        ctx.close()
+    return _finish(ctx, rounds, oracle_job)
 
 
 def _check_settings(env_name: str, out: Path, config: LoopConfig, seed: int,
