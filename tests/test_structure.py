@@ -1,5 +1,5 @@
-"""The package's shape (ARCHITECTURE.md, "Arrows point down"): no import cycle inside ``twinrl/``
-and no module reaching into another's private names.
+"""The package's shape (ARCHITECTURE.md, "Arrows point down"): no import cycle inside ``twinrl/``,
+no module reaching into another's private names, and ``loop.run`` a short walk over its stages.
 
 How it checks, without importing anything: every ``twinrl/**/*.py`` is parsed with ``ast`` and every
 import statement in it counts, at module level or inside a function (a lazy import is still a
@@ -187,3 +187,17 @@ def test_no_import_cycles_inside_the_package():
 def test_no_module_imports_another_modules_private_names():
     used = {name: private for name, (_, private) in GRAPH.items() if private}
     assert not used, f"private names used across modules: {used}"
+
+
+def test_the_loop_is_a_list_of_stages():
+    # ARCHITECTURE.md: loop.run only walks the stages (each saves and loads its own artefacts)
+    tree = ast.parse(MODULES["twinrl.loop"].read_text())
+    run = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "run")
+    assert run.end_lineno - run.lineno + 1 <= 60
+    from twinrl import loop
+
+    assert [s.name for s in loop.ROUND] == ["sysid", "hybrid", "learn", "residual", "deploy"]
+    given = {"data"}
+    for stage in loop.ROUND:  # every stage needs only what the round or earlier stages give
+        assert set(stage.needs) <= given, (stage.name, stage.needs, given)
+        given |= set(stage.gives)
