@@ -76,7 +76,7 @@ def speed(sizes=(64, 128), batches=(1, 16)):
 
 
 def agreement(S=64):
-    from twinrl.real.twin import CameraRenderer
+    from twinrl.render.opengl import CameraRenderer
 
     rows = []
     for scene in SCENES:
@@ -112,7 +112,7 @@ def _rot_err_deg(q1, q2):
 
 
 def _real_frames(m_real, S, qposes):
-    from twinrl.real.twin import render_states
+    from twinrl.render.opengl import render_states
 
     frames = render_states(m_real, "top", qposes, S, S)
     d = mujoco.MjData(m_real)

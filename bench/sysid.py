@@ -1,7 +1,7 @@
 """Benchmark: sysid (multiple shooting + Levenberg-Marquardt) against CMA-ES on the real twins.
 
 Per task and seed: record ``--episodes`` episodes of excitation actions on the default real twin
-(``twinrl.envs.make_real(task, seed=s)``), then
+(``twinrl.real.make_real(task, seed=s)``), then
 
 1. **acceptance fit** -- ``sysid.fit`` with the default parameter set, start states estimated,
    latency chosen from 0..1, and the first body's mass *known* (weighed: here read from the twin's
@@ -29,8 +29,10 @@ from pathlib import Path
 import numpy as np
 
 import twinrl  # noqa: F401  (compilation cache)
-from twinrl import envs, report
+from twinrl import envs, real, report
 from twinrl.real2sim import baselines, sysid
+from twinrl.real2sim.sysid.config import parse_param
+from twinrl.real2sim.sysid.problem import param_value
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sysid.json"
 # Parameters compared between sysid and CMA-ES (identifiable once the first mass is known).
@@ -54,12 +56,12 @@ def first_reaching(history, key, target):
 
 
 def run(task: str, seed: int, episodes: int, cma_evals: int | None) -> dict:
-    twin = envs.make_real(task, seed=seed)
+    twin = real.make_real(task, seed=seed)
     data = sysid.collect(twin, episodes=episodes, seed=seed)
     truth = twin.oracle()  # evaluation only
     env = envs.make(task)
     body0 = sysid.param_names(env, ("mass",))[0]
-    true_of = lambda name: sysid._get(truth.params.as_dict(), *sysid._parse(env, name))  # noqa
+    true_of = lambda name: param_value(truth.params.as_dict(), *parse_param(env, name))  # noqa
     known = ((body0, true_of(body0)),)
     out = {"task": task, "seed": seed, "episodes": episodes,
            "true_latency": truth.perturbation.latency_steps,

@@ -281,3 +281,27 @@ def test_resume_without_the_twins_secret_is_refused(tmp_path):
                                           "config": report.to_jsonable(config)})
     with pytest.raises(loop.LoopError, match="no eval/twin.json"):
         loop.run("pendulum_swingup", out, config, resume=True, progress=False)
+
+
+def test_a_sysid_json_written_before_the_system_still_resumes(tmp_path):
+    # runs made before the System wrote `params` and `latency` side by side: the System is
+    # rebuilt from them (what the later stages simulate), and a file with neither is refused
+    from twinrl import envs, loop
+    from twinrl.envs.wrappers import LatencyWrapper
+
+    params = envs.make("pendulum_swingup").sim.default_params().scaled(mass=1.3)
+    old = {k: np.asarray(v, np.float64).tolist() for k, v in params.as_dict().items()}
+    from twinrl import report
+
+    report.write_json(tmp_path / "sysid.json", {"latency": 2, "params": old, "table": [],
+                                                "loss": 0.1, "sim_rollouts": 3, "seconds": 1.0})
+    system = loop._identified_system(tmp_path, "pendulum_swingup")
+    assert system.latency == 2 and system.task == "pendulum_swingup"
+    for k, v in params.as_dict().items():
+        np.testing.assert_array_equal(np.asarray(getattr(system.params, k)),
+                                      np.asarray(v, np.float64))
+    env = envs.make("pendulum_swingup", system=system)
+    assert isinstance(env, LatencyWrapper) and env.sys is system
+    report.write_json(tmp_path / "sysid.json", {"table": []})
+    with pytest.raises(loop.LoopError, match="neither a 'system' nor the older"):
+        loop._identified_system(tmp_path, "pendulum_swingup")

@@ -24,13 +24,13 @@ __all__ = ["param_errors", "real_return", "policy_real_return", "oracle_return",
 def _twin(env_name, seed, perturbation=None, secret=None, **kwargs):
     """The real twin ``(env_name, seed)`` in this process: the one a ``TwinClient`` with the same
     ``secret`` and ``perturbation`` talks to."""
-    from twinrl import envs
+    from twinrl.real.twin import make_real
 
     if secret is not None:
         from twinrl.real.remote import hidden_perturbation
 
         perturbation = hidden_perturbation(env_name, seed, secret, perturbation)
-    return envs.make_real(env_name, seed=seed, perturbation=perturbation, **kwargs)
+    return make_real(env_name, seed=seed, perturbation=perturbation, **kwargs)
 
 
 def param_errors(env_name, seed, result, perturbation=None, secret=None) -> dict[str, float]:

@@ -11,11 +11,17 @@ safe exciting open-loop policy (``twinrl.real2sim.sysid.excitation_actions``). E
 3. **learn in sim**, in the identified simulator: Brax PPO by default (see ``LoopConfig.algo`` for
    the measurements behind that choice), or any trainer of ``twinrl.learn.runner.ALGORITHMS``;
    with ``algo="hds"``, HDS with a fraction of rollouts through the hybrid model;
-4. **deploy with residual adaptation**: the residual policy (zero at first, so the first deployment
-   is exactly the simulator's policy) is trained through the hybrid model from recorded real states
+4. **residual**: the residual policy (zero at first, so the first deployment is exactly the
+   simulator's policy) is trained through the hybrid model from recorded real states
    (``twinrl.sim2real.residual``) and kept only if it does not lower the full-episode return through
-   that model (``residual.accept``; else pi_sim is deployed), then ``K`` real episodes are run and
-   recorded.
+   that model (``residual.accept``; else pi_sim is deployed);
+5. **deploy**: ``K`` real episodes of pi_sim + residual are run and recorded.
+
+The round is data: ``ROUND`` is the list of its ``Stage`` values (sysid, hybrid, learn,
+residual, deploy; round 0 is ``COLLECT``), each a small function that declares the artefacts it
+needs and gives by name (``data``, ``system``, ``env``, ``hybrid``, ``policy_dir``), saves them in
+its round's directory and loads them back, so ``run`` is only the loop over rounds and stages, and
+the SAM-RL stages (visual fit, imitation, camera choice) are further entries.
 
 Bookkeeping per round: real steps used so far, identified-parameter errors, sim return, real return
 and the oracle's return. The **oracle** (evaluation only, never fed back) is a policy trained the
@@ -44,7 +50,7 @@ import dataclasses
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -53,7 +59,7 @@ import numpy as np
 from twinrl import eval as evaluation
 from twinrl import report
 
-__all__ = ["LoopConfig", "run", "LoopError"]
+__all__ = ["LoopConfig", "run", "LoopError", "Stage", "COLLECT", "ROUND"]
 
 
 class LoopError(Exception):
@@ -202,14 +208,256 @@ class _OracleProcess:
         return value
 
 
-def _identified_system(rdir: Path):
-    """The ``System`` (parameters + action latency) the round's sysid wrote to ``sysid.json``."""
-    from twinrl.envs.system import System
-
-    return System.from_json(json.loads((rdir / "sysid.json").read_text())["system"])
-
-
 # ------------------------------------------------------------------------------ the stages
+@dataclasses.dataclass
+class _Run:
+    """What every stage sees: the run's settings, the real twin (a ``TwinClient``), the dataset
+    writer and the two records (``progress.json`` for the stages, ``eval/evaluation.json`` for
+    evaluation, which no stage reads)."""
+
+    env_name: str
+    seed: int
+    out: Path
+    config: LoopConfig
+    perturbation: Any
+    secret: Path
+    twin: Any
+    writer: Any
+    prog: _Progress
+    ev: _Progress
+    say: Callable[..., None]
+    progress: bool
+    nominal_env: Any
+    t_start: float
+
+    @property
+    def K(self) -> int:
+        return self.config.episodes_per_round
+
+    def close(self) -> None:
+        self.writer.close()
+        self.twin.close()
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of a round: ``make(run, r, rdir, **needs)`` computes its artefacts, saves them
+    under ``rdir`` and marks ``round<r>/<name>`` done in ``progress.json`` (a stage marked done
+    is not run again on ``--resume``); ``load(run, rdir, **needs)`` reads them back as the dict of
+    artefacts named in ``gives``, which later stages take by name (``needs``). A stage whose
+    ``enabled(config)`` is false gives None for each of its artefacts."""
+
+    name: str
+    needs: tuple[str, ...]
+    gives: tuple[str, ...]
+    make: Callable[..., None]
+    load: Callable[..., dict[str, Any]] = lambda run, rdir, **_: {}
+    enabled: Callable[[LoopConfig], bool] = lambda config: True
+
+    def __call__(self, run: _Run, r: int, artefacts: dict[str, Any]) -> dict[str, Any]:
+        if not self.enabled(run.config):
+            return dict.fromkeys(self.gives)
+        rdir = run.out / f"round{r}"
+        if r:  # round 0 records into the dataset only
+            rdir.mkdir(exist_ok=True)
+        needs = {k: artefacts[k] for k in self.needs}
+        if not run.prog.done(f"round{r}/{self.name}"):
+            self.make(run, r, rdir, **needs)
+        given = self.load(run, rdir, **needs)
+        if set(given) != set(self.gives):  # the declaration is what later stages rely on
+            raise LoopError(f"stage {self.name!r} gave {sorted(given)}, but declares "
+                            f"{sorted(self.gives)}")
+        return given
+
+
+def _collect_excitation(run: _Run, r: int, rdir: Path) -> None:
+    """Round 0: ``K`` episodes of safe exciting open-loop actions, recorded (those the dataset
+    already holds, from an interrupted run, are not recorded again)."""
+    from twinrl.real2sim import sysid
+
+    K, T = run.K, run.nominal_env.episode_length
+    have = _episodes_in(run.out / "dataset")
+    run.say(f"[bold]round 0[/]: recording {K - have} exciting episodes on the real twin"
+            f"{f' ({have} already recorded)' if have else ''}")
+    acts = [sysid.excitation_actions(np.random.default_rng([run.seed, e]), T,
+                                     run.nominal_env.action_size) for e in range(K)]
+    t0 = time.perf_counter()
+    for e in range(have, K):
+        _collect(run.twin, run.writer, 1, lambda o, t, a=acts[e]: a[min(t, T - 1)], run.seed,
+                 np.random.default_rng([run.seed, e, 1]))
+    run.prog.mark("round0/collect", real_steps=_real_steps(run.out), real_return=None,
+                  seconds={"collect": time.perf_counter() - t0})
+
+
+def _fit_system(run: _Run, r: int, rdir: Path, data) -> None:
+    """sysid on every real transition so far -> ``sysid.json`` (the identified ``System``:
+    parameters and action latency, with the fit's table and cost)."""
+    from twinrl.real2sim import sysid
+
+    run.say(f"  sysid on {len(data)} real transitions ...")
+    t0 = time.perf_counter()
+    window = {"window": run.config.sysid_window} if run.config.sysid_window else {}
+    res = sysid.fit(run.nominal_env, data, sysid.SysidConfig(**window))
+    report.write_json(rdir / "sysid.json", {
+        "latency": res.latency, "system": res.system.to_json(), "table": res.table,
+        "loss": res.loss, "sim_rollouts": res.sim_rollouts, "seconds": res.seconds})
+    run.ev.mark(f"round{r}/sysid", param_rel_error=evaluation.param_errors(
+        run.env_name, run.seed, res, run.perturbation, run.secret))
+    run.prog.mark(f"round{r}/sysid", latency=res.latency, sysid_rollouts=res.sim_rollouts,
+                  seconds=_seconds(run.prog, r, sysid=time.perf_counter() - t0))
+
+
+def _identified_system(rdir: Path, env_name: str):
+    """The ``System`` (parameters + action latency) the round's sysid wrote to ``sysid.json``.
+
+    A run made before the ``System`` existed wrote the parameters (``params``, float64 lists per
+    ``PhysParams`` field) and ``latency`` beside each other instead; its System is rebuilt from
+    those two, so ``--resume`` can continue such a run."""
+    from twinrl.envs.system import FORMAT, System, SystemFormatError
+
+    path = rdir / "sysid.json"
+    doc = json.loads(path.read_text())
+    if "system" in doc:
+        return System.from_json(doc["system"])
+    try:
+        return System.from_json({"format": FORMAT, "task": env_name, "params": doc["params"],
+                                 "latency": int(doc["latency"])})
+    except (KeyError, TypeError, ValueError, SystemFormatError) as e:
+        raise LoopError(f"{path}: neither a 'system' nor the older 'params' and 'latency' "
+                        f"({type(e).__name__}: {e}); start a new --out") from None
+
+
+def _load_system(run: _Run, rdir: Path, data) -> dict[str, Any]:
+    # the identified twin, latency included, is what every later stage simulates
+    from twinrl import envs
+
+    system = _identified_system(rdir, run.env_name)
+    return {"system": system, "env": envs.make(run.env_name, system=system)}
+
+
+def _fit_hybrid(run: _Run, r: int, rdir: Path, env, system, data) -> None:
+    """The residual dynamics on top of the identified simulator -> ``hybrid/``."""
+    from twinrl.sim2real import hybrid
+
+    run.say("  fitting the hybrid residual dynamics ...")
+    t0 = time.perf_counter()
+    fit = hybrid.fit(env, data, latency=system.latency, rng=jax.random.key(run.seed + r))
+    hybrid.save(rdir / "hybrid", fit)
+    run.prog.mark(f"round{r}/hybrid", hybrid_sim_rmse=fit.metrics["sim_val_rmse"],
+                  hybrid_rmse=fit.metrics["hybrid_val_rmse"],
+                  seconds=_seconds(run.prog, r, hybrid=time.perf_counter() - t0))
+
+
+def _load_hybrid(run: _Run, rdir: Path, **_) -> dict[str, Any]:
+    from twinrl.sim2real import hybrid
+
+    return {"hybrid": hybrid.load(rdir / "hybrid")}
+
+
+def _learn(run: _Run, r: int, rdir: Path, env, hybrid) -> None:
+    """The policy learned in the identified simulator -> ``train/`` (resumes from its last
+    saved epoch); with ``algo="hds"`` a fraction of rollouts goes through the hybrid model."""
+    from twinrl.learn.runner import continue_run
+
+    config = run.config
+    run.say(f"  learning with {config.algo} in the identified simulator ...")
+    kwargs, overrides = {}, {}
+    if config.algo == "hds" and config.model_fraction > 0 and hybrid is not None:
+        from twinrl.sim2real.hybrid import make_dynamics
+
+        kwargs["dynamics"] = make_dynamics(env, hybrid)
+        overrides["model_fraction"] = config.model_fraction
+    t0 = time.perf_counter()
+    s = continue_run(run.env_name, config.algo, rdir / "train", seed=run.seed + r,
+                     epochs=config.epochs, overrides=overrides, progress=run.progress,
+                     env=env, train_kwargs=kwargs, checkpoint_every=config.checkpoint_every)
+    run.prog.mark(f"round{r}/learn", sim_return=s["final"].get("return"),
+                  train_epochs=s["epochs"],
+                  seconds=_seconds(run.prog, r, learn=time.perf_counter() - t0))
+
+
+def _train_residual(run: _Run, r: int, rdir: Path, env, hybrid, data, policy_dir) -> None:
+    """The residual policy trained through the hybrid model from recorded real states ->
+    ``residual/``; kept only if it does not lower the full-episode return through that model
+    (``residual.accept``), else saved as all zeros (exactly pi_sim)."""
+    from twinrl.learn.checkpoint import load_policy, save_policy
+    from twinrl.sim2real import hybrid as hybrid_dynamics
+    from twinrl.sim2real import residual
+
+    if not (rdir / "residual" / "checkpoint.json").exists():
+        t0 = time.perf_counter()
+        base, base_params, _ = load_policy(policy_dir)
+        pol = residual.make_residual(base, base_params)
+        run.say("  training the residual policy through the hybrid model ...")
+        dynamics = hybrid_dynamics.make_dynamics(env, hybrid)
+        seed = run.seed + r
+        res_params, metrics = residual.train(env, dynamics, pol, data.obs,
+                                             rng=jax.random.key(seed))
+        ok, before, after = residual.accept(env, dynamics, pol, res_params,
+                                            jax.random.key(seed + 1))
+        run.say(f"  residual {'accepted' if ok else 'rejected (deploying pi_sim)'}: "
+                f"full-episode return through the hybrid model {before:.1f} -> {after:.1f}")
+        if not ok:  # the exact pi_sim: an all-zero delta outputs tanh(0) = 0
+            res_params = jax.tree_util.tree_map(jnp.zeros_like, res_params)
+        metrics = {k: v[-1] for k, v in metrics.items()}
+        metrics.update(accepted=float(ok), model_return_before=before, model_return_after=after)
+        save_policy(rdir / "residual", pol.delta, res_params, kind="residual", metrics=metrics)
+        run.prog.mark(f"round{r}/residual",
+                      seconds=_seconds(run.prog, r, residual=time.perf_counter() - t0))
+    else:  # trained by a run made before this stage had its own mark
+        run.prog.mark(f"round{r}/residual")
+
+
+def _deploy(run: _Run, r: int, rdir: Path, env, hybrid, policy_dir) -> None:
+    """``K`` real episodes of the deployed policy (pi_sim + residual), recorded as they happen
+    (an interrupted deployment resumes at its first unrecorded episode); then, for evaluation
+    only, pi_sim alone and the deployed policy on the same unrecorded episodes."""
+    config, prog, K = run.config, run.prog, run.K
+    t0 = time.perf_counter()
+    act = _deployed_policy(config, env, hybrid, policy_dir, rdir)
+    have = _episodes_in(run.out / "dataset") - _episodes_before(prog, r, K)
+    run.say(f"  deploying on the real twin ({K - have} episodes) ...")
+    rets = list(prog.record(r).get("deploy_returns_partial", []))
+    for e in range(max(0, have), K):
+        rets += _collect(run.twin, run.writer, 1, lambda o, t: act(o), run.seed,
+                         np.random.default_rng([run.seed, r, e]))
+        prog.mark(f"round{r}/deploy_partial", deploy_returns_partial=rets)
+    t_eval = time.perf_counter()
+    # without an accepted residual the deployed policy is pi_sim (scored once)
+    no_adapt = evaluation.real_return(run.env_name, run.seed, policy_dir, config.eval_episodes,
+                                      run.perturbation, run.secret)
+    gate = _residual_gate(rdir)
+    adapted = (evaluation.policy_real_return(run.env_name, run.seed, act, config.eval_episodes,
+                                             run.perturbation, run.secret)
+               if gate["residual_accepted"] else no_adapt)
+    run.ev.mark(f"round{r}/deploy", sim_policy_real_return=no_adapt, adapted_real_return=adapted)
+    prog.mark(f"round{r}/deploy", real_return=float(np.mean(rets)) if rets else None,
+              real_returns=rets, real_steps=_real_steps(run.out),
+              seconds=_seconds(prog, r, deploy=t_eval - t0,
+                               evaluation=time.perf_counter() - t_eval), **gate)
+
+
+COLLECT = Stage("collect", needs=(), gives=(), make=_collect_excitation)
+"""Round 0's stage."""
+
+ROUND = (
+    Stage("sysid", needs=("data",), gives=("system", "env"), make=_fit_system, load=_load_system),
+    Stage("hybrid", needs=("env", "system", "data"), gives=("hybrid",), make=_fit_hybrid,
+          load=_load_hybrid, enabled=lambda c: c.hybrid),
+    Stage("learn", needs=("env", "hybrid"), gives=("policy_dir",), make=_learn,
+          load=lambda run, rdir, **_: {"policy_dir": rdir / "train"}),
+    Stage("residual", needs=("env", "hybrid", "data", "policy_dir"), gives=(),
+          make=_train_residual, enabled=lambda c: c.residual and c.hybrid),
+    Stage("deploy", needs=("env", "hybrid", "policy_dir"), gives=(), make=_deploy),
+)
+"""The stages of every round ``r >= 1``, in order; each takes the round's ``data`` (every intact
+real transition so far) and what earlier stages gave."""
+
+
+def _quiet(*args, **kwargs) -> None:
+    pass
+
+
 def _collect(twin, writer, episodes: int, policy, seed: int, rng: np.random.Generator,
              bar=None) -> list[float]:
     """Run ``policy(obs, t) -> action`` for ``episodes`` real episodes, recording every
@@ -243,15 +491,33 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     ``perturbation`` (a ``twinrl.real.perturbation.Perturbation``) replaces the drawn one: a
     benchmark's custom real twin, e.g. one with an effect the simulator cannot model. Like the drawn
     one it is applied by the twin and never shown to the learning stages."""
+    out = _check_settings(env_name, Path(out), config, seed, resume)
+    ctx, oracle_job = _start(env_name, out, config, seed, progress, perturbation)
+    rounds: list[dict[str, Any]] = []
+    try:
+        COLLECT(ctx, 0, {})
+        rounds.append(_round_record(ctx.prog, 0))
+        for r in range(1, config.rounds + 1):
+            ctx.say(f"[bold]round {r}[/] ({time.perf_counter() - ctx.t_start:.0f} s)")
+            artefacts = {"data": _read(out / "dataset", ctx.say)}
+            for stage in ROUND:
+                artefacts.update(stage(ctx, r, artefacts))
+            rounds.append(_round_record(ctx.prog, r))
+    finally:
+        ctx.close()
+    return _finish(ctx, rounds, oracle_job)
+
+
+def _check_settings(env_name: str, out: Path, config: LoopConfig, seed: int,
+                    resume: bool) -> Path:
+    """Refuse an unknown task or algorithm, and a resume with other settings or without the
+    real twin's secret; then write ``loop.json``."""
     from twinrl import envs
     from twinrl.learn.runner import algorithm
-    from twinrl.real.dataset import DatasetWriter
-    from twinrl.real2sim import sysid
 
     if env_name not in envs.names():
         raise LoopError(f"unknown task {env_name!r}; registered: {', '.join(envs.names())}")
     algorithm(config.algo)
-    out = Path(out)
     # The perturbation (a custom twin's) is not a setting the loop may read back: the twin's
     # server keeps it with the salt in eval/twin.json and refuses a resume with another one.
     settings = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config)}
@@ -271,161 +537,68 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
                             f"the run predates it or it was removed): start a new --out")
     out.mkdir(parents=True, exist_ok=True)
     report.write_json(settings_file, settings)
-    prog = _Progress(out / "progress.json")
-    say = report.console.print if progress else (lambda *a, **k: None)
-    t_start = time.perf_counter()
+    return out
 
+
+def _start(env_name, out, config, seed, progress, perturbation):
+    """The real twin's server (it creates the secret the oracle's process then reads), the oracle
+    in the background, and the dataset writer."""
+    from twinrl import envs
+    from twinrl.real.dataset import DatasetWriter
+    from twinrl.real.remote import TwinClient
+
+    say = report.console.print if progress else _quiet
+    t_start = time.perf_counter()
     # Evaluation only, never read by the stages: the twin's secret, the oracle, the records.
     ev_dir = out / "eval"
     secret = ev_dir / "twin.json"
-    ev = _Progress(ev_dir / "evaluation.json")
-    # The twin's server first: it creates the secret the oracle's process then reads.
-    from twinrl.real.remote import TwinClient
-
     twin = TwinClient(env_name, seed=seed, secret=secret, perturbation=perturbation)
     oracle_job = None
     if config.oracle and config.oracle_in_background:
         say("training the oracle (evaluation only) in the background")
         oracle_job = _OracleProcess(env_name, seed, ev_dir / "oracle", config, perturbation,
                                     secret=secret)
-    nominal_env = envs.make(env_name)
-    K, T = config.episodes_per_round, nominal_env.episode_length
-    rng = np.random.default_rng(seed)
     obs0, _ = twin.reset(seed=seed)
     writer = DatasetWriter(out / "dataset", env=env_name, obs_shape=obs0.shape,
                            action_shape=twin.action_space.shape, obs_dtype=np.float32,
                            action_dtype=np.float32)
-    rounds: list[dict[str, Any]] = []
-    try:
-        # ---------------------------------------------------------------- round 0: excitation
-        if not prog.done("round0/collect"):
-            have = _episodes_in(out / "dataset")
-            need = K - have
-            say(f"[bold]round 0[/]: recording {need} exciting episodes on the real twin"
-                f"{f' ({have} already recorded)' if have else ''}")
-            acts = [sysid.excitation_actions(np.random.default_rng([seed, e]), T,
-                                             nominal_env.action_size) for e in range(K)]
-            t0 = time.perf_counter()
-            for e in range(have, K):
-                _collect(twin, writer, 1, lambda o, t, a=acts[e]: a[min(t, T - 1)], seed,
-                         np.random.default_rng([seed, e, 1]))
-            prog.mark("round0/collect", real_steps=_real_steps(out), real_return=None,
-                      seconds={"collect": time.perf_counter() - t0})
-        rounds.append(_round_record(prog, 0))
+    run = _Run(env_name, int(seed), out, config, perturbation, secret, twin, writer,
+               _Progress(out / "progress.json"), _Progress(ev_dir / "evaluation.json"), say,
+               progress, envs.make(env_name), t_start)
+    return run, oracle_job
 
-        policy_dir = None
-        for r in range(1, config.rounds + 1):
-            tag = f"round{r}"
-            rdir = out / tag
-            rdir.mkdir(exist_ok=True)
-            say(f"[bold]round {r}[/] ({time.perf_counter() - t_start:.0f} s)")
-            data = _read(out / "dataset", say)
 
-            # 1. sysid --------------------------------------------------------------------
-            if not prog.done(f"{tag}/sysid"):
-                say(f"  sysid on {len(data)} real transitions ...")
-                t0 = time.perf_counter()
-                res = sysid.fit(nominal_env, data, sysid.SysidConfig(
-                    **({"window": config.sysid_window} if config.sysid_window else {})))
-                report.write_json(rdir / "sysid.json", {
-                    "latency": res.latency, "system": res.system.to_json(),
-                    "table": res.table, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
-                    "seconds": res.seconds})
-                ev.mark(f"{tag}/sysid", param_rel_error=evaluation.param_errors(
-                    env_name, seed, res, perturbation, secret))
-                prog.mark(f"{tag}/sysid", latency=res.latency,
-                          sysid_rollouts=res.sim_rollouts,
-                          seconds=_seconds(prog, r, sysid=time.perf_counter() - t0))
-            # the identified twin, latency included, is what every later stage simulates
-            system = _identified_system(rdir)
-            latency = system.latency
-            env = envs.make(env_name, system=system)
-
-            # 2. hybrid -------------------------------------------------------------------
-            hyb = None
-            if config.hybrid:
-                hyb = _hybrid_stage(prog, r, rdir, env, data, latency, seed + r, say)
-
-            # 3. learn in sim -------------------------------------------------------------
-            policy_dir = rdir / "train"
-            if not prog.done(f"{tag}/learn"):
-                say(f"  learning with {config.algo} in the identified simulator ...")
-                kwargs = {}
-                overrides = {}
-                if config.algo == "hds" and config.model_fraction > 0 and hyb is not None:
-                    from twinrl.sim2real.hybrid import make_dynamics
-
-                    kwargs["dynamics"] = make_dynamics(env, hyb)
-                    overrides["model_fraction"] = config.model_fraction
-                from twinrl.learn.runner import continue_run
-
-                t0 = time.perf_counter()
-                s = continue_run(env_name, config.algo, policy_dir, seed=seed + r,
-                                 epochs=config.epochs, overrides=overrides, progress=progress,
-                                 env=env, train_kwargs=kwargs,
-                                 checkpoint_every=config.checkpoint_every)
-                prog.mark(f"{tag}/learn", sim_return=s["final"].get("return"),
-                          train_epochs=s["epochs"],
-                          seconds=_seconds(prog, r, learn=time.perf_counter() - t0))
-
-            # 4. residual + deploy ---------------------------------------------------------
-            if not prog.done(f"{tag}/deploy"):
-                t0 = time.perf_counter()
-                act = _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed + r, say)
-                have = _episodes_in(out / "dataset") - _episodes_before(prog, r, K)
-                say(f"  deploying on the real twin ({K - have} episodes) ...")
-                rets = list(prog.record(r).get("deploy_returns_partial", []))
-                for e in range(max(0, have), K):
-                    rets += _collect(twin, writer, 1, lambda o, t: act(o), seed,
-                                     np.random.default_rng([seed, r, e]))
-                    prog.mark(f"{tag}/deploy_partial", deploy_returns_partial=rets)
-                t_eval = time.perf_counter()
-                # evaluation only: pi_sim alone and the deployed policy on the same unrecorded
-                # episodes (same start states), a like-for-like before/after of the adaptation;
-                # without an accepted residual the deployed policy is pi_sim (scored once)
-                no_adapt = evaluation.real_return(env_name, seed, policy_dir,
-                                                   config.eval_episodes, perturbation, secret)
-                gate = _residual_gate(rdir)
-                adapted = (evaluation.policy_real_return(env_name, seed, act,
-                                                         config.eval_episodes, perturbation,
-                                                         secret)
-                           if gate["residual_accepted"] else no_adapt)
-                ev.mark(f"{tag}/deploy", sim_policy_real_return=no_adapt,
-                        adapted_real_return=adapted)
-                prog.mark(f"{tag}/deploy", real_return=float(np.mean(rets)) if rets else None,
-                          real_returns=rets, real_steps=_real_steps(out),
-                          seconds=_seconds(prog, r, deploy=t_eval - t0,
-                                           evaluation=time.perf_counter() - t_eval), **gate)
-            rounds.append(_round_record(prog, r))
-    finally:
-        writer.close()
-        twin.close()
-
-    # ------------------------------------------------------------------------- oracle
+def _finish(run: _Run, rounds: list[dict[str, Any]], oracle_job) -> dict[str, Any]:
+    """The oracle's return (evaluation only), merged with the evaluation records into the
+    rounds now that the stages are done; ``summary.json``, the report and the final video."""
+    config, env_name, seed, out = run.config, run.env_name, run.seed, run.out
     oracle_return = None
     t_wait = time.perf_counter()
     if oracle_job is not None:
         if oracle_job.running():
-            say("waiting for the oracle's training ...")
+            run.say("waiting for the oracle's training ...")
         oracle_return = oracle_job.result()
     elif config.oracle:
-        oracle_return = evaluation.oracle_return(env_name, seed, ev_dir / "oracle", config,
-                                                 progress, perturbation, secret)
-    for rec in rounds:  # the evaluation records merged in, now that the stages are done
-        rec.update({k: v for k, v in ev.record(rec["round"]).items()})
+        oracle_return = evaluation.oracle_return(env_name, seed, out / "eval" / "oracle", config,
+                                                 run.progress, run.perturbation,
+                                                 run.secret)
+    for rec in rounds:
+        rec.update({k: v for k, v in run.ev.record(rec["round"]).items()})
         rec["oracle_return"] = oracle_return
     final = dict(rounds[-1]) if rounds else {}
     if oracle_return:
         final["fraction_of_oracle"] = (final.get("real_return") or 0.0) / oracle_return
-    summary = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config),
+    summary = {"env": env_name, "seed": seed, "config": report.to_jsonable(config),
                "rounds": rounds, "final": final,
                "oracle_wait_s": time.perf_counter() - t_wait,
-               "wall_s_this_process": time.perf_counter() - t_start}
-    if config.video and policy_dir is not None:
+               "wall_s_this_process": time.perf_counter() - run.t_start}
+    policy_dir = out / f"round{config.rounds}" / "train"
+    if config.video:
         t0 = time.perf_counter()
-        summary["video"] = str(_final_video(out, env_name, seed, config, perturbation, secret))
+        summary["video"] = str(_final_video(out, env_name, seed, config, run.perturbation,
+                                            run.secret))
         summary["video_s"] = time.perf_counter() - t0
-        summary["wall_s_this_process"] = time.perf_counter() - t_start
+        summary["wall_s_this_process"] = time.perf_counter() - run.t_start
     _write_outputs(out, summary, config, env_name, seed, policy_dir)
     return summary
 
@@ -438,14 +611,14 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
     import mujoco
 
     from twinrl import envs
-    from twinrl.real.twin import CameraRenderer
+    from twinrl.render.opengl import CameraRenderer
+    from twinrl.sim2real import hybrid
 
     r = config.rounds
     rdir = out / f"round{r}"
-    env = envs.make(env_name, system=_identified_system(rdir))
-    hyb = _load_hybrid(rdir) if config.hybrid else None
-    act = _deployed_policy(config, env, hyb, None, rdir / "train", rdir, seed + r,
-                           lambda *a, **k: None)
+    env = envs.make(env_name, system=_identified_system(rdir, env_name))
+    hyb = hybrid.load(rdir / "hybrid") if config.hybrid else None
+    act = _deployed_policy(config, env, hyb, rdir / "train", rdir)
     # Both sides without shadows: in software OpenGL (no GPU) shadow mapping is ~90 % of a frame
     # (cartpole 320x240: 80 ms -> 6 ms), and the video is for looking at, not for fitting.
     from twinrl.real.remote import TwinClient
@@ -521,35 +694,6 @@ def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
             "latency": rec.get("latency"), "seconds": rec.get("seconds", {})}
 
 
-def _hybrid_stage(prog, r, rdir, env, data, latency, seed, say):
-    from twinrl.learn.checkpoint import save_policy
-    from twinrl.sim2real import hybrid
-
-    tag = f"round{r}"
-    if not prog.done(f"{tag}/hybrid"):
-        say("  fitting the hybrid residual dynamics ...")
-        t0 = time.perf_counter()
-        fit = hybrid.fit(env, data, latency=latency, rng=jax.random.key(seed))
-        m = fit.model
-        save_policy(rdir / "hybrid", m.network, m.params, kind="hybrid_residual",
-                    in_mean=m.in_mean, in_std=m.in_std, out_scale=m.out_scale,
-                    latency=m.latency, metrics=fit.metrics)
-        prog.mark(f"{tag}/hybrid", hybrid_sim_rmse=fit.metrics["sim_val_rmse"],
-                  hybrid_rmse=fit.metrics["hybrid_val_rmse"],
-                  seconds=_seconds(prog, r, hybrid=time.perf_counter() - t0))
-    return _load_hybrid(rdir)
-
-
-def _load_hybrid(rdir: Path):
-    from twinrl.learn.checkpoint import load_policy
-    from twinrl.sim2real import hybrid
-
-    net, params, meta = load_policy(rdir / "hybrid")
-    f32 = lambda k: jnp.asarray(np.asarray(meta[k]), jnp.float32)  # noqa: E731
-    return hybrid.HybridModel(net, params, f32("in_mean"), f32("in_std"), f32("out_scale"),
-                              int(meta["latency"]))
-
-
 def _residual_gate(rdir: Path) -> dict[str, Any]:
     """The residual's acceptance (``residual.accept``) as recorded in its checkpoint."""
     f = rdir / "residual" / "checkpoint.json"
@@ -558,32 +702,19 @@ def _residual_gate(rdir: Path) -> dict[str, Any]:
             "residual_model_return": [m.get("model_return_before"), m.get("model_return_after")]}
 
 
-def _deployed_policy(config, env, hyb, data, policy_dir, rdir, seed, say):
-    """The deployed ``obs -> action``: pi_sim, plus the residual trained through the hybrid."""
-    from twinrl.learn.checkpoint import load_policy, save_policy
-    from twinrl.sim2real import hybrid, residual
+def _deployed_policy(config, env, hybrid, policy_dir, rdir):
+    """The deployed ``obs -> action``: pi_sim (``policy_dir``), plus the residual the round's
+    ``residual`` stage saved when the loop adapts (``config.residual`` with a hybrid model)."""
+    from twinrl.learn.checkpoint import load_policy
+    from twinrl.sim2real import residual
 
     base, base_params, _ = load_policy(policy_dir)
-    if not config.residual or hyb is None:
+    if not config.residual or hybrid is None:
         f = jax.jit(base.apply)
         return lambda o: np.asarray(f(base_params, o))
-    pol = residual.make_residual(base, base_params)
     if not (rdir / "residual" / "checkpoint.json").exists():
-        if data is None:
-            raise LoopError(f"{rdir}: residual policy missing")
-        say("  training the residual policy through the hybrid model ...")
-        dynamics = hybrid.make_dynamics(env, hyb)
-        res_params, metrics = residual.train(env, dynamics, pol, data.obs,
-                                             rng=jax.random.key(seed))
-        ok, before, after = residual.accept(env, dynamics, pol, res_params,
-                                            jax.random.key(seed + 1))
-        say(f"  residual {'accepted' if ok else 'rejected (deploying pi_sim)'}: full-episode "
-            f"return through the hybrid model {before:.1f} -> {after:.1f}")
-        if not ok:  # the exact pi_sim: an all-zero delta outputs tanh(0) = 0
-            res_params = jax.tree_util.tree_map(jnp.zeros_like, res_params)
-        metrics = {k: v[-1] for k, v in metrics.items()}
-        metrics.update(accepted=float(ok), model_return_before=before, model_return_after=after)
-        save_policy(rdir / "residual", pol.delta, res_params, kind="residual", metrics=metrics)
+        raise LoopError(f"{rdir}: residual policy missing")
+    pol = residual.make_residual(base, base_params)
     _, res_params, _ = load_policy(rdir / "residual")
     f = jax.jit(pol.act)
     return lambda o: np.asarray(f(res_params, o))

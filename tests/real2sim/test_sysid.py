@@ -1,7 +1,7 @@
 """sysid (multiple shooting + Levenberg-Marquardt) and its CMA-ES baseline on the cartpole.
 
 Every fit here shares one parameter set, window and latency range, so the residual and Jacobian
-functions compile once for the module (``sysid._FUNCTIONS``); the compile of the forward-mode
+functions compile once for the module (``sysid.problem._FUNCTIONS``); the compile of the forward-mode
 Jacobian through MJX dominates the module's time.
 """
 
@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from twinrl import envs
+from twinrl.real import make_real
 from twinrl.real.dataset import DatasetWriter, read
 from twinrl.real.perturbation import Perturbation
 from twinrl.real2sim import baselines, sysid
@@ -29,7 +30,7 @@ def _exact_twin():
     """A real twin of our own model (Euler, 4 solver iterations, no noise), one step of latency."""
     pert = Perturbation(mass_scale=(1.0, 1.1), damping_scale=(1.0, 1.0), extra_damping=(0.2, 0.0),
                         extra_frictionloss=(0.5, 0.0), gain_scale=(0.95,), latency_steps=1)
-    return envs.make_real(TASK, seed=0, perturbation=pert, integrator="euler", iterations=4)
+    return make_real(TASK, seed=0, perturbation=pert, integrator="euler", iterations=4)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +52,7 @@ def exact(env):
 @pytest.fixture(scope="module")
 def real(env):
     """A small dataset from the default real twin (other engine, noise, rail friction)."""
-    twin = envs.make_real(TASK, seed=1)
+    twin = make_real(TASK, seed=1)
     data = sysid.collect(twin, episodes=2, seed=1, steps=150)
     o = twin.oracle()  # evaluation only
     result = sysid.fit(env, data, config(float(o.params.mass[0])))

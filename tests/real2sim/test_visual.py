@@ -8,7 +8,7 @@ import pytest
 
 from twinrl.physics import load_mjcf
 from twinrl.real.perturbation import Perturbation
-from twinrl.real.twin import render_states
+from twinrl.render.opengl import render_states
 from twinrl.real2sim import visual as V
 from twinrl.render import Camera
 
@@ -103,11 +103,11 @@ def test_bad_frames(push):
 def test_visual_errors_against_the_twins_truth():
     # evaluation only (twinrl.eval): the twin's own hidden camera and box score 0; a fit 4 mm /
     # 0.5 deg off, 3 % too large and 5/255 too red scores exactly that
-    from twinrl import envs
+    from twinrl import real
     from twinrl.eval import visual_errors
     from twinrl.render.camera import quat_mul, rotvec_to_quat
 
-    twin = envs.make_real("push", seed=3)
+    twin = real.make_real("push", seed=3)
     truth = twin.oracle().model
     twin.close()
     d = mujoco.MjData(truth)

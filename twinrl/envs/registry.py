@@ -1,9 +1,10 @@
-"""The task registry: ``names()``, ``make(name, **overrides)``, ``make_real(name, seed=...)``.
+"""The task registry: ``names()``, ``make(name, **overrides)``.
 
 A task name maps to an ``Env`` class and its default config (``cartpole_balance`` and
 ``cartpole_swingup`` share a class and differ in config), in the style of MuJoCo Playground's
 ``default_config()`` plus flat overrides. Configs are frozen dataclasses, so no instance can
-change another's defaults.
+change another's defaults. A task's real twin is ``twinrl.real.make_real(name, seed=...)``: the
+real side sits above ``envs`` (ARCHITECTURE.md's module map), so the registry does not reach it.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from twinrl.envs.push import Push
 from twinrl.envs.wrappers import LatencyWrapper
 from twinrl.physics import PhysParams
 
-__all__ = ["names", "make", "make_real", "default_config", "TASKS"]
+__all__ = ["names", "make", "default_config", "TASKS"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,21 +82,3 @@ def make(name: str, *, params: PhysParams | None = None, system: Any = None,
     env.sys = system
     return LatencyWrapper(env, system.latency) if system.latency else env
 
-
-def make_real(name: str, *, seed: int = 0, perturbation: Any = None, **kwargs: Any):
-    """The real twin of task ``name`` (``twinrl.real.twin.RealTwin``, a ``gymnasium.Env``).
-
-    Args:
-      seed: selects the hidden perturbation (when ``perturbation`` is None) and the default
-        episode seed.
-      perturbation: a ``twinrl.real.perturbation.Perturbation`` (``Perturbation.none()`` for an
-        exact twin); default: drawn from the task's ``perturbation_spec`` with ``seed``.
-      kwargs: passed to ``RealTwin`` (``render_mode``, ``width``, ``height``, config overrides
-        as ``config={...}``, engine settings).
-    """
-    # Imported here: ``real`` sits above ``envs`` in the module map (ARCHITECTURE.md), so the
-    # registry only reaches up to it when a real twin is asked for.
-    from twinrl.real.twin import RealTwin
-
-    _entry(name)
-    return RealTwin(name, seed=seed, perturbation=perturbation, **kwargs)

@@ -16,8 +16,9 @@ tanh-Gaussian, ``tanh(loc)``) after Brax's observation normaliser, so ``make_eva
 like any of ours. ``params`` is a plain dict ``{"obs_mean", "obs_std", "policy"}``: what a
 deployed policy needs (the PPO value network is dropped), and with the JSON of the config
 (``config.to_dict()``) ``ppo_policy``/``apg_policy`` rebuild ``policy`` without the training code:
-the returned policy carries that JSON as ``policy.spec`` and the kinds ``brax_ppo``/``brax_apg``
-are registered with ``twinrl.learn.checkpoint``, so ``save_policy``/``load_policy`` round-trip it.
+the returned policy carries that JSON as ``policy.spec``, and ``NETWORK_KINDS`` gives
+``twinrl.learn.checkpoint.load_policy`` the builders of the kinds ``brax_ppo``/``brax_apg``, so
+``save_policy``/``load_policy`` round-trip it.
 
 Metrics: one entry per Brax evaluation (``progress_fn`` call), with ``epoch`` (evaluation index),
 ``env_steps``, ``wall_s`` (since ``*_train`` was called, compile included), ``return`` (Brax's
@@ -45,8 +46,7 @@ from brax.training.agents.ppo import networks as ppo_networks
 from brax.training.agents.ppo import train as ppo
 
 from twinrl.learn import tuned
-from twinrl.learn.checkpoint import register_network_kind
-from twinrl.learn.common import MetricLog, ProgressFn
+from twinrl.learn.common import JSONConfig, MetricLog, ProgressFn
 from twinrl.learn.networks import ACTIVATIONS, Network, NetworkConfig
 
 __all__ = ["PPOConfig", "APGConfig", "ppo_train", "apg_train", "ppo_policy", "apg_policy",
@@ -64,18 +64,8 @@ def _check_hidden(obj, *names):
                          f"got {obj.activation!r}")
 
 
-class _JSONConfig:
-    def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v
-                for k, v in dataclasses.asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]):
-        return cls(**d)
-
-
 @dataclasses.dataclass(frozen=True)
-class PPOConfig(_JSONConfig):
+class PPOConfig(JSONConfig):
     """Brax PPO's settings (names as in ``brax.training.agents.ppo.train.train``)."""
 
     num_timesteps: int = 3_000_000
@@ -133,7 +123,7 @@ class PPOConfig(_JSONConfig):
 
 
 @dataclasses.dataclass(frozen=True)
-class APGConfig(_JSONConfig):
+class APGConfig(JSONConfig):
     """Brax APG's settings (names as in ``brax.training.agents.apg.train.train``)."""
 
     policy_updates: int = 600
@@ -252,10 +242,15 @@ def apg_policy(obs_size: int, action_size: int, config: APGConfig) -> Network:
                        apg_networks.make_inference_fn, obs_size, action_size, config, True)
 
 
-register_network_kind("brax_ppo", lambda spec: ppo_policy(
-    int(spec["in_size"]), int(spec["out_size"]), PPOConfig.from_dict(spec["config"])))
-register_network_kind("brax_apg", lambda spec: apg_policy(
-    int(spec["in_size"]), int(spec["out_size"]), APGConfig.from_dict(spec["config"])))
+# What ``twinrl.learn.checkpoint.load_policy`` rebuilds ``brax_*`` networks with. The loader looks
+# this table up (importing this module when it meets such a kind) rather than this module
+# registering into the loader, so the import runs one way: checkpoint -> baselines.
+NETWORK_KINDS = {
+    "brax_ppo": lambda spec: ppo_policy(int(spec["in_size"]), int(spec["out_size"]),
+                                        PPOConfig.from_dict(spec["config"])),
+    "brax_apg": lambda spec: apg_policy(int(spec["in_size"]), int(spec["out_size"]),
+                                        APGConfig.from_dict(spec["config"])),
+}
 
 
 def _plain_params(normaliser, policy_params) -> dict[str, Any]:

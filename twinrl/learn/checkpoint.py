@@ -10,8 +10,9 @@
 
 ``load_policy(dir)`` rebuilds the network from the JSON alone (Brax's habit: params + a JSON
 network config), so a policy can be evaluated, deployed on the real twin, or used as the base of a
-residual policy without the training code. Networks of other kinds (Brax PPO's normalised policy)
-register a builder with ``register_network_kind``.
+residual policy without the training code. Brax PPO's and APG's normalised policies are rebuilt by
+``twinrl.learn.baselines.NETWORK_KINDS`` (imported on first use); other kinds register a builder
+with ``register_network_kind``.
 
 **Training state** (``TrainStateCheckpointer``): the trainer's whole state (params, optimiser state,
 rng, counters; ``twinrl.learn.common``) and its metric history, saved together by an orbax
@@ -121,7 +122,8 @@ def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
     if not isinstance(kind, str):
         raise CheckpointError(f"{meta_file}: network kind {kind!r} is not a string")
     if kind not in _BUILDERS and kind.startswith("brax"):
-        import twinrl.learn.baselines  # noqa: F401  (registers the Brax network kinds)
+        from twinrl.learn.baselines import NETWORK_KINDS  # Brax's imports only when needed
+        _BUILDERS.update({k: b for k, b in NETWORK_KINDS.items() if k not in _BUILDERS})
     if kind not in _BUILDERS:
         raise CheckpointError(f"{meta_file}: unknown network kind {kind!r}; "
                               f"known: {sorted(_BUILDERS)}")

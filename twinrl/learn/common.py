@@ -20,6 +20,10 @@ The trainer contract (Brax's, made resumable)::
   it to ``restore`` as the structure to fill, and continues from epoch ``len(metrics['epoch'])``.
   The result equals an uninterrupted run's with the same seed (wall clock aside), because every
   random draw comes from the key carried in the state.
+
+Also here, because PODS, HDS and their critic all use it: the policy regression onto targets
+(``make_regress``: full-batch steps of ``make_optimizer``'s NaN guard, clip and Adam on the
+weighted squared error ``regression_loss``; PODS Sec. 4, "policy update").
 """
 
 from __future__ import annotations
@@ -31,9 +35,13 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
-__all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn", "RestoreFn",
-           "compile_key"]
+from twinrl.physics.gradients import global_norm, hygiene
+
+__all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn",
+           "RestoreFn", "compile_key", "JSONConfig", "tree_where", "make_optimizer",
+           "regression_loss", "make_regress"]
 
 ProgressFn = Callable[[int, dict[str, float]], None]
 CheckpointFn = Callable[[int, Any, dict[str, list[float]]], None]
@@ -44,6 +52,26 @@ def compile_key(config) -> Any:
     """The part of a trainer's frozen config its compiled functions depend on (a cache key):
     ``epochs`` changes no compiled function, so a longer or resumed run reuses them."""
     return dataclasses.replace(config, epochs=1)
+
+
+class JSONConfig:
+    """Mixin of a frozen config dataclass saved in checkpoints as JSON: ``to_dict`` (tuples as
+    lists) and ``from_dict`` (the dataclass's ``__post_init__`` turns the lists back)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v
+                for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]):
+        return cls(**d)
+
+
+def tree_where(mask: jax.Array, a, b):
+    """Per batch entry (leading axis of ``mask``): ``a`` where ``mask`` else ``b``, leaf by leaf
+    (e.g. a fresh episode's state for the environments whose episode ended)."""
+    return jax.tree_util.tree_map(
+        lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
 def raw_key(rng) -> jax.Array:
@@ -121,3 +149,51 @@ class MetricLog:
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v, np.float64) for k, v in self.history.items()}
+
+
+# --------------------------------------------------------------------------- regression
+def regression_loss(apply_fn, params, obs, targets, weights):
+    """Weighted mean squared error ``sum w |pi(o) - a*|^2 / sum w`` (PODS Sec. 4 policy update)."""
+    pred = apply_fn(params, obs)
+    se = jnp.sum(jnp.square(pred - targets), axis=-1)
+    return jnp.sum(weights * se) / jnp.maximum(jnp.sum(weights), 1.0)
+
+
+def make_optimizer(learning_rate: float, max_grad_norm: float | None):
+    """NaN guard, global-norm clip, Adam: a non-finite update never reaches the parameters."""
+    return optax.chain(hygiene(max_grad_norm), optax.adam(learning_rate))
+
+
+def make_regress(apply_fn, optimizer, steps: int):
+    """A jitted ``regress(params, opt_state, obs, targets, weights)`` of ``steps`` full-batch
+    steps. Returns ``(params, opt_state, final_loss, first_grad_norm, initial_loss)`` (the loss
+    before the first step says how far the targets moved; the final one how well the policy fits
+    them); with no weight at all
+    (nothing accepted) the params and optimiser state are returned unchanged (Adam's momentum
+    would otherwise keep moving them)."""
+
+    def regress(params, opt_state, obs, targets, weights):
+        w = weights.reshape(-1).astype(jnp.float32)
+        obs = obs.reshape(w.shape[0], -1)
+        targets = targets.reshape(w.shape[0], -1)
+        # where(), so a masked NaN cannot leak through 0 * NaN
+        keep = w > 0
+        obs = jnp.where(keep[:, None], obs, 0.0)
+        targets = jnp.where(keep[:, None], targets, 0.0)
+
+        def body(carry, _):
+            p, s = carry
+            loss, g = jax.value_and_grad(
+                lambda q: regression_loss(apply_fn, q, obs, targets, w))(p)
+            u, s = optimizer.update(g, s, p)
+            return (optax.apply_updates(p, u), s), (loss, global_norm(g))
+
+        (p, s), (losses, norms) = jax.lax.scan(body, (params, opt_state), None, length=steps)
+        any_w = jnp.sum(w) > 0
+        pick = lambda new, old: jax.tree_util.tree_map(  # noqa: E731
+            lambda a, b: jnp.where(any_w, a, b), new, old)
+        final = regression_loss(apply_fn, p, obs, targets, w)
+        return (pick(p, params), pick(s, opt_state), jnp.where(any_w, final, 0.0), norms[0],
+                jnp.where(any_w, losses[0], 0.0))
+
+    return jax.jit(regress)

@@ -28,7 +28,7 @@ HDS study made:
   ``env.step``'s does. The evaluation (``return``) always runs in ``env``.
 
 The optional critic (``critic=True``: a learned value bootstrapping each window's return) is
-``twinrl.learn.pods``'s; it is fitted on the executed (noisy) rollouts.
+``twinrl.learn.critic``'s, as PODS's; it is fitted on the executed (noisy) rollouts.
 
 ``env_steps`` follows ``twinrl.learn.pods`` (every simulated step, line searches and gradient
 re-simulations included, evaluation excluded) and counts the steps through ``dynamics`` too;
@@ -51,8 +51,10 @@ import numpy as np
 from twinrl.learn import trajopt
 from twinrl.learn.common import CheckpointFn, ProgressFn, RestoreFn, compile_key
 from twinrl.learn.networks import Network
-from twinrl.learn.pods import (Compiled, PODSConfig, compile_parts, critic_stats, epoch_update,
-                               improve_window, init_state, window_stats)
+from twinrl.learn.critic import critic_stats
+from twinrl.learn.pods import PODSConfig
+from twinrl.learn.windows import (Compiled, compile_parts, epoch_update, improve_window,
+                                  init_state, window_stats)
 from twinrl.learn.trainer import check_batch, resume, run_epochs
 from twinrl.physics.gradients import guard_stats
 from twinrl.physics.parallel import batch_mesh

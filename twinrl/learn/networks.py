@@ -6,6 +6,10 @@ params + a JSON network config). Every trainer builds its networks through ``mak
 ``make_value`` and gets back a ``Network`` of two pure functions, ``init(rng) -> params`` and
 ``apply(params, obs) -> output``; ``apply`` works on a single observation or any batch of them.
 
+Running observation statistics (``init_obs_stats``, ``update_obs_stats``, ``obs_std``) standardise
+a network's inputs while it trains; ``fold_normaliser`` then folds that standardisation into the
+first layer, so the deployed network takes raw observations (SHAC's policy).
+
 The last layer can be initialised to zero (``zero_last=True``): a residual policy
 (``twinrl.sim2real.residual``) must output exactly 0 at its first deployment.
 """
@@ -20,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 __all__ = ["NetworkConfig", "Network", "MLP", "make_network", "make_policy", "make_value",
-           "ACTIVATIONS"]
+           "ACTIVATIONS", "init_obs_stats", "update_obs_stats", "obs_std", "fold_normaliser"]
 
 ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
     "tanh": jnp.tanh, "relu": jax.nn.relu, "elu": jax.nn.elu, "swish": jax.nn.swish,
@@ -136,3 +140,40 @@ def make_value(obs_size: int, hidden: Sequence[int] = (64, 64), activation: str 
     net = make_network(obs_size, 1, NetworkConfig(hidden=tuple(hidden), activation=activation,
                                                    output="linear", layer_norm=layer_norm))
     return net._replace(apply=lambda p, x: net.apply(p, x)[..., 0])
+
+
+# --------------------------------------------------------------------------- observation statistics
+def init_obs_stats(size: int) -> dict[str, jax.Array]:
+    """Running statistics of ``size``-dimensional observations before any data (unit variance)."""
+    return {"mean": jnp.zeros((size,)), "var": jnp.ones((size,)), "count": jnp.full((), 1e-4)}
+
+
+def update_obs_stats(stats, x):
+    """Running observation statistics ``{"mean", "var", "count"}`` updated with the batch ``x``
+    (..., d) (Chan et al.'s parallel update of mean and variance)."""
+    x = x.reshape(-1, x.shape[-1])
+    n, mean, var = x.shape[0], jnp.mean(x, 0), jnp.var(x, 0)
+    total = stats["count"] + n
+    delta = mean - stats["mean"]
+    new_mean = stats["mean"] + delta * n / total
+    m2 = stats["var"] * stats["count"] + var * n + jnp.square(delta) * stats["count"] * n / total
+    return {"mean": new_mean, "var": m2 / total, "count": total}
+
+
+def obs_std(stats):
+    """The standard deviation a normaliser divides by, from running statistics."""
+    # A variance floor of 1e-2: a feature that barely moved so far (cos of a hanging pole) must not
+    # blow up to hundreds of standard deviations, and saturate the network, once it does move.
+    return jnp.sqrt(stats["var"] + 1e-2)
+
+
+def fold_normaliser(params, mean: jax.Array, std: jax.Array):
+    """MLP params acting on ``(obs - mean) / std`` rewritten to act on raw ``obs``: the first
+    Dense layer absorbs the affine map (``W' = W / std``, ``b' = b - (mean / std) W``)."""
+    inner = dict(params["params"])
+    first = dict(inner["Dense_0"])
+    w = first["kernel"]
+    first["kernel"] = w / std[:, None]
+    first["bias"] = first["bias"] - (mean / std) @ w
+    inner["Dense_0"] = first
+    return {**params, "params": inner}

@@ -366,9 +366,9 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
 
 
 def _eval_real(env, name, act, params, episodes, seed, frames, size, progress):
-    from twinrl import envs
+    from twinrl.real.twin import make_real
 
-    twin = envs.make_real(name, seed=seed, width=size[0], height=size[1])
+    twin = make_real(name, seed=seed, width=size[0], height=size[1])
     returns = []
     try:
         for ep in range(episodes):
@@ -392,7 +392,7 @@ def _sim_frames(env, act, params, seed, episodes, size) -> list[np.ndarray]:
     camera (the states are MJX's; only the pixels come from OpenGL)."""
     import mujoco
 
-    from twinrl.real.twin import CameraRenderer
+    from twinrl.render.opengl import CameraRenderer
 
     state = jax.jit(env.reset)(jax.random.split(jax.random.key(seed), episodes)[0])
     step = jax.jit(env.step)

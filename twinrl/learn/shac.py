@@ -48,13 +48,15 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import optax
-from jax.sharding import NamedSharding, PartitionSpec
 
-from twinrl.learn.common import CheckpointFn, ProgressFn, RestoreFn, make_evaluator, raw_key
-from twinrl.learn.networks import Network, NetworkConfig, make_network, make_value
-from twinrl.learn.trainer import replicate, resume, run_epochs
+from twinrl.learn.common import (CheckpointFn, JSONConfig, ProgressFn, RestoreFn, make_evaluator,
+                                 raw_key, tree_where)
+from twinrl.learn.critic import minibatch_fit, td_lambda_targets
+from twinrl.learn.networks import (Network, NetworkConfig, fold_normaliser, init_obs_stats,
+                                   make_network, make_value, obs_std, update_obs_stats)
+from twinrl.learn.trainer import jit_sharded_epoch, resume, run_epochs
 from twinrl.physics.gradients import clip_by_global_norm, global_norm, guard_stats, nan_guard
-from twinrl.physics.parallel import batch_mesh, shard_batch
+from twinrl.physics.parallel import batch_mesh
 
 __all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networks", "Parts",
            "make_parts", "init_state", "actor_loss", "critic_update", "epoch_step", "deployed",
@@ -62,7 +64,7 @@ __all__ = ["SHACConfig", "SHACState", "train", "td_lambda_targets", "make_networ
 
 
 @dataclasses.dataclass(frozen=True)
-class SHACConfig:
+class SHACConfig(JSONConfig):
     """Hyper-parameters of SHAC (defaults: SHAC's cartpole settings, Appendix A.4, except the
     learning rates, 2e-3 for both, which ``pendulum_swingup`` is solved with;
     ``twinrl.learn.tuned`` sets SHAC's actor 1e-2 / critic 1e-3 for ``cartpole_swingup``)."""
@@ -139,15 +141,6 @@ class SHACConfig:
         if self.episode_length is not None and int(self.episode_length) < 1:
             raise ValueError(f"episode_length must be >= 1 or None, got {self.episode_length}")
 
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["actor_hidden"], d["critic_hidden"] = list(self.actor_hidden), list(self.critic_hidden)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "SHACConfig":
-        return cls(**d)
-
 
 class SHACState(NamedTuple):
     """Everything a SHAC run carries between epochs (a pytree of arrays of fixed structure)."""
@@ -174,34 +167,6 @@ class SHACState(NamedTuple):
     """int32: completed epochs."""
 
 
-def td_lambda_targets(rewards: jax.Array, next_values: jax.Array, boundaries: jax.Array,
-                      gamma: float, lam: float) -> jax.Array:
-    """TD(lambda) value targets over a window (SHAC Sec. 3.3, Eq. 5), time on axis 0.
-
-    ``rewards[t]`` is earned by the step from ``s_t`` to ``s_{t+1}``, ``next_values[t]`` is the
-    (target) value of ``s_{t+1}`` (already 0 where the episode terminated), and ``boundaries[t]``
-    is true where the return cannot be followed past ``s_{t+1}`` (the episode ended there, or the
-    window does). The recursion
-    ``G_t = r_t + gamma * ((1 - lambda) V(s_{t+1}) + lambda G_{t+1})`` with ``G_t = r_t + gamma
-    V(s_{t+1})`` at a boundary weighs the n-step returns ``(1 - lambda) lambda^(n-1)`` and gives the
-    longest one available the remaining weight. Any trailing shape (e.g. environments) is kept.
-    """
-    rewards, next_values = jnp.asarray(rewards), jnp.asarray(next_values)
-    boundaries = jnp.asarray(boundaries, bool)
-    if not (rewards.shape == next_values.shape == boundaries.shape):
-        raise ValueError(f"rewards {rewards.shape}, next_values {next_values.shape} and "
-                         f"boundaries {boundaries.shape} must have the same shape")
-
-    def back(g_next, x):
-        r, v, b = x
-        g = r + gamma * jnp.where(b, v, (1.0 - lam) * v + lam * g_next)
-        return g, g
-
-    _, g = jax.lax.scan(back, jnp.zeros_like(rewards[-1]), (rewards, next_values, boundaries),
-                        reverse=True)
-    return g
-
-
 def make_networks(obs_size: int, action_size: int, config: SHACConfig
                   ) -> tuple[Network, Network, Network]:
     """``(policy, policy_pre_tanh, critic)``: the deterministic policy (tanh output, the one
@@ -214,46 +179,11 @@ def make_networks(obs_size: int, action_size: int, config: SHACConfig
     return policy, pre, critic
 
 
-def _update_stats(stats, x):
-    """Chan et al.'s parallel update of running mean/variance with the batch ``x`` (..., d)."""
-    x = x.reshape(-1, x.shape[-1])
-    n, mean, var = x.shape[0], jnp.mean(x, 0), jnp.var(x, 0)
-    total = stats["count"] + n
-    delta = mean - stats["mean"]
-    new_mean = stats["mean"] + delta * n / total
-    m2 = stats["var"] * stats["count"] + var * n + jnp.square(delta) * stats["count"] * n / total
-    return {"mean": new_mean, "var": m2 / total, "count": total}
-
-
-def _std(stats):
-    # A variance floor of 1e-2: a feature that barely moved so far (cos of a hanging pole) must not
-    # blow up to hundreds of standard deviations, and saturate the network, once it does move.
-    return jnp.sqrt(stats["var"] + 1e-2)
-
-
-def fold_normaliser(params, mean: jax.Array, std: jax.Array):
-    """MLP params acting on ``(obs - mean) / std`` rewritten to act on raw ``obs``: the first
-    Dense layer absorbs the affine map (``W' = W / std``, ``b' = b - (mean / std) W``)."""
-    inner = dict(params["params"])
-    first = dict(inner["Dense_0"])
-    w = first["kernel"]
-    first["kernel"] = w / std[:, None]
-    first["bias"] = first["bias"] - (mean / std) @ w
-    inner["Dense_0"] = first
-    return {**params, "params": inner}
-
-
 def _optimizer(lr: float, config: SHACConfig, updates: int) -> optax.GradientTransformation:
     if config.lr_schedule == "linear":
         lr = optax.linear_schedule(lr, config.lr_end, max(int(updates), 1))
     return optax.chain(nan_guard(), clip_by_global_norm(config.max_grad_norm),
                        optax.adam(lr, b1=config.adam_b1, b2=config.adam_b2))
-
-
-def _select(mask: jax.Array, a, b):
-    """Per environment (leading axis): ``a`` where ``mask`` else ``b``, leaf by leaf."""
-    return jax.tree_util.tree_map(
-        lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
 class Parts(NamedTuple):
@@ -298,8 +228,7 @@ def init_state(p: Parts, key) -> SHACState:
         actor=actor, critic=vparams, target_critic=vparams,
         actor_opt=p.actor_tx.init(actor), critic_opt=p.critic_tx.init(vparams),
         env_state=p.v_reset(jax.random.split(k_env, N)), ep_step=jnp.zeros((N,), jnp.int32),
-        obs_norm={"mean": jnp.zeros((p.obs_size,)), "var": jnp.ones((p.obs_size,)),
-                  "count": jnp.full((), 1e-4)},
+        obs_norm=init_obs_stats(p.obs_size),
         rng=key, epoch=jnp.zeros((), jnp.int32))
 
 
@@ -313,7 +242,7 @@ def actor_loss(p: Parts, actor, target_critic, env_state, ep_step, obs_norm, key
     fresh = jax.lax.stop_gradient(p.v_reset(jax.random.split(k_reset, N)))
     noise = jax.random.normal(k_noise, (h, N, p.act_size))
     std = jnp.exp(actor["log_std"])
-    mean_o, std_o = obs_norm["mean"], _std(obs_norm)
+    mean_o, std_o = obs_norm["mean"], obs_std(obs_norm)
     norm = lambda o: (o - mean_o) / std_o  # noqa: E731
 
     def step(carry, xs):
@@ -333,7 +262,7 @@ def actor_loss(p: Parts, actor, target_critic, env_state, ep_step, obs_norm, key
         disc = jnp.where(boundary, 1.0, disc)
         out = (jax.lax.stop_gradient(norm(s.obs)), jax.lax.stop_gradient(s2.reward),
                jax.lax.stop_gradient(v_next), boundary, contrib)
-        return (_select(ended, fresh, s2), jnp.where(ended, 0, t2), acc, disc), out
+        return (tree_where(ended, fresh, s2), jnp.where(ended, 0, t2), acc, disc), out
 
     zeros = jnp.zeros((N,))
     (s_end, t_end, _, _), (obs, rew, v_next, bnd, contrib) = jax.lax.scan(
@@ -344,28 +273,11 @@ def actor_loss(p: Parts, actor, target_critic, env_state, ep_step, obs_norm, key
 
 def critic_update(p: Parts, params, opt, obs, targets, key):
     """``critic_iterations`` passes of ``critic_minibatches`` shuffled minibatches regressing the
-    critic on the window's targets (SHAC Sec. 3.3, Eq. 4); returns ``(params, opt, last pass's
-    mean loss)``."""
+    critic on the window's targets (SHAC Sec. 3.3, Eq. 4; ``twinrl.learn.critic.minibatch_fit``);
+    returns ``(params, opt, last pass's mean loss)``."""
     c, nh = p.config, int(p.config.num_envs) * int(p.config.horizon)
-    obs = obs.reshape(nh, p.obs_size)
-    targets = targets.reshape(nh)
-
-    def loss_fn(q, o, y):
-        return jnp.mean(jnp.square(p.critic.apply(q, o) - y))
-
-    def minibatch(carry, idx):
-        q, o = carry
-        loss, g = jax.value_and_grad(loss_fn)(q, obs[idx], targets[idx])
-        u, o = p.critic_tx.update(g, o, q)
-        return (optax.apply_updates(q, u), o), loss
-
-    def one_pass(carry, k):
-        perm = jax.random.permutation(k, nh).reshape(c.critic_minibatches, -1)
-        return jax.lax.scan(minibatch, carry, perm)
-
-    (params, opt), losses = jax.lax.scan(one_pass, (params, opt),
-                                         jax.random.split(key, c.critic_iterations))
-    return params, opt, jnp.mean(losses[-1])
+    return minibatch_fit(p.critic.apply, p.critic_tx, params, opt, obs.reshape(nh, p.obs_size),
+                         targets.reshape(nh), key, c.critic_iterations, c.critic_minibatches)
 
 
 def epoch_step(p: Parts, s: SHACState):
@@ -387,8 +299,8 @@ def epoch_step(p: Parts, s: SHACState):
                                     + (1.0 - c.target_alpha) * v, s.target_critic, vparams)
     # The statistics move after the update, so actor and critic always saw one fixed
     # standardisation within a window (the critic's inputs were standardised with it too).
-    raw_obs = obs * _std(s.obs_norm) + s.obs_norm["mean"]
-    obs_norm = _update_stats(s.obs_norm, raw_obs) if c.normalize_observations else s.obs_norm
+    raw_obs = obs * obs_std(s.obs_norm) + s.obs_norm["mean"]
+    obs_norm = update_obs_stats(s.obs_norm, raw_obs) if c.normalize_observations else s.obs_norm
     new = SHACState(actor=actor, critic=vparams, target_critic=target, actor_opt=actor_opt,
                     critic_opt=critic_opt, env_state=env_state, ep_step=ep_step,
                     obs_norm=obs_norm, rng=key, epoch=s.epoch + 1)
@@ -403,7 +315,7 @@ def epoch_step(p: Parts, s: SHACState):
 
 def deployed(s: SHACState):
     """The deterministic policy's params acting on raw observations (normaliser folded in)."""
-    return fold_normaliser(s.actor["policy"], s.obs_norm["mean"], _std(s.obs_norm))
+    return fold_normaliser(s.actor["policy"], s.obs_norm["mean"], obs_std(s.obs_norm))
 
 
 def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, *,
@@ -427,15 +339,9 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
                          f"{mesh.devices.size}")
     p = make_parts(env, c)
     state, log, done = resume(restore, init_state(p, rng), SHACState)
-    # Environments split over the devices, everything else replicated; the jitted epoch keeps
-    # that layout (explicit shardings: an output laid out differently from its input would
-    # recompile the epoch on the second call).
-    state = replicate(state, mesh)._replace(
-        env_state=shard_batch(state.env_state, mesh), ep_step=shard_batch(state.ep_step, mesh))
-    layout = jax.tree_util.tree_map(lambda x: x.sharding, state)
-    replicated = NamedSharding(mesh, PartitionSpec())
-    epoch_fn = jax.jit(lambda s: epoch_step(p, s), in_shardings=(layout,),
-                       out_shardings=(layout, replicated, replicated))
+    # Environments split over the devices, everything else replicated, in and out of the epoch.
+    state, epoch_fn = jit_sharded_epoch(lambda s: epoch_step(p, s), state, mesh,
+                                        ("env_state", "ep_step"), 3)
     evaluate = make_evaluator(env, p.policy.apply, c.eval_episodes, p.episode_length)
 
     def epoch(e, state):

@@ -25,9 +25,10 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
 from twinrl.learn.common import CheckpointFn, MetricLog, ProgressFn, RestoreFn
+from twinrl.physics.parallel import shard_batch
 
 __all__ = ["replicate", "check_batch", "restore_state", "check_restored", "resume",
-           "run_epochs", "EpochFn"]
+           "run_epochs", "jit_sharded_epoch", "EpochFn"]
 
 EpochFn = Callable[[int, Any], tuple[Any, dict[str, Any]]]
 """``(epoch index e (0-based), state) -> (state after the epoch, metrics of the epoch)``."""
@@ -37,6 +38,20 @@ def replicate(tree, mesh):
     """Place ``tree`` on every device of ``mesh`` (the same placement every epoch, so the jitted
     epoch functions compile once: a fresh init and a jit output would otherwise differ)."""
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+def jit_sharded_epoch(step: Callable, state, mesh, batched: tuple[str, ...], n_out: int):
+    """``(state placed, jitted step)`` for a NamedTuple ``state`` whose ``batched`` fields have the
+    environments on their leading axis: those fields are split over the devices of ``mesh``, the
+    rest replicated, and ``step(state) -> (state, *n_out - 1 replicated outputs)`` keeps that
+    layout (explicit shardings: an output laid out differently from its input would recompile the
+    step on its second call)."""
+    state = replicate(state, mesh)._replace(
+        **{k: shard_batch(getattr(state, k), mesh) for k in batched})
+    layout = jax.tree_util.tree_map(lambda x: x.sharding, state)
+    replicated = NamedSharding(mesh, PartitionSpec())
+    return state, jax.jit(step, in_shardings=(layout,),
+                          out_shardings=(layout,) + (replicated,) * (n_out - 1))
 
 
 def check_batch(batch_size: int, what: str = "batch_size") -> int:

@@ -2,8 +2,8 @@
 
 ``dataset``: ``DatasetWriter`` (append-only, SIGKILL-safe recording of transitions and images) and
 ``read`` (arrays and episode boundaries back, with damage reported per file).
-``twin``: ``RealTwin`` (a task on the MuJoCo C engine with a hidden ``Perturbation``, RGB-D and
-segmentation camera) and ``render_episode``; ``perturbation``: ``Perturbation``; ``remote``:
+``twin``: ``make_real(name, seed=...)`` and ``RealTwin`` (a task on the MuJoCo C engine with a
+hidden ``Perturbation``, RGB-D and segmentation camera) and ``render_episode``; ``perturbation``: ``Perturbation``; ``remote``:
 ``TwinClient`` (the real twin served in another process, what learning code is given). Those load
 lazily (they import JAX, MuJoCo and Brax), so recording and reading datasets stays light.
 """
@@ -12,7 +12,7 @@ from twinrl.real.dataset import Dataset, DatasetError, DatasetWriter, Episode, r
 
 __all__ = ["Dataset", "DatasetError", "DatasetWriter", "Episode", "read"]
 
-_LAZY = {"RealTwin": "twinrl.real.twin", "render_episode": "twinrl.real.twin",
+_LAZY = {"make_real": "twinrl.real.twin", "RealTwin": "twinrl.real.twin", "render_episode": "twinrl.real.twin",
          "Perturbation": "twinrl.real.perturbation", "TwinClient": "twinrl.real.remote"}
 __all__ += list(_LAZY)
 

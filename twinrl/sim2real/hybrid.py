@@ -19,7 +19,7 @@ Training data are the recorded transitions ``(o_t, a_t, o_{t+1})``: states come 
 ``Env.state_from_obs``; angle residuals of hinge joints are wrapped into (-pi, pi]. The fit holds
 out a fraction of *episodes* (not transitions) for validation and keeps the parameters with the
 best validation loss; ``HybridFit`` reports the one-step error of the simulator alone and of the
-hybrid on the held-out episodes.
+hybrid on the held-out episodes. ``save``/``load`` keep a fitted model as a checkpoint.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from twinrl.envs.wrappers import QUEUE_KEY
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
 __all__ = ["HybridConfig", "HybridModel", "HybridFit", "Transitions", "transitions",
-           "applied_actions", "fit", "make_dynamics", "one_step_errors"]
+           "applied_actions", "fit", "save", "load", "make_dynamics", "one_step_errors"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -252,6 +252,28 @@ def fit(env, data, params=None, latency: int = 0, config: HybridConfig = HybridC
         **history,
     }
     return HybridFit(model, metrics)
+
+
+def save(path, fit_result: HybridFit):
+    """Write a fitted model to ``path`` as a policy checkpoint (``twinrl.learn.checkpoint``) of
+    kind ``hybrid_residual``: the network's params, its normalisation, latency and fit metrics in
+    JSON, so ``load`` rebuilds it without refitting (the loop's ``hybrid`` stage artefact)."""
+    from twinrl.learn.checkpoint import save_policy
+
+    m = fit_result.model
+    return save_policy(path, m.network, m.params, kind="hybrid_residual", in_mean=m.in_mean,
+                       in_std=m.in_std, out_scale=m.out_scale, latency=m.latency,
+                       metrics=fit_result.metrics)
+
+
+def load(path) -> HybridModel:
+    """The ``HybridModel`` ``save`` wrote to ``path``."""
+    from twinrl.learn.checkpoint import load_policy
+
+    net, params, meta = load_policy(path)
+    f32 = lambda k: jnp.asarray(np.asarray(meta[k]), jnp.float32)  # noqa: E731
+    return HybridModel(net, params, f32("in_mean"), f32("in_std"), f32("out_scale"),
+                       int(meta["latency"]))
 
 
 def make_dynamics(env, model: HybridModel) -> Callable:

@@ -1,0 +1,122 @@
+"""The optimisers of sysid: Levenberg-Marquardt (iteratively reweighted Gauss-Newton with
+Marquardt damping, on the Jacobian from forward-mode AD) and Adam, on a ``Problem``
+(``twinrl.real2sim.sysid``, "Levenberg-Marquardt"). ``normal_terms`` are the Gauss-Newton
+normal equations of the robust loss, shared with the Laplace approximation.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from twinrl.real2sim.sysid.problem import Problem, rho
+
+__all__ = ["normal_terms", "levenberg_marquardt", "adam_fit"]
+
+
+def _objective(prob: Problem, r: np.ndarray, theta, kappa: float) -> float:
+    return prob.data_loss(r) + kappa * prob.prior(theta)
+
+
+def normal_terms(r, J, Jx, w, fi):
+    """Blocks of the weighted normal equations, per window for the start states."""
+    n = r.shape[0]
+    rv, Jt = r.reshape(n, -1), J.reshape(n, -1, J.shape[-1])[..., fi]
+    wv = w.reshape(n, -1)
+    Htt = np.einsum("nmp,nm,nmq->pq", Jt, wv, Jt)
+    gt = np.einsum("nmp,nm->p", Jt, wv * rv)
+    if Jx is None:
+        return Htt, gt, None, None, None, np.einsum("nmp,nm->np", Jt, wv * rv)
+    Jxx = Jx.reshape(n, -1, Jx.shape[-1])
+    Htx = np.einsum("nmp,nm,nmk->npk", Jt, wv, Jxx)
+    Hxx = np.einsum("nmk,nm,nml->nkl", Jxx, wv, Jxx)
+    gx = np.einsum("nmk,nm->nk", Jxx, wv * rv)
+    return Htt, gt, Htx, Hxx, gx, np.einsum("nmp,nm->np", Jt, wv * rv)
+
+
+def levenberg_marquardt(prob: Problem, theta, latency: int, free: np.ndarray, log,
+                        start: bool) -> np.ndarray:
+    """Levenberg-Marquardt with IRLS weights for the robust loss and the Gaussian prior; with
+    ``start``, every window's start state is estimated too (eliminated per window by the Schur
+    complement, as in bundle adjustment), and ``prob.qpos0/qvel0`` are updated."""
+    c = prob.config
+    theta = np.array(theta, np.float64)
+    q, v = prob.qpos0.copy(), prob.qvel0.copy()
+    nq = prob.sim.nq
+
+    def jac():
+        prob.qpos0, prob.qvel0 = q, v
+        return prob.jacobian(theta, latency, start=True) if start else (
+            *prob.jacobian(theta, latency), None)
+
+    r, J, Jx = jac()
+    lam = c.lm_damping
+    fi = np.flatnonzero(free)
+    for _ in range(c.lm_steps):
+        # The prior is worth one residual's mean loss per parameter at the current fit (about one
+        # unit of -2 log-likelihood per prior sd^2): negligible against thousands of residuals,
+        # decisive only along flat directions. Weighed at the starting loss instead, it kept that
+        # weight while the loss fell 100-fold and held a zero friction loss at a positive value.
+        kappa = 2.0 * prob.data_loss(r) / r.size + 1e-12
+        obj = _objective(prob, r, theta, kappa)
+        prior_prec = kappa / c.prior_sd ** 2
+        _, w = rho(r, c.loss, c.loss_scale)
+        Htt, gt, Htx, Hxx, gx, _ = normal_terms(r, J, Jx, w, fi)
+        Htt = Htt + prior_prec * np.eye(len(fi))
+        gt = gt + prior_prec * (theta[fi] - prob.theta0[fi])
+        improved, rc, rel = False, r, 0.0
+        for _ in range(12):
+            A = Htt + lam * np.diag(np.maximum(np.diag(Htt), 1e-12))
+            try:
+                if Jx is None:
+                    dt, dx = -np.linalg.solve(A, gt), None
+                else:
+                    Ax = Hxx + lam * np.einsum("nk,kl->nkl", np.maximum(
+                        np.einsum("nkk->nk", Hxx), 1e-12), np.eye(Hxx.shape[-1]))
+                    Ai = np.linalg.inv(Ax)
+                    S = A - np.einsum("npk,nkl,nql->pq", Htx, Ai, Htx)
+                    rhs = gt - np.einsum("npk,nkl,nl->p", Htx, Ai, gx)
+                    dt = -np.linalg.solve(S, rhs)
+                    dx = -np.einsum("nkl,nl->nk", Ai, gx + np.einsum("npl,p->nl", Htx, dt))
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            cand = theta.copy()
+            cand[fi] += dt
+            qc, vc = (q, v) if dx is None else (q + dx[:, :nq], v + dx[:, nq:])
+            rc = prob.residuals(cand, latency, qc, vc)
+            oc = _objective(prob, rc, cand, kappa) if np.all(np.isfinite(rc)) else np.inf
+            if oc < obj:
+                improved = True
+                rel = (obj - oc) / max(abs(obj), 1e-300)
+                theta, obj, q, v = cand, oc, qc, vc
+                lam = max(lam / 3.0, 1e-9)
+                break
+            lam *= 4.0
+        log(theta, prob.data_loss(rc) / rc.size)
+        if not improved or rel < c.tol or np.max(np.abs(dt)) < c.step_tol:
+            break
+        r, J, Jx = jac()
+    prob.qpos0, prob.qvel0 = q, v
+    return theta
+
+
+def adam_fit(prob: Problem, theta, latency: int, log) -> np.ndarray:
+    c = prob.config
+    theta = jnp.asarray(theta)
+    opt = optax.adam(c.adam_lr)
+    state = opt.init(theta)
+    mask = jnp.asarray(prob.free, theta.dtype)
+    n_res = prob.n_windows * (c.window + 1) * prob.windows.targets.shape[-1]
+    best = (np.inf, theta)
+    for _ in range(c.adam_steps):
+        v, g = prob.loss_and_grad(theta, latency)
+        mean = v / n_res
+        if np.isfinite(mean) and mean < best[0]:
+            best = (mean, theta)
+        g = jnp.where(jnp.isfinite(jnp.asarray(g)), jnp.asarray(g), 0.0) / n_res * mask
+        upd, state = opt.update(g, state)
+        theta = optax.apply_updates(theta, upd)
+        log(np.asarray(theta), mean)
+    return np.asarray(best[1])
