@@ -210,10 +210,11 @@ def _functions(env: Env, sim: Sim, spec: tuple, W: int, L: int, kind: str, cs: f
         p = to_params(theta, base_u)
         template = sim.init()
         a = jax.lax.dynamic_slice_in_dim(a, L - latency, W, 0)
-        ctrl = jax.vmap(env.action_to_ctrl)(a)
         d = template.replace(qpos=q.astype(template.qpos.dtype),
                              qvel=v.astype(template.qvel.dtype))
-        _, tr = sim.rollout(d, ctrl, p)
+        # the task's controller, on this window's simulator (which may carry friction rows)
+        _, tr = sim.rollout(d, a, p, step_fn=lambda d, a, p: sim.step(
+            d, env.control(d.qpos, d.qvel, a), p))
         qs = jnp.concatenate([d.qpos[None], tr.qpos])
         vs = jnp.concatenate([d.qvel[None], tr.qvel])
         pred = jax.vmap(env.observe)(qs, vs).astype(q.dtype)
