@@ -206,6 +206,8 @@ def _perturbs(spec) -> str:
     parts += [f"latency {set(spec.latency_steps)} steps",
               f"obs noise <= {spec.obs_noise_std[1]:g}",
               f"camera offset sd {spec.camera_pos_std * 100:g} cm / {spec.camera_rot_std:g} rad"]
+    if spec.tool_pos_std or spec.tool_rot_std:
+        parts.append(f"grasp offset sd {spec.tool_pos_std * 1000:g} mm / {spec.tool_rot_std:g} rad")
     return ", ".join(parts)
 
 

@@ -2,7 +2,8 @@
 
 ``brax.training.agents.ppo.train.train`` wraps our ``Env`` with Brax's ``wrap`` (vmap, episode,
 auto-reset), so this is the compatibility test of the ``Env``/``State`` contract: ``push``
-(contacts, 2-D action) at tiny settings (8 environments, 20-step episodes, 640 environment steps),
+(contacts, 2-D action) and the three arm tasks (the Cartesian controller inside ``step``) at tiny
+settings (8 environments, 20-step episodes, 640 environment steps),
 where only the contract is checked, and ``cartpole_balance`` (cartpole_swingup's model and step,
 the loop's default task, with another reset) long enough to learn, checked against a random
 policy. The time each took (compile included) is printed, not asserted (timings belong in bench/).
@@ -11,13 +12,16 @@ policy. The time each took (compile included) is printed, not asserted (timings 
 import time
 
 import numpy as np
+import pytest
 from brax.training.agents.ppo import train as ppo
 
 from twinrl import envs
 
 
-def test_brax_ppo_trains_unmodified_on_a_contact_task():
-    env = envs.make("push")
+@pytest.mark.parametrize("name", ["push", "peg_insertion", "spatula_flipping",
+                                  "needle_threading"])
+def test_brax_ppo_trains_unmodified_on_a_contact_task(name):
+    env = envs.make(name)
     progress = []
     t0 = time.perf_counter()
     make_policy, params, metrics = ppo.train(
@@ -25,7 +29,7 @@ def test_brax_ppo_trains_unmodified_on_a_contact_task():
         num_minibatches=2, unroll_length=5, num_updates_per_batch=1, num_evals=1,
         num_eval_envs=8, normalize_observations=True, use_pmap_on_reset=False, seed=0,
         progress_fn=lambda step, m: progress.append(step))
-    print(f"\nPPO push: {time.perf_counter() - t0:.1f} s (compile included)")
+    print(f"\nPPO {name}: {time.perf_counter() - t0:.1f} s (compile included)")
     assert np.isfinite(float(metrics["eval/episode_reward"]))
     for term in env.reward_term_names:
         assert np.isfinite(float(metrics[f"eval/episode_reward/{term}"]))

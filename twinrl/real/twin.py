@@ -420,7 +420,8 @@ def render_episode(
         else:  # the simulator's states, drawn with the nominal model
             env = twin.task
             state, step = jax.jit(env.reset)(jax.random.PRNGKey(seed)), jax.jit(env.step)
-            m = env.sim.mj_model
+            # the unperturbed twin's model: the nominal one, its camera mount (if any) in place
+            m = twin._model
             d = mujoco.MjData(m)
             renderer = CameraRenderer(m, width, height)
             try:

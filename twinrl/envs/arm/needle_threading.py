@@ -159,11 +159,14 @@ class NeedleThreading(ArmTask):
         axis, tip_e, dir_e = o[23:26], o[26:29], o[29:32]
         side = np.array([-axis[1], axis[0], 0.0])
         off_axis = tip_e[1] * side + np.array([0.0, 0.0, tip_e[2]])
-        aligned = np.hypot(tip_e[1], tip_e[2]) < 0.002 and abs(dir_e[1]) < 0.03
+        aligned = (np.hypot(tip_e[1], tip_e[2]) < 0.0025 and abs(dir_e[1]) < 0.03) or (
+            tip_e[0] > -0.005)  # once in the eye, keep going
         along = (0.06 - tip_e[0]) if aligned else np.clip(-0.05 - tip_e[0], -0.02, 0.02)
         a = np.zeros(4)
-        a[:3] = (-off_axis + along * axis) / self.controller.max_step
-        a[3] = -dir_e[1] / self.controller.max_yaw
+        # half the error per step: the servos lag a step, a full correction overshoots
+        move = (-0.5 * off_axis + along * axis) / self.controller.max_step
+        a[:3] = move / max(1.0, np.abs(move).max())  # scaled, not clipped: keep its direction
+        a[3] = -0.5 * dir_e[1] / self.controller.max_yaw
         return np.clip(a, -1.0, 1.0).astype(np.float32)
 
     def success(self, qpos, qvel) -> jax.Array:
