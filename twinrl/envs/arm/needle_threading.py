@@ -82,6 +82,7 @@ class NeedleThreading(ArmTask):
     controller = CartesianController(tcp=TCP, nominal=SIDEWAYS, yaw=True, max_step=0.015)
     mount = CameraMount(target=(0.52, 0.05, 0.2), azimuth=(-2.2, 2.2), elevation=(-0.3, 1.3),
                         distance=(0.3, 0.7), default=(0.0, 0.0, 0.0))
+    target_geoms = ("eye_top", "eye_bottom", "eye_left", "eye_right")
     reward_term_names = ("align", "heading", "through", "small_control")
     perturbation_spec = PerturbationSpec(
         mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.7, 1.3),
@@ -92,7 +93,7 @@ class NeedleThreading(ArmTask):
     def __init__(self, config=None, params=None, name=None):
         super().__init__(config, params, name)
         mid = NEEDLE_ORIGIN - np.array([0.0, 0.13, 0.0])
-        self._q_start = jnp.asarray(solve_ik(mid, tcp=TCP, nominal=SIDEWAYS), jnp.float32)
+        self._q_start = solve_ik(mid, tcp=TCP, nominal=SIDEWAYS)
         self.set_posture(self._q_start)
 
     # ------------------------------------------------------------------ geometry

@@ -76,6 +76,7 @@ class PegInsertion(ArmTask):
     controller = CartesianController(tcp=TCP, max_step=0.02)
     mount = CameraMount(target=(0.5, 0.0, 0.05), azimuth=(-2.2, 2.2), elevation=(0.2, 1.4),
                         distance=(0.4, 0.8), default=(0.0, 0.0, 0.0))
+    target_geoms = ("wall_left", "wall_right", "wall_front", "wall_back")
     reward_term_names = ("align", "insert", "small_control")
     perturbation_spec = PerturbationSpec(
         mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.7, 1.3),
@@ -88,7 +89,7 @@ class PegInsertion(ArmTask):
         super().__init__(config, params, name)
         c = self.config
         mid = np.array([0.5, 0.0, float(np.mean(c.start_height))])
-        self._q_start = jnp.asarray(solve_ik(mid, tcp=TCP), jnp.float32)
+        self._q_start = solve_ik(mid, tcp=TCP)
         self.set_posture(self._q_start)
 
     # ------------------------------------------------------------------ geometry

@@ -10,11 +10,11 @@ table. Control (``CartesianController``): displacement of the blade's leading ed
 2 cm per 0.04 s step; the spatula is held at its nominal angle.
 
 Observation (31, privileged): joint angles (7) and velocities (7), the blade's edge (3), the
-pancake's centre (3), its up axis (3) and velocity (3), the stopper's x, y (2), the pancake's near
-rim minus the blade's edge (3). Reward (per step, in [0, 1]): ``(0.25 reach + 0.75 flip) *
-small_control``; ``reach`` a Gaussian bump of the distance from the blade's edge to the pancake's
-near rim at the table (0.1 at 10 cm), ``flip`` ``(1 - up_z) / 2`` (0 lying as it started, 1/2 on
-its edge, 1 upside down).
+pancake's centre (3), its up axis (3) and velocity (3), the stopper's x, y (2), the point under the
+pancake (1 cm past its centre, at the table) minus the blade's edge (3). Reward (per step, in
+[0, 1]): ``(0.25 reach + 0.75 flip) * small_control``; ``reach`` a Gaussian bump of the distance
+from the blade's edge to that point (0.1 at 12 cm): reaching it means sliding under the pancake;
+``flip`` ``(1 - up_z) / 2`` (0 lying as it started, 1/2 on its edge, 1 upside down).
 Success: the pancake is upside down (up axis' z below -0.9) and resting (centre below 15 mm).
 
 What the camera must reveal: the pancake's pose and which side is up (the mark on its top); the
@@ -67,7 +67,9 @@ class SpatulaFlippingConfig(ArmConfig):
     """Range (m) of how far short of the pancake's centre (along x) the blade's edge starts."""
     start_height: tuple[float, float] = (0.02, 0.05)
     """Range (m) of the blade edge's start height above the table."""
-    reach_margin: float = 0.1
+    reach_margin: float = 0.12
+    """Distance (m) from the blade's edge to the point under the pancake at which ``reach`` has
+    fallen to 0.1."""
 
 
 class SpatulaFlipping(ArmTask):
@@ -76,6 +78,7 @@ class SpatulaFlipping(ArmTask):
     controller = CartesianController(tcp=TCP, nominal=SPATULA, max_step=0.02)
     mount = CameraMount(target=(0.62, 0.0, 0.02), azimuth=(-2.2, 2.2), elevation=(0.2, 1.4),
                         distance=(0.35, 0.75), default=(0.0, 0.0, 0.0))
+    target_geoms = ("pancake_top",)  # the mark that tells which side is up
     reward_term_names = ("reach", "flip", "small_control")
     perturbation_spec = PerturbationSpec(
         mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.8, 1.25),
@@ -88,7 +91,7 @@ class SpatulaFlipping(ArmTask):
         c = self.config
         mid = np.array([STOPPER_ORIGIN[0] - 0.04 - np.mean(c.start_back), 0.0,
                         np.mean(c.start_height)])
-        self._q_start = jnp.asarray(solve_ik(mid, tcp=TCP, nominal=SPATULA), jnp.float32)
+        self._q_start = solve_ik(mid, tcp=TCP, nominal=SPATULA)
         self.set_posture(self._q_start)
 
     # ------------------------------------------------------------------ geometry
@@ -103,10 +106,11 @@ class SpatulaFlipping(ArmTask):
         return self.tool_point(qpos)
 
     @staticmethod
-    def near_rim(centre) -> jax.Array:
-        """Where the blade should meet the pancake: its rim nearest the robot, at the table."""
-        return centre + jnp.array([-(PANCAKE_RADIUS + 0.01), 0.0, -PANCAKE_HALF_THICKNESS],
-                                  centre.dtype)
+    def under(centre) -> jax.Array:
+        """Where the blade's edge should go: under the pancake, just past its centre, at the table.
+        (A target at the near rim, tried first, made trajectory optimisation park the blade there:
+        the flip term has no gradient until the blade pushes the pancake.)"""
+        return centre + jnp.array([0.01, 0.0, -PANCAKE_HALF_THICKNESS], centre.dtype)
 
     def initial_state(self, rng):
         c = self.config
@@ -129,12 +133,12 @@ class SpatulaFlipping(ArmTask):
         centre, up = self.pancake(qpos)
         stopper = jnp.asarray(STOPPER_ORIGIN, qpos.dtype) + qpos[7:9]
         return jnp.concatenate([qpos[:7], qvel[:7], edge, centre, up, qvel[9:12], stopper,
-                                self.near_rim(centre) - edge]).astype(jnp.float32)
+                                self.under(centre) - edge]).astype(jnp.float32)
 
     def reward_terms(self, qpos, qvel, action):
         centre, up = self.pancake(qpos)
         return {
-            "reach": tolerance(self.near_rim(centre) - self.edge(qpos), self.config.reach_margin,
+            "reach": tolerance(self.under(centre) - self.edge(qpos), self.config.reach_margin,
                                0.1, axis=-1),
             "flip": 0.5 * (1.0 - up[2]),
             "small_control": small_control(action),
@@ -146,17 +150,20 @@ class SpatulaFlipping(ArmTask):
     def scripted_action(self, obs: np.ndarray) -> np.ndarray:
         """A hand-written expert from the privileged observation: put the blade's edge at the
         pancake's near rim on the table, push forward along the table (the pancake climbs the
-        blade and tips over the rail), then lift away. For tests and gradient-check scenarios;
+        blade and tips over the rail) until it is over, then hold still. For tests and gradient-check scenarios;
         the demonstrations are trajectory optimisation's."""
         o = np.asarray(obs, np.float64)
-        d, up_z = o[28:31], o[22]
+        under, up_z = o[28:31], o[22]        # the point under the pancake minus the blade's edge
+        rim = under - np.array([0.01 + PANCAKE_RADIUS + 0.01, 0.0, 0.0])
         step = self.controller.max_step
-        if up_z < 0.3:
-            a = np.array([0.0, 0.0, 0.5])
-        elif abs(d[1]) > 0.01 or d[0] > 0.015:
-            a = np.array([d[0], d[1], d[2] + 0.002]) / step
-        else:
-            a = np.array([0.8, d[1] / step, 0.1])
+        if up_z < -0.5:  # over: hold still and let it settle
+            a = np.zeros(3)
+        elif abs(rim[1]) > 0.01 or rim[0] > 0.015:  # go to the near rim, at the table
+            a = np.array([rim[0], rim[1], rim[2] + 0.002]) / step
+        elif under[0] > 0.02:  # slide under it along the table
+            a = np.array([0.6, rim[1] / step, 0.05])
+        else:  # under it: lift, the rail holds its far edge, it turns over the rail
+            a = np.array([0.3, rim[1] / step, 1.0])
         return np.clip(a, -1.0, 1.0).astype(np.float32)
 
     def success(self, qpos, qvel) -> jax.Array:
