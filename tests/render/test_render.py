@@ -270,3 +270,31 @@ def test_culling_keeps_the_image_and_its_gradient_where_geoms_do_not_crowd():
     for ga, gb in zip(jax.grad(loss, (1, 2))(culled, *args), jax.grad(loss, (1, 2))(full, *args)):
         assert np.linalg.norm(gb) > 0
         np.testing.assert_allclose(ga, gb, rtol=1e-3, atol=1e-3 * np.linalg.norm(gb))
+
+
+def test_layers_keep_the_hard_image_and_the_soft_one_where_surfaces_do_not_crowd():
+    """Compositing only each pixel's 2 most covering surfaces (of 5: floor and four capsules
+    further apart than the soft band) changes neither image nor the gradient; with 1 surface
+    the hard image is still exact (the nearest hit is kept)."""
+    m = _row_of_capsules(4)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    cam = Camera.from_mujoco(m, d, "c", 64, 64)
+    g = Geoms.from_mujoco(m, d)
+    full = Renderer.create(m, layers=5)
+    for R in (Renderer.create(m, layers=1), Renderer.create(m, layers=2)):
+        a, b = R.render(cam, g), full.render(cam, g)
+        np.testing.assert_array_equal(a.segmentation, b.segmentation)
+        np.testing.assert_allclose(a.depth, b.depth, rtol=1e-6)
+        np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-5)
+        np.testing.assert_allclose(a.weights, b.weights, atol=1e-6)
+    two = Renderer.create(m, layers=2)
+
+    def loss(R, dx):
+        im = R.render(cam, g.replace(xpos=g.xpos.at[2].add(dx)), tau=0.7)
+        return jnp.sum(im.rgb ** 2) + jnp.sum(im.weights ** 2) + jnp.sum(im.depth)
+
+    np.testing.assert_allclose(loss(two, jnp.zeros(3)), loss(full, jnp.zeros(3)), rtol=1e-5)
+    ga, gb = jax.grad(loss, 1)(two, jnp.zeros(3)), jax.grad(loss, 1)(full, jnp.zeros(3))
+    assert np.linalg.norm(gb) > 0
+    np.testing.assert_allclose(ga, gb, rtol=1e-3, atol=1e-3 * np.linalg.norm(gb))
