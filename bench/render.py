@@ -1,26 +1,42 @@
 """Benchmark of the differentiable renderer (twinrl.render) and of visual Real2Sim.
 
 1. Speed: frames/s at 64x64 and 128x128, batch 1 and 16 (vmap over cameras), forward only and
-   forward + gradient (of an image loss w.r.t. the camera and the geoms), soft image (tau > 0).
-2. Agreement with OpenGL (``mujoco.Renderer``) on every bundled scene: mean |depth difference|,
+   forward + gradient (of an image loss w.r.t. the camera and the geoms: poses, sizes, colours),
+   soft image (tau = 0.5), on each scene of ``--scenes`` (``SPEED_SCENES``: push; the manipulation
+   suite's arm scenes join that list once they exist).
+2. Geom-count sweep (``--sweep``, default 10 20 40): synthetic arm-like scenes (``sweep_mjcf``: a
+   floor and a chain of capsule, box, cylinder and sphere links, always in the same volume), 64x64,
+   batch 16; the cost of 40 geoms against 10, and how far per-pixel culling and layers move the
+   image from the renderer's without either (hard segmentation agreement; soft RGB: largest and
+   mean difference, pixels off by more than 0.01).
+3. Agreement with OpenGL (``mujoco.Renderer``) on every bundled scene: mean |depth difference|,
    segmentation agreement, RGB PSNR.
-3. Visual Real2Sim (``--visual``): over seeds, hidden camera offsets of 3-4 cm and 5-6 degrees
+4. Visual Real2Sim (``--visual``): over seeds, hidden camera offsets of 3-4 cm and 5-6 degrees
    (``Perturbation`` constructed directly) and a hidden object pose/size/colour change on
    ``push``; (a) camera fitted with the scene known, (b) the box fitted with the camera known.
    Frames are ``--size`` square (default 256: a real RGB-D camera's resolution order, where a
    pixel is 3.75 mm at the box), ``--frames`` of them (default 5); the Adam stage sees every
    4th pixel (``--coarse`` 64), the refinement every pixel.
 
-Prints tables and writes ``bench/results/render.json``.
+``--baseline REF`` also times the renderer of git revision REF (``twinrl/render`` as it was
+there, loaded beside this one), interleaved with this one call by call, so that both see the
+same machine load; speed rows then carry both and their ratio. Timings are the best of
+``--repeats`` calls after a warm-up call. Prints tables, writes ``DIR/render.json``.
 
-    .venv/bin/python bench/render.py [--visual] [--seeds 0 1 2 3 4] [--size 256] [--frames 5]
+    python bench/render.py --out bench/results                 # speed, sweep, agreement
+    python bench/render.py --out /tmp/r --baseline main        # ... against main's renderer
+    python bench/render.py --out /tmp/r --no-speed --visual    # visual Real2Sim, 5 seeds
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
+import platform
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -35,43 +51,163 @@ from twinrl import report  # noqa: E402
 from twinrl.physics import load_mjcf  # noqa: E402
 from twinrl.physics.scenes import SCENES  # noqa: E402
 from twinrl.render import Camera, Geoms, Renderer, quat_to_mat  # noqa: E402
+from twinrl.render import camera as _camera_mod  # noqa: E402
+from twinrl.render import renderer as _renderer_mod  # noqa: E402
 
 CAMS = {"cartpole": ("front", [0.3, 0.5]), "pendulum": ("front", [0.7]),
         "push": ("top", None), "peg_in_hole": ("front", [0.01, -0.02])}
+SPEED_SCENES = ["push"]
+"""Scenes of the speed table: bundled scene names (``load_mjcf``), each with its camera in
+``SPEED_CAMERAS``. The manipulation suite's arm scenes go here once they exist."""
+SPEED_CAMERAS = {"push": "top"}
+TAU = 0.5
 
 
-def _time(f, *args, reps=10):
-    jax.block_until_ready(f(*args))
-    t = time.perf_counter()
-    for _ in range(reps):
-        jax.block_until_ready(f(*args))
-    return (time.perf_counter() - t) / reps
+def sweep_mjcf(n: int, seed: int = 0) -> str:
+    """MJCF of a floor, a light and ``n`` primitive links (capsule, box, cylinder, sphere in
+    turn), 2-3 cm thick and 6-10 cm long, laid along a random walk that stays in the same
+    0.5 m x 0.5 m x 0.3 m volume whatever ``n`` (so more links overlap more, as an arm's do),
+    seen by camera ``top``."""
+    rng = np.random.default_rng(seed)
+    p = np.array([0.0, 0.0, 0.15])
+    links = []
+    kinds = ["capsule", "box", "cylinder", "sphere"]
+    for i in range(n):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        half = rng.uniform(0.03, 0.05)
+        q = np.clip(p + 2 * half * d, [-0.25, -0.25, 0.03], [0.25, 0.25, 0.3])
+        c, axis = 0.5 * (p + q), q - p
+        axis = axis / max(np.linalg.norm(axis), 1e-9)
+        rad = rng.uniform(0.01, 0.015)
+        kind = kinds[i % 4]
+        size = {"capsule": f"{rad} {half}", "cylinder": f"{rad} {half}",
+                "box": f"{rad} {rad * 1.3} {half}", "sphere": f"{1.6 * rad}"}[kind]
+        rgba = " ".join(f"{v:.3f}" for v in rng.uniform(0.2, 0.9, 3)) + " 1"
+        links.append(f'<geom name="g{i}" type="{kind}" size="{size}" pos="{c[0]:.4f} '
+                     f'{c[1]:.4f} {c[2]:.4f}" zaxis="{axis[0]:.4f} {axis[1]:.4f} {axis[2]:.4f}" '
+                     f'rgba="{rgba}"/>')
+        p = q
+    return f"""<mujoco model="sweep{n}">
+  <visual><global offwidth="640" offheight="480"/></visual>
+  <worldbody>
+    <light name="top" pos="0 0 3" dir="0 0 -1"/>
+    <camera name="top" pos="0 -0.9 0.9" xyaxes="1 0 0 0 0.7071 0.7071"/>
+    <geom name="floor" type="plane" size="2 2 0.1" rgba="0.8 0.8 0.8 1"/>
+    {chr(10).join('    ' + g for g in links)}
+  </worldbody>
+</mujoco>"""
 
 
-def speed(sizes=(64, 128), batches=(1, 16)):
-    m = load_mjcf("push")
-    d = mujoco.MjData(m)
-    mujoco.mj_forward(m, d)
-    R = Renderer.create(m)
-    g = Geoms.from_mujoco(m, d)
+def load_baseline(ref: str):
+    """``(renderer module, camera module)`` of ``twinrl/render`` at git revision ``ref``, loaded
+    as a package of its own beside the working tree's."""
+    repo = Path(__file__).resolve().parents[1]
+    pkg = "twinrl_render_baseline"
+    root = Path(tempfile.mkdtemp(prefix="render_baseline_"))
+    (root / pkg).mkdir()
+    (root / pkg / "__init__.py").write_text("")
+    for name in ("camera", "primitives", "renderer"):
+        src = subprocess.run(["git", "-C", str(repo), "show", f"{ref}:twinrl/render/{name}.py"],
+                             capture_output=True, text=True, check=True).stdout
+        (root / pkg / f"{name}.py").write_text(src.replace("twinrl.render", pkg))
+    sys.path.insert(0, str(root))
+    return importlib.import_module(f"{pkg}.renderer"), importlib.import_module(f"{pkg}.camera")
+
+
+def _cases(mods, m, d, cam_name, S, B, **create):
+    """Jitted forward and forward+gradient of a batch of ``B`` cameras, ``S`` x ``S``, for each
+    renderer implementation in ``mods`` ({label: (renderer module, camera module)})."""
+    out = {}
+    for label, (rmod, cmod) in mods.items():
+        R = rmod.Renderer.create(m, **create)
+        g = rmod.Geoms.from_mujoco(m, d)
+        cam = cmod.Camera.from_mujoco(m, d, cam_name, S, S)
+        target = R.render(cam, g, tau=TAU).rgb
+        cams = jax.tree_util.tree_map(
+            lambda x: jnp.stack([x] * B) + 0.001 * jnp.arange(B).reshape((B,) + (1,) * x.ndim),
+            cam)
+
+        def loss(c, g, R=R, target=target):
+            return jnp.mean((R.render(c, g, tau=TAU).rgb - target) ** 2)
+
+        fwd = jax.jit(jax.vmap(lambda c, R=R, g=g: R.render(c, g, tau=TAU).rgb))
+        grad = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1)), in_axes=(0, None)))
+        out[label] = {"forward": (fwd, (cams,)), "forward+grad": (grad, (cams, g))}
+    return out
+
+
+def _time_interleaved(cases, repeats):
+    """Best seconds per call of each (label, mode), the labels' calls interleaved."""
+    for fns in cases.values():
+        for f, a in fns.values():
+            jax.block_until_ready(f(*a))  # compile + warm-up
+    best = {(k, mode): np.inf for k, fns in cases.items() for mode in fns}
+    for _ in range(repeats):
+        for k, fns in cases.items():
+            for mode, (f, a) in fns.items():
+                t = time.perf_counter()
+                jax.block_until_ready(f(*a))
+                best[k, mode] = min(best[k, mode], time.perf_counter() - t)
+    return best
+
+
+def _rows(best, scene, S, B, labels, **extra):
     rows = []
-    for S in sizes:
-        cam = Camera.from_mujoco(m, d, "top", S, S)
-        target = R.render(cam, g, tau=0.5).rgb
-        for B in batches:
-            cams = jax.tree_util.tree_map(
-                lambda x: jnp.stack([x] * B) + 0.001 * jnp.arange(B).reshape(
-                    (B,) + (1,) * x.ndim), cam)
+    for mode in ("forward", "forward+grad"):
+        row = {"scene": scene, "size": S, "batch": B, "mode": mode, **extra}
+        for k in labels:
+            row[f"frames_per_s_{k}" if k != "new" else "frames_per_s"] = B / best[k, mode]
+        if "baseline" in labels:
+            row["speedup"] = best["baseline", mode] / best["new", mode]
+        rows.append(row)
+    return rows
 
-            def loss(c, g):
-                return jnp.mean((R.render(c, g, tau=0.5).rgb - target) ** 2)
 
-            fwd = jax.jit(jax.vmap(lambda c: R.render(c, g, tau=0.5).rgb))
-            grad = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1)), in_axes=(0, None)))
-            for name, f in (("forward", fwd), ("forward+grad", grad)):
-                args = (cams,) if name == "forward" else (cams, g)
-                dt = _time(f, *args, reps=3 if S > 64 or B > 1 else 10)
-                rows.append({"size": S, "batch": B, "mode": name, "frames_per_s": B / dt})
+def _load(scene):
+    if scene.startswith("sweep"):
+        m = mujoco.MjModel.from_xml_string(sweep_mjcf(int(scene[5:])))
+        return m, "top"
+    return load_mjcf(scene), SPEED_CAMERAS.get(scene, CAMS.get(scene, ("top",))[0])
+
+
+def speed(mods, scenes, sizes=(64, 128), batches=(1, 16), repeats=5):
+    rows = []
+    for scene in scenes:
+        m, cam_name = _load(scene)
+        d = mujoco.MjData(m)
+        mujoco.mj_forward(m, d)
+        for S in sizes:
+            for B in batches:
+                print(f"[bench] {scene} {S}x{S} batch {B} ...", flush=True)
+                best = _time_interleaved(_cases(mods, m, d, cam_name, S, B), repeats)
+                rows += _rows(best, scene, S, B, list(mods))
+    return rows
+
+
+def sweep(mods, counts, S=64, B=16, repeats=5):
+    """Frames/s against the number of geoms, and the culled image against the unculled one."""
+    rows = []
+    for n in counts:
+        scene = f"sweep{n}"
+        m, cam_name = _load(scene)
+        d = mujoco.MjData(m)
+        mujoco.mj_forward(m, d)
+        print(f"[bench] {scene} ({m.ngeom} geoms) {S}x{S} batch {B} ...", flush=True)
+        best = _time_interleaved(_cases(mods, m, d, cam_name, S, B), repeats)
+        g = Geoms.from_mujoco(m, d)
+        cam = Camera.from_mujoco(m, d, cam_name, S, S)
+        culled = Renderer.create(m)
+        full = Renderer.create(m, per_pixel=m.ngeom, layers=m.ngeom)  # no culling, no layers
+        h1, h2 = culled.render(cam, g), full.render(cam, g)
+        s1, s2 = culled.render(cam, g, tau=TAU), full.render(cam, g, tau=TAU)
+        diff = np.abs(np.asarray(s1.rgb) - np.asarray(s2.rgb))
+        rows += _rows(best, scene, S, B, list(mods), geoms=int(m.ngeom),
+                      culled_seg_agreement=float(np.mean(np.asarray(h1.segmentation)
+                                                         == np.asarray(h2.segmentation))),
+                      culled_soft_rgb_max_diff=float(np.max(diff)),
+                      culled_soft_rgb_mean_diff=float(np.mean(diff)),
+                      culled_soft_pixels_off=int(np.sum(np.max(diff, -1) > 0.01)))
     return rows
 
 
@@ -197,8 +333,18 @@ def visual(seeds, S, cfg):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("bench/results"),
+                    help="directory of render.json")
+    ap.add_argument("--scenes", nargs="*", default=SPEED_SCENES,
+                    help="scenes of the speed table (bundled names)")
+    ap.add_argument("--sweep", type=int, nargs="*", default=[10, 20, 40],
+                    help="link counts of the geom-count sweep (none: skip it)")
+    ap.add_argument("--baseline", default=None, metavar="REF",
+                    help="also time twinrl/render of this git revision, interleaved")
+    ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--visual", action="store_true", help="also run the visual Real2Sim fits")
-    ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--no-speed", action="store_true", help="skip the speed table and sweep")
+    ap.add_argument("--no-agreement", action="store_true")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--size", type=int, default=256, help="image size of the visual fits' frames")
     ap.add_argument("--frames", type=int, default=5, help="frames per visual fit")
@@ -207,51 +353,80 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--refine-iters", type=int, default=30,
                     help="Levenberg-Marquardt iterations after Adam (0: Adam only)")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "render.json"))
     args = ap.parse_args(argv)
-    out = {"cpu_count": os.cpu_count(), "jax": jax.__version__, "devices": str(jax.devices())}
-    prev = {}
-    if Path(args.out).exists():
-        import json
+    if args.out.suffix == ".json":
+        ap.error(f"--out is a directory now (render.json is written into it), got {args.out}")
+    out = {"meta": {"cpu_count": os.cpu_count(), "jax": jax.__version__,
+                    "mujoco": mujoco.__version__, "devices": str(jax.devices()),
+                    "machine": platform.machine(), "load_average": list(os.getloadavg()),
+                    "baseline": args.baseline}}
+    mods = {"new": (_renderer_mod, _camera_mod)}
+    if args.baseline:
+        mods["baseline"] = load_baseline(args.baseline)
+    cols = ["frames/s"] + (["baseline f/s", "speedup"] if args.baseline else [])
 
-        prev = json.loads(Path(args.out).read_text())
+    def cells(r):
+        return [r["frames_per_s"]] + ([r["frames_per_s_baseline"], r["speedup"]]
+                                      if args.baseline else [])
+
     if not args.no_speed:
-        out["speed"] = speed()
-        report.print_table("renderer speed (push scene, soft image)",
-                           ["size", "batch", "mode", "frames/s"],
-                           [[r["size"], r["batch"], r["mode"], r["frames_per_s"]]
+        t0 = time.perf_counter()
+        out["speed"] = speed(mods, args.scenes, repeats=args.repeats)
+        report.print_table(f"renderer speed (soft image, tau {TAU})",
+                           ["scene", "size", "batch", "mode", *cols],
+                           [[r["scene"], r["size"], r["batch"], r["mode"], *cells(r)]
                             for r in out["speed"]])
-    elif "speed" in prev:
-        out["speed"] = prev["speed"]
-    out["agreement"] = agreement()
-    report.print_table("hard image vs OpenGL (mujoco.Renderer), 64x64",
-                       ["scene", "depth mean|d| (m)", "where seg agrees (m)", "seg agree",
-                        "RGB PSNR"],
-                       [[r["scene"], r["depth_mean_abs_m"], r["depth_mean_abs_where_seg_agrees_m"],
-                         r["segmentation_agreement"], r["rgb_psnr_db"]]
-                        for r in out["agreement"]])
+        if args.sweep:
+            out["sweep"] = sweep(mods, args.sweep, repeats=args.repeats)
+            report.print_table("geom-count sweep (64x64, batch 16)",
+                               ["links", "geoms", "mode", *cols, "culled seg agree",
+                                "soft RGB max diff", "mean diff", "px > 0.01"],
+                               [[r["scene"][5:], r["geoms"], r["mode"], *cells(r),
+                                 r["culled_seg_agreement"], r["culled_soft_rgb_max_diff"],
+                                 r["culled_soft_rgb_mean_diff"], r["culled_soft_pixels_off"]]
+                                for r in out["sweep"]])
+            for mode in ("forward", "forward+grad"):
+                fps = {r["geoms"]: r["frames_per_s"] for r in out["sweep"] if r["mode"] == mode}
+                if len(fps) > 1:
+                    lo, hi = min(fps), max(fps)
+                    out.setdefault("sweep_cost_ratio", {})[mode] = fps[lo] / fps[hi]
+                    print(f"{mode}: {hi} geoms cost {fps[lo] / fps[hi]:.2f}x of {lo}")
+        out["meta"]["speed_seconds"] = time.perf_counter() - t0
+        out["meta"]["load_average_after_speed"] = list(os.getloadavg())
+    if not args.no_agreement:
+        out["agreement"] = agreement()
+        report.print_table("hard image vs OpenGL (mujoco.Renderer), 64x64",
+                           ["scene", "depth mean|d| (m)", "where seg agrees (m)", "seg agree",
+                            "RGB PSNR"],
+                           [[r["scene"], r["depth_mean_abs_m"],
+                             r["depth_mean_abs_where_seg_agrees_m"], r["segmentation_agreement"],
+                             r["rgb_psnr_db"]] for r in out["agreement"]])
     if args.visual:
         from twinrl.real2sim.visual import VisualConfig
 
         vc = VisualConfig(steps=args.steps, restarts=1, refine_iters=args.refine_iters,
                           coarse_size=args.coarse)
         cfg = {"frames": args.frames, "camera": vc, "object": vc}
+        t0 = time.perf_counter()
         rows = visual(args.seeds, args.size, cfg)
         out["visual"] = {"size": args.size, "frames": args.frames, "coarse": args.coarse,
-                         "steps": args.steps, "refine_iters": args.refine_iters, "rows": rows}
+                         "steps": args.steps, "refine_iters": args.refine_iters, "rows": rows,
+                         "wall_seconds": time.perf_counter() - t0}
         keys = ["cam_pos_err_mm", "cam_rot_err_deg", "obj_pos_err_mm", "size_err_pct",
                 "colour_err_255"]
         report.print_table(f"visual real2sim on push, {args.frames} frames, "
                            f"{args.size}x{args.size} (before -> after)",
-                           ["seed", "hidden cam", *keys],
+                           ["seed", "hidden cam", *keys, "seconds"],
                            [[r["seed"], f"{r['hidden_cam_offset_mm']:.0f} mm "
                              f"{r['hidden_cam_rot_deg']:.1f} deg",
-                             *[f"{r[k + '_before']:.3g} -> {r[k]:.3g}" for k in keys]]
+                             *[f"{r[k + '_before']:.3g} -> {r[k]:.3g}" for k in keys],
+                             r["seconds_camera"] + r["seconds_object"]]
                             for r in rows])
-    elif "visual" in prev:
-        out["visual"] = prev["visual"]
-    report.write_json(args.out, out)
+        print(f"visual real2sim wall time: {out['visual']['wall_seconds']:.0f} s")
+    path = report.write_json(args.out / "render.json", out)
+    print(f"wrote {path}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

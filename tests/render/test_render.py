@@ -231,3 +231,70 @@ def test_bad_inputs(push):
         '<worldbody><geom type="hfield" hfield="h"/></worldbody></mujoco>')
     with pytest.raises(UnsupportedGeomError, match="hfield"):
         Renderer.create(hf)
+
+
+def _row_of_capsules(n):
+    links = "".join(f'<geom type="capsule" size="0.03 0.06" pos="{-0.45 + 0.3 * k:.2f} 0 0.1" '
+                    f'euler="0 {20 * k} 0" rgba="0.{k + 1} 0.5 0.3 1"/>' for k in range(n))
+    return mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><light pos="0 0 3" dir="0 0 -1"/><camera name="c" pos="0 -1.3 0.6" '
+        f'xyaxes="1 0 0 0 0.42 0.9"/><geom type="plane" size="2 2 0.1"/>{links}'
+        '</worldbody></mujoco>')
+
+
+def test_culling_keeps_the_image_and_its_gradient_where_geoms_do_not_crowd():
+    """Four capsules 16 pixels apart, more than the soft band (12.5 pixels at tau 0.7): culled to
+    one capsule per pixel, the hard
+    image is the same, the soft image and its gradient w.r.t. a capsule's pose and size agree with
+    the unculled renderer's (the geoms left out of a pixel contribute nothing there)."""
+    m = _row_of_capsules(4)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    cam = Camera.from_mujoco(m, d, "c", 64, 64)
+    g = Geoms.from_mujoco(m, d)
+    culled, full = Renderer.create(m, per_pixel=1), Renderer.create(m, per_pixel=4)
+    assert culled._culled(3, np.arange(1, 5)) and not full._culled(3, np.arange(1, 5))
+    a, b = culled.render(cam, g), full.render(cam, g)
+    assert len(np.unique(np.asarray(b.segmentation))) == 6  # sky, floor, the four capsules
+    np.testing.assert_array_equal(a.segmentation, b.segmentation)
+    np.testing.assert_allclose(a.depth, b.depth, rtol=1e-6)
+    np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-5)
+
+    def loss(R, dx, ds):
+        im = R.render(cam, g.replace(xpos=g.xpos.at[2].add(dx), size=g.size.at[2].add(ds)),
+                      tau=0.7)
+        return jnp.sum(im.rgb ** 2) + jnp.sum(im.weights ** 2) + jnp.sum(im.depth)
+
+    args = (jnp.zeros(3), jnp.zeros(3))
+    np.testing.assert_allclose(loss(culled, *args), loss(full, *args), rtol=1e-5)
+    for ga, gb in zip(jax.grad(loss, (1, 2))(culled, *args), jax.grad(loss, (1, 2))(full, *args)):
+        assert np.linalg.norm(gb) > 0
+        np.testing.assert_allclose(ga, gb, rtol=1e-3, atol=1e-3 * np.linalg.norm(gb))
+
+
+def test_layers_keep_the_hard_image_and_the_soft_one_where_surfaces_do_not_crowd():
+    """Compositing only each pixel's 2 most covering surfaces (of 5: floor and four capsules
+    further apart than the soft band) changes neither image nor the gradient; with 1 surface
+    the hard image is still exact (the nearest hit is kept)."""
+    m = _row_of_capsules(4)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    cam = Camera.from_mujoco(m, d, "c", 64, 64)
+    g = Geoms.from_mujoco(m, d)
+    full = Renderer.create(m, layers=5)
+    for R in (Renderer.create(m, layers=1), Renderer.create(m, layers=2)):
+        a, b = R.render(cam, g), full.render(cam, g)
+        np.testing.assert_array_equal(a.segmentation, b.segmentation)
+        np.testing.assert_allclose(a.depth, b.depth, rtol=1e-6)
+        np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-5)
+        np.testing.assert_allclose(a.weights, b.weights, atol=1e-6)
+    two = Renderer.create(m, layers=2)
+
+    def loss(R, dx):
+        im = R.render(cam, g.replace(xpos=g.xpos.at[2].add(dx)), tau=0.7)
+        return jnp.sum(im.rgb ** 2) + jnp.sum(im.weights ** 2) + jnp.sum(im.depth)
+
+    np.testing.assert_allclose(loss(two, jnp.zeros(3)), loss(full, jnp.zeros(3)), rtol=1e-5)
+    ga, gb = jax.grad(loss, 1)(two, jnp.zeros(3)), jax.grad(loss, 1)(full, jnp.zeros(3))
+    assert np.linalg.norm(gb) > 0
+    np.testing.assert_allclose(ga, gb, rtol=1e-3, atol=1e-3 * np.linalg.norm(gb))

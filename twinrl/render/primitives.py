@@ -460,15 +460,31 @@ def normal_cylinder(p, size, tn=None):
     rxy = jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + 1e-20)
     dr = jnp.abs(rxy - rad)
     dz = jnp.abs(jnp.abs(p[..., 2]) - h)
-    side = p.at[..., 2].set(0.0) / rxy[..., None]
-    cap = jnp.zeros_like(p).at[..., 2].set(jnp.where(p[..., 2] >= 0, 1.0, -1.0))
-    return _pick(jnp.stack([dr, dz], -1), jnp.stack([side, cap], -2), tn)
+    if tn is None:
+        w_cap = (dz < dr).astype(p.dtype)
+    else:  # softmin of two: a sigmoid
+        w_cap = jax.nn.sigmoid((dr - dz) / tn)
+    # side normal (x, y, 0) / rxy, cap normal (0, 0, +-1), blended: no (..., 2, 3) stack
+    side = (1.0 - w_cap) / rxy
+    return jnp.stack([side * p[..., 0], side * p[..., 1],
+                      w_cap * jnp.where(p[..., 2] >= 0, 1.0, -1.0)], -1)
 
 
 def normal_box(p, size, tn=None):
-    dists = jnp.abs(jnp.abs(p) - size)
-    normals = jnp.eye(3, dtype=p.dtype) * jnp.where(p >= 0, 1.0, -1.0)[..., None, :]
-    return _pick(dists, normals, tn)
+    """Face k's normal is ``e_k sign(p_k)``, so the blend is ``w_k sign(p_k)`` per component:
+    the softmin weights themselves, written out over the three faces (no (..., 3, 3) blend)."""
+    d = [jnp.abs(jnp.abs(p[..., i]) - size[..., i]) for i in range(3)]
+    if tn is None:
+        k0 = (d[0] <= d[1]) & (d[0] <= d[2])
+        k1 = ~k0 & (d[1] <= d[2])
+        w = [k0, k1, ~k0 & ~k1]
+        w = [x.astype(p.dtype) for x in w]
+    else:
+        lo = jnp.minimum(jnp.minimum(d[0], d[1]), d[2])
+        e = [jnp.exp((lo - x) / tn) for x in d]
+        tot = e[0] + e[1] + e[2]
+        w = [x / tot for x in e]
+    return jnp.stack([w[i] * jnp.where(p[..., i] >= 0, 1.0, -1.0) for i in range(3)], -1)
 
 
 def normal_plane(p, size, tn=None):

@@ -15,7 +15,18 @@ SoftRas's softmax-of-inverse-depth aggregation; the background takes what no geo
 
 Shading is OpenGL's fixed-function model as MuJoCo configures it (the headlight and the scene's
 lights: ambient + Lambertian diffuse + Blinn-Phong specular, spot cone and exponent, attenuation),
-with hard shadows of the lights that cast them (shadow rays; treated as constants for gradients).
+with hard shadows of the lights that cast them (treated as constants for gradients): one shadow
+ray per pixel and light, from the surface that shows most at that pixel (the hard image's hit),
+whose verdict shades every geom's point at that pixel (exact in the hard image; in the soft image
+it shades the other geoms' edge pixels too).
+
+Cost. Every pixel is tested against every plane and mesh, and against at most ``per_pixel`` geoms
+of each other primitive type: per pixel, the nearest whose bounding capsule its ray passes through
+or near (a rasteriser's culling, with the static shapes XLA needs); and only the ``layers``
+surfaces that show most at a pixel are composited (a cost quadratic in their number) and shaded.
+A scene with at most ``per_pixel`` geoms of each type and ``layers`` geoms in all is drawn exactly
+as without either; beyond, the hard image stays exact and the soft one loses only the coverage of
+surfaces crowded out of a pixel (``bench/render.py``'s sweep measures how much).
 
 Everything is a pure function of ``Camera`` and ``Geoms`` pytrees: jit, vmap (batches of cameras
 or scenes) and grad reach the camera pose and intrinsics, geom poses (``geom_xpos``/``geom_xmat``
@@ -130,6 +141,23 @@ def _lights(model: mujoco.MjModel):
     )
 
 
+def _to_local(v, xmat):
+    """``v @ xmat`` per geom: ``v`` (..., g, 3); ``xmat`` (g, 3, 3) shared by every ray (a
+    batched matrix product) or (..., g, 3, 3) per ray (written out elementwise, so it fuses)."""
+    if xmat.ndim == 3:
+        return jnp.einsum("...gi,gij->...gj", v, xmat)
+    return (v[..., 0:1] * xmat[..., 0, :] + v[..., 1:2] * xmat[..., 1, :]
+            + v[..., 2:3] * xmat[..., 2, :])
+
+
+def _to_world(v, xmat):
+    """``xmat @ v`` per geom (the inverse of ``_to_local``)."""
+    if xmat.ndim == 3:
+        return jnp.einsum("...gj,gij->...gi", v, xmat)
+    return (v[..., 0:1] * xmat[..., :, 0] + v[..., 1:2] * xmat[..., :, 1]
+            + v[..., 2:3] * xmat[..., :, 2])
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Renderer:
     """Renders one ``mujoco.MjModel``'s geoms; holds only static structure (geom types, mesh
@@ -142,6 +170,15 @@ class Renderer:
       iters: golden-section iterations of the soft closest-approach search (cylinders, meshes;
         boxes are solved exactly); the soft silhouette is placed to about ``0.62**iters`` of
         the geom's size.
+      per_pixel: how many geoms of one primitive type (sphere, capsule, ...) each pixel's ray is
+        tested against, at most (planes and meshes: all of them). A type with more geoms is
+        culled per pixel (``_choose``): the geoms whose bounding capsule the ray passes through,
+        nearest first, then those it passes within the soft silhouette's band of; the others
+        contribute nothing there. Exact while no pixel has more candidates of one type; a scene
+        with at most ``per_pixel`` geoms of each type renders exactly as without culling.
+      layers: how many surfaces each pixel composites and shades, at most: the most covering of
+        those not hidden behind a solid one. The hard image is exact whatever its value; the soft
+        one drops at most the coverage of a pixel's ``layers + 1``-th surface.
     """
 
     geom_ids: tuple[int, ...]
@@ -162,16 +199,21 @@ class Renderer:
     tri_vert: np.ndarray
     shadows: bool = True
     iters: int = 16
+    per_pixel: int = 4
+    layers: int = 8
 
     @classmethod
     def create(cls, model: mujoco.MjModel, *, geom_ids: Sequence[int] | None = None,
-               shadows: bool = True, iters: int = 16) -> "Renderer":
+               shadows: bool = True, iters: int = 16, per_pixel: int = 4,
+               layers: int = 8) -> "Renderer":
         if not isinstance(model, mujoco.MjModel):
             raise TypeError(f"model must be a mujoco.MjModel, got {type(model).__name__}")
         if geom_ids is None:
             geom_ids = [g for g in range(model.ngeom)
                         if model.geom_group[g] < 3 and model.geom_rgba[g, 3] > 0]
         geom_ids = tuple(int(g) for g in geom_ids)
+        if int(per_pixel) < 1 or int(layers) < 1:
+            raise ValueError(f"per_pixel and layers must be >= 1, got {per_pixel}, {layers}")
         if not geom_ids:
             raise ValueError("no geom to draw")
         for g in geom_ids:
@@ -220,7 +262,8 @@ class Renderer:
             far_depth=_gl_far_depth(float(vis.map.znear) * ext, float(vis.map.zfar) * ext),
             tri_geom=np.concatenate(tri_geom) if tri_geom else np.zeros(0, np.int32),
             tri_vert=np.concatenate(tri_vert) if tri_vert else np.zeros((0, 3), np.int32),
-            shadows=bool(shadows), iters=int(iters))
+            shadows=bool(shadows), iters=int(iters), per_pixel=int(per_pixel),
+            layers=int(layers))
 
     @property
     def ngeom(self) -> int:
@@ -283,20 +326,28 @@ class Renderer:
             return s_hit
         return s_hit, jnp.stack(s_near, -1), jnp.stack(dist, -1), jnp.stack(normal, -2)
 
-    def _cast_prim(self, t, o, r, xpos, xmat, size, soft, iters, normal_tau=None):
+    def _cast_prim(self, t, o, r, xpos, xmat, size, soft, iters, normal_tau=None,
+                   hard_normals=False):
+        """One primitive type's geoms: ``xpos`` (g, 3), ``xmat`` (g, 3, 3), ``size`` (g, 3) for
+        every ray, or (..., g, 3[, 3]) per ray (the geoms culling chose for each pixel)."""
         _, hit, closest, normal = prim.PRIMITIVES[t]
         # local frame: p_loc = xmat^T (p - xpos)
-        o_l = jnp.einsum("...gi,gij->...gj", o[..., None, :] - xpos, xmat)
-        r_l = jnp.einsum("...i,gij->...gj", r, xmat)
+        o_l = _to_local(o[..., None, :] - xpos, xmat)
+        r_l = (jnp.einsum("...i,gij->...gj", r, xmat) if xmat.ndim == 3
+               else _to_local(r[..., None, :], xmat))
         s_hit = hit(o_l, r_l, size)
         if not soft:
-            return (s_hit,)
+            if not hard_normals:
+                return (s_hit,)
+            p = o_l + jnp.where(jnp.isfinite(s_hit), s_hit, self.far)[..., None] * r_l
+            n = _to_world(normal(p, size), xmat)
+            return s_hit, n / jnp.sqrt(prim.dot(n, n) + 1e-20)[..., None]
         s_c, d = closest(o_l, r_l, size, iters)
         s_n = jnp.where(jnp.isfinite(s_hit), s_hit, s_c)
         s_n = jnp.where(jnp.isfinite(s_n), s_n, self.far)
         p = o_l + s_n[..., None] * r_l
         tn = None if normal_tau is None else normal_tau[..., None] * s_n
-        n = jnp.einsum("...gj,gij->...gi", normal(p, size, tn), xmat)
+        n = _to_world(normal(p, size, tn), xmat)
         n = n / jnp.sqrt(prim.dot(n, n) + 1e-20)[..., None]
         return s_hit, s_n, d, n
 
@@ -367,21 +418,98 @@ class Renderer:
                 out[g] = d[..., j]
         return jnp.stack(out, -1)
 
+    # ------------------------------------------------------------------ culling
+    def _groups(self):
+        """The drawn geoms by primitive type: ``[(type, renderer indices)]`` (static)."""
+        types = np.asarray(self.types)
+        return [(t, np.flatnonzero(types == t)) for t in sorted(set(self.types))]
+
+    def _culled(self, t, idx) -> bool:
+        return t not in (0, _MESH) and len(idx) > self.per_pixel
+
+    def _choose(self, t, idx, o, r, xpos, xmat, size, reach, front):
+        """The ``per_pixel`` geoms of ``idx`` (one primitive type) each ray is tested against.
+        Each geom is bounded by a capsule (a segment along its longest axis; exact for capsules);
+        the rays passing through it come first, nearest first, then those passing within
+        ``reach`` (..., metres per unit of ``s``; None: 0) of it, closest first (the soft
+        silhouette's band); only ``s`` past ``front`` counts. Returns their positions in
+        ``idx`` (..., K) and as one-hot rows (..., K, n); no gradient (a geom left out covers
+        nothing there)."""
+        sg = jax.lax.stop_gradient
+        c, m, h, o, r = sg(xpos[idx]), sg(xmat[idx]), sg(size[idx]), sg(o), sg(r)
+        if t == 2:  # sphere
+            half, rad, axis = jnp.zeros_like(h[:, 0]), h[:, 0], m[:, :, 2]
+        elif t in (3, 5):  # capsule, cylinder: along z
+            half, rad, axis = h[:, 1], h[:, 0], m[:, :, 2]
+        else:  # box, ellipsoid: the longest axis, radius the other two's diagonal
+            k = jnp.argmax(h, -1)
+            half = jnp.max(h, -1)
+            rad = jnp.sqrt(jnp.maximum(jnp.sum(h * h, -1) - half * half, 0.0))
+            axis = jnp.sum(m * (k[:, None] == jnp.arange(3))[:, None, :], -1)
+        e = half[:, None] * axis
+        s_c, dist = prim.line_segment(o[..., None, :], r[..., None, :], c - e, c + e)  # (..., n)
+        depth = jnp.maximum(s_c, self.near)
+        lim = rad if reach is None else rad + reach[..., None] * depth
+        core = dist <= rad * 1.001 + 1e-6
+        band = (dist <= lim * 1.001 + 1e-6) & (s_c + half + rad >= front)
+        score = jnp.where(core & (s_c + half + rad >= front), 1e6 - s_c,
+                          jnp.where(band, -(dist - rad) / depth, -1e9 - dist))
+        k = jax.lax.top_k(score, self.per_pixel)[1]
+        return k, (k[..., None] == jnp.arange(len(idx))).astype(r.dtype)
+
+    def _group_params(self, t, idx, o, r, xpos, xmat, size, extra, reach, front, const=None):
+        """Per group of one type: the geoms' (or, culled, each ray's chosen geoms') ``xpos``,
+        ``xmat``, ``size``, ``extra`` (G, E) per-geom columns, renderer indices ``gid`` ((n,)
+        static, else (..., K)) and the rows of the NumPy table ``const`` (G, C)."""
+        dt = xpos.dtype
+        if not self._culled(t, idx):
+            return (xpos[idx], xmat[idx], size[idx], extra[idx], jnp.asarray(idx, jnp.int32),
+                    None if const is None else jnp.asarray(const[idx], dt))
+        k, oh = self._choose(t, idx, o, r, xpos, xmat, size, reach, front)
+        n = len(idx)
+        table = jnp.concatenate([xpos[idx], xmat[idx].reshape(n, 9), size[idx], extra[idx]], -1)
+        # a one-hot matrix product, not a gather: its reverse pass is another product (a gather's
+        # is a scatter, which XLA on CPU runs serially)
+        tab = jnp.einsum("...kn,nd->...kd", oh, table)
+        return (tab[..., 0:3], tab[..., 3:12].reshape(*tab.shape[:-1], 3, 3), tab[..., 12:15],
+                tab[..., 15:], jnp.asarray(idx, jnp.int32)[k],
+                None if const is None else oh @ jnp.asarray(const[idx], dt))
+
     # ------------------------------------------------------------------ shading
     def _albedo(self, rgba):
         return jnp.where(jnp.asarray(self.use_mat_rgba)[:, None], jnp.asarray(self.mat_rgba),
                          rgba)
 
-    def _shade(self, p, n, view_o, forward, albedo, own, geoms):
-        """OpenGL fixed-function colour of surface points ``p`` (..., G, 3), normals ``n``."""
+    def _light_dir(self, i, p):
+        """Unit direction to light ``i``, its distance and its attenuation/spot factor at ``p``."""
+        L = self.lights
+        if L["type"][i] == 1:  # directional
+            l = jnp.broadcast_to(-jnp.asarray(L["dir"][i], p.dtype), p.shape)
+            return l, jnp.full(p.shape[:-1], 1e9, p.dtype), jnp.ones(p.shape[:-1], p.dtype)
+        dl = jnp.asarray(L["pos"][i], p.dtype) - p
+        dist_l = jnp.sqrt(prim.dot(dl, dl) + 1e-20)
+        l = dl / dist_l[..., None]
+        a = L["attenuation"][i]
+        factor = 1.0 / (a[0] + a[1] * dist_l + a[2] * dist_l ** 2)
+        if L["type"][i] == 0:  # spot: cone and exponent
+            cosang = -prim.dot(l, jnp.asarray(L["dir"][i], p.dtype))
+            inside = cosang >= np.cos(np.deg2rad(L["cutoff"][i]))
+            factor = factor * jnp.where(
+                inside, jnp.exp(L["exponent"][i] * jnp.log(jnp.maximum(cosang, 1e-30))), 0.0)
+        return l, dist_l, factor
+
+    def _shade(self, p, n, view_o, forward, albedo, mat, lit):
+        """OpenGL fixed-function colour of surface points ``p`` (..., S, 3), normals ``n``, of
+        geoms with ``albedo`` (..., S, 4) and ``mat`` (..., S, 3) (specular, shininess,
+        emission); ``lit`` {light: (...,)} the shadow factor of each shadow-casting light."""
         v = view_o - p
         v = v / jnp.sqrt(prim.dot(v, v) + 1e-20)[..., None]
         # No two-sided flip: closed geoms are only ever seen from outside, and at a soft
         # silhouette (n . v ~ 0) a flip would make the colour jump.
         rgb = albedo[..., :3]
-        spec_m = jnp.asarray(self.specular)[:, None]
-        shin = 128.0 * jnp.asarray(self.shininess)
-        col = jnp.asarray(self.emission)[:, None] * rgb
+        spec_m = mat[..., 0:1]
+        shin = 128.0 * mat[..., 1]
+        col = mat[..., 2:3] * rgb
 
         def light(col, l, amb, dif, spe, factor):
             ndl = prim.dot(n, l)
@@ -400,34 +528,34 @@ class Renderer:
                         jnp.asarray(hl["specular"]), jnp.ones(p.shape[:-1], p.dtype))
         L = self.lights
         for i in range(len(L["type"])):
-            if L["type"][i] == 1:  # directional
-                l = jnp.broadcast_to(-jnp.asarray(L["dir"][i], p.dtype), p.shape)
-                factor, dist_l = jnp.ones(p.shape[:-1], p.dtype), jnp.full(p.shape[:-1], 1e9)
-            else:
-                dl = jnp.asarray(L["pos"][i], p.dtype) - p
-                dist_l = jnp.sqrt(prim.dot(dl, dl) + 1e-20)
-                l = dl / dist_l[..., None]
-                a = L["attenuation"][i]
-                factor = 1.0 / (a[0] + a[1] * dist_l + a[2] * dist_l ** 2)
-                if L["type"][i] == 0:  # spot: cone and exponent
-                    cosang = -prim.dot(l, jnp.asarray(L["dir"][i], p.dtype))
-                    inside = cosang >= np.cos(np.deg2rad(L["cutoff"][i]))
-                    factor = factor * jnp.where(
-                        inside, jnp.exp(L["exponent"][i] * jnp.log(jnp.maximum(cosang, 1e-30))),
-                        0.0)
-            if self.shadows and L["castshadow"][i]:
-                lit = self._unoccluded(p, l, dist_l, own, geoms)
-                factor = factor * jax.lax.stop_gradient(lit)
+            l, _, factor = self._light_dir(i, p)
+            if i in lit:
+                factor = factor * lit[i][..., None]
             col = light(col, l, jnp.asarray(L["ambient"][i]), jnp.asarray(L["diffuse"][i]),
                         jnp.asarray(L["specular"][i]), factor)
         return jnp.clip(col, 0.0, 1.0)
 
-    def _unoccluded(self, p, l, dist_l, own, geoms):
-        p, l, dist_l = (jax.lax.stop_gradient(x) for x in (p, l, dist_l))
-        geoms = jax.tree_util.tree_map(jax.lax.stop_gradient, geoms)
-        s = self.cast(p + 1e-5 * l, l, geoms)  # (..., G_pts, G)
-        others = ~np.eye(self.ngeom, dtype=bool) if own else True
-        blocked = prim.reduce_last(jnp.logical_or, others & (s < dist_l[..., None]))
+    def _unoccluded(self, p, l, dist_l, skip, geoms):
+        """1 where the ray from ``p`` (..., 3) towards the light (``l``, ``dist_l`` away) meets
+        no geom other than ``skip`` (..., renderer index), else 0; no gradient (hard shadows)."""
+        sg = jax.lax.stop_gradient
+        p, l, dist_l = sg(p), sg(l), sg(dist_l)
+        geoms = jax.tree_util.tree_map(sg, geoms)
+        xpos, xmat, size, _ = self._select(geoms)
+        o = p + 1e-5 * l
+        blocked = jnp.zeros(p.shape[:-1], bool)
+        none = jnp.zeros((self.ngeom, 0), p.dtype)
+        for t, idx in self._groups():
+            if t == 0:
+                continue  # a plane is seen from its front only: it casts no shadow upwards
+            if t == _MESH:
+                s = self._cast_mesh(o, l, geoms, xpos, xmat, idx, False, self.iters)[0]
+                gid = jnp.asarray(idx, jnp.int32)
+            else:
+                gx, gm, gs, _, gid, _ = self._group_params(t, idx, o, l, xpos, xmat, size, none,
+                                                           None, 0.0)
+                s = self._cast_prim(t, o, l, gx, gm, gs, False, self.iters)[0]
+            blocked = blocked | jnp.any((gid != skip[..., None]) & (s < dist_l[..., None]), -1)
         return 1.0 - blocked.astype(p.dtype)
 
     # ------------------------------------------------------------------ images
@@ -450,38 +578,96 @@ class Renderer:
         H, W, G = camera.height, camera.width, self.ngeom
         o, r = camera.rays()
         r = r.reshape(-1, 3)
+        P = r.shape[0]
         xpos, xmat, size, rgba = self._select(geoms)
         forward = -camera.xmat[:, 2]
+        pix = camera.pixel_size()
+        albedo = self._albedo(rgba)
+        # specular, shininess, emission: constants, kept apart from the albedo so that the
+        # reverse pass does not differentiate the shading with respect to them
+        mat = np.stack([self.specular, self.shininess, self.emission], -1)
+        # how far from a geom's bounding sphere a ray may pass and still be tested against it:
+        # the soft silhouette's band (coverage sigmoid(-d / tau) < 1e-6 beyond 14 tau pixels)
+        band = (15.0 * tau + 2.0) if soft else 2.0
+        reach = jnp.broadcast_to(band * pix, (P,))
+        ntau = jnp.broadcast_to(tau * pix, (P,)) if soft else None
+        parts = []  # per group: s_hit, s_near, dist, normal, shading inputs, renderer index
+        for t, idx in self._groups():
+            if t == _MESH:
+                out = self._cast_mesh(o, r, geoms, xpos, xmat, idx, soft, self.iters, ntau)
+                ex, gid = albedo[idx], jnp.asarray(idx, jnp.int32)
+                mt = jnp.asarray(mat[idx], albedo.dtype)
+                if not soft:
+                    out = (out[0], self._mesh_normals(o, r, out[0], geoms, xpos, xmat, idx))
+            else:
+                gx, gm, gs, ex, gid, mt = self._group_params(t, idx, o, r, xpos, xmat, size,
+                                                             albedo, reach, self.near, mat)
+                out = self._cast_prim(t, o, r, gx, gm, gs, soft, self.iters, ntau,
+                                      hard_normals=not soft)
+            parts.append((*out, ex, mt, gid))
+        if any(self._culled(t, idx) for t, idx in self._groups()):
+            # per-pixel geoms somewhere: every group's shading inputs per pixel
+            parts = [(*q[:-3], jnp.broadcast_to(q[-3], (P, q[0].shape[-1], 4)),
+                      jnp.broadcast_to(q[-2], (P, q[0].shape[-1], 3)),
+                      jnp.broadcast_to(q[-1], (P, q[0].shape[-1]))) for q in parts]
+        # (else the albedo, materials and indices stay one row per geom, broadcast where used:
+        # the reverse pass then reduces the albedo's cotangent once per use, not a (P, S, 4))
+
+        def cat(j, ax=-1):
+            xs = [q[j] for q in parts]
+            if xs[0].ndim == 1 or (ax == -2 and xs[0].ndim == 2):  # per geom, not per pixel
+                return jnp.concatenate(xs, 0)
+            return jnp.concatenate(xs, ax)
         if soft:
-            # shading crosses a geom's edges over about tau pixels, as its silhouette does
-            ntau = jnp.broadcast_to(tau * camera.pixel_size(), r.shape[:-1])
-            s_hit, s_n, dist, n = self.cast(o, r, geoms, soft=True, normal_tau=ntau)
+            s_hit, s_n, dist, n = cat(0), cat(1), cat(2), cat(3, -2)
+            alb, mt, gid = cat(4, -2), cat(5, -2), cat(6)
         else:
-            s_hit = self.cast(o, r, geoms)
+            s_hit, n, alb, mt, gid = cat(0), cat(1, -2), cat(2, -2), cat(3, -2), cat(4)
+        S = s_hit.shape[-1]
         s_hit = jnp.where((s_hit >= self.near) & (s_hit <= self.far), s_hit, jnp.inf)
         hit = jnp.isfinite(s_hit)
         first = jnp.argmin(s_hit, -1)
         any_hit = jnp.any(hit, -1)
-        gi = jnp.asarray(self.geom_ids, jnp.int32)
-        seg = jnp.where(any_hit, gi[first], -1).reshape(H, W)
-        body = jnp.where(any_hit, jnp.asarray(self.bodies)[first], -1).reshape(H, W)
-        albedo = self._albedo(rgba)
-        alpha = albedo[:, 3]
+        g_first = (gid[first] if gid.ndim == 1
+                   else jnp.take_along_axis(gid, first[:, None], -1)[:, 0])
+        seg = jnp.where(any_hit, jnp.asarray(self.geom_ids, jnp.int32)[g_first], -1).reshape(H, W)
+        body = jnp.where(any_hit, jnp.asarray(self.bodies)[g_first], -1).reshape(H, W)
         if not soft:
             s_n = jnp.where(hit, s_hit, self.far)
-            p = o + s_n[..., None] * r[:, None, :]
-            n = self._hard_normals(p, xpos, xmat, size, geoms)
             cover = hit.astype(r.dtype)
-            z = s_n
-            ahead = (z[..., None, :] < z[..., :, None])  # [g, k]: k in front of g
         else:
-            p = o + s_n[..., None] * r[:, None, :]
-            pix = camera.pixel_size()
             d_px = dist / (jnp.maximum(s_n, self.near) * pix)
             cover = jax.nn.sigmoid(-d_px / tau) * ((s_n >= self.near) & (s_n <= self.far))
-            z = s_n
+        z = s_n
+        p = o + s_n[..., None] * r[:, None, :]
+        oh = None
+        if S > self.layers:
+            # composite (its cost grows with the square of the surfaces) and shade only each
+            # pixel's `layers` most covering surfaces among those not hidden: behind the nearest
+            # solid one (coverage > 0.999) by more than 10 gamma, a surface's weight is < 1e-3 of
+            # its coverage. Ties (hard image: all hits) go to the nearest.
+            a_, z_ = jax.lax.stop_gradient(cover), jax.lax.stop_gradient(z)
+            solid = jnp.min(jnp.where(a_ > 0.999, z_, jnp.inf), -1, keepdims=True)
+            shown = z_ <= solid + (10.0 * gamma if soft else 0.0)
+            key = jnp.where(shown, a_ - 1e-6 * z_ / self.far, -1.0 - z_ / self.far)
+            lay = jax.lax.top_k(key, self.layers)[1]  # (P, L)
+            oh = (lay[..., None] == jnp.arange(S)).astype(r.dtype)  # (P, L, S)
+
+            def pick(x):
+                if x.shape[0] != P:  # one row per slot: a product with the one-hot rows
+                    return jnp.einsum("pls,s...->pl...", oh, x.astype(r.dtype))
+                return jnp.take_along_axis(x, lay.reshape(lay.shape + (1,) * (x.ndim - 2)), 1)
+
+            cover, z, p, n, alb, mt = (pick(x) for x in (cover, z, p, n, alb, mt))
+            gid = (jnp.take_along_axis(gid, lay, 1) if gid.shape[0] == P
+                   else jnp.asarray(gid)[lay])
+            S = self.layers
+        alpha = alb[..., 3]
+        if not soft:
+            ahead = (z[..., None, :] < z[..., :, None])  # [g, k]: k in front of g
+        else:
             ahead = jax.nn.sigmoid((z[..., :, None] - z[..., None, :]) / gamma)
-        offdiag = ~np.eye(G, dtype=bool)
+        offdiag = ~np.eye(S, dtype=bool)
 
         def composite(a):
             # w_g = a_g prod_{k != g} (1 - a_k [k in front of g]); background: prod_k (1 - a_k)
@@ -493,15 +679,45 @@ class Renderer:
             return w / tot[..., None], bg / tot
 
         w, bg = composite(cover)
-        col = self._shade(p, n, o, forward, albedo, True, geoms)
+        lit = {}
+        if self.shadows and np.any(self.lights["castshadow"]):
+            # one shadow ray per pixel, from the surface that shows most there (the hard image's
+            # hit): the shadow of every geom's point at that pixel
+            win = jnp.argmax(jax.lax.stop_gradient(w), -1)
+            pw = jnp.take_along_axis(jax.lax.stop_gradient(p), win[:, None, None], -2)[:, 0]
+            gw = gid[win] if gid.ndim == 1 else jnp.take_along_axis(gid, win[:, None], -1)[:, 0]
+            for i in np.flatnonzero(self.lights["castshadow"]):
+                l, dist_l, _ = self._light_dir(int(i), pw)
+                lit[int(i)] = self._unoccluded(pw, l, dist_l, gw, geoms)
+        col = self._shade(p, n, o, forward, alb, mt, lit)
         w_rgb, bg_rgb = composite(cover * alpha)
         rgb = jnp.sum(w_rgb[..., None] * col, -2)  # black background
         if soft:
             depth = prim.sum_last(w * z) + bg * self.far_depth
         else:
             depth = jnp.where(any_hit, jnp.min(s_hit, -1), self.far_depth)
+        if oh is not None:  # back to every slot
+            w = jnp.einsum("pl,pls->ps", w, oh)
         return Images(rgb=rgb.reshape(H, W, 3), depth=depth.reshape(H, W), segmentation=seg,
-                      body=body, weights=w.reshape(H, W, G), background=bg.reshape(H, W))
+                      body=body, weights=self._per_geom(w, parts).reshape(H, W, G),
+                      background=bg.reshape(H, W))
+
+    def _per_geom(self, w, parts):
+        """Slot weights (P, S) back to geoms (P, G), in renderer order."""
+        blocks, order, a = [], [], 0
+        for (t, idx), q in zip(self._groups(), parts):
+            k = q[0].shape[-1]
+            wk = w[:, a:a + k]
+            a += k
+            if self._culled(t, idx):
+                oh = (q[-1][..., None] == jnp.asarray(idx)).astype(w.dtype)  # (P, K, n)
+                wk = jnp.einsum("pk,pkn->pn", wk, oh)
+            blocks.append(wk)
+            order.extend(idx)
+        out = jnp.concatenate(blocks, -1)
+        if order == sorted(order):
+            return out
+        return out[:, np.argsort(order)]
 
     def _face_planes(self, geoms, xpos, xmat, idx):
         """Unit normals ``fn`` (T, 3) and offsets ``off`` (T,) of every mesh triangle's plane in
@@ -514,22 +730,10 @@ class Renderer:
         fn = fn / jnp.sqrt(jnp.sum(fn * fn, -1, keepdims=True) + 1e-30)
         return fn, jnp.sum(fn * tri[:, 0], -1), sel
 
-    def _hard_normals(self, p, xpos, xmat, size, geoms):
-        types = np.asarray(self.types)
-        n = [None] * self.ngeom
-        for t in sorted(set(self.types)):
-            idx = np.flatnonzero(types == t)
-            if t == _MESH:
-                fn, off, sel = self._face_planes(geoms, xpos, xmat, idx)
-                vals = jnp.where(sel, jnp.einsum("ngi,ti->ngt", p[:, idx], fn) - off, -jnp.inf)
-                nl = fn[jnp.argmax(vals, -1)]
-                for j, g in enumerate(idx):
-                    n[g] = nl[:, j]
-                continue
-            normal = prim.PRIMITIVES[t][3]
-            pl = jnp.einsum("ngi,gij->ngj", p[:, idx] - xpos[idx], xmat[idx])
-            nw = jnp.einsum("ngj,gij->ngi", normal(pl, size[idx]), xmat[idx])
-            for j, g in enumerate(idx):
-                n[g] = nw[:, j]
-        n = jnp.stack(n, -2)
-        return n / jnp.sqrt(jnp.sum(n * n, -1, keepdims=True) + 1e-20)
+    def _mesh_normals(self, o, r, s_hit, geoms, xpos, xmat, idx):
+        """Hard normals of mesh geoms ``idx`` where the rays hit them (the face whose plane the
+        hit point lies on). (..., len(idx), 3)"""
+        fn, off, sel = self._face_planes(geoms, xpos, xmat, idx)
+        p = o + jnp.where(jnp.isfinite(s_hit), s_hit, self.far)[..., None] * r[..., None, :]
+        vals = jnp.where(sel, jnp.einsum("...gi,ti->...gt", p, fn) - off, -jnp.inf)
+        return fn[jnp.argmax(vals, -1)]
