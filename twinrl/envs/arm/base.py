@@ -448,9 +448,14 @@ class ArmTask(Env):
         """A hand-written expert (NumPy, from the privileged observation); each task has one."""
         raise NotImplementedError(f"{type(self).__name__} has no scripted expert")
 
+    def gradcheck_action(self, obs: np.ndarray) -> np.ndarray:
+        """The actions of ``gradcheck_scenario``: the scripted expert's, unless a task needs
+        another to touch its object (the needle's expert threads the eye without touching it)."""
+        return self.scripted_action(obs)
+
     def gradcheck_scenario(self, horizon: int = 30, seed: int = 0, lead: int = 5):
         """A ``twinrl.physics.scenes.Scenario`` of this task's scene through tool-object contact:
-        the scripted expert's episode from ``reset(PRNGKey(seed))``, as the joint targets its
+        the scripted expert's (``gradcheck_action``'s) episode from ``reset(PRNGKey(seed))``, as the joint targets its
         controller sent (the actuators' ``ctrl``), in a window of ``horizon`` control steps that
         starts ``lead`` steps before the first constrained step. ``twinrl gradcheck TASK`` checks
         the physics' gradients on it; the controller's own derivative is checked with the task's
@@ -465,7 +470,7 @@ class ArmTask(Env):
         qs, vs, ctrls = [], [], []
         for _ in range(self.episode_length):
             q, v = s.pipeline_state.qpos, s.pipeline_state.qvel
-            a = jnp.asarray(self.scripted_action(np.asarray(s.obs)), q.dtype)
+            a = jnp.asarray(self.gradcheck_action(np.asarray(s.obs)), q.dtype)
             qs.append(np.asarray(q))
             vs.append(np.asarray(v))
             ctrls.append(np.asarray(control(q, v, a)))
