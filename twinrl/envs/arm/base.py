@@ -292,12 +292,17 @@ class CameraMount:
     """
 
     target: tuple[float, float, float] = (0.5, 0.0, 0.05)
+    """The look-at point (world, m)."""
     azimuth: tuple[float, float] = (-2.0, 2.0)
+    """Range (rad) of the camera's direction about the vertical, from the target's +x side."""
     elevation: tuple[float, float] = (0.25, 1.35)
+    """Range (rad) of the camera's height angle above the target."""
     distance: tuple[float, float] = (0.45, 0.8)
+    """Range (m) of the camera's distance from the target."""
     default: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """The default (fixed-camera baseline) pose's unconstrained coordinates."""
     fovy: float = 50.0
+    """Vertical field of view (degrees)."""
     max_speed: float = 0.25
     """Largest move (rad of azimuth/elevation, or m of distance) the mount makes per control step:
     moving the camera costs ``steps_to_move`` time steps."""

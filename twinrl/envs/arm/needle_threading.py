@@ -61,8 +61,11 @@ class NeedleThreadingConfig(ArmConfig):
     episode_length: int = 50
     """Control steps per episode (2 s)."""
     eye_x: tuple[float, float] = (0.45, 0.6)
+    """Range (m) of the eye centre's x at reset."""
     eye_y: tuple[float, float] = (0.0, 0.1)
+    """Range (m) of the eye centre's y at reset."""
     eye_z: tuple[float, float] = (0.15, 0.25)
+    """Range (m) of the eye centre's height at reset."""
     eye_yaw: tuple[float, float] = (-0.4, 0.4)
     """Range (rad) of the eye axis' heading from the world y axis."""
     start_back: tuple[float, float] = (0.10, 0.16)
@@ -72,8 +75,11 @@ class NeedleThreadingConfig(ArmConfig):
     start_yaw: float = 0.3
     """Half-width (rad) of the uniform start heading of the thread."""
     align_margin: float = 0.06
+    """Distance (m) of the tip from the eye's axis line at which ``align`` has fallen to 0.1."""
     heading_margin: float = 0.5
+    """Sine of the thread-axis angle at which ``heading`` has fallen to 0.1."""
     through_margin: float = 0.15
+    """Distance (m) along the axis from 3.5 cm past the eye at which ``through`` is 0.1."""
 
 
 class NeedleThreading(ArmTask):

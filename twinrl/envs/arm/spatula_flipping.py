@@ -58,7 +58,9 @@ class SpatulaFlippingConfig(ArmConfig):
     episode_length: int = 60
     """Control steps per episode (2.4 s)."""
     stopper_x: tuple[float, float] = (0.66, 0.72)
+    """Range (m) of the stopper rail's x at reset."""
     stopper_y: tuple[float, float] = (-0.08, 0.08)
+    """Range (m) of the stopper rail's y at reset."""
     gap: tuple[float, float] = (0.001, 0.004)
     """Range (m) of the gap between the pancake's rim and the stopper at reset."""
     pancake_y_noise: float = 0.02
