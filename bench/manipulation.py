@@ -199,6 +199,14 @@ def replay(env, plans: np.ndarray, keys: np.ndarray, twin_seeds, zero: bool = Fa
     return float(np.mean(wins))
 
 
+def _meta(args) -> dict:
+    return {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
+            "device": str(jax.devices()[0]), "machine": platform.machine(),
+            "python": sys.version.split()[0], "cpu_count": __import__("os").cpu_count(),
+            "trajopt": {"order": 1, "step_size": args.step_size, "line_search_steps": 6,
+                        "iterations": args.iterations, "restarts": args.restarts}}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--tasks", nargs="*", default=list(TASKS), choices=TASKS)
@@ -248,22 +256,19 @@ def main(argv=None) -> int:
                 row["replay_success_zero_twin"] = replay(env, plans, keys, [0], zero=True)
                 row["replay_success_real_twins"] = replay(env, plans, keys, range(args.replay))
         rows.append(row)
+        write_json(args.out / "manipulation.json", {"meta": _meta(args), "tasks": rows})  # so far
     cols = [("task", "task"), ("compile fwd s", "compile_forward_s"),
             ("compile grad s", "compile_grad_s"), ("fwd 1", "forward_steps_per_s_single"),
             ("fwd vmap16", "forward_steps_per_s_vmap16"), ("grad 1", "grad_steps_per_s_single"),
             ("grad vmap16", "grad_steps_per_s_vmap16"), ("render fps", "render_fps_64"),
-            ("render+grad fps", "render_grad_fps_64"), ("target visible", "visible_fraction"), ("trajopt success", "success_rate"),
-            ("first attempt", "success_rate_first_attempt"), ("s / solved", "seconds_per_solved"), ("trajopt compile s", "trajopt_compile_s"),
+            ("render+grad fps", "render_grad_fps_64"), ("target visible", "visible_fraction"),
+            ("trajopt success", "success_rate"), ("first attempt", "success_rate_first_attempt"),
+            ("s / solved", "seconds_per_solved"), ("trajopt compile s", "trajopt_compile_s"),
             ("replay: zero twin", "replay_success_zero_twin"),
             ("replay: real twins", "replay_success_real_twins")]
     print_table(f"manipulation suite (control steps/s, {jax.devices()[0].platform})",
                 [c for c, _ in cols], [[r.get(k) for _, k in cols] for r in rows])
-    meta = {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
-            "device": str(jax.devices()[0]), "machine": platform.machine(),
-            "python": sys.version.split()[0], "cpu_count": __import__("os").cpu_count(),
-            "trajopt": {"order": 1, "step_size": args.step_size, "line_search_steps": 6,
-                        "iterations": args.iterations}}
-    path = write_json(args.out / "manipulation.json", {"meta": meta, "tasks": rows})
+    path = write_json(args.out / "manipulation.json", {"meta": _meta(args), "tasks": rows})
     print(f"wrote {path}")
     return 0
 

@@ -1,6 +1,6 @@
-"""The robot of the manipulation tasks: a Panda-kinematics arm, its Cartesian controller, the tool at
-its flange and the camera mount (SAM-RL, Lv et al. 2023, Sec. 4: a Franka Panda does the task while
-a second arm moves an RGB-D camera).
+"""The robot of the manipulation tasks: a Panda-kinematics arm, its Cartesian controller, the tool
+at its flange and the camera mount (SAM-RL, Lv et al. 2023, Sec. 4: a Franka Panda does the task
+while a second arm moves an RGB-D camera).
 
 - ``panda.xml`` beside this file is the arm (7 revolute joints, position servos, gravity
   compensated); ``compose(task_xml)`` puts it into a task's scene and attaches the task's ``tool``
@@ -108,7 +108,8 @@ def _dh_transform(a, d, alpha, theta):
 
 def joint_frames(q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     """World frames of the 7 joints and the flange for joint angles ``q`` (7,) (base at origin):
-    ``(joint positions (7, 3), joint axes (7, 3), flange position (3,), flange rotation (3, 3))``."""
+    ``(joint positions (7, 3), joint axes (7, 3), flange position (3,), flange rotation
+    (3, 3))``."""
     R = jnp.eye(3, dtype=q.dtype)
     p = jnp.zeros(3, q.dtype)
     pos, axes = [], []
@@ -172,7 +173,8 @@ class CartesianController:
     """
 
     tcp: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """The controlled point in the tool frame (the peg's tip, the blade's edge, the thread's end)."""
+    """The controlled point in the tool frame (the peg's tip, the blade's edge, the thread's
+    end)."""
     nominal: tuple = DOWN
     """The tool's nominal orientation (rows of a world rotation matrix) at heading 0."""
     yaw: bool = False
@@ -207,7 +209,8 @@ class CartesianController:
             dx = dx.at[5].add((1.0 - self.tilt_gain) * turn)
         JJt = J @ J.T + self.damping ** 2 * jnp.eye(6, dtype=q.dtype)
         pinv = J.T @ jnp.linalg.solve(JJt, jnp.eye(6, dtype=q.dtype))
-        dq = pinv @ dx + _null_space(J) @ (self.posture_gain * (jnp.asarray(self.posture, q.dtype) - q))
+        posture = jnp.asarray(self.posture, q.dtype)
+        dq = pinv @ dx + _null_space(J) @ (self.posture_gain * (posture - q))
         lo, hi = (jnp.asarray(JOINT_RANGE[:, i], q.dtype) for i in (0, 1))
         return jnp.clip(q + dq, lo, hi)
 
@@ -371,7 +374,15 @@ def composed(task_xml: str) -> str:
 
 
 # ---------------------------------------------------------------------- the arm tasks' Env
-from twinrl.envs.base import Env, TaskConfig  # noqa: E402
+from twinrl.envs.base import Env, PerturbationSpec, TaskConfig  # noqa: E402
+
+ARM_PERTURBATIONS = PerturbationSpec(
+    mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.7, 1.3),
+    gain_scale=(0.85, 1.1), latency_steps=(0, 1), obs_noise_std=(0.0005, 0.002),
+    camera_pos_std=0.01, camera_rot_std=0.02, tool_pos_std=0.003, tool_rot_std=0.03)
+"""What the arm tasks' real twins perturb (each task adjusts it): link and object masses, joint
+damping, friction, the servos' stiffness, latency, observation noise, the camera's hand-eye offset
+(1 cm / 0.02 rad) and the tool's grasp in the hand (3 mm / 0.03 rad)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -460,11 +471,11 @@ class ArmTask(Env):
 
     def gradcheck_scenario(self, horizon: int = 30, seed: int = 0, lead: int = 5):
         """A ``twinrl.physics.scenes.Scenario`` of this task's scene through tool-object contact:
-        the scripted expert's (``gradcheck_action``'s) episode from ``reset(PRNGKey(seed))``, as the joint targets its
-        controller sent (the actuators' ``ctrl``), in a window of ``horizon`` control steps that
-        starts ``lead`` steps before the first constrained step. ``twinrl gradcheck TASK`` checks
-        the physics' gradients on it; the controller's own derivative is checked with the task's
-        return (``tests/envs``)."""
+        the episode of ``gradcheck_action`` (the scripted expert) from ``reset(PRNGKey(seed))``, as
+        the joint targets its controller sent (the actuators' ``ctrl``), in a window of ``horizon``
+        control steps that starts ``lead`` steps before the first constrained step. ``twinrl
+        gradcheck TASK`` checks the physics' gradients on it; the controller's own derivative is
+        checked with the task's return (``tests/envs``)."""
         from twinrl.physics.scenes import Scenario
 
         if not 1 <= int(horizon) <= self.episode_length:

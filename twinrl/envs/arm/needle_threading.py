@@ -35,9 +35,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.envs.arm.base import (ArmConfig, ArmTask, CameraMount, CartesianController,
-                                  forward_kinematics, ik, solve_ik)
-from twinrl.envs.base import PerturbationSpec, small_control, tolerance
+from twinrl.envs.arm.base import (ARM_PERTURBATIONS, ArmConfig, ArmTask, CameraMount,
+                                  CartesianController, forward_kinematics, ik, solve_ik)
+from twinrl.envs.base import small_control, tolerance
 
 __all__ = ["NeedleThreading", "NeedleThreadingConfig", "THROUGH"]
 
@@ -90,10 +90,7 @@ class NeedleThreading(ArmTask):
                         distance=(0.3, 0.7), default=(0.0, 0.0, 0.0))
     target_geoms = ("eye_top", "eye_bottom", "eye_left", "eye_right")
     reward_term_names = ("align", "heading", "through", "small_control")
-    perturbation_spec = PerturbationSpec(
-        mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.7, 1.3),
-        gain_scale=(0.85, 1.1), latency_steps=(0, 1), obs_noise_std=(0.0005, 0.002),
-        camera_pos_std=0.01, camera_rot_std=0.02, tool_pos_std=0.003, tool_rot_std=0.03)
+    perturbation_spec = ARM_PERTURBATIONS
     Config = NeedleThreadingConfig
 
     def __init__(self, config=None, params=None, name=None):

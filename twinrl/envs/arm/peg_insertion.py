@@ -35,9 +35,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.envs.arm.base import (ArmConfig, ArmTask, CameraMount, CartesianController, ik,
-                                  solve_ik)
-from twinrl.envs.base import PerturbationSpec, small_control, tolerance
+from twinrl.envs.arm.base import (ARM_PERTURBATIONS, ArmConfig, ArmTask, CameraMount,
+                                  CartesianController, ik, solve_ik)
+from twinrl.envs.base import small_control, tolerance
 
 __all__ = ["PegInsertion", "PegInsertionConfig", "INSERTED_DEPTH"]
 
@@ -75,11 +75,7 @@ class PegInsertion(ArmTask):
                         distance=(0.4, 0.8), default=(0.0, 0.0, 0.0))
     target_geoms = ("wall_left", "wall_right", "wall_front", "wall_back")
     reward_term_names = ("align", "insert", "small_control")
-    perturbation_spec = PerturbationSpec(
-        mass_scale=(0.9, 1.15), damping_scale=(0.8, 1.25), friction_scale=(0.7, 1.3),
-        gain_scale=(0.85, 1.1), latency_steps=(0, 1), obs_noise_std=(0.0005, 0.002),
-        camera_pos_std=0.01, camera_rot_std=0.02,
-        tool_pos_std=0.004, tool_rot_std=0.03)
+    perturbation_spec = dataclasses.replace(ARM_PERTURBATIONS, tool_pos_std=0.004)
     Config = PegInsertionConfig
 
     def __init__(self, config=None, params=None, name=None):
