@@ -22,7 +22,7 @@ import numpy as np
 
 from twinrl.envs.base import Env, PerturbationSpec
 
-__all__ = ["Perturbation"]
+__all__ = ["Perturbation", "rotvec_quat"]
 
 _SCALES = ("mass_scale", "damping_scale", "friction_scale", "gain_scale")
 _EXTRAS = ("extra_damping", "extra_frictionloss")
@@ -221,7 +221,7 @@ class Perturbation:
             # force = gain * ctrl + bias0 (+ bias1 * length + bias2 * velocity, zero for a motor)
             model.actuator_biastype[i] = int(mujoco.mjtBias.mjBIAS_AFFINE)
             model.actuator_biasprm[i, 0] += offset[i] * model.actuator_gainprm[i, 0]
-        dq = _rotvec_quat(self.camera_rot_offset)
+        dq = rotvec_quat(self.camera_rot_offset)
         for c in range(model.ncam):
             model.cam_pos[c] += np.asarray(self.camera_pos_offset)
             q = np.empty(4)
@@ -232,14 +232,14 @@ class Perturbation:
             model.body_pos[tool] += np.asarray(self.tool_pos_offset)
             q = np.empty(4)
             mujoco.mju_mulQuat(q, model.body_quat[tool].copy(),
-                               _rotvec_quat(self.tool_rot_offset))
+                               rotvec_quat(self.tool_rot_offset))
             model.body_quat[tool] = q
         elif any(self.tool_pos_offset) or any(self.tool_rot_offset):
             raise ValueError("Perturbation.tool_pos_offset/tool_rot_offset: the model has no body "
                              "named 'tool'")
 
 
-def _rotvec_quat(rotvec) -> np.ndarray:
+def rotvec_quat(rotvec) -> np.ndarray:
     """Unit quaternion of an axis-angle vector."""
     rot = np.asarray(rotvec, np.float64)
     angle = float(np.linalg.norm(rot))

@@ -44,7 +44,7 @@ import numpy as np  # noqa: E402
 
 from twinrl.envs import Env, make  # noqa: E402
 from twinrl.physics import PhysParams, load_mjcf  # noqa: E402
-from twinrl.real.perturbation import Perturbation  # noqa: E402
+from twinrl.real.perturbation import Perturbation, rotvec_quat  # noqa: E402
 from twinrl.render.opengl import IMAGE_KINDS, CameraRenderer, render_states  # noqa: E402,F401
 
 __all__ = ["make_real", "RealTwin", "Oracle", "CameraRenderer", "render_episode", "render_states",
@@ -254,13 +254,7 @@ class RealTwin(gym.Env):
         eye = np.asarray(mount.eye(jax.numpy.asarray(c)), np.float64)
         R = np.asarray(mount.xmat(jax.numpy.asarray(c)), np.float64)
         off = np.empty(9)
-        quat_off = np.empty(4)
-        rot = np.asarray(p.camera_rot_offset, np.float64)
-        angle = float(np.linalg.norm(rot))
-        quat_off[:] = [1.0, 0.0, 0.0, 0.0]
-        if angle > 0:
-            mujoco.mju_axisAngle2Quat(quat_off, rot / angle, angle)
-        mujoco.mju_quat2Mat(off, quat_off)
+        mujoco.mju_quat2Mat(off, rotvec_quat(p.camera_rot_offset))
         R_true = R @ off.reshape(3, 3)
         cid = mujoco.mj_name2id(self._model, mujoco.mjtObj.mjOBJ_CAMERA, "mount")
         self._model.cam_pos[cid] = eye + R @ np.asarray(p.camera_pos_offset, np.float64)
