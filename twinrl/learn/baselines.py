@@ -15,8 +15,9 @@ metrics)`` where ``policy.apply(params, obs)`` is the *deterministic* action (th
 tanh-Gaussian, ``tanh(loc)``) after Brax's observation normaliser, so ``make_evaluator`` scores it
 like any of ours. ``params`` is a plain dict ``{"obs_mean", "obs_std", "policy"}``: what a
 deployed policy needs (the PPO value network is dropped), and with the JSON of the config
-(``config.to_dict()``) ``ppo_policy``/``apg_policy`` rebuild ``policy`` without the training code:
-the returned policy carries that JSON as ``policy.spec``, and ``NETWORK_KINDS`` gives
+(``config.to_dict()``) ``ppo_policy``/``apg_policy`` (``twinrl.learn.brax_policies``, re-exported
+here) rebuild ``policy`` without the training code: the returned policy carries that JSON as
+``policy.spec``, and ``NETWORK_KINDS`` gives
 ``twinrl.learn.checkpoint.load_policy`` the builders of the kinds ``brax_ppo``/``brax_apg``, so
 ``save_policy``/``load_policy`` round-trip it.
 
@@ -39,29 +40,17 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax.training.acme import running_statistics
-from brax.training.agents.apg import networks as apg_networks
 from brax.training.agents.apg import train as apg
-from brax.training.agents.ppo import networks as ppo_networks
 from brax.training.agents.ppo import train as ppo
 
 from twinrl.learn import tuned
 from twinrl.learn.common import JSONConfig, MetricLog, ProgressFn
-from twinrl.learn.networks import ACTIVATIONS, Network, NetworkConfig
+from twinrl.learn.brax_policies import (BraxPolicy, apg_policy, make_apg_nets, make_ppo_nets,
+                                        ppo_policy)
+from twinrl.learn.networks import ACTIVATIONS, Network
 
 __all__ = ["PPOConfig", "APGConfig", "ppo_train", "apg_train", "ppo_policy", "apg_policy",
-           "ppo_config", "apg_config"]
-
-
-def _check_hidden(obj, *names):
-    for name in names:
-        object.__setattr__(obj, name, tuple(int(x) for x in getattr(obj, name)))
-        if any(x < 1 for x in getattr(obj, name)):
-            raise ValueError(f"{type(obj).__name__}.{name} widths must be >= 1, got "
-                             f"{getattr(obj, name)}")
-    if obj.activation not in ACTIVATIONS:
-        raise ValueError(f"{type(obj).__name__}.activation must be one of {sorted(ACTIVATIONS)}, "
-                         f"got {obj.activation!r}")
+           "ppo_config", "apg_config", "BraxPolicy", "NETWORK_KINDS"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,11 +100,14 @@ class PPOConfig(JSONConfig):
     """Episodes per evaluation."""
 
     def __post_init__(self):
-        _check_hidden(self, "policy_hidden", "value_hidden")
-        for name in ("num_timesteps", "num_envs", "batch_size", "num_minibatches",
-                     "unroll_length", "num_updates_per_batch", "num_evals", "num_eval_envs"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"PPOConfig.{name} must be >= 1, got {getattr(self, name)}")
+        self.check_fields(
+            widths=("policy_hidden", "value_hidden"), choices={"activation": ACTIVATIONS},
+            at_least_one=("num_timesteps", "num_envs", "batch_size", "num_minibatches",
+                          "unroll_length", "num_updates_per_batch", "num_evals", "num_eval_envs",
+                          "episode_length"),
+            positive=("learning_rate", "reward_scaling", "clipping_epsilon", "max_grad_norm"),
+            non_negative=("entropy_cost",), within={"discounting": "[0, 1]", "gae_lambda": "[0, 1]"},
+            optional=("episode_length", "max_grad_norm"))
         if (self.batch_size * self.num_minibatches) % self.num_envs:
             raise ValueError(f"PPOConfig: batch_size * num_minibatches = "
                              f"{self.batch_size * self.num_minibatches} must be a multiple of "
@@ -155,11 +147,12 @@ class APGConfig(JSONConfig):
     """Episodes per evaluation."""
 
     def __post_init__(self):
-        _check_hidden(self, "policy_hidden")
-        for name in ("policy_updates", "horizon_length", "num_envs", "num_evals",
-                     "num_eval_envs"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"APGConfig.{name} must be >= 1, got {getattr(self, name)}")
+        self.check_fields(
+            widths=("policy_hidden",), choices={"activation": ACTIVATIONS},
+            at_least_one=("policy_updates", "horizon_length", "num_envs", "num_evals",
+                          "num_eval_envs", "episode_length"),
+            positive=("learning_rate", "max_gradient_norm"), within={"schedule_decay": "(0, 1]"},
+            optional=("episode_length",))
         if self.num_evals > 1 and self.policy_updates < self.num_evals - 1:
             raise ValueError(f"APGConfig.policy_updates = {self.policy_updates} must be >= "
                              f"num_evals - 1 = {self.num_evals - 1}")
@@ -173,73 +166,6 @@ def ppo_config(task: str, **overrides) -> PPOConfig:
 def apg_config(task: str, **overrides) -> APGConfig:
     """APG's config for ``task``: defaults, ``tuned.TUNED["apg"][task]``, then ``overrides``."""
     return APGConfig(**{**tuned.overrides("apg", task), **overrides})
-
-
-# ------------------------------------------------------------------------------ policies
-def _normaliser(config):
-    return running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
-
-
-def _ppo_networks(obs_size: int, action_size: int, config: PPOConfig):
-    return ppo_networks.make_ppo_networks(
-        obs_size, action_size, preprocess_observations_fn=_normaliser(config),
-        policy_hidden_layer_sizes=config.policy_hidden,
-        value_hidden_layer_sizes=config.value_hidden,
-        activation=ACTIVATIONS[config.activation])
-
-
-def _apg_networks(obs_size: int, action_size: int, config: APGConfig):
-    return apg_networks.make_apg_networks(
-        obs_size, action_size, preprocess_observations_fn=_normaliser(config),
-        hidden_layer_sizes=config.policy_hidden, activation=ACTIVATIONS[config.activation],
-        layer_norm=True)
-
-
-class BraxPolicy(Network):
-    """A ``Network`` that also carries ``spec``, the JSON ``twinrl.learn.checkpoint`` saves and
-    ``load_policy`` rebuilds it from (``{"kind": "brax_ppo" | "brax_apg", "in_size", "out_size",
-    "config": <the trainer config as a dict>}``)."""
-
-    # No __slots__: instances get a __dict__ for ``spec``.
-
-
-def _as_network(kind, nets, make_inference, obs_size, action_size, config,
-                layer_norm) -> Network:
-    """Brax's deterministic inference function as our ``Network`` on plain-dict params."""
-    make_policy = make_inference(nets)
-
-    def apply(params, obs):
-        obs = jnp.asarray(obs, jnp.float32)
-        if obs.shape[-1] != obs_size:
-            raise ValueError(f"policy expects observations of size {obs_size}, got {obs.shape}")
-        norm = running_statistics.NestedMeanStd(mean=params["obs_mean"], std=params["obs_std"])
-        # Brax's inference fns take (normaliser, policy[, value]) and a key the mode ignores.
-        act, _ = make_policy((norm, params["policy"]), deterministic=True)(
-            obs, jax.random.PRNGKey(0))
-        return act
-
-    def init(rng):
-        return {"obs_mean": jnp.zeros((obs_size,)), "obs_std": jnp.ones((obs_size,)),
-                "policy": nets.policy_network.init(rng)}
-
-    cfg = NetworkConfig(hidden=config.policy_hidden, activation=config.activation,
-                        output="tanh", layer_norm=layer_norm)
-    net = BraxPolicy(init, apply, obs_size, action_size, cfg)
-    net.spec = {"kind": kind, "in_size": obs_size, "out_size": action_size,
-                "config": config.to_dict()}
-    return net
-
-
-def ppo_policy(obs_size: int, action_size: int, config: PPOConfig) -> Network:
-    """The deterministic PPO policy ``obs -> tanh(loc)`` for params saved by ``ppo_train``."""
-    return _as_network("brax_ppo", _ppo_networks(obs_size, action_size, config),
-                       ppo_networks.make_inference_fn, obs_size, action_size, config, False)
-
-
-def apg_policy(obs_size: int, action_size: int, config: APGConfig) -> Network:
-    """The deterministic APG policy ``obs -> tanh(loc)`` for params saved by ``apg_train``."""
-    return _as_network("brax_apg", _apg_networks(obs_size, action_size, config),
-                       apg_networks.make_inference_fn, obs_size, action_size, config, True)
 
 
 # What ``twinrl.learn.checkpoint.load_policy`` rebuilds ``brax_*`` networks with. The loader looks
@@ -300,7 +226,7 @@ def ppo_train(env, config: PPOConfig = PPOConfig(), rng: jax.Array | int = 0, *,
         if progress_fn is not None:
             progress_fn(count[0] - 1, row)
 
-    nets = lambda obs_size, action_size, preprocess_observations_fn: _ppo_networks(  # noqa: E731
+    nets = lambda obs_size, action_size, preprocess_observations_fn: make_ppo_nets(  # noqa: E731
         obs_size, action_size, c)
     _, params, _ = ppo.train(
         environment=env, num_timesteps=c.num_timesteps, num_envs=c.num_envs,
@@ -333,7 +259,7 @@ def apg_train(env, config: APGConfig = APGConfig(), rng: jax.Array | int = 0, *,
         if progress_fn is not None:
             progress_fn(int(it), row)
 
-    nets = lambda obs_size, action_size, preprocess_observations_fn: _apg_networks(  # noqa: E731
+    nets = lambda obs_size, action_size, preprocess_observations_fn: make_apg_nets(  # noqa: E731
         obs_size, action_size, c)
     _, params, _ = apg.train(
         environment=env, episode_length=T, policy_updates=c.policy_updates,

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Collection
 
 import jax
 import jax.numpy as jnp
@@ -54,9 +54,68 @@ def compile_key(config) -> Any:
     return dataclasses.replace(config, epochs=1)
 
 
+def _interval(text: str) -> tuple[float, float, bool, bool]:
+    """``"(0, 1]"`` -> ``(0.0, 1.0, False, True)``: bounds and whether each is closed."""
+    if text[0] not in "([" or text[-1] not in ")]":
+        raise ValueError(f"not an interval: {text!r}")
+    lo, hi = (float(x) for x in text[1:-1].split(","))
+    return lo, hi, text[0] == "[", text[-1] == "]"
+
+
 class JSONConfig:
     """Mixin of a frozen config dataclass saved in checkpoints as JSON: ``to_dict`` (tuples as
-    lists) and ``from_dict`` (the dataclass's ``__post_init__`` turns the lists back)."""
+    lists) and ``from_dict`` (the dataclass's ``__post_init__`` turns the lists back).
+
+    ``check_fields`` validates fields declaratively from ``__post_init__``, with one uniform
+    one-line message per failure: ``SHACConfig.horizon must be an integer >= 1, got 0``.
+    """
+
+    def check_fields(self, *, at_least_one: tuple[str, ...] = (), positive: tuple[str, ...] = (),
+                     non_negative: tuple[str, ...] = (), within: dict[str, str] | None = None,
+                     choices: dict[str, Collection] | None = None, widths: tuple[str, ...] = (),
+                     optional: tuple[str, ...] = ()) -> None:
+        """Raise ``ValueError`` naming the first field that breaks its rule.
+
+        ``at_least_one``: integers >= 1; ``positive``: > 0; ``non_negative``: >= 0; ``within``:
+        field -> interval such as ``"[0, 1]"`` or ``"(0, 1]"``; ``choices``: field -> allowed
+        values; ``widths``: sequences of layer widths, each an integer >= 1 (stored back as a
+        tuple of ints, so JSON lists round-trip). A field named in ``optional`` may also be None.
+        """
+        cls = type(self).__name__
+
+        def fail(name, rule):
+            none = " or None" if name in optional else ""
+            raise ValueError(f"{cls}.{name} must be {rule}{none}, got {getattr(self, name)!r}")
+
+        def number(v):
+            return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+
+        def is_int(v):
+            return number(v) and float(v).is_integer()
+
+        def checked(names):  # (name, value) of each field to check: optional Nones pass
+            return [(n, getattr(self, n)) for n in names
+                    if not (n in optional and getattr(self, n) is None)]
+
+        for name, v in checked(widths):
+            if not isinstance(v, (tuple, list)) or not all(is_int(x) and x >= 1 for x in v):
+                fail(name, "layer widths that are integers >= 1")
+            object.__setattr__(self, name, tuple(int(x) for x in v))
+        rules = [(at_least_one, "an integer >= 1", lambda v: is_int(v) and v >= 1),
+                 (positive, "> 0", lambda v: number(v) and v > 0),
+                 (non_negative, ">= 0", lambda v: number(v) and v >= 0)]
+        for names, rule, ok in rules:
+            for name, v in checked(names):
+                if not ok(v):
+                    fail(name, rule)
+        for name, v in checked(within or {}):
+            lo, hi, lo_in, hi_in = _interval(within[name])
+            inside = number(v) and (lo <= v if lo_in else lo < v) and (v <= hi if hi_in else v < hi)
+            if not inside:
+                fail(name, f"in {within[name]}")
+        for name, v in checked(choices or {}):
+            if v not in choices[name]:
+                fail(name, f"one of {', '.join(repr(a) for a in choices[name])}")
 
     def to_dict(self) -> dict[str, Any]:
         return {k: list(v) if isinstance(v, tuple) else v

@@ -86,24 +86,17 @@ class HDSConfig(PODSConfig):
         super().__post_init__()
         object.__setattr__(self, "step_size_bounds",
                            tuple(float(b) for b in self.step_size_bounds))
-        if not self.noise_std >= 0:
-            raise ValueError(f"noise_std must be >= 0, got {self.noise_std}")
-        for name in ("noise_decay", "anneal_cooling"):
-            if not 0 < getattr(self, name) <= 1:
-                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
-        if not self.anneal_temperature > 0:
-            raise ValueError(f"anneal_temperature must be > 0, got {self.anneal_temperature}")
-        if not self.anneal_proposal_std >= 0:
-            raise ValueError(f"anneal_proposal_std must be >= 0, got {self.anneal_proposal_std}")
-        lo, hi = self.step_size_bounds
-        if len(self.step_size_bounds) != 2 or not 0 < lo <= self.step_size <= hi:
-            raise ValueError(f"step_size_bounds must be (low, high) with 0 < low <= step_size "
-                             f"({self.step_size}) <= high, got {self.step_size_bounds}")
-        if not 0.0 <= self.model_fraction <= 1.0:
-            raise ValueError(f"model_fraction must be in [0, 1], got {self.model_fraction}")
+        self.check_fields(non_negative=("noise_std", "anneal_proposal_std"),
+                          within={"noise_decay": "(0, 1]", "anneal_cooling": "(0, 1]",
+                                  "model_fraction": "[0, 1]"},
+                          positive=("anneal_temperature",))
+        bounds = self.step_size_bounds
+        if len(bounds) != 2 or not 0 < bounds[0] <= self.step_size <= bounds[1]:
+            raise ValueError(f"HDSConfig.step_size_bounds must be (low, high) with 0 < low <= "
+                             f"step_size ({self.step_size}) <= high, got {bounds}")
         if self.batch_size < 2:
-            raise ValueError(f"batch_size must be >= 2 (half the rollouts test the annealing "
-                             f"proposal), got {self.batch_size}")
+            raise ValueError(f"HDSConfig.batch_size must be >= 2 (half the rollouts test the "
+                             f"annealing proposal), got {self.batch_size}")
 
     @property
     def model_rollouts(self) -> int:

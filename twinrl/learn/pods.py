@@ -70,10 +70,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.learn import trajopt
-from twinrl.learn.common import (CheckpointFn, ProgressFn, RestoreFn, compile_key,
+from twinrl.learn.common import (CheckpointFn, JSONConfig, ProgressFn, RestoreFn, compile_key,
                                  regression_loss)
 from twinrl.learn.critic import critic_stats, critic_targets
-from twinrl.learn.networks import Network
+from twinrl.learn.networks import ACTIVATIONS, Network
 from twinrl.learn.trainer import check_batch, resume, run_epochs
 from twinrl.learn.windows import (Compiled, Windows, compile_parts, epoch_update, improve_window,
                                   init_state, rollout_windows, window_stats)
@@ -87,7 +87,7 @@ __all__ = ["PODSConfig", "PODSState", "train", "Windows", "rollout_windows",
 
 
 @dataclasses.dataclass(frozen=True)
-class PODSConfig:
+class PODSConfig(JSONConfig):
     """PODS hyper-parameters (defaults tuned on ``pendulum_swingup``; ``learn.tuned`` per task)."""
 
     epochs: int = 40
@@ -149,32 +149,20 @@ class PODSConfig:
     """Steps of each evaluation episode (None: the env's ``episode_length``)."""
 
     def __post_init__(self):
-        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
-        object.__setattr__(self, "critic_hidden", tuple(int(h) for h in self.critic_hidden))
-        for name in ("epochs", "batch_size", "horizon", "line_search_steps", "iterations",
-                     "regression_steps", "eval_episodes", "critic_steps"):
-            v = getattr(self, name)
-            if int(v) != v or int(v) < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
-        for name in ("rollout_length", "eval_length"):
-            v = getattr(self, name)
-            if v is not None and (int(v) != v or int(v) < 1):
-                raise ValueError(f"{name} must be an integer >= 1 or None, got {v!r}")
+        self.check_fields(
+            widths=("hidden", "critic_hidden"), choices={"activation": ACTIVATIONS},
+            at_least_one=("epochs", "batch_size", "horizon", "line_search_steps", "iterations",
+                          "regression_steps", "eval_episodes", "critic_steps", "rollout_length",
+                          "eval_length"),
+            # gamma < 1: the critic's value of a truncated episode needs a discount
+            within={"gamma": "(0, 1)", "lam": "[0, 1]"},
+            positive=("learning_rate", "step_size", "critic_learning_rate", "max_grad_norm",
+                      "max_step_norm", "regression_max_grad_norm"),
+            optional=("rollout_length", "eval_length", "max_grad_norm", "max_step_norm",
+                      "regression_max_grad_norm"))
         if self.rollout_length is not None and self.horizon > self.rollout_length:
-            raise ValueError(f"horizon ({self.horizon}) must be <= rollout_length "
-                             f"({self.rollout_length})")
-        if not 0.0 < self.gamma < 1.0:
-            raise ValueError(f"gamma must be in (0, 1) (the critic's value of a truncated "
-                             f"episode needs a discount), got {self.gamma}")
-        if not 0.0 <= self.lam <= 1.0:
-            raise ValueError(f"lam must be in [0, 1], got {self.lam}")
-        for name in ("learning_rate", "step_size", "critic_learning_rate"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("max_grad_norm", "max_step_norm", "regression_max_grad_norm"):
-            v = getattr(self, name)
-            if v is not None and not v > 0:
-                raise ValueError(f"{name} must be > 0 or None, got {v}")
+            raise ValueError(f"{type(self).__name__}.horizon ({self.horizon}) must be <= "
+                             f"rollout_length ({self.rollout_length})")
         # the trajopt fields are validated where they live
         self.trajopt_config()
 
