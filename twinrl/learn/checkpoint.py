@@ -2,7 +2,8 @@
 
 **Policy checkpoint** (``save_policy`` / ``load_policy``), a directory::
 
-    checkpoint.json   format, network (kind, in/out sizes, NetworkConfig), algo, env name and its
+    checkpoint.json   format, network (kind, in/out sizes, NetworkConfig, and the observation
+                      spec when it is a dict of keys to shapes), algo, env name and its
                       config overrides, the trainer's config, final metrics
     system.json       the ``twinrl.envs.System`` the policy was trained in (parameters, action
                       latency, ...): evaluation rebuilds exactly that simulator (``load_system``)
@@ -53,8 +54,10 @@ def register_network_kind(kind: str, builder: Callable[[dict[str, Any]], Network
 
 
 def _mlp_builder(spec: dict[str, Any]) -> Network:
-    return make_network(int(spec["in_size"]), int(spec["out_size"]),
-                        NetworkConfig.from_dict(spec["config"]))
+    # a dict observation spec (camera encoder + MLP) is saved as "obs_spec"; a flat one as in_size
+    obs = spec.get("obs_spec")
+    obs = int(spec["in_size"]) if obs is None else {k: tuple(v) for k, v in obs.items()}
+    return make_network(obs, int(spec["out_size"]), NetworkConfig.from_dict(spec["config"]))
 
 
 register_network_kind("mlp", _mlp_builder)
@@ -64,8 +67,11 @@ def network_spec(policy: Network) -> dict[str, Any]:
     spec = getattr(policy, "spec", None)
     if spec is not None:
         return dict(spec)
-    return {"kind": "mlp", "in_size": policy.in_size, "out_size": policy.out_size,
-            "config": policy.config.to_dict()}
+    out = {"kind": "mlp", "in_size": policy.in_size, "out_size": policy.out_size,
+           "config": policy.config.to_dict()}
+    if isinstance(policy.obs_spec, dict):
+        out["obs_spec"] = {k: list(shape) for k, shape in policy.obs_spec.items()}
+    return out
 
 
 def save_policy(path: str | Path, policy: Network, params: Any, *, system: Any = None,

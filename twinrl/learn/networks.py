@@ -1,4 +1,5 @@
-"""Flax networks shared by the trainers: MLP policies and value functions.
+"""Flax networks shared by the trainers: MLP policies and value functions, and a CNN encoder of
+camera images in front of them.
 
 A network is described by a small frozen ``NetworkConfig`` (layer sizes, activation, output
 squashing), so a checkpoint can rebuild it from JSON without the training code (Brax's habit:
@@ -10,6 +11,16 @@ Running observation statistics (``init_obs_stats``, ``update_obs_stats``, ``obs_
 a network's inputs while it trains; ``fold_normaliser`` then folds that standardisation into the
 first layer, so the deployed network takes raw observations (SHAC's policy).
 
+**Observation specs.** A network's input is described by an *observation spec*: an int (a flat
+state vector of that size, every trainer's case so far) or a dict mapping keys to shapes, e.g.
+``{"state": (n,), "pixels/wrist": (64, 64, 5)}`` (Brax's vision-network habit). A key starting
+with ``pixels/`` is an image ``(H, W, C)``, channels last (RGB, depth, segmentation, ...); every
+other key is a vector ``(n,)``. A dict spec puts an ``Encoder`` in front of the MLP: one small CNN
+per camera (strided convolutions, then flatten, Dense, LayerNorm, tanh: DrQ-v2's encoder head,
+CleanRL's NatureCNN habits sized for 64 x 64 images on a CPU), concatenated with the vectors.
+``apply`` then takes a dict observation (single, or with the same leading batch axes on every
+key); keys the spec does not name are ignored.
+
 The last layer can be initialised to zero (``zero_last=True``): a residual policy
 (``twinrl.sim2real.residual``) must output exactly 0 at its first deployment.
 """
@@ -17,13 +28,17 @@ The last layer can be initialised to zero (``zero_last=True``): a residual polic
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Sequence, Union
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["NetworkConfig", "Network", "MLP", "make_network", "make_policy", "make_value",
+from twinrl.learn.common import JSONConfig
+
+__all__ = ["NetworkConfig", "Network", "MLP", "Encoder", "EncodedMLP", "ObsSpec", "is_pixels",
+           "check_obs_spec", "spec_size", "make_network", "make_policy", "make_value",
            "ACTIVATIONS", "init_obs_stats", "update_obs_stats", "obs_std", "fold_normaliser"]
 
 ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
@@ -33,8 +48,9 @@ ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
 
 
 @dataclasses.dataclass(frozen=True)
-class NetworkConfig:
-    """Architecture of an MLP, serialisable to JSON (``dataclasses.asdict``)."""
+class NetworkConfig(JSONConfig):
+    """Architecture of an MLP and, for dict observation specs, of its camera encoder;
+    serialisable to JSON (``to_dict`` / ``from_dict``)."""
 
     hidden: tuple[int, ...] = (64, 64)
     """Hidden layer widths."""
@@ -49,26 +65,23 @@ class NetworkConfig:
     output_scale: float = 1.0
     """Multiplies the output (after squashing): a residual's bound."""
 
+    conv_features: tuple[int, ...] = (16, 32, 32)
+    """Channels of each convolution of a camera's CNN (dict observation specs only)."""
+    conv_kernels: tuple[int, ...] = (5, 3, 3)
+    """Square kernel size of each convolution (as many as ``conv_features``)."""
+    conv_strides: tuple[int, ...] = (2, 2, 2)
+    """Stride of each convolution ("SAME" padding): (2, 2, 2) takes 64 x 64 images to 8 x 8."""
+    embed: int = 64
+    """Width of each camera's dense projection (after the convolutions, before LayerNorm)."""
+
     def __post_init__(self):
-        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
-        if any(h < 1 for h in self.hidden):
-            raise ValueError(f"hidden layer widths must be >= 1, got {self.hidden}")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, "
-                             f"got {self.activation!r}")
-        if self.output not in ("tanh", "linear"):
-            raise ValueError(f"output must be 'tanh' or 'linear', got {self.output!r}")
-        if not self.output_scale > 0:
-            raise ValueError(f"output_scale must be > 0, got {self.output_scale}")
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["hidden"] = list(self.hidden)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "NetworkConfig":
-        return cls(**{**d, "hidden": tuple(d.get("hidden", cls.hidden))})
+        self.check_fields(widths=("hidden", "conv_features", "conv_kernels", "conv_strides"),
+                          choices={"activation": ACTIVATIONS, "output": ("tanh", "linear")},
+                          positive=("output_scale",), at_least_one=("embed",))
+        if not len(self.conv_features) == len(self.conv_kernels) == len(self.conv_strides):
+            raise ValueError(f"NetworkConfig: conv_features, conv_kernels and conv_strides must "
+                             f"have one entry per convolution, got {self.conv_features}, "
+                             f"{self.conv_kernels}, {self.conv_strides}")
 
 
 class MLP(nn.Module):
@@ -97,44 +110,169 @@ class MLP(nn.Module):
         return self.output_scale * x
 
 
+ObsSpec = Union[int, Mapping[str, Sequence[int]]]
+"""An int (flat observation size) or a dict of keys to shapes (module docstring)."""
+
+
+def is_pixels(key: str) -> bool:
+    """Whether an observation key names an image ``(H, W, C)``: it starts with ``pixels/``."""
+    return key.startswith("pixels/")
+
+
+def check_obs_spec(spec: ObsSpec) -> int | dict[str, tuple[int, ...]]:
+    """``spec`` validated and normalised: an int >= 1, or a dict with sorted keys and tuple
+    shapes (``pixels/*`` keys 3-D ``(H, W, C)``, the others 1-D); a bad entry raises a one-line
+    ``ValueError`` naming its key."""
+    if not isinstance(spec, Mapping):
+        if isinstance(spec, bool) or not isinstance(spec, (int, np.integer)) or spec < 1:
+            raise ValueError(f"observation size must be an integer >= 1, got {spec!r}")
+        return int(spec)
+    if not spec:
+        raise ValueError("observation spec is an empty dict: name at least one key")
+    out = {}
+    for key in sorted(spec, key=str):
+        shape = spec[key]
+        rank = 3 if is_pixels(str(key)) else 1
+        ok = isinstance(key, str) and isinstance(shape, (tuple, list)) and len(shape) == rank
+        if not ok or not all(isinstance(d, (int, np.integer)) and d >= 1 for d in shape):
+            want = "an image shape (H, W, C)" if rank == 3 else "a vector shape (n,)"
+            raise ValueError(f"observation spec {key!r}: needs {want} of positive ints, "
+                             f"got {shape!r}")
+        out[key] = tuple(int(d) for d in shape)
+    return out
+
+
+def spec_size(spec: ObsSpec) -> int:
+    """Numbers in one observation of ``spec`` (the flat size, or the sum over a dict's keys)."""
+    spec = check_obs_spec(spec)
+    if isinstance(spec, int):
+        return spec
+    return sum(int(np.prod(shape)) for shape in spec.values())
+
+
+class Encoder(nn.Module):
+    """Dict observation -> one feature vector: per ``pixels/*`` key a CNN (``conv_*`` of the
+    config, ReLU, "SAME" padding), flattened, projected by Dense to ``embed``, LayerNorm, tanh;
+    vector keys pass through; all concatenated in the spec's (sorted) key order. Integer images
+    (uint8) are scaled to [0, 1]; float images are taken as they are."""
+
+    spec: tuple[tuple[str, tuple[int, ...]], ...]
+    features: Sequence[int]
+    kernels: Sequence[int]
+    strides: Sequence[int]
+    embed: int
+
+    @nn.compact
+    def __call__(self, obs: dict[str, jax.Array]) -> jax.Array:
+        parts = []
+        for key, shape in self.spec:
+            x = obs[key]
+            if not is_pixels(key):
+                parts.append(x.astype(jnp.float32))
+                continue
+            name = key.split("/", 1)[1].replace("/", "_")
+            batch = x.shape[:x.ndim - 3]
+            scale = 1.0 / 255.0 if jnp.issubdtype(x.dtype, jnp.integer) else 1.0
+            x = x.astype(jnp.float32).reshape((-1,) + shape) * scale
+            for i, (f, k, st) in enumerate(zip(self.features, self.kernels, self.strides)):
+                x = jax.nn.relu(nn.Conv(f, (k, k), (st, st), padding="SAME",
+                                        name=f"{name}_conv{i}")(x))
+            x = nn.Dense(self.embed, name=f"{name}_dense")(x.reshape(x.shape[0], -1))
+            x = jnp.tanh(nn.LayerNorm(name=f"{name}_norm")(x))
+            parts.append(x.reshape(batch + (self.embed,)))
+        return jnp.concatenate(parts, axis=-1)
+
+
+class EncodedMLP(nn.Module):
+    """``Encoder`` then ``MLP``: the network of a dict observation spec."""
+
+    encoder: Encoder
+    head: MLP
+
+    def __call__(self, obs):
+        return self.head(self.encoder(obs))
+
+
 class Network(NamedTuple):
     """Pure functions of a network: ``init(rng) -> params``, ``apply(params, x) -> y``."""
 
     init: Callable[[jax.Array], Any]
     apply: Callable[[Any, jax.Array], jax.Array]
     in_size: int
+    """Numbers in one observation (``spec_size(obs_spec)``)."""
     out_size: int
     config: NetworkConfig
+    obs_spec: Any = None
+    """The normalised observation spec: an int, or a dict of keys to shapes (None: ``in_size``,
+    for networks built elsewhere, e.g. ``twinrl.learn.brax_policies``)."""
 
 
-def make_network(in_size: int, out_size: int, config: NetworkConfig = NetworkConfig()) -> Network:
-    """An MLP ``R^in_size -> R^out_size``; ``apply`` accepts ``(..., in_size)`` inputs."""
-    if in_size < 1 or out_size < 1:
-        raise ValueError(f"network sizes must be >= 1, got in={in_size}, out={out_size}")
-    module = MLP(features=config.hidden, out=out_size, activation=config.activation,
-                 output=config.output, layer_norm=config.layer_norm,
-                 zero_last=config.zero_last, output_scale=config.output_scale)
+def _check_dict_obs(spec: dict[str, tuple[int, ...]], obs) -> dict[str, jax.Array]:
+    """The spec's keys of a dict observation as arrays, after checking that every key is there
+    with the spec's trailing shape and that all share the leading (batch) axes."""
+    if not isinstance(obs, Mapping):
+        raise ValueError(f"network expects a dict observation with keys {sorted(spec)}, got "
+                         f"{type(obs).__name__}")
+    out, batch = {}, None
+    for key, shape in spec.items():
+        if key not in obs:
+            raise ValueError(f"observation has no key {key!r} (the network's spec names "
+                             f"{sorted(spec)}; got {sorted(obs)})")
+        x = jnp.asarray(obs[key])
+        lead = x.shape[:x.ndim - len(shape)]
+        if x.ndim < len(shape) or x.shape[x.ndim - len(shape):] != shape:
+            raise ValueError(f"observation {key!r} has shape {x.shape}, expected (..., "
+                             f"{', '.join(map(str, shape))})")
+        if batch is not None and lead != batch:
+            raise ValueError(f"observation {key!r} has batch axes {lead}, other keys {batch}")
+        out[key], batch = x, lead
+    return out
 
-    def init(rng):
-        return module.init(rng, jnp.zeros((in_size,), jnp.float32))
 
-    def apply(params, x):
-        x = jnp.asarray(x)
-        if x.shape[-1] != in_size:
-            raise ValueError(f"network expects inputs of size {in_size}, got shape {x.shape}")
-        return module.apply(params, x)
+def make_network(obs_spec: ObsSpec, out_size: int,
+                 config: NetworkConfig = NetworkConfig()) -> Network:
+    """A network from observations of ``obs_spec`` to ``R^out_size``.
 
-    return Network(init, apply, in_size, out_size, config)
+    An int spec gives a plain MLP whose ``apply`` accepts ``(..., obs_spec)`` arrays; a dict spec
+    gives ``Encoder`` + MLP whose ``apply`` accepts dict observations (module docstring)."""
+    spec = check_obs_spec(obs_spec)
+    if out_size < 1:
+        raise ValueError(f"network sizes must be >= 1, got out={out_size}")
+    head = MLP(features=config.hidden, out=out_size, activation=config.activation,
+               output=config.output, layer_norm=config.layer_norm,
+               zero_last=config.zero_last, output_scale=config.output_scale)
+    if isinstance(spec, int):
+        def init(rng):
+            return head.init(rng, jnp.zeros((spec,), jnp.float32))
+
+        def apply(params, x):
+            x = jnp.asarray(x)
+            if x.shape[-1:] != (spec,):
+                raise ValueError(f"network expects inputs of size {spec}, got shape {x.shape}")
+            return head.apply(params, x)
+
+        return Network(init, apply, spec, out_size, config, spec)
+
+    module = EncodedMLP(Encoder(tuple(spec.items()), config.conv_features, config.conv_kernels,
+                                config.conv_strides, config.embed), head)
+
+    def init_dict(rng):
+        return module.init(rng, {k: jnp.zeros(shape, jnp.float32) for k, shape in spec.items()})
+
+    def apply_dict(params, obs):
+        return module.apply(params, _check_dict_obs(spec, obs))
+
+    return Network(init_dict, apply_dict, spec_size(spec), out_size, config, spec)
 
 
-def make_policy(obs_size: int, action_size: int, hidden: Sequence[int] = (64, 64),
+def make_policy(obs_size: ObsSpec, action_size: int, hidden: Sequence[int] = (64, 64),
                 activation: str = "tanh") -> Network:
     """A deterministic policy ``obs -> action in [-1, 1]`` (tanh output)."""
     return make_network(obs_size, action_size,
                         NetworkConfig(hidden=tuple(hidden), activation=activation, output="tanh"))
 
 
-def make_value(obs_size: int, hidden: Sequence[int] = (64, 64), activation: str = "elu",
+def make_value(obs_size: ObsSpec, hidden: Sequence[int] = (64, 64), activation: str = "elu",
                layer_norm: bool = True) -> Network:
     """A state-value function ``obs -> R`` (``apply`` returns shape ``(...,)``)."""
     net = make_network(obs_size, 1, NetworkConfig(hidden=tuple(hidden), activation=activation,
