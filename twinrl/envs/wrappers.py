@@ -69,16 +69,27 @@ class LatencyWrapper(brax_base.Wrapper):
         info[_SEEN_KEY] = jnp.zeros(())
         return state.replace(info=info)
 
-    def step(self, state: State, action: jax.Array) -> State:
+    def _queue(self, state: State) -> tuple[jax.Array, jax.Array]:
+        """The queue this step starts from and the step count seen."""
         queue, seen = state.info[QUEUE_KEY], state.info[_SEEN_KEY]
-        action = jnp.clip(jnp.asarray(action, queue.dtype).reshape(self.env.action_size),
-                          -1.0, 1.0)
         if "steps" in state.info:
             # Brax's AutoResetWrapper sets the episode's step count back to 0 when it starts a new
             # episode (and keeps our info); equal counts are repeats of one step (action_repeat).
             steps = jnp.asarray(state.info["steps"], jnp.float32)
             queue = jnp.where(steps < seen, jnp.zeros_like(queue), queue)
             seen = steps
+        return queue, seen
+
+    def executed(self, state: State) -> jax.Array:
+        """The action ``step(state, ...)`` applies: the head of the queue (zeros right after an
+        auto-reset emptied it). A learned model of the dynamics must see this one, not the one
+        sent (``twinrl.sim2real.hybrid.make_dynamics``)."""
+        return self._queue(state)[0][0]
+
+    def step(self, state: State, action: jax.Array) -> State:
+        queue, seen = self._queue(state)
+        action = jnp.clip(jnp.asarray(action, queue.dtype).reshape(self.env.action_size),
+                          -1.0, 1.0)
         applied, queue = queue[0], jnp.concatenate([queue[1:], action[None]], axis=0)
         nstate = self.env.step(state, applied)
         data = nstate.pipeline_state

@@ -290,7 +290,9 @@ def make_dynamics(env, model: HybridModel) -> Callable:
     def dynamics(state, action):
         action = jnp.asarray(action, jnp.float32).reshape(env.action_size)
         data = state.pipeline_state
-        executed = state.info[QUEUE_KEY][0] if QUEUE_KEY in state.info else action
+        # the wrapper's own view of the queue (emptied after an auto-reset), so model and
+        # simulator agree on what was executed
+        executed = env.executed(state) if QUEUE_KEY in state.info else action
         d = model.residual(env.observe(data.qpos, data.qvel), jnp.clip(executed, -1.0, 1.0))
         stepped = env.step(state, action)
         nd = stepped.pipeline_state.replace(qpos=stepped.pipeline_state.qpos + d[:nq],
