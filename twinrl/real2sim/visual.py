@@ -39,6 +39,7 @@ import mujoco
 import numpy as np
 import optax
 
+from twinrl.real2sim.lm import Linearisation, minimise
 from twinrl.render import Camera, Geoms, Renderer, rotvec_to_quat
 from twinrl.render.camera import quat_mul, quat_to_mat
 from twinrl.render.pointcloud import depth_to_points, sinkhorn_emd
@@ -375,8 +376,9 @@ def _lowest_z(geoms: Geoms, gid: int, gtype: int):
 def _levenberg_marquardt(res_fn, params: dict, keys: Sequence[str], iters: int,
                          lam: float = 1e-2):
     """Minimise ``0.5 |res_fn(params)|^2`` over ``params[k]`` for ``k`` in ``keys`` (the others
-    held) by Levenberg-Marquardt with Marquardt's diagonal scaling and a forward-mode Jacobian.
-    Returns the refined params and ``{"cost_before", "cost_after", "iters"}``."""
+    held) by Levenberg-Marquardt (``twinrl.real2sim.lm.minimise``) with Marquardt's diagonal
+    scaling and a forward-mode Jacobian. Returns the refined params and ``{"cost_before",
+    "cost_after", "iters"}``."""
     from jax.flatten_util import ravel_pytree
 
     x, unravel = ravel_pytree({k: params[k] for k in keys})
@@ -386,28 +388,26 @@ def _levenberg_marquardt(res_fn, params: dict, keys: Sequence[str], iters: int,
 
     f, jac = jax.jit(fun), jax.jit(jax.jacfwd(fun))
     r = f(x)
-    cost = cost0 = float(0.5 * jnp.sum(r * r))
-    if not np.isfinite(cost):
+    if not np.isfinite(float(0.5 * jnp.sum(r * r))):
         raise FloatingPointError("visual refinement: non-finite residuals at the start")
-    it = 0
-    for it in range(1, iters + 1):
+
+    def linearise(point):  # the point carries its residuals: no re-render to linearise
+        x, r = point
         J = jac(x)
         A, g = J.T @ J, J.T @ r
         D = jnp.diag(jnp.diag(A) + 1e-9 * jnp.max(jnp.diag(A)) + 1e-30)
-        for _ in range(10):
-            dx = jnp.linalg.solve(A + lam * D, -g)
+
+        def evaluate(dx):
             r_new = f(x + dx)
-            c_new = float(0.5 * jnp.sum(r_new * r_new))
-            if np.isfinite(c_new) and c_new < cost:
-                break
-            lam *= 4.0
-        else:
-            break  # no step lowers the cost: converged (or stuck)
-        x, r, drop, cost = x + dx, r_new, cost - c_new, c_new
-        lam = max(lam / 3.0, 1e-9)
-        if drop <= 1e-9 * cost0:
-            break
-    return {**params, **unravel(x)}, {"cost_before": cost0, "cost_after": cost, "iters": it}
+            return (x + dx, r_new), float(0.5 * jnp.sum(r_new * r_new))
+
+        return Linearisation(float(0.5 * jnp.sum(r * r)),
+                             lambda mu: jnp.linalg.solve(A + mu * D, -g), evaluate)
+
+    res = minimise(linearise, (x, r), damping=lam, iterations=iters, tries=10,
+                   rtol_initial=1e-9)
+    return {**params, **unravel(res.x[0])}, {"cost_before": res.cost0, "cost_after": res.cost,
+                                             "iters": res.iterations}
 
 
 # ---------------------------------------------------------------------- camera (a)

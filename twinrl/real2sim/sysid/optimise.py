@@ -1,5 +1,6 @@
 """The optimisers of sysid: Levenberg-Marquardt (iteratively reweighted Gauss-Newton with
-Marquardt damping, on the Jacobian from forward-mode AD) and Adam, on a ``Problem``
+Marquardt damping, on the Jacobian from forward-mode AD; the damping loop is
+``twinrl.real2sim.lm``'s, shared with visual Real2Sim) and Adam, on a ``Problem``
 (``twinrl.real2sim.sysid``, "Levenberg-Marquardt"). ``normal_terms`` are the Gauss-Newton
 normal equations of the robust loss, shared with the Laplace approximation.
 """
@@ -10,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from twinrl.real2sim.lm import Linearisation, minimise
 from twinrl.real2sim.sysid.problem import Problem, rho
 
 __all__ = ["normal_terms", "levenberg_marquardt", "adam_fit"]
@@ -39,66 +41,65 @@ def levenberg_marquardt(prob: Problem, theta, latency: int, free: np.ndarray, lo
                         start: bool) -> np.ndarray:
     """Levenberg-Marquardt with IRLS weights for the robust loss and the Gaussian prior; with
     ``start``, every window's start state is estimated too (eliminated per window by the Schur
-    complement, as in bundle adjustment), and ``prob.qpos0/qvel0`` are updated."""
+    complement, as in bundle adjustment), and ``prob.qpos0/qvel0`` are updated. The damping
+    schedule and stopping rule are ``twinrl.real2sim.lm.minimise``'s; this builds and solves the
+    damped normal equations. ``log(theta, mean data loss)`` is called after every iteration."""
     c = prob.config
-    theta = np.array(theta, np.float64)
-    q, v = prob.qpos0.copy(), prob.qvel0.copy()
     nq = prob.sim.nq
-
-    def jac():
-        prob.qpos0, prob.qvel0 = q, v
-        return prob.jacobian(theta, latency, start=True) if start else (
-            *prob.jacobian(theta, latency), None)
-
-    r, J, Jx = jac()
-    lam = c.lm_damping
     fi = np.flatnonzero(free)
-    for _ in range(c.lm_steps):
+    kept = {}  # residuals at the current point and at the last candidate (for ``log``)
+
+    def linearise(x):
+        theta, q, v = x
+        prob.qpos0, prob.qvel0 = q, v
+        r, J, Jx = prob.jacobian(theta, latency, start=True) if start else (
+            *prob.jacobian(theta, latency), None)
+        kept["r"] = r
         # The prior is worth one residual's mean loss per parameter at the current fit (about one
         # unit of -2 log-likelihood per prior sd^2): negligible against thousands of residuals,
         # decisive only along flat directions. Weighed at the starting loss instead, it kept that
         # weight while the loss fell 100-fold and held a zero friction loss at a positive value.
         kappa = 2.0 * prob.data_loss(r) / r.size + 1e-12
-        obj = _objective(prob, r, theta, kappa)
         prior_prec = kappa / c.prior_sd ** 2
         _, w = rho(r, c.loss, c.loss_scale)
         Htt, gt, Htx, Hxx, gx, _ = normal_terms(r, J, Jx, w, fi)
         Htt = Htt + prior_prec * np.eye(len(fi))
         gt = gt + prior_prec * (theta[fi] - prob.theta0[fi])
-        improved, rc, rel = False, r, 0.0
-        for _ in range(12):
+
+        def solve(lam):
             A = Htt + lam * np.diag(np.maximum(np.diag(Htt), 1e-12))
-            try:
-                if Jx is None:
-                    dt, dx = -np.linalg.solve(A, gt), None
-                else:
-                    Ax = Hxx + lam * np.einsum("nk,kl->nkl", np.maximum(
-                        np.einsum("nkk->nk", Hxx), 1e-12), np.eye(Hxx.shape[-1]))
-                    Ai = np.linalg.inv(Ax)
-                    S = A - np.einsum("npk,nkl,nql->pq", Htx, Ai, Htx)
-                    rhs = gt - np.einsum("npk,nkl,nl->p", Htx, Ai, gx)
-                    dt = -np.linalg.solve(S, rhs)
-                    dx = -np.einsum("nkl,nl->nk", Ai, gx + np.einsum("npl,p->nl", Htx, dt))
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
+            if Jx is None:
+                return -np.linalg.solve(A, gt), None
+            Ax = Hxx + lam * np.einsum("nk,kl->nkl", np.maximum(
+                np.einsum("nkk->nk", Hxx), 1e-12), np.eye(Hxx.shape[-1]))
+            Ai = np.linalg.inv(Ax)
+            S = A - np.einsum("npk,nkl,nql->pq", Htx, Ai, Htx)
+            rhs = gt - np.einsum("npk,nkl,nl->p", Htx, Ai, gx)
+            dt = -np.linalg.solve(S, rhs)
+            return dt, -np.einsum("nkl,nl->nk", Ai, gx + np.einsum("npl,p->nl", Htx, dt))
+
+        def evaluate(step):
+            dt, dx = step
             cand = theta.copy()
             cand[fi] += dt
             qc, vc = (q, v) if dx is None else (q + dx[:, :nq], v + dx[:, nq:])
-            rc = prob.residuals(cand, latency, qc, vc)
+            rc = kept["cand"] = prob.residuals(cand, latency, qc, vc)
             oc = _objective(prob, rc, cand, kappa) if np.all(np.isfinite(rc)) else np.inf
-            if oc < obj:
-                improved = True
-                rel = (obj - oc) / max(abs(obj), 1e-300)
-                theta, obj, q, v = cand, oc, qc, vc
-                lam = max(lam / 3.0, 1e-9)
-                break
-            lam *= 4.0
-        log(theta, prob.data_loss(rc) / rc.size)
-        if not improved or rel < c.tol or np.max(np.abs(dt)) < c.step_tol:
-            break
-        r, J, Jx = jac()
-    prob.qpos0, prob.qvel0 = q, v
+            return (cand, qc, vc), oc
+
+        return Linearisation(_objective(prob, r, theta, kappa), solve, evaluate)
+
+    def on_iteration(x, record):
+        if record["accepted"]:
+            kept["r"] = kept["cand"]
+        log(x[0], prob.data_loss(kept["r"]) / kept["r"].size)
+
+    x0 = (np.array(theta, np.float64), prob.qpos0.copy(), prob.qvel0.copy())
+    res = minimise(linearise, x0, damping=c.lm_damping, iterations=c.lm_steps, tries=12,
+                   rtol=c.tol, step_tol=c.step_tol,
+                   step_size=lambda step: float(np.max(np.abs(step[0]), initial=0.0)),
+                   callback=on_iteration)
+    theta, prob.qpos0, prob.qvel0 = res.x
     return theta
 
 
