@@ -192,6 +192,26 @@ def test_latency_delays_actions():
     np.testing.assert_array_equal(q[0], q[2])  # two steps late: the first two apply zeros
 
 
+def test_mass_perturbation_moves_a_body_on_slide_joints():
+    # The push pusher rides on two slide joints: MuJoCo C steps such a "simple" dof with its
+    # compiled mass (dof_M0), so a mass perturbation used to change nothing the twin simulated.
+    # One control step (5 physics steps of 0.01 s) from rest under force 5 N against damping
+    # 5 N s/m, damping implicit: v <- (m v + h F) / (m + h d).
+    def speed(m):
+        v = 0.0
+        for _ in range(5):
+            v = (m * v + 0.01 * 5.0) / (m + 0.01 * 5.0)
+        return v
+
+    for scale in (1.0, 1.5):
+        twin = RealTwin("push", perturbation=Perturbation(mass_scale=(scale, 1.0)),
+                        config={"observation": "state"})
+        twin.reset(seed=0)
+        obs = twin.step(np.array([1.0, 0.0], np.float32))[0]
+        assert obs[9] == pytest.approx(speed(0.2 * scale), rel=1e-6), scale
+        twin.close()
+
+
 def test_actuator_offset_is_a_constant_extra_control():
     # force = gain * (ctrl + offset): zero actions on the offset twin move the cart exactly as
     # actions equal to the offset do on the twin without it (the gain scaled in both)

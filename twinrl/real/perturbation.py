@@ -237,6 +237,16 @@ class Perturbation:
         elif any(self.tool_pos_offset) or any(self.tool_rot_offset):
             raise ValueError("Perturbation.tool_pos_offset/tool_rot_offset: the model has no body "
                              "named 'tool'")
+        # MuJoCo C caches quantities derived from the masses at compile time, and some it steps
+        # with: the mass of a "simple" dof (a body on slide joints, e.g. the push pusher or the
+        # cartpole's cart) is ``dof_M0``, not the body's mass. Without recomputing them a mass
+        # perturbation of such a body changed nothing the engine simulates (pusher mass x1.5: the
+        # twin moved exactly as at x1). The contact regulariser's ``invweight0`` is kept nominal,
+        # as in the simulator (MJX takes it from the nominal model whatever ``PhysParams`` says).
+        invweight = {k: getattr(model, k).copy() for k in ("body_invweight0", "dof_invweight0")}
+        mujoco.mj_setConst(model, mujoco.MjData(model))
+        for k, v in invweight.items():
+            getattr(model, k)[:] = v
 
 
 def rotvec_quat(rotvec) -> np.ndarray:
