@@ -51,3 +51,22 @@ def test_implicit_solve_derivative_is_right_where_the_unrolled_one_is_not(x64):
 def test_foreign_scenes_are_not_bundled_scenes():
     sim = Sim.load(FOREIGN / "box_drop.xml")
     assert not sim.bundled and sim.name == "box_drop"
+
+
+def test_tied_friction_is_judged_by_scaling_the_group(x64):
+    # MuJoCo gives a contact the larger of its geoms' frictions. With floor and box tied (one
+    # default friction for every geom, as most users' MJCFs have it), each coefficient alone sits
+    # at that max's kink: no single friction entry can be resolved (backward difference 0). The
+    # group's 'scale' entry is smooth through the tie and must be resolved and right.
+    xml = (FOREIGN / "box_sliding.xml").read_text().replace('friction="1 0.005', 'friction="0.8 0.005')
+    assert xml.count('friction="0.8 0.005 0.0001"') == 2
+    with jax.enable_x64(True):
+        r = gradcheck(Sim.load(xml), horizon=30, scenario="zero")
+    rows = [x for x in r.rows if x["group"] == "params.friction"]
+    acting = [x for x in rows if x["index"] != "scale" and x["grad"] != 0]
+    assert len(acting) == 2 and all(x["status"] != "resolved" for x in acting)
+    scale = next(x for x in rows if x["index"] == "scale")
+    assert scale["status"] == "resolved" and scale["rel_err"] <= 1e-4, scale
+    # the scale entry's gradient is the group's gradient along the group: g . x
+    assert scale["grad"] == pytest.approx(0.8 * sum(x["grad"] for x in acting), rel=1e-12)
+    assert r.passed_strict and r.nan_count == 0

@@ -33,6 +33,17 @@ every entry's gradient and both difference quotients exactly zero (the input doe
 loss, e.g. friction loss on a dof without a friction-loss row), which is checked exactly. ``passed``
 ignores unjudged groups; ``passed_strict`` (``twinrl gradcheck --strict``) fails on them.
 
+Ties. MuJoCo gives a contact the larger of its two geoms' friction coefficients. Where they are
+equal -- every geom of a model that sets one default friction, e.g. Gymnasium's half_cheetah --
+each coefficient alone is at a kink of that max: lowering it changes nothing, raising it raises the
+contact's (half_cheetah: backward difference exactly 0, forward twice the central one, at every
+step size), so no single entry can be resolved; the gradient there is the mean of the two slopes
+(``jnp.maximum`` splits a tie). Scaling a whole group is smooth through such ties (the max of
+scaled values is the scaled max), so each ``params`` group of several entries gets one more
+entry, index ``scale``: the derivative along ``x_group -> (1 + t) x_group``, ``g . x_group``
+against its central difference in ``t``, classified like the others. It judges how the group's
+entries add up wherever they act, including through ties.
+
 Orientations. A free or ball joint's quaternion has 4 numbers and 3 degrees of freedom; a
 perturbation of one component leaves the unit sphere and measures nothing physical. The initial
 state is therefore perturbed in the tangent space, ``qpos = qpos0 (+) dq`` with ``dq`` of size nv
@@ -272,17 +283,32 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     seconds = time.perf_counter() - t0
 
     n = x0.shape[0]
+    labels = _labels(inputs, _dof_names(sim.mj_model))
+    # One extra entry per parameter group: the derivative along scaling the whole group
+    # (module docstring, "Ties"); a group of one entry already has it as its entry.
+    x0np = np.asarray(x0, np.float64)
+    dirs = []
+    for grp in dict.fromkeys(lbl[0] for lbl in labels):
+        idx = [i for i, lbl in enumerate(labels) if lbl[0] == grp]
+        if grp.startswith("params.") and len(idx) > 1 and np.any(x0np[idx]):
+            d = np.zeros(n)
+            d[idx] = x0np[idx]
+            dirs.append((grp, d))
+    D = jnp.asarray(np.array([d for _, d in dirs]).reshape(len(dirs), n), dtype)
+    k = len(dirs)
     steps = h * jnp.maximum(1.0, jnp.abs(x0))
     eye = jnp.eye(n, dtype=dtype)
     batched = jax.jit(jax.vmap(lambda x: loss(x)[0]))
-    steps64 = np.asarray(steps, np.float64)
+    steps64 = np.concatenate([np.asarray(steps, np.float64), np.full(k, h)])
 
     def evaluate(scale):
         # one batch shape for every call (x0 rides along as row 0): a single compile
         out = np.asarray(batched(jnp.concatenate([
-            x0[None], x0 + scale * steps[:, None] * eye, x0 - scale * steps[:, None] * eye])),
-            np.float64)
-        return out[0], out[1:n + 1], out[n + 1:]
+            x0[None], x0 + scale * steps[:, None] * eye, x0 - scale * steps[:, None] * eye,
+            x0 + scale * h * D, x0 - scale * h * D])), np.float64)
+        plus = np.concatenate([out[1:n + 1], out[2 * n + 1:2 * n + 1 + k]])
+        minus = np.concatenate([out[n + 1:2 * n + 1], out[2 * n + 1 + k:]])
+        return out[0], plus, minus
 
     l0, plus1, minus1 = evaluate(1.0)
     _, plus4, minus4 = evaluate(4.0)
@@ -297,7 +323,8 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     eps = float(jnp.finfo(dtype).eps)
     rounding = 4 * eps * max(l0, 1.0) / steps64
 
-    labels = _labels(inputs, _dof_names(sim.mj_model))
+    g = np.concatenate([g, np.asarray(D, np.float64) @ g])
+    labels = labels + [(grp, "scale") for grp, _ in dirs]
     status, ok, rel, err = classify(g, fd1, fd4, fwd1, bwd1, rounding, rtol)
     rows = [{"group": grp, "index": index, "grad": float(g[i]), "fd": float(fd1[i]),
              "abs_err": float(err[i]), "rel_err": float(rel[i]), "status": str(status[i]),
