@@ -143,6 +143,26 @@ def test_bad_data_raises_clear_errors(env):
         sysid.build_problem(env, good, sysid.SysidConfig(params=("mass/wheel",), window=WINDOW))
     with pytest.raises(ValueError, match="loss must be one of"):
         sysid.SysidConfig(loss="l1")
+    with pytest.raises(ValueError, match="observation_weights must be finite"):
+        sysid.SysidConfig(observation_weights=(1.0, -1.0))
+    with pytest.raises(ValueError, match="observation_weights has 2 entries.*has 5"):
+        sysid.build_problem(env, good, sysid.SysidConfig(
+            params=("mass/pole",), window=WINDOW, observation_weights=(1.0, 0.0)))
+
+
+def test_push_excitation_moves_the_box_where_open_loop_does_not():
+    # Open-loop held random forces never touched push's box in 10 s episodes, so its mass and
+    # friction were invisible to sysid; the task's closed-loop excitation strokes it.
+    twin = make_real("push", seed=0, config={"observation": "state"})
+    moving = {}
+    for policy in ("open_loop", "auto"):
+        d = sysid.collect(twin, episodes=2, seed=0, steps=100, policy=policy)
+        moving[policy] = float(np.mean(np.linalg.norm(d["obs"][..., 11:13], axis=-1) > 0.01))
+    assert moving["open_loop"] < 0.05 and moving["auto"] > 0.3, moving
+    with pytest.raises(ValueError, match="policy must be"):
+        sysid.collect(twin, episodes=1, policy="scripted")
+    with pytest.raises(ValueError, match="has no excitation_policy"):
+        sysid.collect(make_real("pendulum_swingup"), episodes=1, policy="task")
 
 
 def test_dataset_on_disk_gives_the_same_windows(env, exact, tmp_path):

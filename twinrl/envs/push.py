@@ -100,6 +100,57 @@ class Push(Env):
             "beyond yaw, qvel[4:8]) are not observed, so a simulated window cannot start from a "
             "recorded observation; identify push from full states or with a state estimator")
 
+    def excitation_policy(self, rng: np.random.Generator):
+        """A closed-loop excitation for identifying push (``twinrl.real2sim.sysid.collect``):
+        open-loop random forces rarely touch the box (two 10 s episodes of held random levels
+        never moved it), so its mass and friction would be invisible. Repeated strokes: the
+        pusher goes behind the box (free motion: its gain and damping), pushes it along a random
+        direction that keeps it near the start with a random force for a random time (mass and
+        friction while accelerating and sliding), then backs off and lets it slide to a stop
+        (friction alone). Returns ``policy(obs, t) -> action``; works on the task's observation
+        and on ``observation="state"``."""
+        state = {"phase": "approach", "n": 0, "dir": np.array([1.0, 0.0]), "force": 1.0}
+        full = self.config.observation == "state"
+        reach = 0.05 + 0.03 + 0.02  # box half-size + pusher radius + a gap
+
+        def positions(obs):
+            o = np.asarray(obs, np.float64)
+            if full:  # [qpos (9), qvel (8)]
+                return o[0:2], o[9:11], o[2:4]
+            return o[0:2], o[2:4], o[4:6]
+
+        def new_stroke(box):
+            home = np.asarray(self._box_qpos0[:2]) - box  # drift back towards the start
+            ang = np.arctan2(home[1], home[0]) + rng.uniform(-1.2, 1.2) if np.linalg.norm(
+                home) > 0.1 else rng.uniform(-np.pi, np.pi)
+            state.update(phase="approach", n=0, dir=np.array([np.cos(ang), np.sin(ang)]),
+                         force=rng.uniform(0.55, 1.0), push=int(rng.integers(4, 14)),
+                         rest=int(rng.integers(3, 8)))
+
+        def policy(obs, t):
+            p, v, box = positions(obs)
+            if t == 0:
+                new_stroke(box)
+            d = state["dir"]
+            state["n"] += 1
+            if state["phase"] == "approach":
+                target = box - reach * d
+                a = 8.0 * (target - p) - 1.0 * v
+                if np.linalg.norm(target - p) < 0.02 or state["n"] > 30:
+                    state.update(phase="push", n=0)
+            elif state["phase"] == "push":
+                side = np.array([-d[1], d[0]])
+                a = state["force"] * d + 2.0 * np.dot(box - p, side) * side
+                if state["n"] >= state["push"]:
+                    state.update(phase="release", n=0)
+            else:  # back off, then rest: the box slides to a stop on its own
+                a = -0.6 * d if state["n"] <= 2 else -1.0 * v
+                if state["n"] >= state["rest"]:
+                    new_stroke(box)
+            return np.clip(a, -1.0, 1.0).astype(np.float32)
+
+        return policy
+
     def reward_terms(self, qpos, qvel, action):
         c = self.config
         box = qpos[2:4]

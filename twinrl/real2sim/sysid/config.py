@@ -102,6 +102,11 @@ class SysidConfig:
     it raises the data's deviance (-2 log-likelihood, made robust to the correlation inside a
     window) by less than this: 2.71 is the 5 % level of the boundary null 0.5 chi2_0 + 0.5 chi2_1.
     0 disables the test."""
+    observation_weights: tuple[float, ...] | None = None
+    """Weight of each observation dimension's residual (after normalising by its spread); 0
+    leaves a dimension out. E.g. push identified from full states (``observation="state"``) on
+    its planar motion only: the box's tilt and rocking in its soft floor contacts differ between
+    engines (MuJoCo C's and MJX's contact solutions), which no parameter explains. Default: all 1."""
     batch_windows: int = 64
     """Windows per vmapped batch (fixed, so one compile serves every dataset size)."""
     max_windows: int | None = None
@@ -131,6 +136,11 @@ class SysidConfig:
         need(int(self.batch_windows) >= 1, f"batch_windows must be >= 1, got {self.batch_windows}")
         need(self.max_windows is None or int(self.max_windows) >= 1,
              f"max_windows must be >= 1, got {self.max_windows}")
+        if self.observation_weights is not None:
+            w = tuple(float(x) for x in self.observation_weights)
+            need(all(math.isfinite(x) and x >= 0 for x in w) and any(w),
+                 f"observation_weights must be finite, >= 0 and not all 0, got {w}")
+            object.__setattr__(self, "observation_weights", w)
         for item in self.known:
             need(len(item) == 2 and math.isfinite(float(item[1])),
                  f"known entries are (name, finite value) pairs, got {item!r}")

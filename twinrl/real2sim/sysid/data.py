@@ -45,21 +45,36 @@ def excitation_actions(rng: np.random.Generator | int, T: int, m: int, *,
 
 
 def collect(twin, episodes: int, seed: int = 0, *, steps: int | None = None,
-            writer=None, **excitation) -> dict[str, np.ndarray]:
-    """Run ``excitation_actions`` open loop on a real twin (a gymnasium env) for ``episodes``.
+            writer=None, policy: str = "auto", **excitation) -> dict[str, np.ndarray]:
+    """Run an excitation on a real twin (a gymnasium env) for ``episodes``.
 
+    ``policy``: ``"open_loop"``, ``excitation_actions`` (``excitation`` are its keyword
+    arguments); ``"task"``, the task's closed-loop ``excitation_policy(rng)`` (push has one: open
+    loop rarely touches its box); ``"auto"`` (default), the task's where it has one.
     Returns ``{"obs", "action", "next_obs", "reward"}`` with shapes (E, T, ...); if ``writer``
     (a ``twinrl.real.dataset.DatasetWriter``) is given, every transition is also recorded there.
     """
+    if policy not in ("auto", "open_loop", "task"):
+        raise ValueError(f"policy must be 'auto', 'open_loop' or 'task', got {policy!r}")
+    task_policy = getattr(twin.task, "excitation_policy", None)
+    if policy == "task" and task_policy is None:
+        raise ValueError(f"task {twin.task.name!r} has no excitation_policy; use "
+                         f"policy='open_loop'")
+    closed = task_policy is not None and policy != "open_loop"
     rng = np.random.default_rng(seed)
     T = int(steps or twin.task.episode_length)
     m = int(twin.action_space.shape[0])
     out = {k: [] for k in ("obs", "action", "next_obs", "reward")}
     for ep in range(int(episodes)):
-        acts = excitation_actions(rng, T, m, **excitation)
         obs, _ = twin.reset(seed=int(seed) * 1000 + ep)
         rows = {k: [] for k in out}
-        for t, a in enumerate(acts):
+        if closed:
+            act = task_policy(rng)
+        else:
+            acts = excitation_actions(rng, T, m, **excitation)
+            act = lambda o, t, acts=acts: acts[t]  # noqa: E731
+        for t in range(T):
+            a = np.asarray(act(obs, t), np.float32)
             nxt, r, term, trunc, _ = twin.step(a)
             if writer is not None:
                 writer.add(obs, a, r, nxt, term, trunc or t == T - 1)

@@ -97,6 +97,13 @@ class Problem:
         # Per-dimension normalisation of residuals: the spread of the recorded observations.
         y = windows.targets.reshape(-1, windows.targets.shape[-1])
         self.scale = np.maximum(np.std(y, axis=0), 1e-3 * max(float(np.std(y)), 1e-12) + 1e-9)
+        weights = np.ones(y.shape[-1])
+        if c.observation_weights is not None:
+            if len(c.observation_weights) != y.shape[-1]:
+                raise ValueError(f"SysidConfig.observation_weights has "
+                                 f"{len(c.observation_weights)} entries; {env.name}'s "
+                                 f"observation has {y.shape[-1]}")
+            weights = np.asarray(c.observation_weights, np.float64)
         n = len(windows.qpos0)
         B = int(c.batch_windows)
         self.batch = B
@@ -114,7 +121,7 @@ class Problem:
         self._fns = _functions(env, self.sim, tuple(self.spec), c.window, windows.max_latency,
                                c.loss, c.loss_scale)
         self._consts = ({k: jnp.asarray(v) for k, v in self.base_u.items()},
-                        jnp.asarray(1.0 / self.scale))
+                        jnp.asarray(np.stack([1.0 / self.scale, weights / self.scale])))
 
     def _batches(self, qpos0=None, qvel0=None):
         q = self.qpos0 if qpos0 is None else qpos0
@@ -218,7 +225,11 @@ def _functions(env: Env, sim: Sim, spec: tuple, W: int, L: int, kind: str, cs: f
         qs = jnp.concatenate([d.qpos[None], tr.qpos])
         vs = jnp.concatenate([d.qvel[None], tr.qvel])
         pred = jax.vmap(env.observe)(qs, vs).astype(q.dtype)
-        return (pred - jnp.concatenate([y0[None], y])) * inv_scale
+        # inv_scale: row 0 for the window's start, row 1 (observation_weights applied) for the
+        # steps after it. The recorded start keeps every dimension, so each start state stays
+        # pinned where it was recorded even in dimensions the weights leave out.
+        err = pred - jnp.concatenate([y0[None], y])
+        return jnp.concatenate([err[:1] * inv_scale[0], err[1:] * inv_scale[1]])
 
     batched = jax.vmap(window, in_axes=(None, None, None, None, 0, 0, 0, 0, 0))
 
