@@ -109,7 +109,7 @@ class Push(Env):
         friction while accelerating and sliding), then backs off and lets it slide to a stop
         (friction alone). Returns ``policy(obs, t) -> action``; works on the task's observation
         and on ``observation="state"``."""
-        state = {"phase": "approach", "n": 0, "dir": np.array([1.0, 0.0]), "force": 1.0}
+        state = {}  # the stroke in progress; new_stroke fills it at t = 0
         full = self.config.observation == "state"
         reach = 0.05 + 0.03 + 0.02  # box half-size + pusher radius + a gap
 

@@ -287,9 +287,11 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     # One extra entry per parameter group: the derivative along scaling the whole group
     # (module docstring, "Ties"); a group of one entry already has it as its entry.
     x0np = np.asarray(x0, np.float64)
+    members: dict[str, list[int]] = {}  # group -> indices of its entries, in label order
+    for i, (grp, _) in enumerate(labels):
+        members.setdefault(grp, []).append(i)
     dirs = []
-    for grp in dict.fromkeys(lbl[0] for lbl in labels):
-        idx = [i for i, lbl in enumerate(labels) if lbl[0] == grp]
+    for grp, idx in members.items():
         if grp.startswith("params.") and len(idx) > 1 and np.any(x0np[idx]):
             d = np.zeros(n)
             d[idx] = x0np[idx]
@@ -325,16 +327,17 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
 
     g = np.concatenate([g, np.asarray(D, np.float64) @ g])
     labels = labels + [(grp, "scale") for grp, _ in dirs]
+    for j, (grp, _) in enumerate(dirs):
+        members[grp].append(n + j)
     status, ok, rel, err = classify(g, fd1, fd4, fwd1, bwd1, rounding, rtol)
     rows = [{"group": grp, "index": index, "grad": float(g[i]), "fd": float(fd1[i]),
              "abs_err": float(err[i]), "rel_err": float(rel[i]), "status": str(status[i]),
              "ok": bool(ok[i])} for i, (grp, index) in enumerate(labels)]
 
     group_rows = []
-    for grp in dict.fromkeys(lbl[0] for lbl in labels):
-        rs = [r for r in rows if r["group"] == grp]
+    for grp, idx in members.items():
+        rs = [rows[i] for i in idx]
         res = [r for r in rs if r["status"] == "resolved"]
-        idx = [i for i, lbl in enumerate(labels) if lbl[0] == grp]
         inert = bool(np.all(g[idx] == 0) and np.all(fd1[idx] == 0) and np.all(fd4[idx] == 0))
         group_rows.append({
             "group": grp, "entries": len(rs), "resolved": len(res), "inert": inert,
