@@ -142,3 +142,21 @@ def test_accept_compares_full_episodes_from_the_task_start(res_setup):
     assert b_up == b_dn == b0
     assert ok_up and a_up > b0 + 0.1 * T * 0.3  # ~+0.3 a step where the clip leaves room
     assert not ok_dn and a_dn < b0 - 0.1 * T * 0.3
+
+
+def test_single_episode_is_stopped_on_its_held_out_last_block(setup):
+    """One recorded episode still gets a validation set: its last transitions, which the network
+    is not fitted to (early stopping on the training data picked whatever fit it best)."""
+    nominal, data, _ = setup
+    one = np.asarray(data.episode_id) == 0
+    single = SimpleNamespace(obs=data.obs[one], action=data.action[one],
+                             next_obs=data.next_obs[one], episode_id=data.episode_id[one])
+    n = int(one.sum())
+    fit = hybrid.fit(nominal, single, config=hybrid.HybridConfig(steps=50, eval_every=25),
+                     rng=jax.random.key(0))
+    assert fit.metrics["val_transitions"] == round(0.2 * n)
+    assert fit.metrics["train_transitions"] == n - round(0.2 * n)
+    assert fit.metrics["val_episodes"] == []
+    # two or more episodes: whole episodes are held out, as before
+    assert hybrid.fit(nominal, data, config=hybrid.HybridConfig(steps=50, eval_every=25),
+                      rng=jax.random.key(0)).metrics["val_episodes"]

@@ -161,6 +161,32 @@ def transitions(env, data, latency: int = 0) -> Transitions:
                        episode)
 
 
+def _validation_split(episode: np.ndarray, fraction: float, rng: jax.Array
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``(is_val mask, held-out episode ids)``: ``fraction`` of the episodes (at least one when
+    there are two or more), drawn by ``rng``; from a single episode, its last ``fraction`` of
+    transitions (a contiguous block, so the network is stopped on states it was not fitted to,
+    not on its own training data: fitted and judged on the same 250 transitions, a pendulum
+    residual lowered its training error by a third and cut pi_sim's full-episode return through
+    the hybrid model from 190 to 44)."""
+    episodes = np.unique(episode)
+    if fraction <= 0 or len(episode) < 2:
+        return np.zeros(len(episode), bool), np.zeros(0, int)
+    if len(episodes) == 1:
+        n_val = min(len(episode) - 1, max(1, int(round(fraction * len(episode)))))
+        is_val = np.zeros(len(episode), bool)
+        is_val[-n_val:] = True
+        return is_val, np.zeros(0, int)
+    n_val = max(1, int(round(fraction * len(episodes))))
+    perm = np.random.default_rng(int(jax.random.randint(rng, (), 0, 2**31 - 1))).permutation(
+        episodes)
+    val_eps = perm[:n_val]
+    is_val = np.isin(episode, val_eps)
+    if not (~is_val).any():
+        is_val[:] = False
+    return is_val, val_eps
+
+
 def _sim_next(env, params):
     """``(qpos, qvel, applied) -> (qpos', qvel')`` of the simulator, one control step."""
     def f(qpos, qvel, applied):
@@ -186,16 +212,7 @@ def fit(env, data, params=None, latency: int = 0, config: HybridConfig = HybridC
     target = np.concatenate([np.asarray(_wrap(tr.qpos2 - pq, mask)), tr.qvel2 - pv], -1)
     x = np.concatenate([tr.obs, tr.applied], -1)
 
-    episodes = np.unique(tr.episode)
-    n_val = int(round(config.val_fraction * len(episodes)))
-    if config.val_fraction > 0 and len(episodes) >= 2:
-        n_val = max(1, n_val)
-    perm = np.random.default_rng(int(jax.random.randint(rng, (), 0, 2**31 - 1))).permutation(
-        episodes)
-    val_eps = perm[:n_val]
-    is_val = np.isin(tr.episode, val_eps)
-    if not (~is_val).any():
-        is_val[:] = False
+    is_val, val_eps = _validation_split(tr.episode, config.val_fraction, rng)
     train_idx, val_idx = np.flatnonzero(~is_val), np.flatnonzero(is_val)
 
     in_mean = x[train_idx].mean(0)
