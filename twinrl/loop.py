@@ -13,8 +13,9 @@ safe exciting open-loop policy (``twinrl.real2sim.sysid.excitation_actions``). E
    with ``algo="hds"``, HDS with a fraction of rollouts through the hybrid model;
 4. **residual**: the residual policy (zero at first, so the first deployment is exactly the
    simulator's policy) is trained through the hybrid model from recorded real states
-   (``twinrl.sim2real.residual``) and kept only if it does not lower the full-episode return through
-   that model (``residual.accept``; else pi_sim is deployed);
+   (``twinrl.sim2real.residual``) and kept only if it lowers the full-episode return neither
+   through that model nor through the identified simulator (``residual.accept``; else pi_sim is
+   deployed);
 5. **deploy**: ``K`` real episodes of pi_sim + residual are run and recorded.
 
 The round is data: ``ROUND`` is the list of its ``Stage`` values (sysid, hybrid, learn,
@@ -378,8 +379,9 @@ def _learn(run: _Run, r: int, rdir: Path, env, hybrid) -> None:
 
 def _train_residual(run: _Run, r: int, rdir: Path, env, hybrid, data, policy_dir) -> None:
     """The residual policy trained through the hybrid model from recorded real states ->
-    ``residual/``; kept only if it does not lower the full-episode return through that model
-    (``residual.accept``), else saved as all zeros (exactly pi_sim)."""
+    ``residual/``; kept only if it lowers the full-episode return neither through that model nor
+    through the identified simulator (``residual.accept``), else saved as all zeros (exactly
+    pi_sim)."""
     from twinrl.learn.checkpoint import load_policy, save_policy
     from twinrl.sim2real import hybrid as hybrid_dynamics
     from twinrl.sim2real import residual
@@ -393,14 +395,18 @@ def _train_residual(run: _Run, r: int, rdir: Path, env, hybrid, data, policy_dir
         seed = run.seed + r
         res_params, metrics = residual.train(env, dynamics, pol, data.obs,
                                              rng=jax.random.key(seed))
-        ok, before, after = residual.accept(env, dynamics, pol, res_params,
-                                            jax.random.key(seed + 1))
+        v = residual.accept(env, dynamics, pol, res_params, jax.random.key(seed + 1),
+                            reference=env.step)
+        ok, before, after = v.accepted, v.before, v.after
         run.say(f"  residual {'accepted' if ok else 'rejected (deploying pi_sim)'}: "
-                f"full-episode return through the hybrid model {before:.1f} -> {after:.1f}")
+                f"full-episode return through the hybrid model {before:.1f} -> {after:.1f}, "
+                f"the identified simulator {v.reference_before:.1f} -> {v.reference_after:.1f}")
         if not ok:  # the exact pi_sim: an all-zero delta outputs tanh(0) = 0
             res_params = jax.tree_util.tree_map(jnp.zeros_like, res_params)
         metrics = {k: v[-1] for k, v in metrics.items()}
-        metrics.update(accepted=float(ok), model_return_before=before, model_return_after=after)
+        metrics.update(accepted=float(ok), model_return_before=before, model_return_after=after,
+                       sim_return_before=v.reference_before,
+                       sim_return_after=v.reference_after)
         save_policy(rdir / "residual", pol.delta, res_params, kind="residual", metrics=metrics)
         run.prog.mark(f"round{r}/residual",
                       seconds=_seconds(run.prog, r, residual=time.perf_counter() - t0))

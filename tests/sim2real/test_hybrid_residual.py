@@ -133,15 +133,24 @@ def test_accept_compares_full_episodes_from_the_task_start(res_setup):
         p["params"]["Dense_1"]["bias"] = jnp.full((1,), 20.0 * sign)
         return p
 
-    ok0, b0, a0 = residual.accept(nominal, dyn, pol, p0, jax.random.key(4), episodes=4)
+    ok0, b0, a0 = residual.accept(nominal, dyn, pol, p0, jax.random.key(4), episodes=4)[:3]
     assert ok0 and a0 == b0 and np.isfinite(b0)
     ok_up, b_up, a_up = residual.accept(nominal, dyn, pol, constant(+1), jax.random.key(4),
-                                        episodes=4)
+                                        episodes=4)[:3]
     ok_dn, b_dn, a_dn = residual.accept(nominal, dyn, pol, constant(-1), jax.random.key(4),
-                                        episodes=4)
+                                        episodes=4)[:3]
     assert b_up == b_dn == b0
     assert ok_up and a_up > b0 + 0.1 * T * 0.3  # ~+0.3 a step where the clip leaves room
     assert not ok_dn and a_dn < b0 - 0.1 * T * 0.3
+    # A second model of the same system that disagrees (its reward is minus the action): delta
+    # must do no harm there either, so the one the first model likes is refused, and the verdict
+    # carries both models' returns.
+    v = residual.accept(nominal, dyn, pol, constant(+1), jax.random.key(4), episodes=4,
+                        reference=lambda s, a: nominal.step(s, a).replace(reward=-a[0]))
+    assert not v.accepted and v.after == a_up and v.reference_after < v.reference_before
+    v = residual.accept(nominal, dyn, pol, constant(+1), jax.random.key(4), episodes=4,
+                        reference=dyn)
+    assert v.accepted and v.reference_after == v.after
 
 
 def test_single_episode_is_stopped_on_its_held_out_last_block(setup):

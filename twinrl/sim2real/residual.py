@@ -27,8 +27,11 @@ not the task's, and the two can disagree badly. Measured on the cartpole real tw
 trained delta raised the 40-step model return from the recorded states (7.25 -> 8.25) but cut the
 full-episode return from the task's own initial states from 168.0 to 101.4 in the model, and
 the real return from 165.2 to 77.1. ``accept`` therefore compares, through the same hybrid
-dynamics, full episodes from the task's initial-state distribution with and without delta; the loop
-deploys delta only when it does not lower that return, else the exact ``pi_sim`` (zero delta).
+dynamics, full episodes from the task's initial-state distribution with and without delta; and,
+since the hybrid model can be wrong in closed loop (fitted to exciting episodes, it may never have
+seen the states a good policy visits), through the identified simulator as well. The loop deploys
+delta only when it lowers neither (the simulator's by at most 1 %), else the exact ``pi_sim``
+(zero delta).
 """
 
 from __future__ import annotations
@@ -44,7 +47,8 @@ import optax
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 from twinrl.physics.gradients import global_norm, hygiene
 
-__all__ = ["ResidualConfig", "ResidualPolicy", "make_residual", "train", "model_return", "accept"]
+__all__ = ["ResidualConfig", "ResidualPolicy", "make_residual", "train", "model_return", "accept",
+           "Verdict"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,14 +191,43 @@ def _mean_return_fn(env, dynamics, policy: ResidualPolicy, horizon: int):
     return lambda p, qpos, qvel: float(jnp.mean(f(p, qpos, qvel)[0].sum(-1)))
 
 
+class Verdict(NamedTuple):
+    """``accept``'s answer: whether delta is deployed, and the mean full-episode returns without
+    and with it through the hybrid model and (when given) the reference model."""
+
+    accepted: bool
+    before: float
+    after: float
+    reference_before: float | None = None
+    reference_after: float | None = None
+
+
 def accept(env, dynamics, policy: ResidualPolicy, res_params, rng: jax.Array,
-           episodes: int = 16) -> tuple[bool, float, float]:
-    """Whether the trained residual keeps or raises the task's return through ``dynamics``:
-    ``episodes`` full episodes (``env.episode_length`` steps) from the task's own initial states
-    (``env.reset``), with ``delta`` and without (zero). Returns ``(accepted, before, after)``."""
+           episodes: int = 16, reference: Callable | None = None,
+           tolerance: float = 0.01) -> Verdict:
+    """Whether the trained residual keeps or raises the task's return: ``episodes`` full episodes
+    (``env.episode_length`` steps) from the task's own initial states (``env.reset``), with
+    ``delta`` and without (zero), through ``dynamics`` (the hybrid model it was trained in) and,
+    when given, through ``reference`` too (the loop passes the identified simulator, ``env.step``).
+
+    Accepted when the return through ``dynamics`` does not fall, and the one through
+    ``reference`` falls by at most ``tolerance`` of its magnitude: two models of the same real
+    system, and delta must do no harm in either. One is not enough: a hybrid model fitted to one
+    exciting pendulum episode predicted pi_sim's return as 44 where the real twin gave 190 (the
+    identified simulator: 190); delta raised the model's 44 to 53, lowered the simulator's 190 to
+    149, and lowered the real return to 150."""
+    if not 0.0 <= tolerance < 1.0:
+        raise ValueError(f"tolerance must be in [0, 1), got {tolerance}")
     states = jax.vmap(env.reset)(jax.random.split(rng, episodes))
     qpos0, qvel0 = states.pipeline_state.qpos, states.pipeline_state.qvel
-    mean_return = _mean_return_fn(env, dynamics, policy, env.episode_length)  # one compile
     zero = jax.tree_util.tree_map(jnp.zeros_like, res_params)
+    mean_return = _mean_return_fn(env, dynamics, policy, env.episode_length)  # one compile
     before, after = (mean_return(p, qpos0, qvel0) for p in (zero, res_params))
-    return bool(np.isfinite(after) and after >= before), before, after
+    ok = bool(np.isfinite(after) and after >= before)
+    if reference is None:
+        return Verdict(ok, before, after)
+    ref_return = _mean_return_fn(env, reference, policy, env.episode_length)
+    ref_before, ref_after = (ref_return(p, qpos0, qvel0) for p in (zero, res_params))
+    ok = ok and bool(np.isfinite(ref_after)
+                     and ref_after >= ref_before - tolerance * abs(ref_before))
+    return Verdict(ok, before, after, ref_before, ref_after)
