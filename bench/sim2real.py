@@ -193,6 +193,17 @@ def fmt_ratio(r: dict | None) -> str:
     return (">= " if r["lower_bound"] else "") + f"{r['value']:.3g}"
 
 
+def _same_twin(a: str | None, b: str | None) -> bool:
+    """Whether two loop runs' twin secrets (``OUT/eval/twin.json`` paths) name the same twin: equal
+    paths, or files with the same content (two runs of one task and seed meet the same salted
+    twin, so a model-free run made against one serves the other)."""
+    if a == b:
+        return True
+    if a is None or b is None or not (Path(a).exists() and Path(b).exists()):
+        return False
+    return json.loads(Path(a).read_text()) == json.loads(Path(b).read_text())
+
+
 def cached_run(path: Path, target: float, max_steps: int, eval_every: int,
                eval_episodes: int, secret: str | None = None) -> dict | None:
     """A finished run from an earlier invocation, scored against this invocation's ``target``
@@ -207,7 +218,7 @@ def cached_run(path: Path, target: float, max_steps: int, eval_every: int,
     if not path.exists():
         return None
     r = json.loads(path.read_text())
-    if r.get("eval_episodes") != eval_episodes or r.get("twin_secret") != secret:
+    if r.get("eval_episodes") != eval_episodes or not _same_twin(r.get("twin_secret"), secret):
         return None  # other evaluation episodes, or another twin
     rescored = {"target": target, "rescored_from_target": r["target"]}
     hit = next((c["real_steps"] for c in r.get("curve", []) if c["return"] >= target), None)
