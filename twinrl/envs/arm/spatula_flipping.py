@@ -83,12 +83,14 @@ class SpatulaFlippingConfig(ArmConfig):
     reach_margin: float = 0.12
     """Distance (m) from the blade's edge to the point under the pancake at which ``reach`` has
     fallen to 0.1."""
-    expert_push: float = 0.3
+    expert_push: float = 0.1
     """The scripted expert's forward action while it lifts."""
-    expert_lift: float = 1.0
+    expert_lift: float = 0.35
     """The scripted expert's upward action while it lifts."""
     expert_tip: float = 0.9
     """Turn (rad) past which the scripted expert stops lifting and pushes forward."""
+    expert_shove: float = 0.4
+    """The scripted expert's forward action once the pancake stands."""
     expert_release: float = 1.9
     """Turn (rad) past which the scripted expert holds still and lets the pancake fall."""
 
@@ -193,7 +195,7 @@ class SpatulaFlipping(ArmTask):
         elif turn < self.config.expert_tip:  # under it: lift, it turns about its far rim
             a = np.array([self.config.expert_push, rim[1] / step, self.config.expert_lift])
         else:  # standing up: push it forward past vertical
-            a = np.array([1.0, rim[1] / step, 0.0])
+            a = np.array([self.config.expert_shove, rim[1] / step, 0.0])
         return np.clip(a, -1.0, 1.0).astype(np.float32)
 
     def success(self, qpos, qvel) -> jax.Array:
