@@ -1,20 +1,24 @@
 """``spatula_flipping``: slide the spatula held by the arm under a pancake lying against a low
 rail and turn it upside down (SAM-RL, Lv et al. 2023, Sec. 5.2).
 
-Scene ``spatula_flipping.xml``: a spatula (a flat blade 90 x 80 mm, 2 mm thick, on a handle
+Scene ``spatula_flipping.xml``: a spatula (a flat blade 90 x 80 mm, 3 mm thick, on a handle
 pointing forward and down at 70 degrees) at the flange; a pancake (a flat cake 70 x 70 mm, 12 mm
 thick, 80 g, rounded along its near and far rims, a dark mark on its top) on the table against a
-rail (8 mm high) drawn at x in [0.66, 0.72] m, y in [-0.08, 0.08] m; the pancake lies 1-4 mm in
+rail (three studs 10 mm high) drawn at x in [0.66, 0.72] m, y in [-0.08, 0.08] m; the pancake lies 1-4 mm in
 front of the rail, up to 2 cm off its centre. The blade's edge starts 12-18 cm short of the
 pancake, 2-5 cm above the table. Control (``CartesianController``): displacement of the blade's
 leading edge, 3-D, at most 2 cm per 0.04 s step; the spatula is held at its nominal angle.
 
 Mechanism: the blade's edge wedges under the pancake's round near rim; lifting it turns the
 pancake about its far rim, which the rail holds; past vertical it falls over, onto the rail and
-the table beyond it, upside down. Shapes and contacts are chosen for their derivatives: every pair
-has a closed-form collider in MJX (the ellipsoid pancake and round blade of the first design went
-through MJX's SDF search, and the flip's gradients were kinked and exploded), and the pancake's
-contacts are soft (timeconst 3 physics steps).
+the table beyond it, upside down. Shapes and contacts are chosen for their derivatives: the blade
+collides as three thin capsules along it, the pancake as five capsules across it, the rail as
+spheres, so every pair is plane-capsule, capsule-capsule (near perpendicular) or sphere-capsule,
+MJX's closed-form colliders, continuous in the poses. (The first design's ellipsoid pancake and
+round blade went through MJX's SDF search, and the flip's gradients were kinked and exploded; the
+second's box blade on a box pancake went through MJX's box-box SAT, whose contact points jump: a
+1e-9 change of one action changed a 30-step rollout loss by 0.15.) The pancake's contacts are
+soft (timeconst 3 physics steps).
 
 Observation (31, privileged): joint angles (7) and velocities (7), the blade's edge (3), the
 pancake's centre (3), its up axis (3) and velocity (3), the rail's x, y (2), the point under the
