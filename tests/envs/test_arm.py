@@ -22,10 +22,12 @@ from twinrl.real.twin import RealTwin
 ARM_TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 # Distance (m) between the tool's end in the simulator and in the unperturbed real twin after the
 # scripted expert's episode replayed open loop (through tool-object contact; measured below).
-ZERO_TWIN_TOOL_TOL = {"peg_insertion": 2e-3, "spatula_flipping": 5e-3, "needle_threading": 2e-3}
-# The reset key of the expert's episode. The peg and needle experts succeed from every start tried
-# (8 of 8); the spatula's from 4 of 8 (keys 2, 4, 6, 7: the pancake slides off the blade as it
-# lifts): this test is about the engines agreeing through a flip, so it starts where one happens.
+# (Spatula measured 2.0 mm at reset key 2 with the capsule pancake, 5.2 mm with the box one; where
+# in the episode the gap opens was not isolated.)
+ZERO_TWIN_TOOL_TOL = {"peg_insertion": 2e-3, "spatula_flipping": 4e-3, "needle_threading": 2e-3}
+# The reset key of the expert's episode. The peg, spatula and needle experts succeed from every
+# start tried (8 of 8, keys 0-7); for the spatula this test is about the engines agreeing through
+# a flip (slide under, lift, fall over the rail).
 EXPERT_START = {"peg_insertion": 1, "spatula_flipping": 2, "needle_threading": 1}
 
 

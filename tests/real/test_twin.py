@@ -27,11 +27,12 @@ T = 100
 # quaternion (a transient tilt when the pusher hits), positions within 4.8 mm. The push gap does not
 # change with the real engine's iteration count (6 or 50): it is float32 against float64 contact.
 # The arm tasks (the same sine actions as end-effector commands, through the controller both
-# engines run): peg 2.2e-6, needle 1.1e-6 (the arm alone: no contact is made), spatula 3.3e-4, all
-# of it the pancake's height settling on the table (float32 against float64 contact).
+# engines run): peg 2.2e-6, needle 1.1e-6 (the arm alone: no contact is made), spatula 2.8e-6 (the
+# capsule pancake rests on the table alike in both engines; the ellipsoid one's height settled
+# differently, 3.3e-4).
 ZERO_PERTURBATION_TOL = {"pendulum_swingup": 1e-4, "cartpole_balance": 1e-4,
                          "cartpole_swingup": 1e-4, "push": 6e-2, "peg_insertion": 1e-4,
-                         "spatula_flipping": 2e-3, "needle_threading": 1e-4}
+                         "spatula_flipping": 1e-4, "needle_threading": 1e-4}
 PUSH_POSITION_TOL = 1e-2  # m: pusher x, y and box x, y, z (qpos[:5])
 
 def _actions(n, nu, seed):
