@@ -4,10 +4,11 @@ rail and turn it upside down (SAM-RL, Lv et al. 2023, Sec. 5.2).
 Scene ``spatula_flipping.xml``: a spatula (a flat blade 90 x 80 mm, 3 mm thick, on a handle
 pointing forward and down at 70 degrees) at the flange; a pancake (a flat cake 70 x 70 mm, 12 mm
 thick, 80 g, rounded along its near and far rims, a dark mark on its top) on the table against a
-rail (three studs 10 mm high) drawn at x in [0.66, 0.72] m, y in [-0.08, 0.08] m; the pancake lies 1-4 mm in
-front of the rail, up to 2 cm off its centre. The blade's edge starts 12-18 cm short of the
-pancake, 2-5 cm above the table. Control (``CartesianController``): displacement of the blade's
-leading edge, 3-D, at most 2 cm per 0.04 s step; the spatula is held at its nominal angle.
+rail (three studs 10 mm high) drawn at x in [0.66, 0.72] m, y in [-0.08, 0.08] m; the pancake
+lies 1-4 mm in front of the rail, up to 2 cm off its centre. The blade's edge starts 12-18 cm
+short of the pancake, 2-5 cm above the table. Control (``CartesianController``): displacement of
+the blade's leading edge, 3-D, at most 2 cm per 0.04 s step; the spatula is held at its nominal
+angle.
 
 Mechanism: the blade's edge wedges under the pancake's round near rim; lifting it turns the
 pancake about its far rim, which the rail holds; past vertical it falls over, onto the rail and
@@ -188,7 +189,7 @@ class SpatulaFlipping(ArmTask):
         o = np.asarray(obs, np.float64)
         under, up = o[28:31], o[20:23]      # the point under the pancake minus the blade's edge
         rim = under - np.array([0.01 + PANCAKE_RADIUS + 0.01, 0.0, 0.0])
-        turn = 0.5 * np.pi - np.arctan2(up[2], up[0])
+        turn = float(self.turn(up))
         step = self.controller.max_step
         if turn > self.config.expert_release:  # past vertical: hold still, it falls over
             a = np.zeros(3)
