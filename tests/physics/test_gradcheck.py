@@ -67,3 +67,29 @@ def test_user_mjcf_gets_tangent_space_orientations_and_coverage_per_group(x64, t
         gradcheck(sim, horizon=5, scenario="push")
     with pytest.raises(ValueError, match="rtol must be > 0"):
         gradcheck(sim, horizon=5, rtol=0)
+
+
+def test_gravity_cancelled_by_gravcomp_is_numerically_inert_and_entries_subset(x64, tmp_path):
+    # A gravity-compensated 2-link arm driven by motors: gravity reaches the loss only through
+    # rounding (~1e-18), so it is inert, not unjudged; damping acts and is judged. `entries`
+    # differences a seeded subset per group and says so.
+    path = tmp_path / "arm.xml"
+    path.write_text(
+        '<mujoco><option timestep="0.01"/><worldbody>'
+        '<body gravcomp="1"><joint name="a" type="hinge" axis="0 1 0" damping="0.5"/>'
+        '<geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>'
+        '<body pos="0.3 0 0" gravcomp="1"><joint name="b" type="hinge" axis="0 1 0" '
+        'damping="0.5"/><geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>'
+        '</body></body></worldbody><actuator><motor joint="a"/><motor joint="b"/></actuator>'
+        '</mujoco>')
+    with jax.enable_x64(True):
+        sim = Sim.load(path)
+        r = gradcheck(sim, horizon=20, entries=3)
+    groups = {g["group"]: g for g in r.groups}
+    assert r.passed and r.max_rel_error <= 1e-4
+    grav = groups["params.gravity"]
+    assert grav["inert"] and grav["resolved"] == 0 and grav["max_abs_grad"] < 1e-12
+    assert groups["params.damping"]["resolved"] >= 1
+    assert groups["actions"]["entries"] == 3 and groups["actions"]["entries_total"] == 40
+    assert groups["params.gravity"]["entries"] == 4  # its 3, all of them, and its scaling
+    assert "params.gravity" not in r.unjudged
