@@ -469,11 +469,28 @@ class ArmTask(Env):
         another to touch its object (the needle's expert threads the eye without touching it)."""
         return self.scripted_action(obs)
 
+    def _tool_touches(self, qpos) -> bool:
+        """Whether a geom of the ``tool`` body penetrates another geom at ``qpos`` (MuJoCo C)."""
+        import mujoco
+
+        m = self.sim.mj_model
+        d = mujoco.MjData(m)
+        d.qpos[:] = np.asarray(qpos, np.float64)
+        mujoco.mj_forward(m, d)
+        tool = m.body("tool").id
+        c = d.contact  # the d.ncon contacts
+        return bool(np.any((c.dist <= 0) & ((m.geom_bodyid[c.geom1] == tool)
+                                             | (m.geom_bodyid[c.geom2] == tool))))
+
     def gradcheck_scenario(self, horizon: int = 30, seed: int = 0, lead: int = 5):
         """A ``twinrl.physics.scenes.Scenario`` of this task's scene through tool-object contact:
         the episode of ``gradcheck_action`` (the scripted expert) from ``reset(PRNGKey(seed))``, as
         the joint targets its controller sent (the actuators' ``ctrl``), in a window of ``horizon``
-        control steps that starts ``lead`` steps before the first constrained step. ``twinrl
+        control steps that starts ``lead`` steps before the first tool contact (a geom of the
+        ``tool`` body touching another: an object resting on the table from the start does not
+        count). The expert runs
+        on past the episode's end where the window needs it, so the window holds ``horizon -
+        lead`` steps from the first contact on even when that contact comes late. ``twinrl
         gradcheck TASK`` checks the physics' gradients on it; the controller's own derivative is
         checked with the task's return (``tests/envs``)."""
         from twinrl.physics.scenes import Scenario
@@ -484,7 +501,7 @@ class ArmTask(Env):
         step, control = jax.jit(self.step), jax.jit(self.control)
         s = jax.jit(self.reset)(jax.random.PRNGKey(seed))
         qs, vs, ctrls = [], [], []
-        for _ in range(self.episode_length):
+        for _ in range(self.episode_length + int(horizon)):
             q, v = s.pipeline_state.qpos, s.pipeline_state.qvel
             a = jnp.asarray(self.gradcheck_action(np.asarray(s.obs)), q.dtype)
             qs.append(np.asarray(q))
@@ -492,9 +509,8 @@ class ArmTask(Env):
             ctrls.append(np.asarray(control(q, v, a)))
             s = step(s, a)
         ctrls = np.stack(ctrls)
-        _, traj = jax.jit(self.sim.rollout)(self.sim.init(qs[0], vs[0]), jnp.asarray(ctrls))
-        active = np.flatnonzero(np.asarray(traj.n_active) > 0)
-        first = int(active[0]) if active.size else 0
-        start = int(np.clip(first - lead, 0, len(ctrls) - int(horizon)))
+        touching = [self._tool_touches(q) for q in qs]
+        first = touching.index(True) if any(touching) else 0
+        start = int(np.clip(first - lead, 0, self.episode_length))
         return Scenario(qpos=qs[start], qvel=vs[start], actions=ctrls[start:start + int(horizon)],
                         horizon=int(horizon))
