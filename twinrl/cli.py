@@ -143,7 +143,8 @@ def _cmd_gradcheck(args) -> int:
             ["input", "n", "resolved", "noise-lim", "kinks", "max |grad|", "max rel err",
              "max abs err", "fail", "judged"],
             [[g["group"], g["entries"] if g["entries"] == g["entries_total"]
-              else f'{g["entries"]} of {g["entries_total"]}', g["resolved"], g["noise_limited"], g["kinks"],
+              else f'{g["entries"]} of {g["entries_total"]}', g["resolved"],
+              g["noise_limited"], g["kinks"],
               g["max_abs_grad"], g["max_rel_err"], g["max_abs_err"], g["failures"],
               "yes" if g["resolved"] else ("inert" if g["inert"] else "NO")]
              for g in r.groups])
@@ -619,6 +620,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from twinrl import _jaxconfig
     from twinrl.learn.checkpoint import CheckpointError
+    from twinrl.learn.imitation import DemonstrationError
     from twinrl.learn.runner import RunError
     from twinrl.physics import MJCFError, PhysParamsError
     from twinrl.real.dataset import DatasetError
@@ -628,7 +630,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (UsageError, MJCFError, PhysParamsError, DatasetError, FileNotFoundError, RunError,
-            CheckpointError) as e:
+            CheckpointError, DemonstrationError) as e:
         print(f"twinrl {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

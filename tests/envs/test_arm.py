@@ -152,6 +152,30 @@ def test_image_gradient_reaches_the_camera_pose(made):
     assert np.all(np.isfinite(g)) and np.abs(np.asarray(g)).min() > 0, g
 
 
+def test_image_actor_sees_proprioception_and_the_mount_image_with_its_target_mask(made):
+    # twinrl.learn.imitation's pixel observation: joint angles and velocities, and RGB, depth and
+    # the target's mask from the mount; the fixture shows at the default pose, and an image
+    # policy (CNN encoder) maps it to an action in [-1, 1].
+    from twinrl.learn import imitation
+    from twinrl.learn.networks import NetworkConfig, make_network
+
+    env = made["peg_insertion"]
+    cfg = imitation.ImitationConfig(observation="pixels", image_size=32)
+    observe, spec = imitation.make_observer(env, cfg)
+    state = env.reset(jax.random.PRNGKey(0))
+    obs = jax.jit(observe)(state, jnp.asarray(env.mount.default, jnp.float32))
+    assert spec == {"state": (14,), "pixels/mount": (32, 32, 5)}
+    assert obs["pixels/mount"].shape == (32, 32, 5)
+    np.testing.assert_array_equal(obs["state"], state.obs[:14])
+    mask = np.asarray(obs["pixels/mount"][..., 4])
+    assert set(np.unique(mask)) <= {0.0, 1.0} and mask.sum() >= 10, mask.sum()
+    depth = np.asarray(obs["pixels/mount"][..., 3])
+    assert np.all(depth[mask > 0] > 0.2) and np.all(depth[mask > 0] < 3.0)
+    net = make_network(spec, env.action_size, NetworkConfig(hidden=(16,), output="tanh"))
+    a = net.apply(net.init(jax.random.PRNGKey(1)), obs)
+    assert a.shape == (env.action_size,) and np.all(np.abs(np.asarray(a)) <= 1)
+
+
 def test_hand_eye_offset_moves_the_real_camera_and_camera_moves_are_counted():
     p = Perturbation(camera_pos_offset=(0.01, -0.02, 0.0), camera_rot_offset=(0.0, 0.03, 0.0))
     twin = RealTwin("peg_insertion", perturbation=p, width=64, height=64)

@@ -56,6 +56,7 @@ ALGORITHMS: dict[str, Algorithm] = {
     "shac": Algorithm("twinrl.learn.shac", "train", "SHACConfig", {}, True),
     "ppo": Algorithm("twinrl.learn.baselines", "ppo_train", "PPOConfig", {}, False),
     "apg": Algorithm("twinrl.learn.baselines", "apg_train", "APGConfig", {}, False),
+    "imitation": Algorithm("twinrl.learn.imitation", "train", "ImitationConfig", {}, False),
 }
 
 
@@ -176,7 +177,8 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
         if resume and ckpt.latest_epoch() is not None:
             restore = ckpt.restore
     elif resume:
-        raise RunError(f"{algo} (a Brax trainer) cannot resume; run it again without --resume")
+        raise RunError(f"{algo} (a trainer without saved state) cannot resume; run it again "
+                       f"without --resume")
     report.write_json(run_file, run_doc)
 
     writer = report.MetricsWriter(out)

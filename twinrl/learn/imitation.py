@@ -1,0 +1,298 @@
+"""An actor that imitates trajectory optimisation: behaviour cloning with DAgger (SAM-RL's actor).
+
+SAM-RL (Lv et al., RSS 2023, Sec. 4.2) learns its actor by imitating the trajectories that the
+differentiable simulator optimised. Plain behaviour cloning on those demonstrations drifts: the
+actor's small errors take it to states no demonstration visited, where it has never been told what
+to do (Ross, Gordon & Bagnell, "A reduction of imitation learning ... to no-regret online
+learning", AISTATS 2011). The simulator is ours, so the expert can be asked there: **DAgger**.
+Each round runs the actor from fresh start states, and every ``relabel_every``-th state it visits
+is labelled by trajectory optimisation from that very state (``twinrl.learn.trajopt``, first
+order with a line search, warm-started from the actor's own remaining actions, so the label is
+the actor's plan improved by the simulator's gradient); the labels join the data set and the actor
+is refitted on all of it.
+
+Demonstrations are ``(keys, actions)``: the reset keys of the start states and the optimised action
+sequences (``bench/manipulation.py`` writes them, with a ``success`` flag per plan, to
+``<task>_plans.npz``; ``load_demonstrations`` keeps the successful ones). The states are
+re-simulated here, so a demonstration file holds no state and no image.
+
+Observations (``ImitationConfig.observation``):
+
+- ``"state"``: the task's privileged observation vector;
+- ``"pixels"``: what the robot would have -- ``{"state": joint angles and velocities,
+  "pixels/mount": 64 x 64 image}`` (RGB, depth in metres, the task's target mask: 5 channels) from
+  the camera mount at a pose drawn per episode uniformly over the mount's workspace
+  (``camera="random"``) or at its default pose (``camera="default"``); rendered by
+  ``twinrl.render`` (arm tasks: ``ArmTask.render``).
+
+``train`` follows the trainers' contract, ``(policy, params, metrics)``; the metrics say per round
+the data set's size, the fit's loss and the actor's success rate and return on ``eval_episodes``
+fresh start states.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twinrl.learn import trajopt
+from twinrl.learn.common import JSONConfig, MetricLog, make_optimizer, raw_key
+from twinrl.learn.networks import NetworkConfig, make_network
+
+__all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
+           "demonstration_data", "make_observer", "relabel", "train"]
+
+PROPRIO = 14
+"""Entries of an arm task's observation a robot measures itself: 7 joint angles, 7 velocities."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ImitationConfig(JSONConfig):
+    demonstrations: str = ""
+    """Path of a ``<task>_plans.npz`` (``twinrl train --algo imitation --set
+    demonstrations=PATH``); ``train``'s ``demos`` argument takes precedence."""
+    observation: str = "state"
+    """``"state"`` (privileged vector) or ``"pixels"`` (proprioception + mount image)."""
+    camera: str = "random"
+    """Pixels: the mount pose per episode, ``"random"`` over its workspace or ``"default"``."""
+    image_size: int = 64
+    hidden: tuple[int, ...] = (256, 256)
+    learning_rate: float = 1e-3
+    max_grad_norm: float | None = 1.0
+    fit_steps: int = 2000
+    """Adam steps per fit (minibatches of ``batch_size``), after the demonstrations and after
+    every DAgger round."""
+    batch_size: int = 256
+    dagger_rounds: int = 2
+    dagger_episodes: int = 10
+    """Actor episodes per DAgger round, from fresh start states."""
+    relabel_every: int = 5
+    """Label one in this many of the states the actor visits (trajopt per label is the cost)."""
+    relabel_iterations: int = 10
+    step_size: float = 0.5
+    """Trajopt's largest first-order step when labelling (``TrajoptConfig.step_size``)."""
+    eval_episodes: int = 50
+
+    def __post_init__(self):
+        if self.observation not in ("state", "pixels"):
+            raise ValueError(f"observation must be 'state' or 'pixels', got {self.observation!r}")
+        if self.camera not in ("random", "default"):
+            raise ValueError(f"camera must be 'random' or 'default', got {self.camera!r}")
+        for name in ("fit_steps", "batch_size", "relabel_every", "relabel_iterations",
+                     "eval_episodes", "image_size"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if int(self.dagger_rounds) < 0 or int(self.dagger_episodes) < 1:
+            raise ValueError("dagger_rounds must be >= 0 and dagger_episodes >= 1, got "
+                             f"{self.dagger_rounds} and {self.dagger_episodes}")
+
+
+class DemonstrationError(ValueError):
+    """Missing, malformed or mismatched demonstrations (the CLI prints it as one line)."""
+
+
+class Demonstrations(NamedTuple):
+    keys: np.ndarray
+    """(N, 2) uint32 reset keys of the start states."""
+    actions: np.ndarray
+    """(N, T, m) the optimised action sequences."""
+
+
+def load_demonstrations(path: str | Path, successful_only: bool = True) -> Demonstrations:
+    """Demonstrations from a ``<task>_plans.npz`` (``bench/manipulation.py``): ``keys``,
+    ``actions`` and ``success``; only the successful plans unless ``successful_only=False``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no demonstration file {path}")
+    with np.load(path) as z:
+        missing = {"keys", "actions"} - set(z.files)
+        if missing:
+            raise DemonstrationError(f"{path} is not a demonstration file: no {sorted(missing)}")
+        keys, actions = np.asarray(z["keys"]), np.asarray(z["actions"], np.float32)
+        keep = (np.asarray(z["success"]) > 0 if successful_only and "success" in z.files
+                else np.ones(len(keys), bool))
+    if not keep.any():
+        raise DemonstrationError(f"{path} holds no successful demonstration")
+    return Demonstrations(keys[keep], actions[keep])
+
+
+def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
+    """``(observe(state, coords) -> observation, obs_spec)`` for ``config.observation``."""
+    if config.observation == "state":
+        return (lambda s, coords: s.obs), int(env.observation_size)
+    if not hasattr(env, "render") or not hasattr(env, "mount"):
+        raise ValueError(f"observation='pixels' needs a task with a camera mount; "
+                         f"{env.name} has none")
+    ids = jnp.asarray([env.sim.mj_model.geom(g).id for g in env.target_geoms])
+    n = int(config.image_size)
+
+    def observe(s, coords):
+        img = env.render(s, coords, size=n)
+        mask = jnp.isin(img.segmentation, ids).astype(jnp.float32)
+        pixels = jnp.concatenate([img.rgb, img.depth[..., None], mask[..., None]], axis=-1)
+        return {"state": s.obs[:PROPRIO], "pixels/mount": pixels}
+
+    return observe, {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}
+
+
+def _coords(env, config: ImitationConfig, key):
+    """The mount pose of an episode (pixels), or a dummy (state)."""
+    if config.observation == "state":
+        return jnp.zeros(3)
+    if config.camera == "default":
+        return jnp.asarray(env.mount.default, jnp.float32)
+    return jax.random.normal(key, (3,)) * 1.5  # unconstrained coords: spread over the workspace
+
+
+def _episode(env, observe, act, key, actions=None, coords=None):
+    """One episode from ``reset(key)``: by ``actions`` (T, m) if given, else by ``act(obs)``.
+    Returns the observations before each step, the states (for labelling), the actions sent,
+    the return and the final success."""
+
+    def body(s, a):
+        obs = observe(s, coords)
+        a = act(obs) if a is None else a
+        s2 = env.step(s, a)
+        return s2, (obs, s, a, s2.reward)
+
+    s0 = env.reset(key)
+    xs = actions if actions is not None else None
+    final, (obs, states, sent, rewards) = jax.lax.scan(
+        body, s0, xs, length=None if xs is not None else env.episode_length)
+    q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
+    success = env.success(q, v) if hasattr(env, "success") else jnp.zeros(())
+    return obs, states, sent, rewards.sum(), success
+
+
+def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng):
+    """The demonstrations' (observation, action) pairs, re-simulated (and rendered)."""
+    observe, _ = make_observer(env, config)
+    cams = jax.vmap(lambda k: _coords(env, config, k))(jax.random.split(rng, len(demos.keys)))
+    run = jax.jit(jax.vmap(lambda k, a, c: _episode(env, observe, None, k, a, c)[:3]))
+    obs, _, acts = run(jnp.asarray(demos.keys), jnp.asarray(demos.actions), cams)
+    flat = lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:])  # noqa: E731
+    return jax.tree_util.tree_map(flat, obs), flat(acts)
+
+
+def relabel(env, states, warm: jax.Array, config: ImitationConfig) -> jax.Array:
+    """The expert's action at each of ``states`` (a batched ``State``): trajopt from the state,
+    ``relabel_iterations`` first-order steps from the warm start ``warm`` (B, T, m); returns the
+    first action of each improved plan (B, m)."""
+    cfg = trajopt.TrajoptConfig(order=1, step_size=config.step_size, line_search_steps=6)
+
+    def one(s, a0):
+        a, _ = trajopt.optimize(*trajopt.env_problem(env, s), a0, cfg, config.relabel_iterations)
+        return a[0]
+
+    return jax.vmap(one)(states, warm)
+
+
+def _fit_fn(net, tx, steps: int, batch: int):
+    """A jitted ``fit(params, opt, obs, acts, n, key)``: ``steps`` Adam steps on minibatches
+    drawn from the first ``n`` rows of the (preallocated) data set."""
+
+    def loss(p, o, a):
+        return jnp.mean(jnp.sum(jnp.square(net.apply(p, o) - a), axis=-1))
+
+    def fit(params, opt, obs, acts, n, key):
+        def body(carry, k):
+            p, s = carry
+            idx = jax.random.randint(k, (batch,), 0, n)
+            o = jax.tree_util.tree_map(lambda x: x[idx], obs)
+            value, g = jax.value_and_grad(loss)(p, o, acts[idx])
+            u, s = tx.update(g, s, p)
+            return (jax.tree_util.tree_map(jnp.add, p, u), s), value
+
+        (params, opt), losses = jax.lax.scan(body, (params, opt), jax.random.split(key, steps))
+        return params, opt, jnp.mean(losses[-max(1, steps // 10):])
+
+    return jax.jit(fit)
+
+
+def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int = 0, *,
+          demos: Demonstrations | None = None,
+          progress_fn: Callable[[int, dict], None] | None = None, checkpoint_fn=None,
+          restore=None):
+    """Behaviour cloning on ``demos`` (default: ``config.demonstrations``), then
+    ``dagger_rounds`` DAgger rounds (module docstring). Not resumable: a round is minutes.
+
+    Returns ``(policy, params, metrics)``: the actor ``Network`` (tanh output, actions in
+    [-1, 1]), its parameters, and per round (``epoch``) ``pairs`` (data set size), ``loss``
+    (the fit's mean squared action error), ``success`` and ``return`` of the actor on
+    ``eval_episodes`` fresh start states, ``labels`` (expert labels added that round), ``wall_s``.
+    """
+    c = config
+    if restore is not None:
+        raise ValueError("imitation cannot resume; run it again without --resume")
+    if demos is None:
+        if not c.demonstrations:
+            raise DemonstrationError("imitation needs demonstrations: --set demonstrations=PATH (a "
+                             "<task>_plans.npz from bench/manipulation.py)")
+        demos = load_demonstrations(c.demonstrations)
+    if demos.actions.shape[1:] != (env.episode_length, env.action_size):
+        raise DemonstrationError(f"demonstrations have shape {demos.actions.shape[1:]} per plan; "
+                         f"{env.name} needs ({env.episode_length}, {env.action_size})")
+    key = raw_key(rng)
+    k_init, k_demo, k_eval, key = jax.random.split(key, 4)
+    observe, spec = make_observer(env, c)
+    net = make_network(spec, env.action_size,
+                       NetworkConfig(hidden=tuple(c.hidden), activation="elu", output="tanh"))
+    params = net.init(k_init)
+    tx = make_optimizer(c.learning_rate, c.max_grad_norm)
+    opt = tx.init(params)
+    obs, acts = demonstration_data(env, demos, c, k_demo)
+
+    T = env.episode_length
+    picks = np.arange(0, T, int(c.relabel_every))
+    per_round = int(c.dagger_episodes) * picks.size
+    capacity = acts.shape[0] + int(c.dagger_rounds) * per_round
+    grow = lambda x: jnp.concatenate(  # noqa: E731
+        [x, jnp.zeros((capacity - x.shape[0],) + x.shape[1:], x.dtype)])
+    obs, acts, n = jax.tree_util.tree_map(grow, obs), grow(acts), acts.shape[0]
+    fit = _fit_fn(net, tx, int(c.fit_steps), int(c.batch_size))
+
+    def actor_episode(p, k):
+        k_cam, k_reset = jax.random.split(k)
+        return _episode(env, observe, lambda o: net.apply(p, o), k_reset,
+                        coords=_coords(env, c, k_cam))
+
+    @jax.jit
+    def evaluate(p, k):
+        _, _, _, ret, ok = jax.vmap(actor_episode, in_axes=(None, 0))(
+            p, jax.random.split(k, c.eval_episodes))
+        return jnp.mean(ret), jnp.mean(ok)
+
+    @jax.jit
+    def visit_and_label(p, k):
+        o, s, sent, _, _ = jax.vmap(actor_episode, in_axes=(None, 0))(
+            p, jax.random.split(k, c.dagger_episodes))
+        sel = lambda x: x[:, picks].reshape((x.shape[0] * picks.size,) + x.shape[2:])  # noqa
+        steps = jnp.arange(T)
+        # warm start at step t: the actor's own actions from t on, zeros past the episode
+        warm = jax.vmap(lambda a: jax.vmap(lambda t: jnp.where(
+            (steps < T - t)[:, None], jnp.roll(a, -t, axis=0), 0.0))(jnp.asarray(picks)))(sent)
+        states = jax.tree_util.tree_map(sel, s)
+        labels = relabel(env, states, warm.reshape((states.reward.shape[0], T, sent.shape[-1])), c)
+        return jax.tree_util.tree_map(sel, o), labels
+
+    log = MetricLog()
+    for r in range(int(c.dagger_rounds) + 1):
+        key, k_fit, k_visit = jax.random.split(key, 3)
+        params, opt, loss = fit(params, opt, obs, acts, n, k_fit)
+        ret, ok = evaluate(params, k_eval)  # the same fresh states every round
+        added = 0
+        if r < int(c.dagger_rounds):
+            new_obs, labels = visit_and_label(params, k_visit)
+            put = lambda buf, x: jax.lax.dynamic_update_slice_in_dim(buf, x, n, 0)  # noqa: E731
+            obs = jax.tree_util.tree_map(put, obs, new_obs)
+            acts, n, added = put(acts, labels), n + per_round, per_round
+        row = log.record(epoch=r, pairs=n - added, loss=loss, success=ok, **{"return": ret},
+                         labels=added)
+        if progress_fn is not None:
+            progress_fn(r, row)
+    return net, params, log.as_dict()
