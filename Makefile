@@ -31,10 +31,11 @@ gradcheck: $(STAMP)
 # Two workers, one test file per worker: JAX compiles (most of the suite's time) are largely
 # single-threaded, so a second process keeps the second core busy.
 # Tests: XLA's LLVM backend at optimisation level 0 compiles about twice as fast (measured on
-# tests/learn/test_trajopt.py, cold cache: 363 s -> 200 s) and the suite is compile-bound. XLA's
-# legacy CPU fusion emitter (fusion emitters off) halves it again: the float64 value_and_grad of a
-# 30-step push rollout compiles in 15 s instead of 28-35 s and runs no slower. Suite only: the
-# renderer runs slower with it (64x64 forward+gradient, one core: 86 -> 30 frames/s).
+# tests/learn/test_trajopt.py, cold cache: 363 s -> 200 s) and the suite is compile-bound. Suite
+# only: code compiled so runs slower (the renderer's 64x64 forward+gradient, one core, with both
+# flags below: 86 -> 30 frames/s). Fusion emitters off is twinrl's default anyway (set on import,
+# twinrl/_jaxconfig.py: with them on, MJX's kinematics inside a rollout's scan takes time
+# exponential in the arm's depth; bench/xla_cpu.py); it also halves compile times.
 TEST_XLA_FLAGS := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false
 test: $(STAMP)
 	XLA_FLAGS="$(XLA_FLAGS) $(TEST_XLA_FLAGS)" $(PY) -m pytest -n 2 --dist loadfile

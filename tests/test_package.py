@@ -20,3 +20,31 @@ def test_subpackages_are_attributes_imported_on_first_use():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr[-3000:]
+
+
+def _flags_after_import(pre: str = "", **env_vars) -> subprocess.CompletedProcess:
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "TWINRL_XLA_FLAGS")}
+    env.update(env_vars, TWINRL_CACHE_DIR="off")
+    code = (pre + "import os, twinrl, jax, jax.numpy as jnp\n"
+            "jnp.ones(1).block_until_ready()\n"
+            "print(os.environ.get('XLA_FLAGS', ''))\n")
+    return subprocess.run([sys.executable, "-W", "always", "-c", code], capture_output=True,
+                          text=True, env=env, timeout=120)
+
+
+def test_import_turns_xla_cpu_fusion_emitters_off_unless_the_user_chose():
+    # MJX's kinematics runs ~100x slower on deep chains with them on (twinrl._jaxconfig)
+    out = _flags_after_import(XLA_FLAGS="--xla_cpu_multi_thread_eigen=true")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["--xla_cpu_multi_thread_eigen=true",
+                                  "--xla_cpu_use_fusion_emitters=false"]
+    kept = _flags_after_import(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true")
+    assert kept.stdout.split() == ["--xla_cpu_use_fusion_emitters=true"]
+    off = _flags_after_import(TWINRL_XLA_FLAGS="off")
+    assert off.stdout.strip() == ""
+    late = _flags_after_import(pre="import jax.numpy as jnp; jnp.zeros(1).block_until_ready()\n")
+    assert late.stdout.strip() == ""  # too late to change: said once, in one line
+    said = [ln for ln in late.stderr.splitlines() if "fusion emitters stay on" in ln]
+    assert len(said) == 1 and "import twinrl first" in said[0]

@@ -9,6 +9,7 @@ import importlib
 
 from twinrl import _jaxconfig
 
+_jaxconfig.set_cpu_flags()
 _jaxconfig.enable_compilation_cache()
 _jaxconfig.import_mjx_quietly()
 

@@ -13,6 +13,16 @@ entries were compiled on this machine): dozens of lines per command. Unless
 ``TF_CPP_MIN_LOG_LEVEL`` is set, it is set to 3 (fatal only) here, before JAX is first imported,
 so child processes inherit it too; a process that imported JAX before twinrl keeps its own
 setting. ``set_verbose()`` (``twinrl --verbose``) shows warnings and errors again.
+
+XLA's CPU fusion emitters (on by default in the pinned jaxlib) compile MJX's kinematics, a chain of
+per-body transforms, into code whose run time grows exponentially with the kinematic tree's depth:
+``smooth.kinematics`` of a 9-link chain of hinges with rotated frames takes 1.1 s per call with
+them and 0.43 ms without; a physics step of the Panda tasks 16 ms against 0.08-0.14 ms (peg,
+spatula; measured on 2 cores, ``bench/xla_cpu.py``). ``set_cpu_flags()`` therefore adds
+``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` on import, unless the user's ``XLA_FLAGS``
+already sets that flag or ``TWINRL_XLA_FLAGS=off``. XLA reads the variable when JAX starts its
+first backend, so a process that ran JAX computations before importing twinrl keeps its own
+setting and is told so once.
 """
 
 from __future__ import annotations
@@ -27,6 +37,30 @@ if "jax" not in sys.modules:
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 import jax  # noqa: E402
+
+CPU_FLAGS = "--xla_cpu_use_fusion_emitters=false"
+"""What ``set_cpu_flags`` adds to ``XLA_FLAGS`` (module docstring)."""
+
+
+def set_cpu_flags() -> bool:
+    """Add ``CPU_FLAGS`` to ``XLA_FLAGS`` unless the user chose (module docstring); returns
+    whether they are in effect for this process."""
+    import warnings
+
+    from jax._src import xla_bridge
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_use_fusion_emitters" in flags:
+        return "xla_cpu_use_fusion_emitters=false" in flags
+    if os.environ.get("TWINRL_XLA_FLAGS", "").strip().lower() in ("0", "off", "false", "no"):
+        return False
+    if xla_bridge.backends_are_initialized():
+        warnings.warn("twinrl: JAX started before twinrl was imported, so XLA's CPU fusion "
+                      "emitters stay on and MJX runs the arm tasks ~100x slower on CPU; import "
+                      f"twinrl first or set XLA_FLAGS={CPU_FLAGS}", stacklevel=3)
+        return False
+    os.environ["XLA_FLAGS"] = f"{flags} {CPU_FLAGS}".strip()
+    return True
 
 
 def set_verbose() -> None:
