@@ -70,6 +70,10 @@ def _gradcheck_parser(sub) -> None:
     p.add_argument("--strict", action="store_true",
                    help="also exit 1 when an input group has no resolved entry (nothing judged "
                         "through it) and is not inert")
+    p.add_argument("--step", type=float, default=None, metavar="H",
+                   help="finite-difference step, relative to max(1, |x|) (default 1e-6 with "
+                        "--x64, else 1e-3); a larger one resolves smaller gradients (rounding "
+                        "noise ~ eps |L| / H) at the risk of more kinks in the window")
     p.add_argument("--entries", type=int, default=None, metavar="K",
                    help="difference at most K entries per input group (a seeded random subset; "
                         "each costs 4 rollouts): a large model's check at a fraction of the cost")
@@ -108,7 +112,9 @@ def _cmd_gradcheck(args) -> int:
         raise UsageError(f"--iterations must be >= 1, got {args.iterations}")
     if args.entries is not None and args.entries < 1:
         raise UsageError(f"--entries must be >= 1, got {args.entries}")
-    h = 1e-6 if args.x64 else 1e-3
+    h = args.step if args.step is not None else (1e-6 if args.x64 else 1e-3)
+    if not h > 0:
+        raise UsageError(f"--step must be > 0, got {args.step}")
     # fail fast on bad input
     sims, scenarios = [], {}
     for t in targets:

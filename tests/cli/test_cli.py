@@ -87,6 +87,7 @@ def test_the_runtime_log_is_hidden_by_default_and_shown_with_verbose(tmp_path):
     (["gradcheck", "/no/such/robot.xml"], "MJCF file not found: /no/such/robot.xml"),
     (["gradcheck", "nosuchscene"], "unknown scene 'nosuchscene'"),
     (["gradcheck", "pendulum", "--entries", "0"], "--entries must be >= 1, got 0"),
+    (["gradcheck", "pendulum", "--step", "-1"], "--step must be > 0, got -1.0"),
     (["collect", "--env", "nosuchtask", "--episodes", "1"], "unknown task 'nosuchtask'"),
     (["collect", "--env", "pendulum_swingup", "--episodes", "0"], "--episodes must be >= 1"),
     (["sysid", "--env", "cartpole_swingup", "--from", "/no/such/data"],
