@@ -16,11 +16,11 @@ setting. ``set_verbose()`` (``twinrl --verbose``) shows warnings and errors agai
 
 XLA's CPU fusion emitters (on by default in the pinned jaxlib) compile MJX's kinematics, a chain of
 per-body transforms, into code whose run time grows exponentially with the kinematic tree's depth:
-``smooth.kinematics`` of a 9-link chain of hinges with rotated frames takes 1.1 s per call with
-them and 0.43 ms without; a physics step of the Panda tasks 16 ms against 0.08-0.14 ms (peg,
-spatula; measured on 2 cores, ``bench/xla_cpu.py``). ``set_cpu_flags()`` therefore adds
-``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` on import, unless the user's ``XLA_FLAGS``
-already sets that flag or ``TWINRL_XLA_FLAGS=off``. XLA reads the variable when JAX starts its
+``smooth.kinematics`` of a 9-link chain of hinges with rotated frames takes 1,068 ms per call
+with them and 0.59 ms without; inside an episode's scan, a physics step of the Panda tasks
+15.6-16.6 ms against 0.07-0.15 ms (measured on 2 cores, ``bench/xla_cpu.py``).
+``set_cpu_flags()`` therefore adds ``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` on
+import, unless the user's ``XLA_FLAGS`` already sets that flag or ``TWINRL_XLA_FLAGS=off``. XLA reads the variable when JAX starts its
 first backend, so a process that ran JAX computations before importing twinrl keeps its own
 setting and is told so once.
 """

@@ -39,9 +39,11 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from twinrl.learn import trajopt
-from twinrl.learn.common import JSONConfig, MetricLog, make_optimizer, raw_key
+from twinrl.learn.common import (JSONConfig, MetricLog, make_optimizer, raw_key,
+                                 regression_loss)
 from twinrl.learn.networks import NetworkConfig, make_network
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
@@ -160,10 +162,8 @@ def _episode(env, observe, act, key, actions=None, coords=None):
         s2 = env.step(s, a)
         return s2, (obs, s, a, s2.reward)
 
-    s0 = env.reset(key)
-    xs = actions if actions is not None else None
-    final, (obs, states, sent, rewards) = jax.lax.scan(
-        body, s0, xs, length=None if xs is not None else env.episode_length)
+    final, (obs, states, sent, rewards) = jax.lax.scan(body, env.reset(key), actions,
+                                                       length=env.episode_length)
     q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
     success = env.success(q, v) if hasattr(env, "success") else jnp.zeros(())
     return obs, states, sent, rewards.sum(), success
@@ -196,17 +196,17 @@ def _fit_fn(net, tx, steps: int, batch: int):
     """A jitted ``fit(params, opt, obs, acts, n, key)``: ``steps`` Adam steps on minibatches
     drawn from the first ``n`` rows of the (preallocated) data set."""
 
-    def loss(p, o, a):
-        return jnp.mean(jnp.sum(jnp.square(net.apply(p, o) - a), axis=-1))
+    ones = jnp.ones((batch,))
 
     def fit(params, opt, obs, acts, n, key):
         def body(carry, k):
             p, s = carry
             idx = jax.random.randint(k, (batch,), 0, n)
             o = jax.tree_util.tree_map(lambda x: x[idx], obs)
-            value, g = jax.value_and_grad(loss)(p, o, acts[idx])
+            value, g = jax.value_and_grad(regression_loss, argnums=1)(net.apply, p, o,
+                                                                      acts[idx], ones)
             u, s = tx.update(g, s, p)
-            return (jax.tree_util.tree_map(jnp.add, p, u), s), value
+            return (optax.apply_updates(p, u), s), value
 
         (params, opt), losses = jax.lax.scan(body, (params, opt), jax.random.split(key, steps))
         return params, opt, jnp.mean(losses[-max(1, steps // 10):])

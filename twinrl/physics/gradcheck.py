@@ -320,9 +320,8 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     n = chosen.size
     D = jnp.asarray(np.array([d for _, d in dirs]).reshape(len(dirs), x0np.size), dtype)
     k = len(dirs)
-    steps_all = h * jnp.maximum(1.0, jnp.abs(x0))
-    steps = steps_all[chosen]
-    eye = jnp.eye(x0np.size, dtype=dtype)[chosen]
+    steps = (h * jnp.maximum(1.0, jnp.abs(x0)))[chosen]
+    eye = jax.nn.one_hot(chosen, x0np.size, dtype=dtype)  # the chosen rows of the identity
     batched = jax.jit(jax.vmap(lambda x: loss(x)[0]))
     steps64 = np.concatenate([np.asarray(steps, np.float64), np.full(k, h)])
 

@@ -469,18 +469,22 @@ class ArmTask(Env):
         another to touch its object (the needle's expert threads the eye without touching it)."""
         return self.scripted_action(obs)
 
-    def _tool_touches(self, qpos) -> bool:
-        """Whether a geom of the ``tool`` body penetrates another geom at ``qpos`` (MuJoCo C)."""
+    def _first_tool_contact(self, qposes) -> int | None:
+        """Index of the first of ``qposes`` at which a geom of the ``tool`` body penetrates
+        another geom (MuJoCo C), or None."""
         import mujoco
 
         m = self.sim.mj_model
         d = mujoco.MjData(m)
-        d.qpos[:] = np.asarray(qpos, np.float64)
-        mujoco.mj_forward(m, d)
         tool = m.body("tool").id
-        c = d.contact  # the d.ncon contacts
-        return bool(np.any((c.dist <= 0) & ((m.geom_bodyid[c.geom1] == tool)
-                                             | (m.geom_bodyid[c.geom2] == tool))))
+        for i, q in enumerate(qposes):
+            d.qpos[:] = np.asarray(q, np.float64)
+            mujoco.mj_forward(m, d)
+            c = d.contact  # the d.ncon contacts
+            if np.any((c.dist <= 0) & ((m.geom_bodyid[c.geom1] == tool)
+                                       | (m.geom_bodyid[c.geom2] == tool))):
+                return i
+        return None
 
     def gradcheck_scenario(self, horizon: int = 30, seed: int = 0, lead: int = 5):
         """A ``twinrl.physics.scenes.Scenario`` of this task's scene through tool-object contact:
@@ -488,11 +492,10 @@ class ArmTask(Env):
         the joint targets its controller sent (the actuators' ``ctrl``), in a window of ``horizon``
         control steps that starts ``lead`` steps before the first tool contact (a geom of the
         ``tool`` body touching another: an object resting on the table from the start does not
-        count). The expert runs
-        on past the episode's end where the window needs it, so the window holds ``horizon -
-        lead`` steps from the first contact on even when that contact comes late. ``twinrl
-        gradcheck TASK`` checks the physics' gradients on it; the controller's own derivative is
-        checked with the task's return (``tests/envs``)."""
+        count). The expert runs on past the episode's end where the window needs it, so the
+        window holds ``horizon - lead`` steps from the first contact on even when that contact
+        comes late. ``twinrl gradcheck TASK`` checks the physics' gradients on it; the
+        controller's own derivative is checked with the task's return (``tests/envs``)."""
         from twinrl.physics.scenes import Scenario
 
         if not 1 <= int(horizon) <= self.episode_length:
@@ -509,8 +512,7 @@ class ArmTask(Env):
             ctrls.append(np.asarray(control(q, v, a)))
             s = step(s, a)
         ctrls = np.stack(ctrls)
-        touching = [self._tool_touches(q) for q in qs]
-        first = touching.index(True) if any(touching) else 0
+        first = self._first_tool_contact(qs) or 0
         start = int(np.clip(first - lead, 0, self.episode_length))
         return Scenario(qpos=qs[start], qvel=vs[start], actions=ctrls[start:start + int(horizon)],
                         horizon=int(horizon))
