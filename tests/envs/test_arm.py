@@ -240,3 +240,36 @@ def test_expert_plan_succeeds_in_sim_and_replays_on_the_unperturbed_twin(name, m
     assert tool_gap < ZERO_TWIN_TOOL_TOL[name], tool_gap
     assert float(env.success(jnp.asarray(o.qpos), jnp.asarray(o.qvel))) == 1.0, name
     twin.close()
+
+
+def test_approach_plan_heads_the_blade_for_the_pancake_and_solves_nothing(made):
+    # trajopt's structured initial guess (bench/manipulation.py restarts): open-loop commands along
+    # the line to 1 cm short of the near rim, then still -- the servos lag them, so the blade
+    # covers part of the way, along that line, touching nothing, flipping nothing
+    env = made["spatula_flipping"]
+    step = jax.jit(env.step)
+    s = jax.jit(env.reset)(jax.random.PRNGKey(3))
+    goal = np.asarray(env.approach_point(s.pipeline_state.qpos))
+    start = np.asarray(env.edge(s.pipeline_state.qpos))
+    line = (goal - start) / np.linalg.norm(goal - start)
+    centre0 = np.asarray(env.pancake(s.pipeline_state.qpos)[0])
+    covered = {}
+    for short in (0.0, 0.02):
+        plan = np.asarray(env.approach_plan(s, short))
+        assert plan.shape == (env.episode_length, env.action_size)
+        assert np.abs(plan).max() <= 0.9 + 1e-6 and np.all(plan[-10:] == 0)
+        np.testing.assert_allclose(plan.sum(0) * env.controller.max_step,
+                                   goal - start - short * line, atol=1e-5)
+        x = s
+        for a in plan:
+            x = step(x, a)
+        moved = np.asarray(env.edge(x.pipeline_state.qpos)) - start
+        covered[short] = float(moved @ line)
+        assert np.linalg.norm(moved - covered[short] * line) < 0.2 * covered[short], moved
+        np.testing.assert_allclose(env.pancake(x.pipeline_state.qpos)[0], centre0, atol=2e-3)
+        assert float(env.success(x.pipeline_state.qpos, x.pipeline_state.qvel)) == 0.0
+    print(f"\napproach plan: blade covered {covered[0.0] * 100:.1f} cm of "
+          f"{np.linalg.norm(goal - start) * 100:.1f} cm (2 cm short: {covered[0.02] * 100:.1f})")
+    assert covered[0.0] > 0.3 * np.linalg.norm(goal - start) and covered[0.02] < covered[0.0]
+    with pytest.raises(NotImplementedError, match="approach_point"):
+        made["peg_insertion"].approach_plan(made["peg_insertion"].reset(jax.random.PRNGKey(0)))

@@ -437,6 +437,35 @@ class ArmTask(Env):
         """World position of the controller's tool centre point (from the nominal kinematics)."""
         return forward_kinematics(qpos[:N_JOINTS], self.controller.tcp)[0]
 
+    # ------------------------------------------------------------------ initial guesses
+    def approach_point(self, qpos) -> jax.Array | None:
+        """Where a straight-line initial guess for trajectory optimisation takes the tool point
+        before any contact (``approach_plan``); None: the task offers none."""
+        return None
+
+    def approach_plan(self, state, shortfall: float = 0.0) -> jax.Array:
+        """(T, m) open-loop actions that command the tool point's displacement from where it
+        starts to ``shortfall`` metres short of ``approach_point``, in a straight line at 90 % of
+        the controller's speed limit (as many steps as that takes), then zeros (and zeros for
+        every other action entry): an initial guess for trajectory optimisation that heads the
+        tool for the object and leaves the manipulation to the optimiser. The commands are open
+        loop and the servos lag them, so the tool covers only part of the way (spatula, reset key 3:
+        5.8 of 13.5 cm; ``tests/envs/test_arm.py``); by itself it solves nothing. Needs a task
+        with an ``approach_point``."""
+        data = state.pipeline_state if hasattr(state, "pipeline_state") else state
+        goal = self.approach_point(data.qpos)
+        if goal is None:
+            raise NotImplementedError(f"{type(self).__name__} has no approach_point")
+        d = goal - self.tool_point(data.qpos)
+        length = jnp.sqrt(jnp.sum(jnp.square(d)) + 1e-12)
+        d = d * jnp.maximum(length - shortfall, 0.0) / length
+        step = 0.9 * self.controller.max_step
+        n = jnp.maximum(jnp.ceil(jnp.max(jnp.abs(d)) / step), 1.0)
+        t = jnp.arange(self.episode_length)[:, None]
+        move = jnp.where(t < n, d / (n * self.controller.max_step), 0.0)
+        rest = jnp.zeros((self.episode_length, self.action_size - 3), move.dtype)
+        return jnp.concatenate([move, rest], axis=1)
+
     # ------------------------------------------------------------------ images
     @functools.cached_property
     def renderer(self):
