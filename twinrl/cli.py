@@ -398,7 +398,9 @@ def _train_parser(sub) -> None:
                     "every epoch so --resume continues a killed run to the same result.")
     p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
     p.add_argument("--algo", required=True, choices=list(ALGORITHMS),
-                   help="pods, pods2 (second order), hds, shac, or the baselines ppo, apg")
+                   help="pods, pods2 (second order), hds, shac, imitation (an actor from "
+                        "trajopt demonstrations), sensing (the camera-scoring Q of an image "
+                        "actor), or the baselines ppo, apg")
     length = p.add_mutually_exclusive_group()
     length.add_argument("--epochs", type=int, default=None,
                         help="epochs (pods/pods2/hds/shac; default: the tuned value)")
@@ -601,6 +603,52 @@ def _cmd_run(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------- sense
+def _sense_parser(sub) -> None:
+    p = sub.add_parser(
+        "sense", help="choose the camera pose by gradient ascent of the sensing-aware Q",
+        description="For the start state reset(--seed) of a manipulation task, choose the mount "
+                    "camera's pose by gradient ascent of Q(image(pose), actor(image(pose))) "
+                    "through the differentiable renderer (a `twinrl train --algo sensing` run). "
+                    "Writes sense.png (Q over the workspace, the ascents, the views from the "
+                    "default and the chosen pose), views.png (the actor's 64x64 images) and "
+                    "summary.json (the chosen pose, Q, steps the mount needs to get there).")
+    p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
+    p.add_argument("--checkpoint", required=True, type=Path,
+                   help="a `twinrl train --algo sensing` run (or its policy/)")
+    p.add_argument("--restarts", type=int, default=None,
+                   help="ascents from the default and random poses (default: Q's config)")
+    p.add_argument("--steps", type=int, default=None, help="Adam steps per ascent")
+    _common(p, "runs/sense")
+    p.set_defaults(func=_cmd_sense)
+
+
+def _cmd_sense(args) -> int:
+    from twinrl import report
+    from twinrl.learn.sensing import sense
+
+    _check_task(args.env)
+    for flag in ("restarts", "steps"):
+        v = getattr(args, flag)
+        if v is not None and v < 1:
+            raise UsageError(f"--{flag} must be >= 1, got {v}")
+    if not args.checkpoint.exists():
+        raise UsageError(f"checkpoint {args.checkpoint} does not exist")
+    with report.console.status("choosing the camera pose ...") as status:
+        s = sense(args.env, args.checkpoint, args.out, seed=args.seed, restarts=args.restarts,
+                  steps=args.steps, progress=status.update)
+    p = s["chosen_pose"]
+    report.print_table(f"sense {args.env} (start state seed {args.seed})",
+                       ["pose", "azimuth", "elevation", "distance", "Q", "target px"],
+                       [["default", s["default_pose"]["azimuth_rad"],
+                         s["default_pose"]["elevation_rad"], s["default_pose"]["distance_m"],
+                         s["q_default"], s["target_pixels_160"]["default"]],
+                        ["chosen", p["azimuth_rad"], p["elevation_rad"], p["distance_m"],
+                         s["q_chosen"], s["target_pixels_160"]["chosen"]]])
+    print(f"wrote {s['files']['plot']} (mount moves {s['steps_to_move']} steps)")
+    return 0
+
+
 # ---------------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -619,6 +667,7 @@ def build_parser() -> argparse.ArgumentParser:
     _sysid_parser(sub)
     _train_parser(sub)
     _eval_parser(sub)
+    _sense_parser(sub)
     return parser
 
 
@@ -628,6 +677,7 @@ def main(argv: list[str] | None = None) -> int:
     from twinrl.learn.checkpoint import CheckpointError
     from twinrl.learn.imitation import DemonstrationError
     from twinrl.learn.runner import RunError
+    from twinrl.learn.sensing import SensingError
     from twinrl.physics import MJCFError, PhysParamsError
     from twinrl.real.dataset import DatasetError
 
@@ -636,7 +686,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (UsageError, MJCFError, PhysParamsError, DatasetError, FileNotFoundError, RunError,
-            CheckpointError, DemonstrationError) as e:
+            CheckpointError, DemonstrationError, SensingError) as e:
         print(f"twinrl {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

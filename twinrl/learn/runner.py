@@ -57,6 +57,7 @@ ALGORITHMS: dict[str, Algorithm] = {
     "ppo": Algorithm("twinrl.learn.baselines", "ppo_train", "PPOConfig", {}, False),
     "apg": Algorithm("twinrl.learn.baselines", "apg_train", "APGConfig", {}, False),
     "imitation": Algorithm("twinrl.learn.imitation", "train", "ImitationConfig", {}, False),
+    "sensing": Algorithm("twinrl.learn.sensing", "train", "SensingConfig", {}, False),
 }
 
 

@@ -1,0 +1,127 @@
+"""The sensing-aware Q and the camera choice (``twinrl.learn.sensing``) on a short peg insertion:
+the data's targets are the actor's returns-to-go, Q fits them, the ascent through the renderer
+finds the poses a visibility score prefers, and ``twinrl sense`` writes its pose, plot and views.
+
+Compiles dominate: one 6-step episode batch, one fit, one ascent per Q, at 16-32 pixels.
+"""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from twinrl import envs
+from twinrl.cli import main
+from twinrl.learn import sensing
+from twinrl.learn.checkpoint import save_policy
+from twinrl.learn.networks import Network, NetworkConfig, make_network
+
+T, PIX = 6, 16
+
+
+@pytest.fixture(scope="module")
+def peg():
+    env = envs.make("peg_insertion", episode_length=T)
+    spec = {"state": (14,), "pixels/mount": (PIX, PIX, 5)}
+    actor = make_network(spec, env.action_size, NetworkConfig(hidden=(16,), output="tanh"))
+    return env, actor, actor.init(jax.random.PRNGKey(0))
+
+
+@pytest.fixture(scope="module")
+def trained(peg):
+    env, actor, actor_params = peg
+    cfg = sensing.SensingConfig(states=5, cameras=3, every=2, hidden=(32,), fit_steps=300,
+                                batch_size=16, restarts=2, ascent_steps=3)
+    rows = []
+    q, q_params, m = sensing.train(env, cfg, 0, actor=(actor, actor_params),
+                                   progress_fn=lambda r, row: rows.append(row))
+    return cfg, q, q_params, m, rows
+
+
+def test_targets_are_the_actors_return_to_go_with_the_camera_held(peg):
+    env, actor, actor_params = peg
+    cfg = sensing.SensingConfig(every=2)
+    keys = jax.random.split(jax.random.PRNGKey(4), 2)
+    coords = sensing.uniform_coords(env.mount, jax.random.PRNGKey(5), (2, 2))
+    data = sensing.sensing_data(env, actor, actor_params, cfg, keys, coords)
+    assert data.targets.shape == (2, 2, T // 2) and data.actions.shape == (2, 2, T // 2, 3)
+    # an independent replay of one episode, step by step: its return-to-go per step left
+    observe = jax.jit(sensing.observer(env, PIX))
+    step, act = jax.jit(env.step), jax.jit(actor.apply)
+    s, rewards = env.reset(keys[1]), []
+    for t in range(T):
+        a = act(actor_params, observe(s, coords[1, 0]))
+        if t % 2 == 0:
+            np.testing.assert_allclose(a, data.actions[1, 0, t // 2], atol=1e-5)
+        s = step(s, a)
+        rewards.append(float(s.reward))
+    to_go = np.cumsum(rewards[::-1])[::-1] / np.arange(T, 0, -1)
+    np.testing.assert_allclose(data.targets[1, 0], to_go[::2], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(data.returns[1, 0], sum(rewards), rtol=1e-4)
+    # the camera changes what the (untrained, image-driven) actor does, so the returns differ
+    assert float(jnp.abs(data.returns[:, 0] - data.returns[:, 1]).max()) > 0
+
+
+def test_q_fits_the_targets_and_reports_held_out_ranking(trained):
+    cfg, q, q_params, m, rows = trained
+    assert len(rows) == 1 and m["pairs"] == [5 * 3 * (T // 2)]
+    for k in ("loss", "val_loss", "rank_corr", "target_q_choice", "target_mean_pose",
+              "target_best_pose", "return"):
+        assert np.isfinite(m[k][0]), (k, m)
+    assert -1.0 <= m["rank_corr"][0] <= 1.0
+    assert m["target_mean_pose"][0] <= m["target_best_pose"][0] + 1e-9
+    assert q.obs_spec["action"] == (3,) and q.out_size == 1
+
+
+def test_ascent_through_the_renderer_finds_where_the_target_shows():
+    # A stand-in Q that scores the target's share of the soft image: the ascent must move the
+    # camera to poses that show it, as a random search over many poses would.
+    env = envs.make("peg_insertion", episode_length=T)
+    size = 32
+    spec = {"state": (14,), "pixels/mount": (size, size, 5)}
+    actor = Network(lambda k: {}, lambda p, o: jnp.zeros(o["state"].shape[:-1] + (3,)),
+                    0, 3, NetworkConfig(), spec)
+    q = Network(lambda k: {}, lambda p, o: 100.0 * jnp.mean(
+        o["pixels/mount"][..., 4], axis=(-2, -1))[..., None], 0, 1, NetworkConfig(),
+        {**spec, "action": (3,)})
+    state = env.reset(jax.random.PRNGKey(2))
+    cfg = sensing.SensingConfig(restarts=4, ascent_steps=15, ascent_lr=0.3, tau=1.0)
+    sel = jax.jit(lambda s, k: sensing.select_camera(env, q, {}, actor, {}, s, k, cfg))(
+        state, jax.random.PRNGKey(3))
+    assert np.all(np.isfinite(np.asarray(sel.trace)))
+    gained = np.asarray(sel.trace[:, -1] - sel.trace[:, 0])
+    assert np.mean(gained > 0) >= 0.75, sel.trace
+    hard = jax.jit(jax.vmap(lambda c: q.apply({}, sensing.observer(env, size)(state, c))[0]))
+    random = np.asarray(hard(sensing.uniform_coords(env.mount, jax.random.PRNGKey(9), (48,))))
+    assert float(sel.value) >= np.quantile(random, 0.9), (float(sel.value), np.sort(random))
+    assert float(sel.value) >= float(sel.default_value)
+
+
+def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoints(
+        peg, trained, tmp_path):
+    env, actor, actor_params = peg
+    cfg, q, q_params, _, _ = trained
+    save_policy(tmp_path / "actor", actor, actor_params, algo="imitation", env="peg_insertion")
+    cfg = cfg.__class__(**{**cfg.to_dict(), "actor": str(tmp_path / "actor")})
+    save_policy(tmp_path / "q" / "policy", q, q_params, algo="sensing", env="peg_insertion",
+                config=cfg)
+    s = sensing.sense("peg_insertion", tmp_path / "q", tmp_path / "out", seed=1, grid=(4, 3))
+    import imageio.v3 as iio
+
+    assert iio.imread(tmp_path / "out" / "sense.png").shape[1] > 1000
+    assert iio.imread(tmp_path / "out" / "views.png").shape == (PIX, 2 * PIX + 4, 3)
+    doc = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert doc["q_chosen"] >= doc["q_default"] and doc["steps_to_move"] >= 0
+    lo, hi = env.mount.azimuth
+    assert lo <= doc["chosen_pose"]["azimuth_rad"] <= hi
+    # a checkpoint that is not a sensing Q, a task without a mount: one line, exit 2
+    assert main(["sense", "--env", "peg_insertion", "--checkpoint", str(tmp_path / "actor"),
+                 "--out", str(tmp_path / "x")]) == 2
+    assert main(["train", "--algo", "sensing", "--env", "pendulum_swingup",
+                 "--out", str(tmp_path / "y")]) == 2
+    with pytest.raises(sensing.SensingError, match="trained on 'peg_insertion'"):
+        sensing.sense("needle_threading", tmp_path / "q", tmp_path / "z")
+    with pytest.raises(ValueError, match="target must be"):
+        sensing.SensingConfig(target="value")

@@ -1,0 +1,489 @@
+"""The sensing-aware Q-function and the camera choice by gradient through the renderer (SAM-RL).
+
+SAM-RL (Lv et al., RSS 2023, Sec. 4.3) lets the robot choose where to look: a Q-function scores
+what the image actor would do from the image a camera pose gives, ``Q(o(P_c), pi(o(P_c)))``, and
+the camera goes to the pose that maximises it -- found by gradient ascent *through the
+differentiable renderer* w.r.t. the pose. Here:
+
+- **Data** (``sensing_data``): from ``states`` fresh start states, the image actor (``twinrl.learn
+  .imitation``, ``observation="pixels"``) runs whole episodes with the camera held at each of
+  ``cameras`` poses drawn uniformly over the mount's workspace. Every ``every``-th step gives one
+  example: the observation there, the actor's action there, and the target.
+- **Target** (``SensingConfig.target``): ``"return"`` (default), the actor's mean reward per step
+  from that step to the episode's end (return-to-go / steps left, in the reward's [0, 1] units),
+  or ``"success"``, the episode's final success (0/1). The return is the default because it is
+  dense: where the actor fails from every pose (most poses of a hard state) success is 0 from all
+  of them and gives Q nothing to rank, while the reward's shaped terms (reach, alignment) still
+  say from which poses the actor got closer. Both are Monte-Carlo values of the actor that will be
+  deployed, not of an optimal policy: Q answers "how well does *this* actor do from this view".
+- **Q** (``train``): a ``twinrl.learn.networks`` network of the actor's observation (joint
+  angles and velocities, the 64 x 64 RGB-D + target-mask image) and the action, regressed onto
+  the targets. Its figures (``metrics``) are on held-out start states: the loss, the rank
+  correlation between Q and the target across the poses of one state (what a camera choice needs
+  Q to get right; a state's own difficulty does not matter there), and the target at the pose Q
+  prefers among the sampled ones, against their mean and their best.
+- **Choice** (``select_camera``): Adam ascent of ``J(c) = Q(o(c), pi(o(c)))`` in the mount's
+  unconstrained coordinates (``CameraMount``: a sigmoid keeps every pose in its workspace), the
+  image rendered soft (``tau``) so that the pose has a gradient through silhouettes, from the
+  default pose and ``restarts - 1`` random ones; the winner is chosen by ``J`` on the *hard*
+  image (the one the actor will see) among the starts and the ends of every ascent, so the choice
+  is never worse, by Q, than the default pose.
+
+``twinrl train --algo sensing --env TASK --set actor=DIR`` trains Q for the image actor saved in
+``DIR`` (a ``twinrl train --algo imitation --set observation=pixels`` run); ``twinrl sense --env
+TASK --checkpoint DIR`` chooses a pose for a start state and plots Q over the workspace.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from twinrl.learn.common import JSONConfig, MetricLog, make_optimizer, raw_key, regression_loss
+from twinrl.learn.networks import Network, NetworkConfig, make_network
+
+__all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords", "observer",
+           "sensing_data", "make_q", "q_value", "train", "select_camera", "landscape",
+           "load_actor"]
+
+
+@dataclasses.dataclass(frozen=True)
+class SensingConfig(JSONConfig):
+    actor: str = ""
+    """The image actor's policy checkpoint (a ``twinrl train --algo imitation --set
+    observation=pixels`` run directory or its ``policy/``); ``train``'s ``actor`` argument takes
+    precedence."""
+    target: str = "return"
+    """``"return"`` (mean reward per step to the episode's end) or ``"success"`` (module
+    docstring says why the return is the default)."""
+    states: int = 32
+    """Start states of the training data (a fifth more are drawn and held out)."""
+    cameras: int = 8
+    """Camera poses per start state, uniform over the mount's workspace."""
+    every: int = 10
+    """One example every this many steps of each episode."""
+    hidden: tuple[int, ...] = (256, 256)
+    learning_rate: float = 1e-3
+    max_grad_norm: float | None = 1.0
+    fit_steps: int = 2000
+    batch_size: int = 128
+    restarts: int = 6
+    """Ascents per camera choice: from the default pose and ``restarts - 1`` random ones."""
+    ascent_steps: int = 20
+    ascent_lr: float = 0.3
+    """Adam's step in the mount's unconstrained coordinates."""
+    tau: float = 1.0
+    """Soft-silhouette width (pixels) of the renders the ascent differentiates."""
+
+    def __post_init__(self):
+        if self.target not in ("return", "success"):
+            raise ValueError(f"target must be 'return' or 'success', got {self.target!r}")
+        for name in ("states", "cameras", "every", "fit_steps", "batch_size", "restarts",
+                     "ascent_steps"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if int(self.cameras) < 2:
+            raise ValueError(f"cameras must be >= 2 (Q must compare poses), got {self.cameras}")
+        if not self.ascent_lr > 0 or not self.tau > 0:
+            raise ValueError(f"ascent_lr and tau must be > 0, got {self.ascent_lr}, {self.tau}")
+
+
+class SensingError(ValueError):
+    """A missing or unsuitable actor or Q checkpoint, or a task without a camera mount (the CLI
+    prints it as one line)."""
+
+
+def uniform_coords(mount, key, shape=()) -> jax.Array:
+    """Unconstrained mount coordinates of poses uniform over its (azimuth, elevation, distance)
+    box (kept 2 % inside its edges, where the sigmoid's slope vanishes)."""
+    u = jax.random.uniform(key, shape + (3,), minval=0.02, maxval=0.98)
+    return jnp.log(u) - jnp.log1p(-u)
+
+
+def observer(env, image_size: int, tau: float = 0.0) -> Callable:
+    """The image actor's observation (``twinrl.learn.imitation.pixel_observer``), soft in the
+    pose when ``tau > 0``."""
+    from twinrl.learn.imitation import pixel_observer
+
+    return pixel_observer(env, image_size, tau)
+
+
+def load_actor(path) -> tuple[Network, object, dict]:
+    """The image actor ``(network, params, meta)`` from a policy checkpoint; a one-line error if
+    it is not an image actor of an arm task."""
+    from twinrl.learn.checkpoint import load_policy
+
+    net, params, meta = load_policy(path)
+    if not isinstance(net.obs_spec, dict) or "pixels/mount" not in net.obs_spec:
+        raise SensingError(f"{path}: not an image actor (its observation is {net.obs_spec!r}); "
+                         f"train one with --algo imitation --set observation=pixels")
+    return net, params, meta
+
+
+class SensingData(NamedTuple):
+    obs: dict
+    """Observations (S, C, K, ...): start state, camera pose, example along the episode."""
+    actions: jax.Array
+    """(S, C, K, m) the actor's actions there."""
+    targets: jax.Array
+    """(S, C, K) return-to-go per step left, or the episode's success."""
+    coords: jax.Array
+    """(S, C, 3) the camera poses (unconstrained mount coordinates)."""
+    returns: jax.Array
+    """(S, C) the episodes' returns."""
+    success: jax.Array
+    """(S, C) the episodes' final success."""
+
+
+def sensing_data(env, actor: Network, actor_params, config: SensingConfig, keys: jax.Array,
+                 coords: jax.Array) -> SensingData:
+    """The actor's episodes from ``reset(keys[i])`` with the camera held at ``coords[i, j]``
+    (S, C, 3), and the examples Q learns from (module docstring)."""
+    observe = observer(env, actor.obs_spec["pixels/mount"][0])
+    T = env.episode_length
+    picks = jnp.arange(0, T, int(config.every))
+
+    def episode(key, c):
+        def body(s, _):
+            o = observe(s, c)
+            a = actor.apply(actor_params, o)
+            s2 = env.step(s, a)
+            return s2, (o, a, s2.reward)
+
+        final, (obs, acts, rewards) = jax.lax.scan(body, env.reset(key), None, length=T)
+        ok = env.success(final.pipeline_state.qpos, final.pipeline_state.qvel)
+        to_go = jnp.cumsum(rewards[::-1])[::-1] / jnp.arange(T, 0, -1)
+        target = to_go[picks] if config.target == "return" else jnp.full(picks.shape, ok)
+        sel = lambda x: x[picks]  # noqa: E731
+        return (jax.tree_util.tree_map(sel, obs), acts[picks], target, rewards.sum(), ok)
+
+    run = jax.jit(jax.vmap(jax.vmap(episode, in_axes=(None, 0)), in_axes=(0, 0)))
+    obs, acts, targets, returns, ok = run(keys, coords)
+    return SensingData(obs, acts, targets, coords, returns, ok)
+
+
+def make_q(actor: Network, action_size: int, config: SensingConfig) -> Network:
+    """Q's network: the actor's observation spec plus the action, to one linear output."""
+    spec = dict(actor.obs_spec)
+    spec["action"] = (int(action_size),)
+    return make_network(spec, 1, NetworkConfig(hidden=tuple(config.hidden), activation="elu",
+                                               output="linear", layer_norm=True))
+
+
+def q_value(q: Network, q_params, obs: dict, action: jax.Array) -> jax.Array:
+    return q.apply(q_params, {**obs, "action": action})[..., 0]
+
+
+def _fit(q: Network, params, obs, acts, targets, config: SensingConfig, key):
+    tx = make_optimizer(config.learning_rate, config.max_grad_norm)
+    n = targets.shape[0]
+    batch = int(config.batch_size)
+    ones = jnp.ones((batch,))
+
+    @jax.jit
+    def run(params, key):
+        def body(carry, k):
+            p, s = carry
+            idx = jax.random.randint(k, (batch,), 0, n)
+            o = {**jax.tree_util.tree_map(lambda x: x[idx], obs), "action": acts[idx]}
+            value, g = jax.value_and_grad(regression_loss, argnums=1)(
+                q.apply, p, o, targets[idx, None], ones)
+            u, s = tx.update(g, s, p)
+            return (optax.apply_updates(p, u), s), value
+
+        (params, _), losses = jax.lax.scan(body, (params, tx.init(params)),
+                                           jax.random.split(key, int(config.fit_steps)))
+        return params, losses
+
+    return run(params, key)
+
+
+def _rank_corr(a: np.ndarray, b: np.ndarray) -> float:
+    """Spearman's rank correlation of two vectors (0 when either is constant)."""
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    if np.std(ra) == 0 or np.std(rb) == 0 or np.ptp(a) == 0 or np.ptp(b) == 0:
+        return 0.0
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+def evaluate_ranking(q: Network, q_params, data: SensingData) -> dict:
+    """On held-out data: Q's loss, its per-state rank correlation with the target across poses
+    (first example of each episode), and the target at Q's preferred pose vs the poses' mean and
+    best."""
+    flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
+    obs = jax.tree_util.tree_map(flat, data.obs)
+    pred = np.asarray(jax.jit(lambda p, o, a: q_value(q, p, o, a))(
+        q_params, obs, flat(data.actions))).reshape(data.targets.shape)
+    target = np.asarray(data.targets)
+    first_pred, first_target = pred[:, :, 0], target[:, :, 0]
+    corr = [_rank_corr(p, t) for p, t in zip(first_pred, first_target)]
+    pick = np.argmax(first_pred, axis=1)
+    rows = np.arange(len(pick))
+    return {"val_loss": float(np.mean((pred - target) ** 2)),
+            "rank_corr": float(np.mean(corr)),
+            "target_q_choice": float(np.mean(first_target[rows, pick])),
+            "target_mean_pose": float(np.mean(first_target)),
+            "target_best_pose": float(np.mean(first_target.max(axis=1))),
+            "success_q_choice": float(np.mean(np.asarray(data.success)[rows, pick])),
+            "success_mean_pose": float(np.mean(np.asarray(data.success)))}
+
+
+def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0, *,
+          actor: tuple[Network, object] | None = None,
+          progress_fn: Callable[[int, dict], None] | None = None, checkpoint_fn=None,
+          restore=None):
+    """Q for the image actor (``actor=(network, params)``, default ``config.actor``'s
+    checkpoint) on ``env``: data, fit, held-out figures (module docstring). Not resumable.
+
+    Returns ``(q, q_params, metrics)`` with one row: ``pairs`` (training examples), ``loss``,
+    ``val_loss``, ``rank_corr``, ``target_q_choice`` / ``target_mean_pose`` /
+    ``target_best_pose``, ``success_q_choice`` / ``success_mean_pose``, ``return`` (the held-out
+    episodes' mean return from the pose Q prefers), ``wall_s``.
+    """
+    import time
+
+    c = config
+    if restore is not None:
+        raise ValueError("sensing cannot resume; run it again without --resume")
+    if not hasattr(env, "mount") or not hasattr(env, "render"):
+        raise SensingError(f"sensing needs a task with a camera mount; {env.name} has none")
+    if actor is None:
+        if not c.actor:
+            raise SensingError("sensing needs the image actor: --set actor=DIR (a twinrl train "
+                             "--algo imitation --set observation=pixels run)")
+        net, params, _ = load_actor(c.actor)
+        actor = (net, params)
+    actor_net, actor_params = actor
+    if actor_net.out_size != env.action_size:
+        raise SensingError(f"the actor outputs {actor_net.out_size} actions; {env.name} takes "
+                           f"{env.action_size}")
+    t0 = time.perf_counter()
+    key = raw_key(rng)
+    k_states, k_cams, k_init, k_fit = jax.random.split(key, 4)
+    held = max(1, int(c.states) // 5)
+    S = int(c.states) + held
+    keys = jax.random.split(k_states, S)
+    coords = uniform_coords(env.mount, k_cams, (S, int(c.cameras)))
+    data = sensing_data(env, actor_net, actor_params, c, keys, coords)
+    train_part = SensingData(*(jax.tree_util.tree_map(lambda x: x[:-held], f) for f in data))
+    test_part = SensingData(*(jax.tree_util.tree_map(lambda x: x[-held:], f) for f in data))
+    flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
+    obs = jax.tree_util.tree_map(flat, train_part.obs)
+    q = make_q(actor_net, env.action_size, c)
+    q_params = q.init(k_init)
+    q_params, losses = _fit(q, q_params, obs, flat(train_part.actions),
+                            flat(train_part.targets), c, k_fit)
+    figures = evaluate_ranking(q, q_params, test_part)
+    pick = np.argmax(np.asarray(jax.jit(lambda p, o, a: q_value(q, p, o, a))(
+        q_params, jax.tree_util.tree_map(lambda x: x[:, :, 0], test_part.obs),
+        test_part.actions[:, :, 0])), axis=1)
+    ret = float(np.mean(np.asarray(test_part.returns)[np.arange(held), pick]))
+    log = MetricLog()
+    row = log.record(epoch=0, pairs=int(train_part.targets.size),
+                     loss=float(np.mean(np.asarray(losses)[-max(1, int(c.fit_steps) // 10):])),
+                     **figures, **{"return": ret}, wall_s=time.perf_counter() - t0)
+    if progress_fn is not None:
+        progress_fn(0, row)
+    return q, q_params, log.as_dict()
+
+
+class Selection(NamedTuple):
+    coords: jax.Array
+    """(3,) the chosen pose (unconstrained mount coordinates)."""
+    value: jax.Array
+    """Q at the chosen pose (hard image)."""
+    default_value: jax.Array
+    """Q at the mount's default pose (hard image)."""
+    starts: jax.Array
+    """(R, 3) where the ascents started (the first: the default pose)."""
+    ends: jax.Array
+    """(R, 3) where they ended."""
+    trace: jax.Array
+    """(R, steps) the soft objective along each ascent."""
+
+
+def select_camera(env, q: Network, q_params, actor: Network, actor_params, state, key,
+                  config: SensingConfig = SensingConfig()) -> Selection:
+    """The mount pose maximising ``Q(o(c), pi(o(c)))`` for ``state`` (module docstring): Adam
+    ascent through the soft renderer from ``restarts`` starts, the winner by the hard image's Q.
+    Pure and jit-able (jit it with ``state`` and ``key`` as arguments)."""
+    n = actor.obs_spec["pixels/mount"][0]
+    soft, hard = observer(env, n, tau=float(config.tau)), observer(env, n)
+
+    def objective(obs_fn, c):
+        o = obs_fn(state, c)
+        return q_value(q, q_params, o, actor.apply(actor_params, o))
+
+    default = jnp.asarray(env.mount.default, jnp.float32)
+    starts = jnp.concatenate([default[None], uniform_coords(
+        env.mount, key, (int(config.restarts) - 1,))], axis=0)
+    tx = optax.adam(float(config.ascent_lr))
+
+    def ascend(c0):
+        def body(carry, _):
+            c, s = carry
+            v, g = jax.value_and_grad(lambda c: objective(soft, c))(c)
+            g = jnp.where(jnp.isfinite(g), g, 0.0)
+            u, s = tx.update(-g, s, c)
+            return (optax.apply_updates(c, u), s), v
+
+        (c, _), trace = jax.lax.scan(body, (c0, tx.init(c0)), None,
+                                     length=int(config.ascent_steps))
+        return c, trace
+
+    ends, trace = jax.vmap(ascend)(starts)
+    cands = jnp.concatenate([starts, ends], axis=0)
+    values = jax.vmap(lambda c: objective(hard, c))(cands)
+    values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
+    best = jnp.argmax(values)
+    return Selection(cands[best], values[best], values[0], starts, ends, trace)
+
+
+def landscape(env, q: Network, q_params, actor: Network, actor_params, state, distance_coord,
+              grid: tuple[int, int] = (15, 9)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Q (hard images) over an azimuth x elevation grid of the workspace at one distance
+    coordinate: ``(azimuths (A,), elevations (E,), values (E, A))`` in radians."""
+    mount = env.mount
+    az = np.linspace(*mount.azimuth, grid[0] + 2)[1:-1]
+    el = np.linspace(*mount.elevation, grid[1] + 2)[1:-1]
+    dist = float(np.asarray(mount.spherical(jnp.full(3, distance_coord, jnp.float32)))[2])
+    coords = np.array([mount.coords_of([a, e, dist]) for e in el for a in az], np.float32)
+    hard = observer(env, actor.obs_spec["pixels/mount"][0])
+
+    @jax.jit
+    def values(cs):
+        def one(c):
+            o = hard(state, c)
+            return q_value(q, q_params, o, actor.apply(actor_params, o))
+        return jax.lax.map(one, cs)
+
+    return az, el, np.asarray(values(jnp.asarray(coords))).reshape(len(el), len(az))
+
+
+def load_q(path) -> tuple[Network, object, dict]:
+    """Q ``(network, params, meta)`` from a ``twinrl train --algo sensing`` run (or its
+    ``policy/``); a one-line error for any other checkpoint."""
+    from twinrl.learn.checkpoint import load_policy
+
+    net, params, meta = load_policy(path)
+    if meta.get("algo") != "sensing" or not isinstance(net.obs_spec, dict) \
+            or "action" not in net.obs_spec:
+        raise SensingError(f"{path}: not a sensing Q checkpoint (algo {meta.get('algo')!r}); "
+                           f"train one with twinrl train --algo sensing --set actor=DIR")
+    return net, params, meta
+
+
+def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None = None,
+          steps: int | None = None, grid: tuple[int, int] = (15, 9), progress=None) -> dict:
+    """``twinrl sense``: the camera pose Q chooses for the start state ``reset(seed)`` of
+    ``env_name``; writes ``out/sense.png`` (Q over the workspace at the chosen distance, with the
+    default, the ascents and the choice marked; the views from the default and the chosen pose
+    side by side, RGB and the target mask), ``out/views.png`` (the two 64 x 64 images the actor
+    would see) and ``out/summary.json``. Returns the summary."""
+    from pathlib import Path
+
+    from twinrl import envs, report
+
+    out = Path(out)
+    q, q_params, meta = load_q(checkpoint)
+    if meta.get("env") != env_name:
+        raise SensingError(f"{checkpoint}: Q was trained on {meta.get('env')!r}, not "
+                           f"{env_name!r}")
+    cfg = SensingConfig.from_dict(meta.get("config") or {})
+    over = {k: v for k, v in (("restarts", restarts), ("ascent_steps", steps)) if v is not None}
+    cfg = dataclasses.replace(cfg, **over)
+    actor, actor_params, _ = load_actor(cfg.actor)
+    from twinrl.learn.checkpoint import load_system
+
+    system = load_system(checkpoint)  # the (identified) simulator Q was trained in, if any
+    env = envs.make(env_name) if system is None else envs.make(env_name, system=system)
+    say = progress or (lambda s: None)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(int(seed)))
+    say("choosing the camera pose (gradient ascent of Q through the renderer) ...")
+    choose = jax.jit(lambda s, k: select_camera(env, q, q_params, actor, actor_params, s, k, cfg))
+    sel = jax.block_until_ready(choose(state, jax.random.PRNGKey(int(seed) + 1)))
+    say("Q over the workspace ...")
+    az, el, vals = landscape(env, q, q_params, actor, actor_params, state,
+                             float(sel.coords[2]), grid)
+    mount = env.mount
+    chosen = np.asarray(sel.coords, np.float64)
+    default = np.asarray(mount.default, np.float64)
+    sph = lambda c: np.asarray(mount.spherical(jnp.asarray(c, jnp.float32)), float)  # noqa
+    ids = jnp.asarray([env.sim.mj_model.geom(g).id for g in env.target_geoms])
+    big = jax.jit(lambda c: env.render(state, c, size=160))
+    images = {}
+    for name, c in (("default", default), ("chosen", chosen)):
+        img = big(jnp.asarray(c, jnp.float32))
+        images[name] = (np.asarray(img.rgb), np.asarray(jnp.isin(img.segmentation, ids)))
+    pixels = {k: int(v[1].sum()) for k, v in images.items()}
+    out.mkdir(parents=True, exist_ok=True)
+    _plot_sense(out / "sense.png", env, az, el, vals, sel, images, env_name)
+    observe = jax.jit(observer(env, actor.obs_spec["pixels/mount"][0]))
+    small = [np.asarray(observe(state, jnp.asarray(c, jnp.float32))["pixels/mount"][..., :3])
+             for c in (default, chosen)]
+    import imageio.v3 as iio
+
+    gap = np.ones((small[0].shape[0], 4, 3))
+    iio.imwrite(out / "views.png", (np.concatenate([small[0], gap, small[1]], axis=1)
+                                    * 255).clip(0, 255).astype(np.uint8))
+    summary = {
+        "env": env_name, "seed": int(seed), "checkpoint": str(checkpoint),
+        "chosen_coords": chosen.tolist(),
+        "chosen_pose": dict(zip(("azimuth_rad", "elevation_rad", "distance_m"),
+                                sph(chosen).tolist())),
+        "default_pose": dict(zip(("azimuth_rad", "elevation_rad", "distance_m"),
+                                 sph(default).tolist())),
+        "q_chosen": float(sel.value), "q_default": float(sel.default_value),
+        "q_landscape_max": float(np.max(vals)), "q_landscape_min": float(np.min(vals)),
+        "steps_to_move": mount.steps_to_move(default, chosen),
+        "target_pixels_160": pixels, "restarts": int(cfg.restarts),
+        "ascent_steps": int(cfg.ascent_steps),
+        "files": {"plot": str(out / "sense.png"), "views": str(out / "views.png")},
+    }
+    report.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _plot_sense(path, env, az, el, vals, sel, images, title):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    mount = env.mount
+    sph = lambda c: np.asarray(mount.spherical(jnp.asarray(c, jnp.float32)), float)  # noqa
+    fig = plt.figure(figsize=(13, 4.2), dpi=110)
+    ax = fig.add_subplot(1, 3, 1)
+    m = ax.pcolormesh(np.degrees(az), np.degrees(el), vals, shading="nearest", cmap="viridis")
+    fig.colorbar(m, ax=ax, label="Q (hard image)")
+    for c0, c1 in zip(np.asarray(sel.starts), np.asarray(sel.ends)):
+        a, b = np.degrees(sph(c0)), np.degrees(sph(c1))
+        ax.annotate("", xy=(b[0], b[1]), xytext=(a[0], a[1]),
+                    arrowprops=dict(arrowstyle="->", color="w", lw=0.8))
+    d, c = np.degrees(sph(mount.default)), np.degrees(sph(sel.coords))
+    ax.plot(d[0], d[1], "s", mfc="none", mec="orange", ms=10, label="default")
+    ax.plot(c[0], c[1], "*", color="red", ms=14, label="chosen")
+    ax.set_xlabel("azimuth (deg)")
+    ax.set_ylabel("elevation (deg)")
+    ax.set_title(f"Q over the workspace at {sph(sel.coords)[2]:.2f} m\n(arrows: the ascents)",
+                 fontsize=9)
+    ax.legend(loc="lower right", fontsize=8)
+    for i, (name, q) in enumerate((("default", float(sel.default_value)),
+                                   ("chosen", float(sel.value)))):
+        rgb, mask = images[name]
+        ax = fig.add_subplot(1, 3, 2 + i)
+        shown = rgb.copy()
+        shown[mask] = 0.5 * shown[mask] + 0.5 * np.array([1.0, 0.0, 0.0])
+        ax.imshow(np.clip(shown, 0, 1))
+        ax.set_title(f"{name} pose: Q {q:.3f}, target {int(mask.sum())} px (red)", fontsize=9)
+        ax.axis("off")
+    fig.suptitle(f"sensing-aware camera choice on {title}")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
