@@ -288,9 +288,14 @@ def _plot_training(path: Path, metrics: dict[str, list[float]], title: str) -> P
     import matplotlib.pyplot as plt
 
     ret = np.asarray(metrics.get("return", []), float)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), dpi=110)
-    for ax, key, label in zip(axes, ("epoch", "env_steps", "wall_s"),
-                              ("epoch", "simulated env steps", "wall clock (s)")):
+    # one panel per x the trainer reports (imitation and sensing count no env steps)
+    panels = [(k, lab) for k, lab in (("epoch", "epoch"), ("env_steps", "simulated env steps"),
+                                      ("wall_s", "wall clock (s)"))
+              if k in metrics or k == "epoch"]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.4), dpi=110,
+                             squeeze=False)
+    axes = axes[0]
+    for ax, (key, label) in zip(axes, panels):
         x = np.asarray(metrics.get(key, np.arange(len(ret))), float)[:len(ret)]
         ax.plot(x, ret[:len(x)], marker=".")
         ax.set_xlabel(label)

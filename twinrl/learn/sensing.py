@@ -20,8 +20,9 @@ differentiable renderer* w.r.t. the pose. Here:
   angles and velocities, the 64 x 64 RGB-D + target-mask image) and the action, regressed onto
   the targets. Its figures (``metrics``) are on held-out start states: the loss, the rank
   correlation between Q and the target across the poses of one state (what a camera choice needs
-  Q to get right; a state's own difficulty does not matter there), and the target at the pose Q
-  prefers among the sampled ones, against their mean and their best.
+  Q to get right; a state's own difficulty does not matter there), the target at the pose Q
+  prefers among the sampled ones, against their mean and their best, and how often the camera
+  choice below raises Q above the default pose.
 - **Choice** (``select_camera``): Adam ascent of ``J(c) = Q(o(c), pi(o(c)))`` in the mount's
   unconstrained coordinates (``CameraMount``: a sigmoid keeps every pose in its workspace), the
   image rendered soft (``tau``) so that the pose has a gradient through silhouettes, from the
@@ -243,10 +244,10 @@ def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0
     Returns ``(q, q_params, metrics)`` with one row: ``pairs`` (training examples), ``loss``,
     ``val_loss``, ``rank_corr``, ``target_q_choice`` / ``target_mean_pose`` /
     ``target_best_pose``, ``success_q_choice`` / ``success_mean_pose``, ``return`` (the held-out
-    episodes' mean return from the pose Q prefers), ``wall_s``.
+    episodes' mean return from the pose Q prefers), ``choice_raises_q`` (the fraction of
+    held-out start states on which ``select_camera`` ends above Q at the default pose) and
+    ``choice_q_gain`` (its mean gain in Q), ``wall_s``.
     """
-    import time
-
     c = config
     if restore is not None:
         raise ValueError("sensing cannot resume; run it again without --resume")
@@ -262,7 +263,7 @@ def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0
     if actor_net.out_size != env.action_size:
         raise SensingError(f"the actor outputs {actor_net.out_size} actions; {env.name} takes "
                            f"{env.action_size}")
-    t0 = time.perf_counter()
+    log = MetricLog()                      # its clock is the row's wall_s
     key = raw_key(rng)
     k_states, k_cams, k_init, k_fit = jax.random.split(key, 4)
     held = max(1, int(c.states) // 5)
@@ -283,10 +284,19 @@ def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0
         q_params, jax.tree_util.tree_map(lambda x: x[:, :, 0], test_part.obs),
         test_part.actions[:, :, 0])), axis=1)
     ret = float(np.mean(np.asarray(test_part.returns)[np.arange(held), pick]))
-    log = MetricLog()
+    # the camera choice on the held-out start states: does the ascent raise Q above the default?
+    choose = jax.jit(lambda s, k: select_camera(env, q, q_params, actor_net, actor_params, s, k,
+                                                c))
+    reset = jax.jit(env.reset)
+    gains = []
+    for i, k in enumerate(jax.random.split(k_fit, held)):
+        sel = choose(reset(keys[S - held + i]), k)
+        gains.append(float(sel.value) - float(sel.default_value))
+    gains = np.asarray(gains)
     row = log.record(epoch=0, pairs=int(train_part.targets.size),
                      loss=float(np.mean(np.asarray(losses)[-max(1, int(c.fit_steps) // 10):])),
-                     **figures, **{"return": ret}, wall_s=time.perf_counter() - t0)
+                     **figures, **{"return": ret}, choice_raises_q=float(np.mean(gains > 0)),
+                     choice_q_gain=float(np.mean(gains)))
     if progress_fn is not None:
         progress_fn(0, row)
     return q, q_params, log.as_dict()
