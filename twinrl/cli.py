@@ -27,6 +27,14 @@ def _check_task(name: str) -> None:
         raise UsageError(f"unknown task {name!r}; registered tasks are {', '.join(envs.names())}")
 
 
+def _at_least_one(args, *flags: str) -> None:
+    """One line naming the first of ``flags`` (argparse dests) given and below 1."""
+    for flag in flags:
+        v = getattr(args, flag)
+        if v is not None and v < 1:
+            raise UsageError(f"--{flag} must be >= 1, got {v}")
+
+
 def _common(p: argparse.ArgumentParser, out_default: str) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", type=Path, default=Path(out_default),
@@ -100,18 +108,13 @@ def _cmd_gradcheck(args) -> int:
     from twinrl.physics.gradcheck import gradcheck
 
     targets = list(SCENES) if args.targets == ["all"] else args.targets
-    if args.horizon is not None and args.horizon < 1:
-        raise UsageError(f"--horizon must be >= 1, got {args.horizon}")
+    _at_least_one(args, "horizon", "iterations", "entries")
     rtol = args.rtol if args.rtol is not None else (1e-4 if args.x64 else 2e-2)
     if not rtol > 0:
         raise UsageError(f"--rtol must be > 0, got {args.rtol}")
     tolerance = args.tolerance if args.tolerance is not None else (1e-12 if args.x64 else None)
     if tolerance is not None and not tolerance >= 0:
         raise UsageError(f"--tolerance must be >= 0, got {args.tolerance}")
-    if args.iterations is not None and args.iterations < 1:
-        raise UsageError(f"--iterations must be >= 1, got {args.iterations}")
-    if args.entries is not None and args.entries < 1:
-        raise UsageError(f"--entries must be >= 1, got {args.entries}")
     h = args.step if args.step is not None else (1e-6 if args.x64 else 1e-3)
     if not h > 0:
         raise UsageError(f"--step must be > 0, got {args.step}")
@@ -277,8 +280,7 @@ def _cmd_collect(args) -> int:
     from twinrl.real2sim.sysid import excitation_actions
 
     _check_task(args.env)
-    if args.episodes < 1:
-        raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
+    _at_least_one(args, "episodes")
     w, h = args.size
     # The real twin runs in its own process, as a robot would (twinrl.real.remote); its hidden
     # perturbation's seed includes a secret salt kept in OUT/eval/, beside the dataset, for
@@ -420,10 +422,7 @@ def _cmd_train(args) -> int:
     from twinrl.learn.runner import parse_overrides, train_run
 
     _check_task(args.env)
-    for flag in ("epochs", "steps"):
-        v = getattr(args, flag)
-        if v is not None and v < 1:
-            raise UsageError(f"--{flag} must be >= 1, got {v}")
+    _at_least_one(args, "epochs", "steps")
     s = train_run(args.env, args.algo, args.out, seed=args.seed, epochs=args.epochs,
                   steps=args.steps, overrides=parse_overrides(args.set), resume=args.resume)
     f = s["final"]
@@ -628,10 +627,7 @@ def _cmd_sense(args) -> int:
     from twinrl.learn.sensing import sense
 
     _check_task(args.env)
-    for flag in ("restarts", "steps"):
-        v = getattr(args, flag)
-        if v is not None and v < 1:
-            raise UsageError(f"--{flag} must be >= 1, got {v}")
+    _at_least_one(args, "restarts", "steps")
     if not args.checkpoint.exists():
         raise UsageError(f"checkpoint {args.checkpoint} does not exist")
     with report.console.status("choosing the camera pose ...") as status:
