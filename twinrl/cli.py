@@ -624,7 +624,7 @@ def _sense_parser(sub) -> None:
 
 def _cmd_sense(args) -> int:
     from twinrl import report
-    from twinrl.learn.sensing import sense
+    from twinrl.sense import sense
 
     _check_task(args.env)
     _at_least_one(args, "restarts", "steps")

@@ -14,6 +14,7 @@ import pytest
 
 from twinrl import envs
 from twinrl.cli import main
+from twinrl import sense as sense_cmd
 from twinrl.learn import sensing
 from twinrl.learn.checkpoint import save_policy
 from twinrl.learn.networks import Network, NetworkConfig, make_network
@@ -108,7 +109,7 @@ def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoint
     cfg = cfg.__class__(**{**cfg.to_dict(), "actor": str(tmp_path / "actor")})
     save_policy(tmp_path / "q" / "policy", q, q_params, algo="sensing", env="peg_insertion",
                 config=cfg)
-    s = sensing.sense("peg_insertion", tmp_path / "q", tmp_path / "out", seed=1, grid=(4, 3))
+    s = sense_cmd.sense("peg_insertion", tmp_path / "q", tmp_path / "out", seed=1, grid=(4, 3))
     import imageio.v3 as iio
 
     assert iio.imread(tmp_path / "out" / "sense.png").shape[1] > 1000
@@ -123,6 +124,6 @@ def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoint
     assert main(["train", "--algo", "sensing", "--env", "pendulum_swingup",
                  "--out", str(tmp_path / "y")]) == 2
     with pytest.raises(sensing.SensingError, match="trained on 'peg_insertion'"):
-        sensing.sense("needle_threading", tmp_path / "q", tmp_path / "z")
+        sense_cmd.sense("needle_threading", tmp_path / "q", tmp_path / "z")
     with pytest.raises(ValueError, match="target must be"):
         sensing.SensingConfig(target="value")

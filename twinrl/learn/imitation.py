@@ -47,7 +47,7 @@ from twinrl.learn.common import (JSONConfig, MetricLog, make_optimizer, raw_key,
 from twinrl.learn.networks import NetworkConfig, make_network
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
-           "demonstration_data", "make_observer", "pixel_observer", "relabel", "train"]
+           "demonstration_data", "make_observer", "relabel", "train"]
 
 PROPRIO = 14
 """Entries of an arm task's observation a robot measures itself: 7 joint angles, 7 velocities."""
@@ -123,34 +123,16 @@ def load_demonstrations(path: str | Path, successful_only: bool = True) -> Demon
     return Demonstrations(keys[keep], actions[keep])
 
 
-def pixel_observer(env, image_size: int, tau: float = 0.0) -> Callable:
-    """``observe(state, coords) -> {"state", "pixels/mount"}``: joint angles and velocities and
-    the mount's ``image_size`` square image (RGB, depth, the target's mask) from pose ``coords``.
-    The mask is the target geoms' share of each pixel (the renderer's coverage ``weights``): with
-    ``tau == 0`` the hard segmentation's 0/1 mask, with ``tau > 0`` soft and differentiable in the
-    pose (``twinrl.learn.sensing`` ascends Q through it)."""
-    if not hasattr(env, "render") or not hasattr(env, "mount"):
-        raise ValueError(f"observation='pixels' needs a task with a camera mount; "
-                         f"{env.name} has none")
-    drawn = list(env.renderer.geom_ids)
-    cols = jnp.asarray([drawn.index(env.sim.mj_model.geom(g).id) for g in env.target_geoms])
-    n = int(image_size)
-
-    def observe(s, coords):
-        img = env.render(s, coords, size=n, tau=tau)
-        mask = jnp.sum(img.weights[..., cols], axis=-1)
-        pixels = jnp.concatenate([img.rgb, img.depth[..., None], mask[..., None]], axis=-1)
-        return {"state": s.obs[:PROPRIO], "pixels/mount": pixels}
-
-    return observe
-
-
 def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
     """``(observe(state, coords) -> observation, obs_spec)`` for ``config.observation``."""
     if config.observation == "state":
         return (lambda s, coords: s.obs), int(env.observation_size)
+    if not hasattr(env, "image_observation"):
+        raise ValueError(f"observation='pixels' needs a task with a camera mount; "
+                         f"{env.name} has none")
     n = int(config.image_size)
-    return pixel_observer(env, n), {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}
+    return (lambda s, coords: env.image_observation(s, coords, size=n),
+            {"state": (PROPRIO,), "pixels/mount": (n, n, 5)})
 
 
 def _coords(env, config: ImitationConfig, key):

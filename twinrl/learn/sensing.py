@@ -23,7 +23,8 @@ differentiable renderer* w.r.t. the pose. Here:
   Q to get right; a state's own difficulty does not matter there), the target at the pose Q
   prefers among the sampled ones, against their mean and their best, and how often the camera
   choice below raises Q above the default pose.
-- **Choice** (``select_camera``): Adam ascent of ``J(c) = Q(o(c), pi(o(c)))`` in the mount's
+- **Choice** (``select_camera``, in ``twinrl.learn.camera_choice`` with Q's landscape;
+  ``twinrl sense`` is ``twinrl.sense``): Adam ascent of ``J(c) = Q(o(c), pi(o(c)))`` in the mount's
   unconstrained coordinates (``CameraMount``: a sigmoid keeps every pose in its workspace), the
   image rendered soft (``tau``) so that the pose has a gradient through silhouettes, from the
   default pose and ``restarts - 1`` random ones; the winner is chosen by ``J`` on the *hard*
@@ -45,12 +46,14 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from twinrl.learn.camera_choice import (Selection, observer, q_value, select_camera,
+                                        uniform_coords)
 from twinrl.learn.common import JSONConfig, MetricLog, make_optimizer, raw_key, regression_loss
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
-__all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords", "observer",
-           "sensing_data", "make_q", "q_value", "train", "select_camera", "landscape",
-           "load_actor"]
+__all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
+           "observer", "sensing_data", "make_q", "q_value", "train", "select_camera",
+           "evaluate_ranking", "load_actor"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,21 +100,6 @@ class SensingConfig(JSONConfig):
 class SensingError(ValueError):
     """A missing or unsuitable actor or Q checkpoint, or a task without a camera mount (the CLI
     prints it as one line)."""
-
-
-def uniform_coords(mount, key, shape=()) -> jax.Array:
-    """Unconstrained mount coordinates of poses uniform over its (azimuth, elevation, distance)
-    box (kept 2 % inside its edges, where the sigmoid's slope vanishes)."""
-    u = jax.random.uniform(key, shape + (3,), minval=0.02, maxval=0.98)
-    return jnp.log(u) - jnp.log1p(-u)
-
-
-def observer(env, image_size: int, tau: float = 0.0) -> Callable:
-    """The image actor's observation (``twinrl.learn.imitation.pixel_observer``), soft in the
-    pose when ``tau > 0``."""
-    from twinrl.learn.imitation import pixel_observer
-
-    return pixel_observer(env, image_size, tau)
 
 
 def load_actor(path) -> tuple[Network, object, dict]:
@@ -174,10 +162,6 @@ def make_q(actor: Network, action_size: int, config: SensingConfig) -> Network:
     spec["action"] = (int(action_size),)
     return make_network(spec, 1, NetworkConfig(hidden=tuple(config.hidden), activation="elu",
                                                output="linear", layer_norm=True))
-
-
-def q_value(q: Network, q_params, obs: dict, action: jax.Array) -> jax.Array:
-    return q.apply(q_params, {**obs, "action": action})[..., 0]
 
 
 def _fit(q: Network, params, obs, acts, targets, config: SensingConfig, key):
@@ -300,200 +284,3 @@ def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0
     if progress_fn is not None:
         progress_fn(0, row)
     return q, q_params, log.as_dict()
-
-
-class Selection(NamedTuple):
-    coords: jax.Array
-    """(3,) the chosen pose (unconstrained mount coordinates)."""
-    value: jax.Array
-    """Q at the chosen pose (hard image)."""
-    default_value: jax.Array
-    """Q at the mount's default pose (hard image)."""
-    starts: jax.Array
-    """(R, 3) where the ascents started (the first: the default pose)."""
-    ends: jax.Array
-    """(R, 3) where they ended."""
-    trace: jax.Array
-    """(R, steps) the soft objective along each ascent."""
-
-
-def select_camera(env, q: Network, q_params, actor: Network, actor_params, state, key,
-                  config: SensingConfig = SensingConfig()) -> Selection:
-    """The mount pose maximising ``Q(o(c), pi(o(c)))`` for ``state`` (module docstring): Adam
-    ascent through the soft renderer from ``restarts`` starts, the winner by the hard image's Q.
-    Pure and jit-able (jit it with ``state`` and ``key`` as arguments)."""
-    n = actor.obs_spec["pixels/mount"][0]
-    soft, hard = observer(env, n, tau=float(config.tau)), observer(env, n)
-
-    def objective(obs_fn, c):
-        o = obs_fn(state, c)
-        return q_value(q, q_params, o, actor.apply(actor_params, o))
-
-    default = jnp.asarray(env.mount.default, jnp.float32)
-    starts = jnp.concatenate([default[None], uniform_coords(
-        env.mount, key, (int(config.restarts) - 1,))], axis=0)
-    tx = optax.adam(float(config.ascent_lr))
-
-    def ascend(c0):
-        def body(carry, _):
-            c, s = carry
-            v, g = jax.value_and_grad(lambda c: objective(soft, c))(c)
-            g = jnp.where(jnp.isfinite(g), g, 0.0)
-            u, s = tx.update(-g, s, c)
-            return (optax.apply_updates(c, u), s), v
-
-        (c, _), trace = jax.lax.scan(body, (c0, tx.init(c0)), None,
-                                     length=int(config.ascent_steps))
-        return c, trace
-
-    ends, trace = jax.vmap(ascend)(starts)
-    cands = jnp.concatenate([starts, ends], axis=0)
-    values = jax.vmap(lambda c: objective(hard, c))(cands)
-    values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
-    best = jnp.argmax(values)
-    return Selection(cands[best], values[best], values[0], starts, ends, trace)
-
-
-def landscape(env, q: Network, q_params, actor: Network, actor_params, state, distance_coord,
-              grid: tuple[int, int] = (15, 9)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Q (hard images) over an azimuth x elevation grid of the workspace at one distance
-    coordinate: ``(azimuths (A,), elevations (E,), values (E, A))`` in radians."""
-    mount = env.mount
-    az = np.linspace(*mount.azimuth, grid[0] + 2)[1:-1]
-    el = np.linspace(*mount.elevation, grid[1] + 2)[1:-1]
-    dist = float(np.asarray(mount.spherical(jnp.full(3, distance_coord, jnp.float32)))[2])
-    coords = np.array([mount.coords_of([a, e, dist]) for e in el for a in az], np.float32)
-    hard = observer(env, actor.obs_spec["pixels/mount"][0])
-
-    @jax.jit
-    def values(cs):
-        def one(c):
-            o = hard(state, c)
-            return q_value(q, q_params, o, actor.apply(actor_params, o))
-        return jax.lax.map(one, cs)
-
-    return az, el, np.asarray(values(jnp.asarray(coords))).reshape(len(el), len(az))
-
-
-def load_q(path) -> tuple[Network, object, dict]:
-    """Q ``(network, params, meta)`` from a ``twinrl train --algo sensing`` run (or its
-    ``policy/``); a one-line error for any other checkpoint."""
-    from twinrl.learn.checkpoint import load_policy
-
-    net, params, meta = load_policy(path)
-    if meta.get("algo") != "sensing" or not isinstance(net.obs_spec, dict) \
-            or "action" not in net.obs_spec:
-        raise SensingError(f"{path}: not a sensing Q checkpoint (algo {meta.get('algo')!r}); "
-                           f"train one with twinrl train --algo sensing --set actor=DIR")
-    return net, params, meta
-
-
-def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None = None,
-          steps: int | None = None, grid: tuple[int, int] = (15, 9), progress=None) -> dict:
-    """``twinrl sense``: the camera pose Q chooses for the start state ``reset(seed)`` of
-    ``env_name``; writes ``out/sense.png`` (Q over the workspace at the chosen distance, with the
-    default, the ascents and the choice marked; the views from the default and the chosen pose
-    side by side, RGB and the target mask), ``out/views.png`` (the two 64 x 64 images the actor
-    would see) and ``out/summary.json``. Returns the summary."""
-    from pathlib import Path
-
-    from twinrl import envs, report
-
-    out = Path(out)
-    q, q_params, meta = load_q(checkpoint)
-    if meta.get("env") != env_name:
-        raise SensingError(f"{checkpoint}: Q was trained on {meta.get('env')!r}, not "
-                           f"{env_name!r}")
-    cfg = SensingConfig.from_dict(meta.get("config") or {})
-    over = {k: v for k, v in (("restarts", restarts), ("ascent_steps", steps)) if v is not None}
-    cfg = dataclasses.replace(cfg, **over)
-    actor, actor_params, _ = load_actor(cfg.actor)
-    from twinrl.learn.checkpoint import load_system
-
-    system = load_system(checkpoint)  # the (identified) simulator Q was trained in, if any
-    env = envs.make(env_name) if system is None else envs.make(env_name, system=system)
-    say = progress or (lambda s: None)
-    state = jax.jit(env.reset)(jax.random.PRNGKey(int(seed)))
-    say("choosing the camera pose (gradient ascent of Q through the renderer) ...")
-    choose = jax.jit(lambda s, k: select_camera(env, q, q_params, actor, actor_params, s, k, cfg))
-    sel = jax.block_until_ready(choose(state, jax.random.PRNGKey(int(seed) + 1)))
-    say("Q over the workspace ...")
-    az, el, vals = landscape(env, q, q_params, actor, actor_params, state,
-                             float(sel.coords[2]), grid)
-    mount = env.mount
-    chosen = np.asarray(sel.coords, np.float64)
-    default = np.asarray(mount.default, np.float64)
-    sph = lambda c: np.asarray(mount.spherical(jnp.asarray(c, jnp.float32)), float)  # noqa
-    ids = jnp.asarray([env.sim.mj_model.geom(g).id for g in env.target_geoms])
-    big = jax.jit(lambda c: env.render(state, c, size=160))
-    images = {}
-    for name, c in (("default", default), ("chosen", chosen)):
-        img = big(jnp.asarray(c, jnp.float32))
-        images[name] = (np.asarray(img.rgb), np.asarray(jnp.isin(img.segmentation, ids)))
-    pixels = {k: int(v[1].sum()) for k, v in images.items()}
-    out.mkdir(parents=True, exist_ok=True)
-    _plot_sense(out / "sense.png", env, az, el, vals, sel, images, env_name)
-    observe = jax.jit(observer(env, actor.obs_spec["pixels/mount"][0]))
-    small = [np.asarray(observe(state, jnp.asarray(c, jnp.float32))["pixels/mount"][..., :3])
-             for c in (default, chosen)]
-    import imageio.v3 as iio
-
-    gap = np.ones((small[0].shape[0], 4, 3))
-    iio.imwrite(out / "views.png", (np.concatenate([small[0], gap, small[1]], axis=1)
-                                    * 255).clip(0, 255).astype(np.uint8))
-    summary = {
-        "env": env_name, "seed": int(seed), "checkpoint": str(checkpoint),
-        "chosen_coords": chosen.tolist(),
-        "chosen_pose": dict(zip(("azimuth_rad", "elevation_rad", "distance_m"),
-                                sph(chosen).tolist())),
-        "default_pose": dict(zip(("azimuth_rad", "elevation_rad", "distance_m"),
-                                 sph(default).tolist())),
-        "q_chosen": float(sel.value), "q_default": float(sel.default_value),
-        "q_landscape_max": float(np.max(vals)), "q_landscape_min": float(np.min(vals)),
-        "steps_to_move": mount.steps_to_move(default, chosen),
-        "target_pixels_160": pixels, "restarts": int(cfg.restarts),
-        "ascent_steps": int(cfg.ascent_steps),
-        "files": {"plot": str(out / "sense.png"), "views": str(out / "views.png")},
-    }
-    report.write_json(out / "summary.json", summary)
-    return summary
-
-
-def _plot_sense(path, env, az, el, vals, sel, images, title):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    mount = env.mount
-    sph = lambda c: np.asarray(mount.spherical(jnp.asarray(c, jnp.float32)), float)  # noqa
-    fig = plt.figure(figsize=(13, 4.2), dpi=110)
-    ax = fig.add_subplot(1, 3, 1)
-    m = ax.pcolormesh(np.degrees(az), np.degrees(el), vals, shading="nearest", cmap="viridis")
-    fig.colorbar(m, ax=ax, label="Q (hard image)")
-    for c0, c1 in zip(np.asarray(sel.starts), np.asarray(sel.ends)):
-        a, b = np.degrees(sph(c0)), np.degrees(sph(c1))
-        ax.annotate("", xy=(b[0], b[1]), xytext=(a[0], a[1]),
-                    arrowprops=dict(arrowstyle="->", color="w", lw=0.8))
-    d, c = np.degrees(sph(mount.default)), np.degrees(sph(sel.coords))
-    ax.plot(d[0], d[1], "s", mfc="none", mec="orange", ms=10, label="default")
-    ax.plot(c[0], c[1], "*", color="red", ms=14, label="chosen")
-    ax.set_xlabel("azimuth (deg)")
-    ax.set_ylabel("elevation (deg)")
-    ax.set_title(f"Q over the workspace at {sph(sel.coords)[2]:.2f} m\n(arrows: the ascents)",
-                 fontsize=9)
-    ax.legend(loc="lower right", fontsize=8)
-    for i, (name, q) in enumerate((("default", float(sel.default_value)),
-                                   ("chosen", float(sel.value)))):
-        rgb, mask = images[name]
-        ax = fig.add_subplot(1, 3, 2 + i)
-        shown = rgb.copy()
-        shown[mask] = 0.5 * shown[mask] + 0.5 * np.array([1.0, 0.0, 0.0])
-        ax.imshow(np.clip(shown, 0, 1))
-        ax.set_title(f"{name} pose: Q {q:.3f}, target {int(mask.sum())} px (red)", fontsize=9)
-        ax.axis("off")
-    fig.suptitle(f"sensing-aware camera choice on {title}")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path

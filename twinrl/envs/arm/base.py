@@ -488,6 +488,24 @@ class ArmTask(Env):
         model = self.sim.model_with(self.params)
         return self.renderer.render(cam, Geoms.from_mjx(model, data), tau=tau)
 
+    def image_observation(self, state, coords: jax.Array | None = None, *, size: int | None = None,
+                          tau: float = 0.0) -> dict:
+        """What a robot has: ``{"state": joint angles and velocities (14,), "pixels/mount":
+        (size, size, 5)}`` -- the mount image at ``coords``, RGB, depth (m) and the target
+        geoms' share of each pixel (the renderer's coverage: the hard 0/1 mask at ``tau == 0``,
+        soft and differentiable in the pose at ``tau > 0``). The image actor's and the sensing
+        Q's observation (``twinrl.learn.imitation``, ``twinrl.learn.sensing``)."""
+        img = self.render(state, coords, tau=tau, size=size)
+        mask = jnp.sum(img.weights[..., self._target_columns], axis=-1)
+        pixels = jnp.concatenate([img.rgb, img.depth[..., None], mask[..., None]], axis=-1)
+        return {"state": state.obs[:2 * N_JOINTS], "pixels/mount": pixels}
+
+    @functools.cached_property
+    def _target_columns(self) -> np.ndarray:
+        # NumPy, not a jax array: first built inside a trace, a cached jax array would leak it
+        drawn = list(self.renderer.geom_ids)
+        return np.asarray([drawn.index(self.sim.mj_model.geom(g).id) for g in self.target_geoms])
+
     # ------------------------------------------------------------------ checks
     def scripted_action(self, obs: np.ndarray) -> np.ndarray:
         """A hand-written expert (NumPy, from the privileged observation); each task has one."""

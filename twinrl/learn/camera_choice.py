@@ -1,0 +1,115 @@
+"""Choosing the camera pose with the sensing-aware Q (SAM-RL): gradient ascent of Q through the
+differentiable renderer, and Q's landscape over the mount's workspace (``twinrl.sense`` draws
+them for ``twinrl sense``).
+
+``select_camera`` ascends ``J(c) = Q(o(c), pi(o(c)))`` with Adam in the mount's unconstrained
+coordinates (``CameraMount``: a sigmoid keeps every pose in its workspace), the image rendered
+soft (``tau``) so that the pose has a gradient through silhouettes, from the default pose and
+``restarts - 1`` random ones; the winner is chosen by ``J`` on the *hard* image (the one the
+actor will see) among the starts and the ends of every ascent, so the choice is never worse, by
+Q, than the default pose. Q and its training live in ``twinrl.learn.sensing``.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from twinrl.learn.networks import Network
+
+__all__ = ["Selection", "uniform_coords", "observer", "q_value", "select_camera", "landscape"]
+
+
+def uniform_coords(mount, key, shape=()) -> jax.Array:
+    """Unconstrained mount coordinates of poses uniform over its (azimuth, elevation, distance)
+    box (kept 2 % inside its edges, where the sigmoid's slope vanishes)."""
+    u = jax.random.uniform(key, shape + (3,), minval=0.02, maxval=0.98)
+    return jnp.log(u) - jnp.log1p(-u)
+
+
+def observer(env, image_size: int, tau: float = 0.0) -> Callable:
+    """``observe(state, coords)``: the image actor's observation (``ArmTask.image_observation``),
+    soft in the pose when ``tau > 0``."""
+    return lambda s, coords: env.image_observation(s, coords, size=int(image_size), tau=tau)
+
+
+def q_value(q: Network, q_params, obs: dict, action: jax.Array) -> jax.Array:
+    return q.apply(q_params, {**obs, "action": action})[..., 0]
+
+
+class Selection(NamedTuple):
+    coords: jax.Array
+    """(3,) the chosen pose (unconstrained mount coordinates)."""
+    value: jax.Array
+    """Q at the chosen pose (hard image)."""
+    default_value: jax.Array
+    """Q at the mount's default pose (hard image)."""
+    starts: jax.Array
+    """(R, 3) where the ascents started (the first: the default pose)."""
+    ends: jax.Array
+    """(R, 3) where they ended."""
+    trace: jax.Array
+    """(R, steps) the soft objective along each ascent."""
+
+
+def select_camera(env, q: Network, q_params, actor: Network, actor_params, state, key,
+                  config) -> Selection:
+    """The mount pose maximising ``Q(o(c), pi(o(c)))`` for ``state`` (module docstring): Adam
+    ascent through the soft renderer from ``restarts`` starts, the winner by the hard image's Q.
+    ``config``: a ``SensingConfig`` (its ``restarts``, ``ascent_steps``, ``ascent_lr``, ``tau``).
+    Pure and jit-able (jit it with ``state`` and ``key`` as arguments)."""
+    n = actor.obs_spec["pixels/mount"][0]
+    soft, hard = observer(env, n, tau=float(config.tau)), observer(env, n)
+
+    def objective(obs_fn, c):
+        o = obs_fn(state, c)
+        return q_value(q, q_params, o, actor.apply(actor_params, o))
+
+    default = jnp.asarray(env.mount.default, jnp.float32)
+    starts = jnp.concatenate([default[None], uniform_coords(
+        env.mount, key, (int(config.restarts) - 1,))], axis=0)
+    tx = optax.adam(float(config.ascent_lr))
+
+    def ascend(c0):
+        def body(carry, _):
+            c, s = carry
+            v, g = jax.value_and_grad(lambda c: objective(soft, c))(c)
+            g = jnp.where(jnp.isfinite(g), g, 0.0)
+            u, s = tx.update(-g, s, c)
+            return (optax.apply_updates(c, u), s), v
+
+        (c, _), trace = jax.lax.scan(body, (c0, tx.init(c0)), None,
+                                     length=int(config.ascent_steps))
+        return c, trace
+
+    ends, trace = jax.vmap(ascend)(starts)
+    cands = jnp.concatenate([starts, ends], axis=0)
+    values = jax.vmap(lambda c: objective(hard, c))(cands)
+    values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
+    best = jnp.argmax(values)
+    return Selection(cands[best], values[best], values[0], starts, ends, trace)
+
+
+def landscape(env, q: Network, q_params, actor: Network, actor_params, state, distance_coord,
+              grid: tuple[int, int] = (15, 9)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Q (hard images) over an azimuth x elevation grid of the workspace at one distance
+    coordinate: ``(azimuths (A,), elevations (E,), values (E, A))`` in radians."""
+    mount = env.mount
+    az = np.linspace(*mount.azimuth, grid[0] + 2)[1:-1]
+    el = np.linspace(*mount.elevation, grid[1] + 2)[1:-1]
+    dist = float(np.asarray(mount.spherical(jnp.full(3, distance_coord, jnp.float32)))[2])
+    coords = np.array([mount.coords_of([a, e, dist]) for e in el for a in az], np.float32)
+    hard = observer(env, actor.obs_spec["pixels/mount"][0])
+
+    @jax.jit
+    def values(cs):
+        def one(c):
+            o = hard(state, c)
+            return q_value(q, q_params, o, actor.apply(actor_params, o))
+        return jax.lax.map(one, cs)
+
+    return az, el, np.asarray(values(jnp.asarray(coords))).reshape(len(el), len(az))
