@@ -8,6 +8,7 @@ The choice itself is ``twinrl.learn.camera_choice.select_camera``; Q and its tra
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import jax
@@ -41,6 +42,7 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     side by side, RGB and the target mask), ``out/views.png`` (the two 64 x 64 images the actor
     would see) and ``out/summary.json``. Returns the summary."""
     from twinrl import envs, report
+    from twinrl.learn.checkpoint import load_system
 
     out = Path(out)
     q, q_params, meta = load_q(checkpoint)
@@ -51,8 +53,6 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     over = {k: v for k, v in (("restarts", restarts), ("ascent_steps", steps)) if v is not None}
     cfg = dataclasses.replace(cfg, **over)
     actor, actor_params, _ = load_actor(cfg.actor)
-    from twinrl.learn.checkpoint import load_system
-
     system = load_system(checkpoint)  # the (identified) simulator Q was trained in, if any
     env = envs.make(env_name) if system is None else envs.make(env_name, system=system)
     say = progress or (lambda s: None)
@@ -66,13 +66,12 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     mount = env.mount
     chosen = np.asarray(sel.coords, np.float64)
     default = np.asarray(mount.default, np.float64)
-    sph = lambda c: np.asarray(mount.spherical(jnp.asarray(c, jnp.float32)), float)  # noqa
-    ids = jnp.asarray([env.sim.mj_model.geom(g).id for g in env.target_geoms])
-    big = jax.jit(lambda c: env.render(state, c, size=160))
+    sph = functools.partial(_spherical, mount)
+    big = jax.jit(lambda c: env.image_observation(state, c, size=160)["pixels/mount"])
     images = {}
     for name, c in (("default", default), ("chosen", chosen)):
-        img = big(jnp.asarray(c, jnp.float32))
-        images[name] = (np.asarray(img.rgb), np.asarray(jnp.isin(img.segmentation, ids)))
+        px = np.asarray(big(jnp.asarray(c, jnp.float32)))
+        images[name] = (px[..., :3], px[..., 4] > 0.5)  # RGB, the target's (hard) mask
     pixels = {k: int(v[1].sum()) for k, v in images.items()}
     out.mkdir(parents=True, exist_ok=True)
     _plot_sense(out / "sense.png", env, az, el, vals, sel, images, env_name)
@@ -102,6 +101,11 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     return summary
 
 
+def _spherical(mount, coords) -> np.ndarray:
+    """``(azimuth, elevation, distance)`` of unconstrained mount coordinates, as NumPy."""
+    return np.asarray(mount.spherical(jnp.asarray(coords, jnp.float32)), float)
+
+
 def _plot_sense(path, env, az, el, vals, sel, images, title):
     import matplotlib
 
@@ -109,7 +113,7 @@ def _plot_sense(path, env, az, el, vals, sel, images, title):
     import matplotlib.pyplot as plt
 
     mount = env.mount
-    sph = lambda c: np.asarray(mount.spherical(jnp.asarray(c, jnp.float32)), float)  # noqa
+    sph = functools.partial(_spherical, mount)
     fig = plt.figure(figsize=(13, 4.2), dpi=110)
     ax = fig.add_subplot(1, 3, 1)
     m = ax.pcolormesh(np.degrees(az), np.degrees(el), vals, shading="nearest", cmap="viridis")

@@ -77,6 +77,27 @@ def test_q_fits_the_targets_and_reports_held_out_ranking(trained):
     assert q.obs_spec["action"] == (3,) and q.out_size == 1
 
 
+def test_ranking_figures_follow_the_order_q_gives_the_poses():
+    # a stand-in Q that scores the action's first entry: with targets in the same order across a
+    # state's poses the rank correlation is 1 and Q's choice is the best pose; reversed, -1 and
+    # the worst
+    q = Network(lambda k: {}, lambda p, o: o["action"][..., :1], 0, 1, NetworkConfig(),
+                {"state": (1,), "action": (2,)})
+    S, C = 3, 4
+    acts = jnp.broadcast_to(jnp.arange(C, dtype=jnp.float32)[None, :, None, None], (S, C, 1, 2))
+    obs = {"state": jnp.zeros((S, C, 1, 1))}
+    order = jnp.broadcast_to(jnp.arange(C, dtype=jnp.float32) / C, (S, C))[..., None]
+    for sign, corr in ((1.0, 1.0), (-1.0, -1.0)):
+        targets = 0.5 + sign * (order - 0.4)
+        data = sensing.SensingData(obs, acts, targets, jnp.zeros((S, C, 3)), 10 * targets[..., 0],
+                                   jnp.zeros((S, C)))
+        f = sensing.evaluate_ranking(q, {}, data)
+        assert f["rank_corr"] == pytest.approx(corr)
+        best, worst = float(targets.max()), float(targets.min())
+        assert f["target_q_choice"] == pytest.approx(best if sign > 0 else worst)
+        assert f["return"] == pytest.approx(10 * f["target_q_choice"])
+
+
 def test_ascent_through_the_renderer_finds_where_the_target_shows():
     # A stand-in Q that scores the target's share of the soft image: the ascent must move the
     # camera to poses that show it, as a random search over many poses would.

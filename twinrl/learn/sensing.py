@@ -198,8 +198,8 @@ def _rank_corr(a: np.ndarray, b: np.ndarray) -> float:
 
 def evaluate_ranking(q: Network, q_params, data: SensingData) -> dict:
     """On held-out data: Q's loss, its per-state rank correlation with the target across poses
-    (first example of each episode), and the target at Q's preferred pose vs the poses' mean and
-    best."""
+    (first example of each episode), the target at Q's preferred pose vs the poses' mean and
+    best, and the episode return from Q's preferred pose (``return``)."""
     flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
     obs = jax.tree_util.tree_map(flat, data.obs)
     pred = np.asarray(jax.jit(lambda p, o, a: q_value(q, p, o, a))(
@@ -215,7 +215,8 @@ def evaluate_ranking(q: Network, q_params, data: SensingData) -> dict:
             "target_mean_pose": float(np.mean(first_target)),
             "target_best_pose": float(np.mean(first_target.max(axis=1))),
             "success_q_choice": float(np.mean(np.asarray(data.success)[rows, pick])),
-            "success_mean_pose": float(np.mean(np.asarray(data.success)))}
+            "success_mean_pose": float(np.mean(np.asarray(data.success))),
+            "return": float(np.mean(np.asarray(data.returns)[rows, pick]))}
 
 
 def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0, *,
@@ -264,10 +265,6 @@ def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0
     q_params, losses = _fit(q, q_params, obs, flat(train_part.actions),
                             flat(train_part.targets), c, k_fit)
     figures = evaluate_ranking(q, q_params, test_part)
-    pick = np.argmax(np.asarray(jax.jit(lambda p, o, a: q_value(q, p, o, a))(
-        q_params, jax.tree_util.tree_map(lambda x: x[:, :, 0], test_part.obs),
-        test_part.actions[:, :, 0])), axis=1)
-    ret = float(np.mean(np.asarray(test_part.returns)[np.arange(held), pick]))
     # the camera choice on the held-out start states: does the ascent raise Q above the default?
     choose = jax.jit(lambda s, k: select_camera(env, q, q_params, actor_net, actor_params, s, k,
                                                 c))
@@ -279,7 +276,7 @@ def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0
     gains = np.asarray(gains)
     row = log.record(epoch=0, pairs=int(train_part.targets.size),
                      loss=float(np.mean(np.asarray(losses)[-max(1, int(c.fit_steps) // 10):])),
-                     **figures, **{"return": ret}, choice_raises_q=float(np.mean(gains > 0)),
+                     **figures, choice_raises_q=float(np.mean(gains > 0)),
                      choice_q_gain=float(np.mean(gains)))
     if progress_fn is not None:
         progress_fn(0, row)
