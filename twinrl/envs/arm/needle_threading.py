@@ -140,6 +140,15 @@ class NeedleThreading(ArmTask):
         return jnp.concatenate([qpos[:7], qvel[:7], tip, base, centre, R[:, 0], tip_e,
                                 dir_e]).astype(jnp.float32)
 
+    def state_from_obs(self, obs):
+        """``(qpos, qvel)`` of an observation: the joints, the eye's offset from its origin and
+        its yaw (from its axis); the eye does not move (velocity zero)."""
+        yaw = jnp.arctan2(obs[24], obs[23]) - EYE_HEADING
+        yaw = jnp.arctan2(jnp.sin(yaw), jnp.cos(yaw))
+        qpos = jnp.concatenate([obs[:7], obs[20:23] - jnp.asarray(NEEDLE_ORIGIN, obs.dtype),
+                                yaw[None]])
+        return qpos, jnp.concatenate([obs[7:14], jnp.zeros(4, obs.dtype)])
+
     def reward_terms(self, qpos, qvel, action):
         c = self.config
         tip_e, base_e = self._in_eye_frame(qpos)

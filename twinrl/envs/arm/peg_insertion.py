@@ -115,6 +115,12 @@ class PegInsertion(ArmTask):
         return jnp.concatenate([qpos[:7], qvel[:7], tip, hole, tip - hole,
                                 depth[None]]).astype(jnp.float32)
 
+    def state_from_obs(self, obs):
+        """``(qpos, qvel)`` of an observation: the joints, and the fixture's offset from the
+        hole's position (the fixture does not move: its velocity is zero)."""
+        qpos = jnp.concatenate([obs[:7], obs[17:19] - jnp.array([0.5, 0.0], obs.dtype)])
+        return qpos, jnp.concatenate([obs[7:14], jnp.zeros(2, obs.dtype)])
+
     def reward_terms(self, qpos, qvel, action):
         c = self.config
         tip, hole = self.tip_and_hole(qpos)
