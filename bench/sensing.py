@@ -1,0 +1,262 @@
+"""Active sensing on the real twins: success of the image actor with (a) the camera the
+sensing-aware Q selects, (b) the default fixed camera, (c) a random reachable camera, against
+(d) the state-based oracle policy, and model-free SAC/TD3 trained on the real twin
+(``twinrl.sim2real.active``; SAM-RL, Lv et al. RSS 2023, Table I's comparison).
+
+Per task and twin seed (``--seeds``: each a hidden perturbation, hand-eye offset included),
+``--episodes`` real episodes per camera mode from the same start states (reset seeds
+``1000 * seed + i``). Checkpoints per task, ``TASK=DIR`` (``twinrl train`` run directories):
+``--actor`` the image actor (``--algo imitation --set observation=pixels``), ``--q`` its
+sensing-aware Q (``--algo sensing``), ``--state-actor`` the state actor (``--algo imitation``)
+for (d). Modes whose checkpoint is missing are left out. Real steps count the steps acting and,
+separately, the steps the camera mount spends moving.
+
+``--model-free-steps N`` (needs the ``bench`` extra: sbx-rl) also trains sbx SAC and TD3 on the
+state observation of each task's seed-0 twin for N real steps, evaluating success every
+``--eval-every`` steps, and reports the real steps each needed to reach the selected camera's
+success (or that it did not within N).
+
+Prints a table and writes ``DIR/sensing.json`` and ``DIR/sensing.png`` (``--out DIR``).
+
+    python bench/sensing.py --tasks peg_insertion --actor peg_insertion=runs/ia \\
+        --q peg_insertion=runs/sq --state-actor peg_insertion=runs/sa --out bench/results
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import mujoco
+import numpy as np
+
+import twinrl
+from twinrl import envs
+from twinrl.report import print_table, write_json
+
+TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
+MODES = ("selected", "default", "random", "oracle")
+
+
+def _per_task(pairs: list[str], flag: str) -> dict[str, Path]:
+    out = {}
+    for p in pairs or []:
+        task, sep, path = p.partition("=")
+        if not sep or task not in TASKS:
+            raise SystemExit(f"{flag} takes TASK=DIR with TASK one of {', '.join(TASKS)}; "
+                             f"got {p!r}")
+        out[task] = Path(path)
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--tasks", nargs="*", default=list(TASKS), choices=TASKS)
+    p.add_argument("--actor", nargs="*", default=[], help="TASK=DIR image actor checkpoints")
+    p.add_argument("--q", nargs="*", default=[], help="TASK=DIR sensing-aware Q checkpoints")
+    p.add_argument("--state-actor", nargs="*", default=[], help="TASK=DIR state actors (oracle)")
+    p.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
+    p.add_argument("--restarts", type=int, default=None, help="ascents per choice (default: Q's)")
+    p.add_argument("--ascent-steps", type=int, default=None)
+    p.add_argument("--model-free-steps", type=int, default=0)
+    p.add_argument("--eval-every", type=int, default=5000)
+    p.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = p.parse_args(argv)
+    if args.episodes < 1 or not args.seeds:
+        raise SystemExit("--episodes must be >= 1 and --seeds must name at least one seed")
+    actors, qs = _per_task(args.actor, "--actor"), _per_task(args.q, "--q")
+    states = _per_task(args.state_actor, "--state-actor")
+    rows, model_free = [], []
+    for name in args.tasks:
+        rows += run_task(name, actors.get(name), qs.get(name), states.get(name), args)
+        write_json(args.out / "sensing.json", _result(args, rows, model_free))
+        if args.model_free_steps > 0:
+            sel = [r["success"] for r in rows if r["task"] == name and r["mode"] == "selected"]
+            target = float(np.mean(sel)) if sel else 0.8
+            for algo in ("td3", "sac"):
+                model_free.append(train_model_free(algo, name, target, args))
+                write_json(args.out / "sensing.json", _result(args, rows, model_free))
+    table = summarise(rows)
+    cols = ["task", "mode", "success", "spread (sd over seeds)", "return", "real steps",
+            "camera steps", "wall s"]
+    print_table(f"real-twin success ({args.episodes} episodes x {len(args.seeds)} seeds)", cols,
+                [[t[c] for c in ("task", "mode", "success", "sd", "return", "real_steps",
+                                 "camera_steps", "wall_s")] for t in table])
+    if model_free:
+        print_table("model-free on the real twin (state observation)",
+                    ["task", "algo", "target success", "steps to target", "best success",
+                     "real steps"],
+                    [[m["task"], m["algo"], m["target"], m["steps_to_target"] or "not reached",
+                      m["best_success"], m["real_steps_trained"]] for m in model_free])
+    path = write_json(args.out / "sensing.json", _result(args, rows, model_free))
+    _plot(args.out / "sensing.png", table)
+    print(f"wrote {path} and {args.out / 'sensing.png'}")
+    return 0
+
+
+def run_task(name, actor_dir, q_dir, state_dir, args) -> list[dict]:
+    from twinrl.learn.checkpoint import load_policy
+    from twinrl.learn.sensing import SensingConfig, load_actor
+    from twinrl.real.twin import RealTwin
+    from twinrl.sense import load_q
+    from twinrl.sim2real import active
+
+    env = envs.make(name)
+    deployers, size = {}, None
+    if actor_dir is not None:
+        actor, actor_params, _ = load_actor(actor_dir)
+        size = int(actor.obs_spec["pixels/mount"][0])
+        q = q_params = sensing = None
+        if q_dir is not None:
+            q, q_params, meta = load_q(q_dir)
+            sensing = SensingConfig.from_dict(meta.get("config") or {})
+        dep = active.Deployer(env, actor, actor_params, q=q, q_params=q_params, sensing=sensing)
+        for mode in ("selected", "default", "random"):
+            if mode in args.modes and (mode != "selected" or q is not None):
+                deployers[mode] = dep
+    if state_dir is not None and "oracle" in args.modes:
+        net, params, _ = load_policy(state_dir)
+        deployers["oracle"] = active.Deployer(env, net, params)
+    if not deployers:
+        print(f"[bench] {name}: no checkpoints given; skipped", flush=True)
+        return []
+    rows = []
+    for seed in args.seeds:
+        twin = RealTwin(name, seed=seed, width=size or 64, height=size or 64)
+        for mode, dep in deployers.items():
+            cfg = active.DeployConfig(camera=mode, episodes=args.episodes,
+                                      restarts=args.restarts, ascent_steps=args.ascent_steps)
+            twin.move_camera(env.mount.default)
+            t0 = time.perf_counter()
+            res = dep.run(twin, cfg, seed=1000 * seed)
+            print(f"[bench] {name} seed {seed} {mode:>8}: success {res['success_rate']:.2f}, "
+                  f"return {res['mean_return']:.1f}, camera steps {res['real_camera_steps']} "
+                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
+            rows.append({"task": name, "seed": seed, "mode": mode,
+                         "success": res["success_rate"], "return": res["mean_return"],
+                         "real_steps": res["real_steps"],
+                         "camera_steps": res["real_camera_steps"], "wall_s": res["wall_s"],
+                         "episodes": res})
+        twin.close()
+    return rows
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    out = []
+    for task in dict.fromkeys(r["task"] for r in rows):
+        for mode in MODES:
+            sel = [r for r in rows if r["task"] == task and r["mode"] == mode]
+            if not sel:
+                continue
+            s = np.array([r["success"] for r in sel])
+            out.append({"task": task, "mode": mode, "success": float(s.mean()),
+                        "sd": float(s.std(ddof=1)) if len(s) > 1 else 0.0,
+                        "per_seed": s.tolist(),
+                        "return": float(np.mean([r["return"] for r in sel])),
+                        "real_steps": int(sum(r["real_steps"] for r in sel)),
+                        "camera_steps": int(sum(r["camera_steps"] for r in sel)),
+                        "wall_s": float(sum(r["wall_s"] for r in sel))})
+    return out
+
+
+def train_model_free(algo: str, task: str, target: float, args) -> dict:
+    """sbx ``algo`` on the seed-0 real twin's state observation for ``--model-free-steps``; the
+    real steps at which its deterministic policy first reached ``target`` success."""
+    from sim2real import LEARNING_STARTS, TD3_NOISE_SD, import_sbx
+    from twinrl.real.twin import RealTwin
+
+    sbx, BaseCallback, NormalActionNoise = import_sbx()
+    twin = RealTwin(task, seed=0)
+    nu = twin.action_space.shape[0]
+    kw = ({"action_noise": NormalActionNoise(np.zeros(nu), TD3_NOISE_SD * np.ones(nu))}
+          if algo == "td3" else {})
+    model = getattr(sbx, algo.upper())("MlpPolicy", twin, learning_starts=LEARNING_STARTS,
+                                       seed=0, **kw)
+    env, curve, t0 = twin.task, [], time.perf_counter()
+    evaluator = RealTwin(task, seed=0)
+
+    def success_rate() -> float:
+        wins = 0.0
+        for i in range(10):
+            obs, _ = evaluator.reset(seed=10_000 + i)
+            for _ in range(env.episode_length):
+                obs, _, term, _, _ = evaluator.step(model.predict(obs, deterministic=True)[0])
+                if term:
+                    break
+            o = evaluator.oracle()
+            wins += float(env.success(o.qpos, o.qvel))
+        return wins / 10
+
+    class Eval(BaseCallback):
+        def _on_step(self) -> bool:
+            n = self.num_timesteps
+            if n % args.eval_every == 0 or n >= args.model_free_steps:
+                s = success_rate()
+                curve.append({"real_steps": n, "success": s, "wall_s": time.perf_counter() - t0})
+                print(f"[bench] {task} {algo}: {n} real steps, success {s:.2f} (target "
+                      f"{target:.2f})", flush=True)
+                return s < target
+            return True
+
+    model.learn(total_timesteps=args.model_free_steps, callback=Eval())
+    twin.close()
+    evaluator.close()
+    reached = next((c["real_steps"] for c in curve if c["success"] >= target), None)
+    return {"task": task, "algo": algo, "target": target, "steps_to_target": reached,
+            "best_success": max((c["success"] for c in curve), default=0.0),
+            "real_steps_trained": int(model.num_timesteps), "curve": curve,
+            "wall_s": time.perf_counter() - t0}
+
+
+def _plot(path: Path, table: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not table:
+        return
+    tasks = list(dict.fromkeys(t["task"] for t in table))
+    fig, ax = plt.subplots(figsize=(2.2 + 2.4 * len(tasks), 3.4))
+    width = 0.8 / len(MODES)
+    for j, mode in enumerate(MODES):
+        xs, ys, es = [], [], []
+        for i, task in enumerate(tasks):
+            t = next((t for t in table if t["task"] == task and t["mode"] == mode), None)
+            if t is not None:
+                xs.append(i + (j - 1.5) * width)
+                ys.append(100 * t["success"])
+                es.append(100 * t["sd"])
+        if xs:
+            ax.bar(xs, ys, width, yerr=es, capsize=3, label=mode)
+    ax.set_xticks(range(len(tasks)), tasks)
+    ax.set_ylabel("real-twin success (%)")
+    ax.set_ylim(0, 105)
+    ax.legend(fontsize=8, title="camera", title_fontsize=8)
+    ax.set_title("image actor by camera, and the state oracle (bars: mean; lines: sd over seeds)",
+                 fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _result(args, rows, model_free) -> dict:
+    return {"meta": _meta(args), "table": summarise(rows), "rows": rows,
+            "model_free": model_free}
+
+
+def _meta(args) -> dict:
+    return {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
+            "device": str(jax.devices()[0]), "machine": platform.machine(),
+            "python": sys.version.split()[0], "args": {k: str(v) for k, v in vars(args).items()}}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

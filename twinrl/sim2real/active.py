@@ -1,0 +1,207 @@
+"""Deployment with active sensing on a real twin (SAM-RL's Sim2Real: Lv et al., RSS 2023, Sec. 4).
+
+An episode on the real robot (here: a ``RealTwin``, MuJoCo C and its OpenGL camera):
+
+1. read the start state off what the robot measures (``Env.state_from_obs`` of the twin's
+   observation: joint encoders, and the objects' poses as its perception reports them, with the
+   twin's observation noise) -- the *state estimate* the simulator renders candidate views of;
+2. choose the camera pose (``camera``, below) and move the mount there
+   (``RealTwin.move_camera``: the real camera lands at the commanded pose composed with the hidden
+   hand-eye offset; the steps the move takes are counted, ``camera_steps``);
+3. every step, take the real mount image (RGB, depth, and the target's mask from the real
+   segmentation), and act with the image actor -- plus a residual policy's correction if one is
+   given (``residual(obs) -> delta``, added and clipped to [-1, 1]);
+4. re-choose the camera every ``reselect_every`` steps if asked (0: once per episode).
+
+``camera``:
+
+- ``"selected"``: gradient ascent of the sensing-aware Q through the differentiable renderer from
+  the state estimate (``twinrl.learn.camera_choice.select_camera``);
+- ``"default"``: the mount's fixed default pose (the fixed-camera baseline);
+- ``"random"``: a pose drawn uniformly over the mount's workspace per episode;
+- ``"oracle"``: no camera -- a *state* policy acting on the twin's privileged observation vector
+  (the upper reference of the sensing benchmark, ``bench/sensing.py``).
+
+Success is the task's ``success`` of the twin's true final state (``RealTwin.oracle``): evaluation
+only, nothing here learns from it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twinrl.learn.common import JSONConfig
+
+__all__ = ["CAMERAS", "DeployConfig", "real_image_observation", "sim_state", "Deployer",
+           "deploy"]
+
+CAMERAS = ("selected", "default", "random", "oracle")
+
+
+@dataclasses.dataclass(frozen=True)
+class DeployConfig(JSONConfig):
+    camera: str = "selected"
+    """``"selected"``, ``"default"``, ``"random"`` or ``"oracle"`` (module docstring)."""
+    episodes: int = 50
+    reselect_every: int = 0
+    """Choose the camera again every this many steps (0: once, at the episode's start)."""
+    restarts: int | None = None
+    """Ascents per choice; None: the Q checkpoint's ``SensingConfig.restarts``."""
+    ascent_steps: int | None = None
+
+    def __post_init__(self):
+        self.check_fields(at_least_one=("episodes", "restarts", "ascent_steps"),
+                          non_negative=("reselect_every",), choices={"camera": CAMERAS},
+                          optional=("restarts", "ascent_steps"))
+
+
+def real_image_observation(twin, env, obs: np.ndarray, size: int) -> dict[str, np.ndarray]:
+    """The image actor's observation on the real twin, laid out as
+    ``ArmTask.image_observation``'s: ``{"state": joints and velocities (14,), "pixels/mount":
+    (size, size, 5)}`` -- RGB in [0, 1], depth (m) and the target geoms' mask from the real
+    camera's segmentation. ``twin`` must render ``size`` x ``size`` frames."""
+    if (twin.width, twin.height) != (size, size):
+        raise ValueError(f"the twin renders {twin.width}x{twin.height}; the actor needs "
+                         f"{size}x{size} (make it with width=height={size})")
+    img = twin.render_images(camera="mount")
+    ids = _target_ids(env)
+    mask = np.isin(img["segmentation"], ids).astype(np.float32)
+    pixels = np.concatenate([img["rgb"].astype(np.float32) / 255.0,
+                             img["depth"][..., None].astype(np.float32), mask[..., None]], axis=-1)
+    return {"state": np.asarray(obs[:14], np.float32), "pixels/mount": pixels}
+
+
+def _target_ids(env) -> np.ndarray:
+    m = env.sim.mj_model
+    return np.asarray([m.geom(g).id for g in env.target_geoms])
+
+
+def sim_state(env, obs: jax.Array):
+    """The simulator ``State`` of an observation (``Env.state_from_obs``): what the camera choice
+    renders its candidate views of."""
+    qpos, qvel = env.state_from_obs(jnp.asarray(obs, jnp.float32))
+    data = env.sim.init(qpos, qvel)
+    zero = jnp.zeros(())
+    from brax.envs.base import State
+
+    return State(pipeline_state=data, obs=env.observe(data.qpos, data.qvel), reward=zero,
+                 done=zero, metrics={}, info={})
+
+
+class Deployer:
+    """Runs ``DeployConfig.episodes`` episodes on real twins (``run``); builds and jits the
+    actor, the camera choice and the state estimate once, so several twins (seeds) and camera
+    modes share them.
+
+    Args:
+      env: the simulator task (the identified twin, if any) the camera choice renders.
+      actor, actor_params: the image actor (``observation="pixels"``), or for ``camera="oracle"``
+        a state policy (``observation="state"``).
+      q, q_params, sensing: the sensing-aware Q and its ``SensingConfig`` (``camera="selected"``).
+      residual: optional ``residual(obs) -> delta action`` added to the actor's action.
+    """
+
+    def __init__(self, env, actor, actor_params, *, q=None, q_params=None, sensing=None,
+                 residual: Callable | None = None):
+        self.env, self.actor, self.actor_params = env, actor, actor_params
+        self.q, self.q_params, self.sensing, self.residual = q, q_params, sensing, residual
+        self.image = isinstance(actor.obs_spec, dict)
+        self.size = int(actor.obs_spec["pixels/mount"][0]) if self.image else 0
+        self._act = jax.jit(actor.apply)
+        self._state = jax.jit(lambda o: sim_state(env, o))
+        self._choose = {}
+
+    def _chooser(self, restarts: int, steps: int):
+        from twinrl.learn.camera_choice import select_camera
+
+        key = (restarts, steps)
+        if key not in self._choose:
+            cfg = dataclasses.replace(self.sensing, restarts=restarts, ascent_steps=steps)
+            self._choose[key] = jax.jit(lambda s, k: select_camera(
+                self.env, self.q, self.q_params, self.actor, self.actor_params, s, k, cfg))
+        return self._choose[key]
+
+    def check(self, config: DeployConfig) -> None:
+        if config.camera == "oracle" and self.image:
+            raise ValueError("camera='oracle' deploys a state policy; this actor sees images")
+        if config.camera != "oracle" and not self.image:
+            raise ValueError(f"camera={config.camera!r} needs an image actor "
+                             f"(observation=pixels); this one sees the state vector")
+        if config.camera == "selected" and self.q is None:
+            raise ValueError("camera='selected' needs the sensing-aware Q (q, q_params, sensing)")
+
+    def run(self, twin, config: DeployConfig, seed: int = 0, progress=None) -> dict:
+        """``config.episodes`` episodes on ``twin`` (reset seeds ``seed``, ``seed + 1``, ...).
+        Returns per-episode ``success``, ``return``, ``steps`` (control steps acting),
+        ``camera_steps`` (steps spent moving the mount), ``choices`` (camera choices made),
+        the chosen ``coords`` (first choice of each episode) and totals/means, ``wall_s``."""
+        self.check(config)
+        env, c = self.env, config
+        restarts = int(c.restarts or (self.sensing.restarts if self.sensing else 1))
+        steps = int(c.ascent_steps or (self.sensing.ascent_steps if self.sensing else 1))
+        rng = np.random.default_rng(seed)
+        rows = {k: [] for k in ("success", "return", "steps", "camera_steps", "choices")}
+        coords_log = []
+        t0 = time.perf_counter()
+        for i in range(int(c.episodes)):
+            obs, _ = twin.reset(seed=int(seed) + i)
+            before = twin.camera_steps
+            choices, ret, first = 0, 0.0, None
+            for t in range(env.episode_length):
+                if c.camera != "oracle" and (t == 0 or (c.reselect_every
+                                                         and t % c.reselect_every == 0)):
+                    coords = self._camera(c.camera, obs, rng, restarts, steps)
+                    twin.move_camera(coords)
+                    choices += 1
+                    first = coords if first is None else first
+                o = (real_image_observation(twin, env, obs, self.size) if self.image
+                     else np.asarray(obs, np.float32))
+                a = np.asarray(self._act(self.actor_params, o), np.float32)
+                if self.residual is not None:
+                    a = np.clip(a + np.asarray(self.residual(obs), np.float32), -1.0, 1.0)
+                obs, r, term, trunc, _ = twin.step(a)
+                ret += r
+                if term:
+                    break
+            truth = twin.oracle()
+            ok = float(env.success(jnp.asarray(truth.qpos, jnp.float32),
+                                   jnp.asarray(truth.qvel, jnp.float32)))
+            for k, v in (("success", ok), ("return", ret), ("steps", t + 1),
+                         ("camera_steps", twin.camera_steps - before), ("choices", choices)):
+                rows[k].append(v)
+            coords_log.append(None if first is None else np.asarray(first).tolist())
+            if progress is not None:
+                progress(i + 1, {"success": float(np.mean(rows["success"])),
+                                 "return": float(np.mean(rows["return"]))})
+        out = {k: np.asarray(v).tolist() for k, v in rows.items()}
+        out.update(coords=coords_log, camera=c.camera, seed=int(seed),
+                   success_rate=float(np.mean(rows["success"])),
+                   mean_return=float(np.mean(rows["return"])),
+                   real_steps=int(np.sum(rows["steps"])),
+                   real_camera_steps=int(np.sum(rows["camera_steps"])),
+                   wall_s=time.perf_counter() - t0)
+        return out
+
+    def _camera(self, mode, obs, rng, restarts, steps) -> np.ndarray:
+        mount = self.env.mount
+        if mode == "default":
+            return np.asarray(mount.default, np.float64)
+        if mode == "random":
+            u = rng.uniform(0.02, 0.98, 3)
+            return np.log(u) - np.log1p(-u)
+        state = self._state(jnp.asarray(obs, jnp.float32))
+        key = jax.random.PRNGKey(int(rng.integers(0, 2**31 - 1)))
+        return np.asarray(self._chooser(restarts, steps)(state, key).coords, np.float64)
+
+
+def deploy(env, twin, actor, actor_params, config: DeployConfig = DeployConfig(), *, seed=0,
+           q=None, q_params=None, sensing=None, residual=None, progress=None) -> dict:
+    """One-off ``Deployer(...).run(twin, config, seed)`` (see ``Deployer``)."""
+    return Deployer(env, actor, actor_params, q=q, q_params=q_params, sensing=sensing,
+                    residual=residual).run(twin, config, seed, progress)
