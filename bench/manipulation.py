@@ -223,11 +223,11 @@ def solve(env, starts: int, iterations: int, batch: int, seed: int, config, rest
 def replay(env, plans: np.ndarray, keys: np.ndarray, twin_seeds, zero: bool = False) -> float:
     """Success rate of the optimised open-loop plans replayed on real twins (``RealTwin`` of each
     of ``twin_seeds`` in turn; ``zero``: without perturbation), each from its plan's start state.
-    Evaluation code: the task's success is read from the twin's true state."""
+    Evaluation code: ``RealTwin.success`` judges the twin's true state at its true tool."""
     from twinrl.real.perturbation import Perturbation
     from twinrl.real.twin import RealTwin
 
-    reset, success = jax.jit(env.reset), jax.jit(env.success)
+    reset = jax.jit(env.reset)
     wins = []
     for i, (a, key) in enumerate(zip(plans, keys)):
         seed = int(twin_seeds[i % len(twin_seeds)])
@@ -237,8 +237,7 @@ def replay(env, plans: np.ndarray, keys: np.ndarray, twin_seeds, zero: bool = Fa
                                     "qvel": np.asarray(s.pipeline_state.qvel, np.float64)})
         for action in a:
             twin.step(action)
-        o = twin.oracle()
-        wins.append(float(success(jnp.asarray(o.qpos), jnp.asarray(o.qvel))))
+        wins.append(twin.success())
         twin.close()
     return float(np.mean(wins))
 

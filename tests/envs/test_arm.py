@@ -164,8 +164,9 @@ def test_image_actor_sees_proprioception_and_the_mount_image_with_its_target_mas
     observe, spec = imitation.make_observer(env, cfg)
     state = env.reset(jax.random.PRNGKey(0))
     obs = jax.jit(observe)(state, jnp.asarray(env.mount.default, jnp.float32))
-    assert spec == {"state": (14,), "pixels/mount": (32, 32, 5)}
+    assert spec == {"state": (14,), "camera": (3,), "pixels/mount": (32, 32, 5)}
     assert obs["pixels/mount"].shape == (32, 32, 5)
+    np.testing.assert_array_equal(obs["camera"], np.asarray(env.mount.default, np.float32))
     np.testing.assert_array_equal(obs["state"], state.obs[:14])
     mask = np.asarray(obs["pixels/mount"][..., 4])
     assert set(np.unique(mask)) <= {0.0, 1.0} and mask.sum() >= 10, mask.sum()
@@ -294,3 +295,27 @@ def test_state_from_obs_inverts_observe(name, made):
     np.testing.assert_allclose(np.asarray(q2), q, atol=2e-6)
     np.testing.assert_allclose(np.asarray(v2), v, atol=2e-6)
     np.testing.assert_allclose(np.asarray(env.observe(q2, v2)), np.asarray(obs), atol=2e-6)
+
+
+@pytest.mark.parametrize("name", ARM_TASKS)
+def test_real_success_is_judged_at_the_true_tool(name, made):
+    """``RealTwin.success`` judges at the tool the real engine carries. The scripted expert's
+    episode on the unperturbed twin succeeds by both the nominal kinematics and the twin; put the
+    same joint angles into a twin whose grasp is 2 cm off, and the nominal kinematics (the
+    robot's belief) still say "done" while the true peg tip / thread is 2 cm away: the twin says
+    so. (The spatula's success is the pancake's alone: both agree.)"""
+    env = made[name]
+    judge = lambda o: float(env.success(jnp.asarray(o.qpos, jnp.float32),  # noqa: E731
+                                        jnp.asarray(o.qvel, jnp.float32)))
+    twin = RealTwin(name, perturbation=Perturbation.none())
+    obs, _ = twin.reset(seed=EXPERT_START[name])
+    for _ in range(env.episode_length):
+        obs, *_ = twin.step(env.scripted_action(obs))
+    done = twin.oracle()
+    assert (judge(done), twin.success()) == (1.0, 1.0)
+    twin.close()
+    off = RealTwin(name, perturbation=Perturbation(tool_pos_offset=(0.0, 0.02, 0.0)))
+    off.reset(options={"qpos": done.qpos, "qvel": done.qvel})
+    expected = 1.0 if name == "spatula_flipping" else 0.0
+    assert (judge(off.oracle()), off.success()) == (1.0, expected)
+    off.close()

@@ -135,6 +135,9 @@ class RealTwin(gym.Env):
         perturbation.apply(model)
         self._model = model
         self._data = mujoco.MjData(model)
+        # kinematics for evaluation (``success``): the nominal model's and the real one's
+        self._scratch = (mujoco.MjData(self.task.sim.mj_model), mujoco.MjData(model))
+        self._success = None
         self._n_physics = int(self.task.config.frame_skip) * int(substeps)
 
         # The task's own functions (JAX, jitted once) so sim and real observe and reward alike.
@@ -266,6 +269,43 @@ class RealTwin(gym.Env):
         self._mount_coords = c
         self.camera_steps += steps
         return steps
+
+    def success(self) -> float:
+        """The task's success of the true state now (evaluation only, like ``oracle``). An arm
+        task's is judged at its *true* tool: the controller's tool centre point carried by the
+        real engine's ``tool`` body, the hidden grasp offset included -- not at the nominal
+        kinematics the robot believes in."""
+        task = self.task
+        if not hasattr(task, "success"):
+            raise ValueError(f"task {self.task_name!r} has no success measure")
+        if self._success is None:
+            self._success = jax.jit(task.success)
+        jnp = jax.numpy
+        q, v = (jnp.asarray(x, jnp.float32) for x in (self._data.qpos, self._data.qvel))
+        tool = mujoco.mj_name2id(self._model, mujoco.mjtObj.mjOBJ_BODY, "tool")
+        if tool < 0 or not hasattr(task, "controller"):
+            return float(self._success(q, v))
+        from twinrl.envs.arm.base import forward_kinematics
+
+        frames = []
+        for model, d in ((self.task.sim.mj_model, self._scratch[0]), (self._model,
+                                                                      self._scratch[1])):
+            d.qpos[:] = self._data.qpos
+            mujoco.mj_kinematics(model, d)
+            frames.append((d.xpos[tool].copy(), d.xmat[tool].reshape(3, 3).copy()))
+        (pn, Rn), (pt, Rt) = frames
+        tip, R = (np.asarray(x, np.float64) for x in forward_kinematics(
+            jnp.asarray(self._data.qpos[:7], jnp.float32), task.controller.tcp))
+        true_tip = pt + Rt @ (Rn.T @ (tip - pn))  # the nominal point, carried by the true tool
+        true_R = Rt @ Rn.T @ R
+        return float(self._success(q, v, (jnp.asarray(true_tip, jnp.float32),
+                                          jnp.asarray(true_R, jnp.float32))))
+
+    @property
+    def mount_coords(self) -> np.ndarray | None:
+        """The camera mount's commanded coordinates (``move_camera``'s last; None without a
+        mount): what the robot knows of where its camera is (the hand-eye offset it does not)."""
+        return None if self._mount_coords is None else self._mount_coords.copy()
 
     def nominal_camera(self, camera: str | None = None) -> dict[str, np.ndarray | float]:
         """A camera's *nominal* pose (from the task's MJCF) and intrinsics: ``pos`` (3,) and

@@ -22,8 +22,8 @@ An episode on the real robot (here: a ``RealTwin``, MuJoCo C and its OpenGL came
 - ``"oracle"``: no camera -- a *state* policy acting on the twin's privileged observation vector
   (the upper reference of the sensing benchmark, ``bench/sensing.py``).
 
-Success is the task's ``success`` of the twin's true final state (``RealTwin.oracle``): evaluation
-only, nothing here learns from it.
+Success is ``RealTwin.success``: the task's success of the twin's true final state, judged at the
+true tool (grasp offset included) -- evaluation only, nothing here learns from it.
 """
 
 from __future__ import annotations
@@ -63,8 +63,8 @@ class DeployConfig(JSONConfig):
 
 def real_image_observation(twin, env, obs: np.ndarray, size: int) -> dict[str, np.ndarray]:
     """The image actor's observation on the real twin, laid out as
-    ``ArmTask.image_observation``'s: ``{"state": joints and velocities (14,), "pixels/mount":
-    (size, size, 5)}`` -- RGB in [0, 1], depth (m) and the target geoms' mask from the real
+    ``ArmTask.image_observation``'s: ``{"state": joints and velocities (14,), "camera": the
+    commanded mount coordinates (3,), "pixels/mount": (size, size, 5)}`` -- RGB in [0, 1], depth (m) and the target geoms' mask from the real
     camera's segmentation. ``twin`` must render ``size`` x ``size`` frames."""
     if (twin.width, twin.height) != (size, size):
         raise ValueError(f"the twin renders {twin.width}x{twin.height}; the actor needs "
@@ -74,7 +74,8 @@ def real_image_observation(twin, env, obs: np.ndarray, size: int) -> dict[str, n
     mask = np.isin(img["segmentation"], ids).astype(np.float32)
     pixels = np.concatenate([img["rgb"].astype(np.float32) / 255.0,
                              img["depth"][..., None].astype(np.float32), mask[..., None]], axis=-1)
-    return {"state": np.asarray(obs[:14], np.float32), "pixels/mount": pixels}
+    return {"state": np.asarray(obs[:14], np.float32),
+            "camera": np.asarray(twin.mount_coords, np.float32), "pixels/mount": pixels}
 
 
 def _target_ids(env) -> np.ndarray:
@@ -169,9 +170,7 @@ class Deployer:
                 ret += r
                 if term:
                     break
-            truth = twin.oracle()
-            ok = float(env.success(jnp.asarray(truth.qpos, jnp.float32),
-                                   jnp.asarray(truth.qvel, jnp.float32)))
+            ok = twin.success()
             for k, v in (("success", ok), ("return", ret), ("steps", t + 1),
                          ("camera_steps", twin.camera_steps - before), ("choices", choices)):
                 rows[k].append(v)

@@ -114,8 +114,9 @@ class NeedleThreading(ArmTask):
         tip, R = forward_kinematics(qpos[:7], TCP)
         return tip, tip - THREAD_LENGTH * R[:, 2]
 
-    def _in_eye_frame(self, qpos):
-        tip, base = self.thread(qpos)
+    def _in_eye_frame(self, qpos, tool=None):
+        tip, base = (self.thread(qpos) if tool is None
+                     else (tool[0], tool[0] - THREAD_LENGTH * tool[1][:, 2]))
         centre, R = self.eye(qpos)
         return R.T @ (tip - centre), R.T @ (base - centre)
 
@@ -189,10 +190,11 @@ class NeedleThreading(ArmTask):
         o[27] -= 0.005
         return self.scripted_action(o)
 
-    def success(self, qpos, qvel) -> jax.Array:
+    def success(self, qpos, qvel, tool=None) -> jax.Array:
         """1.0 when the tip is ``THROUGH`` past the eye's plane and the thread crosses the plane
-        inside the slot, else 0.0."""
-        tip_e, base_e = self._in_eye_frame(qpos)
+        inside the slot, else 0.0. ``tool``: the true tip's ``(position, rotation)`` (default:
+        the nominal kinematics')."""
+        tip_e, base_e = self._in_eye_frame(qpos, tool)
         span = tip_e[0] - base_e[0]
         lam = jnp.clip(-base_e[0] / jnp.where(span > 0, span, 1.0), 0.0, 1.0)
         cross = base_e + lam * (tip_e - base_e)

@@ -145,9 +145,11 @@ class PegInsertion(ArmTask):
         a[2] = -1.0 if np.hypot(*d[:2]) < 0.004 else (0.08 - d[2]) / step
         return np.clip(a, -1.0, 1.0).astype(np.float32)
 
-    def success(self, qpos, qvel) -> jax.Array:
-        """1.0 when the peg's tip is in the hole, ``INSERTED_DEPTH`` below its top, else 0.0."""
+    def success(self, qpos, qvel, tool=None) -> jax.Array:
+        """1.0 when the peg's tip is in the hole, ``INSERTED_DEPTH`` below its top, else 0.0.
+        ``tool``: the true tip's ``(position, rotation)`` (default: the nominal kinematics')."""
         tip, hole = self.tip_and_hole(qpos)
+        tip = tip if tool is None else tool[0]
         inside = jnp.sum(jnp.square(tip[:2] - hole[:2])) < HOLE_HALF_WIDTH ** 2
         deep = (tip[2] - PEG_RADIUS) < hole[2] - INSERTED_DEPTH
         return (inside & deep).astype(jnp.float32)

@@ -249,7 +249,8 @@ class SpatulaFlipping(ArmTask):
             a = np.array([self.config.expert_shove, rim[1] / step, 0.0])
         return np.clip(a, -1.0, 1.0).astype(np.float32)
 
-    def success(self, qpos, qvel) -> jax.Array:
-        """1.0 when the pancake lies upside down on the table, else 0.0."""
+    def success(self, qpos, qvel, tool=None) -> jax.Array:
+        """1.0 when the pancake lies upside down on the table, else 0.0 (the tool plays no
+        part)."""
         centre, up = self.pancake(qpos)
         return ((up[2] < -0.9) & (centre[2] < 0.015)).astype(jnp.float32)
