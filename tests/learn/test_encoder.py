@@ -119,3 +119,32 @@ def test_flat_specs_behave_as_before(tmp_path):
     # a checkpoint written before the encoder fields existed still loads
     old = {k: v for k, v in cfg.to_dict().items() if not k.startswith("conv") and k != "embed"}
     assert NetworkConfig.from_dict(old) == cfg
+
+
+def test_keypoint_head_reports_where_each_channel_peaks(tmp_path):
+    """``image_head="keypoints"``: a spatial softmax per channel hands on each channel's expected
+    image position, (x, y) in [-1, 1] -- at a sharp peak, the peak's pixel; the network built
+    on it round-trips through a checkpoint and its gradient reaches the pixels."""
+    from twinrl.learn.networks import _keypoints
+
+    maps = np.zeros((1, 9, 17, 2), np.float32)
+    maps[0, 2, 12, 0] = 50.0  # channel 0 peaks at row 2, column 12
+    maps[0, 6, 3, 1] = 50.0   # channel 1 at row 6, column 3
+    kp = np.asarray(_keypoints(jnp.asarray(maps), jnp.zeros(())))
+    xs, ys = np.linspace(-1, 1, 17), np.linspace(-1, 1, 9)
+    np.testing.assert_allclose(kp[0], [xs[12], xs[3], ys[2], ys[6]], atol=1e-4)
+    cfg = NetworkConfig(hidden=(16,), conv_features=(4, 8), conv_kernels=(3, 3),
+                        conv_strides=(2, 1), image_head="keypoints", output="tanh")
+    net = make_network(SPEC, 2, cfg)
+    params = net.init(jax.random.PRNGKey(0))
+    obs = _obs(jax.random.PRNGKey(1), (2,))
+    assert net.apply(params, obs).shape == (2, 2)
+    g = jax.grad(lambda px: net.apply(params, {**obs, "pixels/wrist": px}).sum())(
+        obs["pixels/wrist"])
+    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
+    save_policy(tmp_path / "k", net, params, algo="test")
+    loaded, lparams, _ = load_policy(tmp_path / "k")
+    assert loaded.config.image_head == "keypoints"
+    np.testing.assert_allclose(loaded.apply(lparams, obs), net.apply(params, obs), atol=1e-6)
+    with pytest.raises(ValueError, match="image_head must be one of"):
+        NetworkConfig(image_head="flat")

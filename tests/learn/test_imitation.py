@@ -60,5 +60,5 @@ def test_demonstration_files_are_checked(tmp_path):
              actions=np.ones((2, 3, 1)), success=np.array([0.0, 1.0]))
     d = imitation.load_demonstrations(tmp_path / "ok.npz")
     assert d.keys.tolist() == [[2, 3]] and d.actions.shape == (1, 3, 1)
-    with pytest.raises(ValueError, match="observation must be 'state' or 'pixels'"):
+    with pytest.raises(ValueError, match="observation must be one of 'state', 'pixels'"):
         imitation.ImitationConfig(observation="rgb")

@@ -39,11 +39,10 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from twinrl.learn import trajopt
-from twinrl.learn.common import (JSONConfig, MetricLog, make_optimizer, raw_key,
-                                 regression_loss)
+from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
+                                 raw_key, rgb_jitter)
 from twinrl.learn.networks import NetworkConfig, make_network
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
@@ -63,6 +62,17 @@ class ImitationConfig(JSONConfig):
     camera: str = "random"
     """Pixels: the mount pose per episode, ``"random"`` over its workspace or ``"default"``."""
     image_size: int = 64
+    camera_input: bool = True
+    """Pixels: the actor also sees the mount coordinates it commanded (``"camera"``), so it need
+    not infer from the image where it looks from."""
+    image_head: str = "keypoints"
+    """The CNN's head (``NetworkConfig.image_head``): ``"keypoints"`` (spatial softmax) or
+    ``"dense"``."""
+    conv_strides: tuple[int, ...] = (2, 2, 1)
+    """Strides of the CNN's three convolutions: (2, 2, 1) leaves 16 x 16 maps of a 64 x 64 image
+    for the keypoints."""
+    rgb_jitter: float = 0.1
+    """Pixels: RGB gain/offset jitter of each training image (``common.rgb_jitter``; 0: none)."""
     hidden: tuple[int, ...] = (256, 256)
     learning_rate: float = 1e-3
     max_grad_norm: float | None = 1.0
@@ -81,17 +91,14 @@ class ImitationConfig(JSONConfig):
     eval_episodes: int = 50
 
     def __post_init__(self):
-        if self.observation not in ("state", "pixels"):
-            raise ValueError(f"observation must be 'state' or 'pixels', got {self.observation!r}")
-        if self.camera not in ("random", "default"):
-            raise ValueError(f"camera must be 'random' or 'default', got {self.camera!r}")
-        for name in ("fit_steps", "batch_size", "relabel_every", "relabel_iterations",
-                     "eval_episodes", "image_size"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if int(self.dagger_rounds) < 0 or int(self.dagger_episodes) < 1:
-            raise ValueError("dagger_rounds must be >= 0 and dagger_episodes >= 1, got "
-                             f"{self.dagger_rounds} and {self.dagger_episodes}")
+        self.check_fields(
+            at_least_one=("fit_steps", "batch_size", "relabel_every", "relabel_iterations",
+                          "eval_episodes", "image_size", "dagger_episodes"),
+            non_negative=("dagger_rounds", "rgb_jitter"), widths=("hidden", "conv_strides"),
+            choices={"observation": ("state", "pixels"), "camera": ("random", "default"),
+                     "image_head": ("dense", "keypoints")})
+        if len(self.conv_strides) != 3:
+            raise ValueError(f"conv_strides must name 3 strides, got {self.conv_strides}")
 
 
 class DemonstrationError(ValueError):
@@ -131,8 +138,10 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
         raise ValueError(f"observation='pixels' needs a task with a camera mount; "
                          f"{env.name} has none")
     n = int(config.image_size)
-    return (lambda s, coords: env.image_observation(s, coords, size=n),
-            {"state": (PROPRIO,), "pixels/mount": (n, n, 5)})
+    spec = {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}
+    if config.camera_input:
+        spec["camera"] = (3,)
+    return (lambda s, coords: env.image_observation(s, coords, size=n)), spec
 
 
 def _coords(env, config: ImitationConfig, key):
@@ -185,28 +194,6 @@ def relabel(env, states, warm: jax.Array, config: ImitationConfig) -> jax.Array:
     return jax.vmap(one)(states, warm)
 
 
-def _fit_fn(net, tx, steps: int, batch: int):
-    """A jitted ``fit(params, opt, obs, acts, n, key)``: ``steps`` Adam steps on minibatches
-    drawn from the first ``n`` rows of the (preallocated) data set."""
-
-    ones = jnp.ones((batch,))
-
-    def fit(params, opt, obs, acts, n, key):
-        def body(carry, k):
-            p, s = carry
-            idx = jax.random.randint(k, (batch,), 0, n)
-            o = jax.tree_util.tree_map(lambda x: x[idx], obs)
-            value, g = jax.value_and_grad(regression_loss, argnums=1)(net.apply, p, o,
-                                                                      acts[idx], ones)
-            u, s = tx.update(g, s, p)
-            return (optax.apply_updates(p, u), s), value
-
-        (params, opt), losses = jax.lax.scan(body, (params, opt), jax.random.split(key, steps))
-        return params, opt, jnp.mean(losses[-max(1, steps // 10):])
-
-    return jax.jit(fit)
-
-
 def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int = 0, *,
           demos: Demonstrations | None = None,
           progress_fn: Callable[[int, dict], None] | None = None, checkpoint_fn=None,
@@ -233,8 +220,9 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     key = raw_key(rng)
     k_init, k_demo, k_eval, key = jax.random.split(key, 4)
     observe, spec = make_observer(env, c)
-    net = make_network(spec, env.action_size,
-                       NetworkConfig(hidden=tuple(c.hidden), activation="elu", output="tanh"))
+    net = make_network(spec, env.action_size, NetworkConfig(
+        hidden=tuple(c.hidden), activation="elu", output="tanh", image_head=c.image_head,
+        conv_strides=tuple(c.conv_strides)))
     params = net.init(k_init)
     tx = make_optimizer(c.learning_rate, c.max_grad_norm)
     opt = tx.init(params)
@@ -247,7 +235,8 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     grow = lambda x: jnp.concatenate(  # noqa: E731
         [x, jnp.zeros((capacity - x.shape[0],) + x.shape[1:], x.dtype)])
     obs, acts, n = jax.tree_util.tree_map(grow, obs), grow(acts), acts.shape[0]
-    fit = _fit_fn(net, tx, int(c.fit_steps), int(c.batch_size))
+    jitter = rgb_jitter(c.rgb_jitter) if c.observation == "pixels" and c.rgb_jitter else None
+    fit = make_minibatch_fit(net.apply, tx, int(c.fit_steps), int(c.batch_size), jitter)
 
     def actor_episode(p, k):
         k_cam, k_reset = jax.random.split(k)
@@ -276,7 +265,8 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     log = MetricLog()
     for r in range(int(c.dagger_rounds) + 1):
         key, k_fit, k_visit = jax.random.split(key, 3)
-        params, opt, loss = fit(params, opt, obs, acts, n, k_fit)
+        params, opt, losses = fit(params, opt, obs, acts, n, k_fit)
+        loss = jnp.mean(losses[-max(1, int(c.fit_steps) // 10):])
         ret, ok = evaluate(params, k_eval)  # the same fresh states every round
         added = 0
         if r < int(c.dagger_rounds):

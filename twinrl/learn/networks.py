@@ -17,7 +17,8 @@ state vector of that size, every trainer's case so far) or a dict mapping keys t
 with ``pixels/`` is an image ``(H, W, C)``, channels last (RGB, depth, segmentation, ...); every
 other key is a vector ``(n,)``. A dict spec puts an ``Encoder`` in front of the MLP: one small CNN
 per camera (strided convolutions, then flatten, Dense, LayerNorm, tanh: DrQ-v2's encoder head,
-CleanRL's NatureCNN habits sized for 64 x 64 images on a CPU), concatenated with the vectors.
+CleanRL's NatureCNN habits sized for 64 x 64 images on a CPU; or, with ``image_head="keypoints"``,
+a spatial softmax giving each channel's expected image position), concatenated with the vectors.
 ``apply`` then takes a dict observation (single, or with the same leading batch axes on every
 key); keys the spec does not name are ignored.
 
@@ -73,10 +74,16 @@ class NetworkConfig(JSONConfig):
     """Stride of each convolution ("SAME" padding): (2, 2, 2) takes 64 x 64 images to 8 x 8."""
     embed: int = 64
     """Width of each camera's dense projection (after the convolutions, before LayerNorm)."""
+    image_head: str = "dense"
+    """What a camera's CNN hands on: ``"dense"`` (flatten, Dense to ``embed``, LayerNorm, tanh)
+    or ``"keypoints"`` (a spatial softmax per channel of the last convolution and its expected
+    image coordinates: 2 numbers per channel, Levine et al., JMLR 2016 -- where things are, to a
+    fraction of a feature cell, which a flattened map localises only coarsely)."""
 
     def __post_init__(self):
         self.check_fields(widths=("hidden", "conv_features", "conv_kernels", "conv_strides"),
-                          choices={"activation": ACTIVATIONS, "output": ("tanh", "linear")},
+                          choices={"activation": ACTIVATIONS, "output": ("tanh", "linear"),
+                                   "image_head": ("dense", "keypoints")},
                           positive=("output_scale",), at_least_one=("embed",))
         if not len(self.conv_features) == len(self.conv_kernels) == len(self.conv_strides):
             raise ValueError(f"NetworkConfig: conv_features, conv_kernels and conv_strides must "
@@ -161,6 +168,7 @@ class Encoder(nn.Module):
     kernels: Sequence[int]
     strides: Sequence[int]
     embed: int
+    head: str = "dense"
 
     @nn.compact
     def __call__(self, obs: dict[str, jax.Array]) -> jax.Array:
@@ -177,10 +185,26 @@ class Encoder(nn.Module):
             for i, (f, k, st) in enumerate(zip(self.features, self.kernels, self.strides)):
                 x = jax.nn.relu(nn.Conv(f, (k, k), (st, st), padding="SAME",
                                         name=f"{name}_conv{i}")(x))
-            x = nn.Dense(self.embed, name=f"{name}_dense")(x.reshape(x.shape[0], -1))
-            x = jnp.tanh(nn.LayerNorm(name=f"{name}_norm")(x))
-            parts.append(x.reshape(batch + (self.embed,)))
+            if self.head == "keypoints":
+                x = _keypoints(x, self.param(f"{name}_log_temperature", nn.initializers.zeros,
+                                             ()))
+            else:
+                x = nn.Dense(self.embed, name=f"{name}_dense")(x.reshape(x.shape[0], -1))
+                x = jnp.tanh(nn.LayerNorm(name=f"{name}_norm")(x))
+            parts.append(x.reshape(batch + x.shape[-1:]))
         return jnp.concatenate(parts, axis=-1)
+
+
+def _keypoints(x: jax.Array, log_temperature: jax.Array) -> jax.Array:
+    """Spatial softmax: ``(B, H, W, C)`` feature maps to ``(B, 2C)`` expected (x, y) image
+    coordinates in [-1, 1] of each channel's softmax over the pixels (a learned temperature)."""
+    b, h, w, c = x.shape
+    logits = x.reshape(b, h * w, c) / jnp.exp(log_temperature)
+    p = jax.nn.softmax(logits, axis=1)
+    gx, gy = jnp.meshgrid(jnp.linspace(-1.0, 1.0, w), jnp.linspace(-1.0, 1.0, h))
+    ex = jnp.einsum("bnc,n->bc", p, gx.reshape(-1))
+    ey = jnp.einsum("bnc,n->bc", p, gy.reshape(-1))
+    return jnp.concatenate([ex, ey], axis=-1)
 
 
 class EncodedMLP(nn.Module):
@@ -254,7 +278,7 @@ def make_network(obs_spec: ObsSpec, out_size: int,
         return Network(init, apply, spec, out_size, config, spec)
 
     module = EncodedMLP(Encoder(tuple(spec.items()), config.conv_features, config.conv_kernels,
-                                config.conv_strides, config.embed), head)
+                                config.conv_strides, config.embed, config.image_head), head)
 
     def init_dict(rng):
         return module.init(rng, {k: jnp.zeros(shape, jnp.float32) for k, shape in spec.items()})

@@ -44,11 +44,11 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from twinrl.learn.camera_choice import (Selection, observer, q_value, select_camera,
                                         uniform_coords)
-from twinrl.learn.common import JSONConfig, MetricLog, make_optimizer, raw_key, regression_loss
+from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
+                                 raw_key, rgb_jitter)
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
 __all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
@@ -71,6 +71,8 @@ class SensingConfig(JSONConfig):
     """Camera poses per start state, uniform over the mount's workspace."""
     every: int = 10
     """One example every this many steps of each episode."""
+    rgb_jitter: float = 0.1
+    """RGB gain/offset jitter of each training image (``common.rgb_jitter``; 0: none)."""
     hidden: tuple[int, ...] = (256, 256)
     learning_rate: float = 1e-3
     max_grad_norm: float | None = 1.0
@@ -93,6 +95,8 @@ class SensingConfig(JSONConfig):
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if int(self.cameras) < 2:
             raise ValueError(f"cameras must be >= 2 (Q must compare poses), got {self.cameras}")
+        if not self.rgb_jitter >= 0:
+            raise ValueError(f"rgb_jitter must be >= 0, got {self.rgb_jitter}")
         if not self.ascent_lr > 0 or not self.tau > 0:
             raise ValueError(f"ascent_lr and tau must be > 0, got {self.ascent_lr}, {self.tau}")
 
@@ -166,26 +170,11 @@ def make_q(actor: Network, action_size: int, config: SensingConfig) -> Network:
 
 def _fit(q: Network, params, obs, acts, targets, config: SensingConfig, key):
     tx = make_optimizer(config.learning_rate, config.max_grad_norm)
-    n = targets.shape[0]
-    batch = int(config.batch_size)
-    ones = jnp.ones((batch,))
-
-    @jax.jit
-    def run(params, key):
-        def body(carry, k):
-            p, s = carry
-            idx = jax.random.randint(k, (batch,), 0, n)
-            o = {**jax.tree_util.tree_map(lambda x: x[idx], obs), "action": acts[idx]}
-            value, g = jax.value_and_grad(regression_loss, argnums=1)(
-                q.apply, p, o, targets[idx, None], ones)
-            u, s = tx.update(g, s, p)
-            return (optax.apply_updates(p, u), s), value
-
-        (params, _), losses = jax.lax.scan(body, (params, tx.init(params)),
-                                           jax.random.split(key, int(config.fit_steps)))
-        return params, losses
-
-    return run(params, key)
+    fit = make_minibatch_fit(q.apply, tx, int(config.fit_steps), int(config.batch_size),
+                             rgb_jitter(config.rgb_jitter) if config.rgb_jitter else None)
+    params, _, losses = fit(params, tx.init(params), {**obs, "action": acts}, targets[:, None],
+                            targets.shape[0], key)
+    return params, losses
 
 
 def _rank_corr(a: np.ndarray, b: np.ndarray) -> float:

@@ -490,15 +490,17 @@ class ArmTask(Env):
 
     def image_observation(self, state, coords: jax.Array | None = None, *, size: int | None = None,
                           tau: float = 0.0) -> dict:
-        """What a robot has: ``{"state": joint angles and velocities (14,), "pixels/mount":
-        (size, size, 5)}`` -- the mount image at ``coords``, RGB, depth (m) and the target
+        """What a robot has: ``{"state": joint angles and velocities (14,), "camera": the mount
+        coordinates it commanded (3,), "pixels/mount": (size, size, 5)}`` -- the mount image at
+        ``coords``, RGB, depth (m) and the target
         geoms' share of each pixel (the renderer's coverage: the hard 0/1 mask at ``tau == 0``,
         soft and differentiable in the pose at ``tau > 0``). The image actor's and the sensing
         Q's observation (``twinrl.learn.imitation``, ``twinrl.learn.sensing``)."""
+        coords = jnp.asarray(self.mount.default if coords is None else coords, jnp.float32)
         img = self.render(state, coords, tau=tau, size=size)
         mask = jnp.sum(img.weights[..., self._target_columns], axis=-1)
         pixels = jnp.concatenate([img.rgb, img.depth[..., None], mask[..., None]], axis=-1)
-        return {"state": state.obs[:2 * N_JOINTS], "pixels/mount": pixels}
+        return {"state": state.obs[:2 * N_JOINTS], "camera": coords, "pixels/mount": pixels}
 
     @functools.cached_property
     def _target_columns(self) -> np.ndarray:
