@@ -148,3 +148,25 @@ def test_keypoint_head_reports_where_each_channel_peaks(tmp_path):
     np.testing.assert_allclose(loaded.apply(lparams, obs), net.apply(params, obs), atol=1e-6)
     with pytest.raises(ValueError, match="image_head must be one of"):
         NetworkConfig(image_head="flat")
+
+
+def test_rgb_jitter_changes_colours_only_within_its_bounds():
+    """The imitation actor's and the sensing Q's augmentation: each image's RGB gets a gain in
+    1 +- a and an offset in +- a/2 per channel (clipped to [0, 1]); depth, mask and vector keys
+    pass untouched, and different images get different draws."""
+    from twinrl.learn.common import rgb_jitter
+
+    obs = _obs(jax.random.PRNGKey(3), (4,))
+    out = rgb_jitter(0.1)(obs, jax.random.PRNGKey(4))
+    px, new = np.asarray(obs["pixels/wrist"]), np.asarray(out["pixels/wrist"])
+    np.testing.assert_array_equal(new[..., 3:], px[..., 3:])
+    np.testing.assert_array_equal(out["state"], obs["state"])
+    assert new[..., :3].min() >= 0.0 and new[..., :3].max() <= 1.0
+    # per image and channel, new = clip(gain * old + bias): recover gain and bias where unclipped
+    for b in range(4):
+        for c in range(3):
+            x, y = px[b, ..., c].ravel(), new[b, ..., c].ravel()
+            keep = (y > 1e-6) & (y < 1 - 1e-6)
+            gain, bias = np.polyfit(x[keep], y[keep], 1)
+            assert abs(gain - 1) <= 0.1 + 1e-4 and abs(bias) <= 0.05 + 1e-4
+    assert not np.allclose(new[0, ..., :3] - px[0, ..., :3], new[1, ..., :3] - px[1, ..., :3])
