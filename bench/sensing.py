@@ -6,7 +6,7 @@ sensing-aware Q selects, (b) the default fixed camera, (c) a random reachable ca
 Per task and twin seed (``--seeds``: each a hidden perturbation, hand-eye offset included),
 ``--episodes`` real episodes per camera mode from the same start states (reset seeds
 ``1000 * seed + i``). Checkpoints per task, ``TASK=DIR`` (``twinrl train`` run directories):
-``--actor`` the image actor (``--algo imitation --set observation=pixels``), ``--q`` its
+``--actor`` the image actor (``--algo imitation --set observation=pixels`` or ``=target``), ``--q`` its
 sensing-aware Q (``--algo sensing``), ``--state-actor`` the state actor (``--algo imitation``)
 for (d). Modes whose checkpoint is missing are left out. Real steps count the steps acting and,
 separately, the steps the camera mount spends moving.
@@ -101,6 +101,7 @@ def main(argv=None) -> int:
 
 
 def run_task(name, actor_dir, q_dir, state_dir, args) -> list[dict]:
+    from twinrl.learn.camera_choice import image_size
     from twinrl.learn.checkpoint import load_policy
     from twinrl.learn.sensing import SensingConfig, load_actor
     from twinrl.real.twin import RealTwin
@@ -111,7 +112,7 @@ def run_task(name, actor_dir, q_dir, state_dir, args) -> list[dict]:
     deployers, size = {}, None
     if actor_dir is not None:
         actor, actor_params, _ = load_actor(actor_dir)
-        size = int(actor.obs_spec["pixels/mount"][0])
+        size = image_size(env, actor)
         q = q_params = sensing = None
         if q_dir is not None:
             q, q_params, meta = load_q(q_dir)
@@ -238,8 +239,8 @@ def _plot(path: Path, table: list[dict]) -> None:
     ax.set_ylabel("real-twin success (%)")
     ax.set_ylim(0, 105)
     ax.legend(fontsize=8, title="camera", title_fontsize=8)
-    ax.set_title("image actor by camera, and the state oracle (bars: mean; lines: sd over seeds)",
-                 fontsize=9)
+    ax.set_title("image actor by camera, and the state oracle\n(bars: mean over twin seeds; "
+                 "lines: sd)", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.learn.camera_choice import landscape, observer, select_camera
+from twinrl.learn.camera_choice import image_size, landscape, observer, select_camera
 from twinrl.learn.networks import Network
 from twinrl.learn.sensing import SensingConfig, SensingError, load_actor
 
@@ -75,7 +75,7 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     pixels = {k: int(v[1].sum()) for k, v in images.items()}
     out.mkdir(parents=True, exist_ok=True)
     _plot_sense(out / "sense.png", env, az, el, vals, sel, images, env_name)
-    observe = jax.jit(observer(env, actor.obs_spec["pixels/mount"][0]))
+    observe = jax.jit(observer(env, image_size(env, actor)))
     small = [np.asarray(observe(state, jnp.asarray(c, jnp.float32))["pixels/mount"][..., :3])
              for c in (default, chosen)]
     import imageio.v3 as iio

@@ -166,7 +166,7 @@ def test_image_actor_sees_proprioception_and_the_mount_image_with_its_target_mas
     obs = jax.jit(observe)(state, jnp.asarray(env.mount.default, jnp.float32))
     assert spec == {"state": (14,), "camera": (3,), "pixels/mount": (32, 32, 5)}
     assert obs["pixels/mount"].shape == (32, 32, 5)
-    np.testing.assert_array_equal(obs["camera"], np.asarray(env.mount.default, np.float32))
+    np.testing.assert_allclose(obs["camera"], jax.nn.sigmoid(jnp.asarray(env.mount.default)))
     np.testing.assert_array_equal(obs["state"], state.obs[:14])
     mask = np.asarray(obs["pixels/mount"][..., 4])
     assert set(np.unique(mask)) <= {0.0, 1.0} and mask.sum() >= 10, mask.sum()
@@ -175,6 +175,13 @@ def test_image_actor_sees_proprioception_and_the_mount_image_with_its_target_mas
     net = make_network(spec, env.action_size, NetworkConfig(hidden=(16,), output="tanh"))
     a = net.apply(net.init(jax.random.PRNGKey(1)), obs)
     assert a.shape == (env.action_size,) and np.all(np.abs(np.asarray(a)) <= 1)
+    # the "target" actor reads the image's target cloud and the tool point of its joints instead
+    cfg = imitation.ImitationConfig(observation="target", image_size=32)
+    observe, spec = imitation.make_observer(env, cfg)
+    obs = jax.jit(observe)(state, jnp.asarray(env.mount.default, jnp.float32))
+    assert spec == {"state": (14,), "tool": (3,), "target": (7,), "camera": (3,)}
+    assert set(obs) == set(spec)
+    np.testing.assert_allclose(obs["tool"], env.tool_point(state.pipeline_state.qpos), atol=1e-6)
 
 
 def test_hand_eye_offset_moves_the_real_camera_and_camera_moves_are_counted():
@@ -319,3 +326,19 @@ def test_real_success_is_judged_at_the_true_tool(name, made):
     expected = 1.0 if name == "spatula_flipping" else 0.0
     assert (judge(off.oracle()), off.success()) == (1.0, expected)
     off.close()
+
+
+def test_target_cloud_finds_the_hole_from_anywhere_it_is_seen(made):
+    """The image actor's ``"target"`` key: the peg fixture's back-projected depth pixels centre
+    within 3 cm of the hole (the wall faces turned to the camera pull the centre towards it:
+    2.5 cm from the default pose) from the default pose and from three others, and the count
+    says how much of it shows."""
+    env = made["peg_insertion"]
+    state = env.reset(jax.random.PRNGKey(3))
+    hole = np.asarray(env.tip_and_hole(state.pipeline_state.qpos)[1])
+    observe = jax.jit(lambda c: env.image_observation(state, c, size=32)["target"])
+    for coords in (env.mount.default, (1.0, 0.5, -0.5), (-1.2, -0.8, 0.4), (0.3, 1.2, 1.0)):
+        t = np.asarray(observe(jnp.asarray(coords, jnp.float32)))
+        assert t[6] > np.log1p(5), (coords, t)
+        assert np.linalg.norm(t[:2] - hole[:2]) < 0.03, (coords, t[:3], hole)
+        assert np.all(t[3:6] > 1e-3) and np.all(t[3:6] < 0.05)

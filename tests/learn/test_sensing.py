@@ -180,6 +180,9 @@ def test_real_image_observation_is_the_simulators_view_of_the_read_state(peg, tw
     assert np.mean(np.abs(r[..., 3] - s[..., 3])) < 1e-3  # depth, m
     assert np.mean(r[..., 4] == s[..., 4]) >= 0.97 and r[..., 4].sum() >= 3  # the target's mask
     assert np.mean(np.abs(r[..., :3] - s[..., :3])) < 0.1  # RGB: shading differs (measured 0.06)
+    # the target cloud (mean, spread, log count) from the commanded pose: the same numbers
+    np.testing.assert_allclose(real["target"][:6], np.asarray(sim["target"])[:6], atol=2e-3)
+    assert abs(real["target"][6] - float(sim["target"][6])) < 0.15
     with pytest.raises(ValueError, match="renders 16x16; the actor needs 32x32"):
         active.real_image_observation(twin, env, obs, 32)
 

@@ -21,7 +21,12 @@ import optax
 
 from twinrl.learn.networks import Network
 
-__all__ = ["Selection", "uniform_coords", "observer", "q_value", "select_camera", "landscape"]
+__all__ = ["Selection", "uniform_coords", "observer", "image_size", "q_value", "select_camera",
+           "landscape"]
+
+
+EDGE = float(np.log(0.98 / 0.02))
+"""The largest unconstrained mount coordinate drawn (``uniform_coords``) or ascended to."""
 
 
 def uniform_coords(mount, key, shape=()) -> jax.Array:
@@ -35,6 +40,15 @@ def observer(env, image_size: int, tau: float = 0.0) -> Callable:
     """``observe(state, coords)``: the image actor's observation (``ArmTask.image_observation``),
     soft in the pose when ``tau > 0``."""
     return lambda s, coords: env.image_observation(s, coords, size=int(image_size), tau=tau)
+
+
+def image_size(env, actor: Network) -> int:
+    """The mount image size an image actor sees: its ``pixels/mount`` key's, or for an actor
+    that reads only the image's target cloud (``"target"``), the task's ``image_size``."""
+    spec = actor.obs_spec
+    if isinstance(spec, dict) and "pixels/mount" in spec:
+        return int(spec["pixels/mount"][0])
+    return int(env.config.image_size)
 
 
 def q_value(q: Network, q_params, obs: dict, action: jax.Array) -> jax.Array:
@@ -62,7 +76,7 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
     ascent through the soft renderer from ``restarts`` starts, the winner by the hard image's Q.
     ``config``: a ``SensingConfig`` (its ``restarts``, ``ascent_steps``, ``ascent_lr``, ``tau``).
     Pure and jit-able (jit it with ``state`` and ``key`` as arguments)."""
-    n = actor.obs_spec["pixels/mount"][0]
+    n = image_size(env, actor)
     soft, hard = observer(env, n, tau=float(config.tau)), observer(env, n)
 
     def objective(obs_fn, c):
@@ -80,7 +94,9 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
             v, g = jax.value_and_grad(lambda c: objective(soft, c))(c)
             g = jnp.where(jnp.isfinite(g), g, 0.0)
             u, s = tx.update(-g, s, c)
-            return (optax.apply_updates(c, u), s), v
+            # within the box Q was trained on (``uniform_coords``): past it the sigmoid is flat,
+            # the pose hardly moves, and Q would only be extrapolating
+            return (jnp.clip(optax.apply_updates(c, u), -EDGE, EDGE), s), v
 
         (c, _), trace = jax.lax.scan(body, (c0, tx.init(c0)), None,
                                      length=int(config.ascent_steps))
@@ -103,7 +119,7 @@ def landscape(env, q: Network, q_params, actor: Network, actor_params, state, di
     el = np.linspace(*mount.elevation, grid[1] + 2)[1:-1]
     dist = float(np.asarray(mount.spherical(jnp.full(3, distance_coord, jnp.float32)))[2])
     coords = np.array([mount.coords_of([a, e, dist]) for e in el for a in az], np.float32)
-    hard = observer(env, actor.obs_spec["pixels/mount"][0])
+    hard = observer(env, image_size(env, actor))
 
     @jax.jit
     def values(cs):

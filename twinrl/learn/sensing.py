@@ -45,8 +45,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.learn.camera_choice import (Selection, observer, q_value, select_camera,
-                                        uniform_coords)
+from twinrl.learn.camera_choice import (Selection, image_size, observer, q_value,
+                                        select_camera, uniform_coords)
 from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
                                  raw_key, rgb_jitter)
 from twinrl.learn.networks import Network, NetworkConfig, make_network
@@ -112,7 +112,7 @@ def load_actor(path) -> tuple[Network, object, dict]:
     from twinrl.learn.checkpoint import load_policy
 
     net, params, meta = load_policy(path)
-    if not isinstance(net.obs_spec, dict) or "pixels/mount" not in net.obs_spec:
+    if not isinstance(net.obs_spec, dict) or not {"pixels/mount", "target"} & set(net.obs_spec):
         raise SensingError(f"{path}: not an image actor (its observation is {net.obs_spec!r}); "
                          f"train one with --algo imitation --set observation=pixels")
     return net, params, meta
@@ -137,7 +137,7 @@ def sensing_data(env, actor: Network, actor_params, config: SensingConfig, keys:
                  coords: jax.Array) -> SensingData:
     """The actor's episodes from ``reset(keys[i])`` with the camera held at ``coords[i, j]``
     (S, C, 3), and the examples Q learns from (module docstring)."""
-    observe = observer(env, actor.obs_spec["pixels/mount"][0])
+    observe = observer(env, image_size(env, actor))
     T = env.episode_length
     picks = jnp.arange(0, T, int(config.every))
 

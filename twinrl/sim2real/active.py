@@ -36,6 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from twinrl.envs.arm.base import target_cloud
+from twinrl.learn.camera_choice import image_size
 from twinrl.learn.common import JSONConfig
 
 __all__ = ["CAMERAS", "DeployConfig", "real_image_observation", "sim_state", "Deployer",
@@ -64,8 +66,12 @@ class DeployConfig(JSONConfig):
 def real_image_observation(twin, env, obs: np.ndarray, size: int) -> dict[str, np.ndarray]:
     """The image actor's observation on the real twin, laid out as
     ``ArmTask.image_observation``'s: ``{"state": joints and velocities (14,), "camera": the
-    commanded mount coordinates (3,), "pixels/mount": (size, size, 5)}`` -- RGB in [0, 1], depth (m) and the target geoms' mask from the real
-    camera's segmentation. ``twin`` must render ``size`` x ``size`` frames."""
+    commanded pose as fractions of the mount's ranges (3,), "pixels/mount": (size, size, 5), "tool": (3,), "target":
+    (7,)}`` --
+    RGB in [0, 1], depth (m) and the target geoms' mask from the real camera's segmentation;
+    ``target``: ``target_cloud`` of the real depth and mask, back-projected
+    from the *commanded* pose (the hand-eye offset is the robot's unknown). ``twin`` must render
+    ``size`` x ``size`` frames."""
     if (twin.width, twin.height) != (size, size):
         raise ValueError(f"the twin renders {twin.width}x{twin.height}; the actor needs "
                          f"{size}x{size} (make it with width=height={size})")
@@ -74,8 +80,13 @@ def real_image_observation(twin, env, obs: np.ndarray, size: int) -> dict[str, n
     mask = np.isin(img["segmentation"], ids).astype(np.float32)
     pixels = np.concatenate([img["rgb"].astype(np.float32) / 255.0,
                              img["depth"][..., None].astype(np.float32), mask[..., None]], axis=-1)
+    coords = np.asarray(twin.mount_coords, np.float32)
+    cam = env.mount.camera(jnp.asarray(coords), size, size)  # commanded: the offset is hidden
+    cloud = target_cloud(cam, jnp.asarray(pixels[..., 3]), jnp.asarray(mask))
+    tool = env.tool_point(jnp.asarray(obs[:7], jnp.float32))  # the robot's own kinematics
     return {"state": np.asarray(obs[:14], np.float32),
-            "camera": np.asarray(twin.mount_coords, np.float32), "pixels/mount": pixels}
+            "camera": np.asarray(jax.nn.sigmoid(jnp.asarray(coords))), "pixels/mount": pixels,
+            "tool": np.asarray(tool), "target": np.asarray(cloud)}
 
 
 def _target_ids(env) -> np.ndarray:
@@ -113,7 +124,7 @@ class Deployer:
         self.env, self.actor, self.actor_params = env, actor, actor_params
         self.q, self.q_params, self.sensing, self.residual = q, q_params, sensing, residual
         self.image = isinstance(actor.obs_spec, dict)
-        self.size = int(actor.obs_spec["pixels/mount"][0]) if self.image else 0
+        self.size = image_size(env, actor) if self.image else 0
         self._act = jax.jit(actor.apply)
         self._state = jax.jit(lambda o: sim_state(env, o))
         self._choose = {}

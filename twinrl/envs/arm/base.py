@@ -366,6 +366,21 @@ class CameraMount:
         return int(np.ceil(np.max(np.abs(b - a)) / self.max_speed))
 
 
+def target_cloud(camera, depth: jax.Array, mask: jax.Array) -> jax.Array:
+    """What the depth image says of the target, in the world frame: the mean (3,) and spread
+    (3,) of its pixels' back-projected points, seen from ``camera`` (the pose the robot
+    commanded), and ``log(1 + its pixel count)`` -- 7 numbers, 0 where it is not seen. Soft and
+    differentiable in the pose with a soft ``mask``."""
+    from twinrl.render.pointcloud import depth_to_points
+
+    pts, w = depth_to_points(camera, depth, mask)
+    n = jnp.sum(w)
+    safe = jnp.maximum(n, 1e-3)
+    mean = jnp.sum(w[:, None] * pts, axis=0) / safe
+    spread = jnp.sqrt(jnp.sum(w[:, None] * jnp.square(pts - mean), axis=0) / safe + 1e-10)
+    return jnp.concatenate([mean, spread, jnp.log1p(n)[None]]).astype(jnp.float32)
+
+
 @functools.lru_cache(maxsize=None)
 def composed(task_xml: str) -> str:
     """``compose(task_xml)``, cached: every task instance shares one string."""
@@ -490,9 +505,11 @@ class ArmTask(Env):
 
     def image_observation(self, state, coords: jax.Array | None = None, *, size: int | None = None,
                           tau: float = 0.0) -> dict:
-        """What a robot has: ``{"state": joint angles and velocities (14,), "camera": the mount
-        coordinates it commanded (3,), "pixels/mount": (size, size, 5)}`` -- the mount image at
-        ``coords``, RGB, depth (m) and the target
+        """What a robot has: ``{"state": joint angles and velocities (14,), "camera": the pose it
+        commanded, as fractions (3,) of the mount's azimuth, elevation and distance ranges (bounded,
+        so an ascent of Q cannot push a network's input outside what it was trained on), "pixels/mount": (size, size, 5), "tool": (3,), "target":
+        (7,)}`` -- ``tool``: the tool point by the nominal kinematics of the measured joints;
+        ``target``: ``target_cloud`` of the image's depth and mask; the image at ``coords``: RGB, depth (m) and the target
         geoms' share of each pixel (the renderer's coverage: the hard 0/1 mask at ``tau == 0``,
         soft and differentiable in the pose at ``tau > 0``). The image actor's and the sensing
         Q's observation (``twinrl.learn.imitation``, ``twinrl.learn.sensing``)."""
@@ -500,7 +517,11 @@ class ArmTask(Env):
         img = self.render(state, coords, tau=tau, size=size)
         mask = jnp.sum(img.weights[..., self._target_columns], axis=-1)
         pixels = jnp.concatenate([img.rgb, img.depth[..., None], mask[..., None]], axis=-1)
-        return {"state": state.obs[:2 * N_JOINTS], "camera": coords, "pixels/mount": pixels}
+        n = int(size or self.config.image_size)
+        joints = state.obs[:2 * N_JOINTS]
+        return {"state": joints, "camera": jax.nn.sigmoid(coords), "pixels/mount": pixels,
+                "tool": self.tool_point(joints[:N_JOINTS]),
+                "target": target_cloud(self.mount.camera(coords, n, n), img.depth, mask)}
 
     @functools.cached_property
     def _target_columns(self) -> np.ndarray:
