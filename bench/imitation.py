@@ -15,18 +15,14 @@ pose drawn per episode). Prints a table and writes ``DIR/imitation.json`` (``--o
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from pathlib import Path
 
-import jax
-import mujoco
 
-import twinrl
 from twinrl import envs
 from twinrl.learn import imitation
-from twinrl.report import print_table, write_json
+from twinrl.report import print_table, run_meta, write_json
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 
@@ -67,21 +63,16 @@ def main(argv=None) -> int:
                          "return": m["return"][-1], "pairs": m["pairs"][-1],
                          "labels": sum(m["labels"]), "wall_s": time.perf_counter() - t0,
                          "rounds": m})
-            write_json(args.out / "imitation.json", {"meta": _meta(args), "rows": rows})
+            write_json(args.out / "imitation.json", {"meta": run_meta(args), "rows": rows})
     cols = [("task", "task"), ("observation", "observation"), ("demos", "demonstrations"),
             ("success: cloning", "success_cloning"), ("success: DAgger", "success"),
             ("return", "return"), ("expert labels", "labels"), ("wall s", "wall_s")]
     print_table(f"imitation in sim ({args.episodes} fresh starts)", [c for c, _ in cols],
                 [[r[k] for _, k in cols] for r in rows])
-    path = write_json(args.out / "imitation.json", {"meta": _meta(args), "rows": rows})
+    path = write_json(args.out / "imitation.json", {"meta": run_meta(args), "rows": rows})
     print(f"wrote {path}")
     return 0
 
-
-def _meta(args) -> dict:
-    return {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
-            "device": str(jax.devices()[0]), "machine": platform.machine(),
-            "python": sys.version.split()[0], "args": {k: str(v) for k, v in vars(args).items()}}
 
 
 if __name__ == "__main__":

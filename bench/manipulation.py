@@ -30,17 +30,14 @@ from __future__ import annotations
 
 import argparse
 import functools
-import platform
 import sys
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-import twinrl
 from twinrl import envs
 from twinrl.learn import trajopt
 from twinrl.report import print_table, write_json
@@ -243,11 +240,11 @@ def replay(env, plans: np.ndarray, keys: np.ndarray, twin_seeds, zero: bool = Fa
 
 
 def _meta(args) -> dict:
-    return {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
-            "device": str(jax.devices()[0]), "machine": platform.machine(),
-            "python": sys.version.split()[0], "cpu_count": __import__("os").cpu_count(),
-            "trajopt": {"order": 1, "step_size": args.step_size, "line_search_steps": 6,
-                        "iterations": args.iterations, "restarts": args.restarts}}
+    from twinrl.report import run_meta
+
+    return {**run_meta(), "trajopt": {"order": 1, "step_size": args.step_size,
+                                      "line_search_steps": 6, "iterations": args.iterations,
+                                      "restarts": args.restarts}}
 
 
 def main(argv=None) -> int:

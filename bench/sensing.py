@@ -25,18 +25,14 @@ Prints a table and writes ``DIR/sensing.json`` and ``DIR/sensing.png`` (``--out 
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from pathlib import Path
 
-import jax
-import mujoco
 import numpy as np
 
-import twinrl
 from twinrl import envs
-from twinrl.report import print_table, write_json
+from twinrl.report import print_table, run_meta, write_json
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 MODES = ("selected", "default", "random", "oracle")
@@ -248,14 +244,9 @@ def _plot(path: Path, table: list[dict]) -> None:
 
 
 def _result(args, rows, model_free) -> dict:
-    return {"meta": _meta(args), "table": summarise(rows), "rows": rows,
+    return {"meta": run_meta(args), "table": summarise(rows), "rows": rows,
             "model_free": model_free}
 
-
-def _meta(args) -> dict:
-    return {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
-            "device": str(jax.devices()[0]), "machine": platform.machine(),
-            "python": sys.version.split()[0], "args": {k: str(v) for k, v in vars(args).items()}}
 
 
 if __name__ == "__main__":

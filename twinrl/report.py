@@ -21,7 +21,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-__all__ = ["to_jsonable", "write_json", "print_table", "console", "MetricsWriter", "plot_curves",
+__all__ = ["to_jsonable", "run_meta", "write_json", "print_table", "console", "MetricsWriter", "plot_curves",
            "write_video"]
 
 # Not a terminal (CI logs, pipes): rich would wrap tables at 80 columns; logs can be wide.
@@ -45,6 +45,24 @@ def to_jsonable(x: Any) -> Any:
     if isinstance(x, (np.bool_,)):
         return bool(x)
     return x
+
+
+def run_meta(args=None) -> dict[str, Any]:
+    """What a benchmark's JSON records of the run: versions, device, machine, Python, CPU count
+    and (``argparse.Namespace``) its arguments as strings."""
+    import platform
+
+    import jax
+    import mujoco
+
+    import twinrl
+
+    meta = {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
+            "device": str(jax.devices()[0]), "machine": platform.machine(),
+            "python": sys.version.split()[0], "cpu_count": os.cpu_count()}
+    if args is not None:
+        meta["args"] = {k: str(v) for k, v in vars(args).items()}
+    return meta
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
