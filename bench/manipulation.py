@@ -100,7 +100,7 @@ def visibility(env, states: int, min_pixels: int, grid: int = 5) -> dict:
     ``min_pixels`` of its geoms' pixels in the 64x64 hard segmentation, over ``states`` reset
     states and a ``grid`` x ``grid`` x 3 lattice of the mount's (azimuth, elevation, distance)."""
     mount = env.mount
-    ids = jnp.asarray([env.sim.mj_model.geom(g).id for g in env.target_geoms])
+    ids = jnp.asarray(env.target_geom_ids)
     az = np.linspace(*mount.azimuth, grid + 2)[1:-1]
     el = np.linspace(*mount.elevation, grid + 2)[1:-1]
     dist = np.linspace(*mount.distance, 5)[1:-1]

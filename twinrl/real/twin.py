@@ -135,7 +135,8 @@ class RealTwin(gym.Env):
         perturbation.apply(model)
         self._model = model
         self._data = mujoco.MjData(model)
-        # kinematics for evaluation (``success``): the nominal model's and the real one's
+        # for ``success``: the tool body, and kinematics scratch of the nominal and real models
+        self._tool_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "tool")
         self._scratch = (mujoco.MjData(self.task.sim.mj_model), mujoco.MjData(model))
         self._success = None
         self._n_physics = int(self.task.config.frame_skip) * int(substeps)
@@ -282,7 +283,7 @@ class RealTwin(gym.Env):
             self._success = jax.jit(task.success)
         jnp = jax.numpy
         q, v = (jnp.asarray(x, jnp.float32) for x in (self._data.qpos, self._data.qvel))
-        tool = mujoco.mj_name2id(self._model, mujoco.mjtObj.mjOBJ_BODY, "tool")
+        tool = self._tool_body
         if tool < 0 or not hasattr(task, "controller"):
             return float(self._success(q, v))
         from twinrl.envs.arm.base import forward_kinematics

@@ -29,6 +29,7 @@ true tool (grasp offset included) -- evaluation only, nothing here learns from i
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Callable
 
@@ -36,8 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.envs.arm.base import target_cloud
-from twinrl.learn.camera_choice import image_size
+from twinrl.learn.camera_choice import image_size, select_camera
 from twinrl.learn.common import JSONConfig
 
 __all__ = ["CAMERAS", "DeployConfig", "real_image_observation", "sim_state", "Deployer",
@@ -64,34 +64,26 @@ class DeployConfig(JSONConfig):
 
 
 def real_image_observation(twin, env, obs: np.ndarray, size: int) -> dict[str, np.ndarray]:
-    """The image actor's observation on the real twin, laid out as
-    ``ArmTask.image_observation``'s: ``{"state": joints and velocities (14,), "camera": the
-    commanded pose as fractions of the mount's ranges (3,), "pixels/mount": (size, size, 5), "tool": (3,), "target":
-    (7,)}`` --
-    RGB in [0, 1], depth (m) and the target geoms' mask from the real camera's segmentation;
-    ``target``: ``target_cloud`` of the real depth and mask, back-projected
-    from the *commanded* pose (the hand-eye offset is the robot's unknown). ``twin`` must render
-    ``size`` x ``size`` frames."""
+    """The image actor's observation on the real twin: ``ArmTask.observation_from_image`` of the
+    real OpenGL frame -- RGB in [0, 1], depth (m), the target geoms' mask from the real
+    segmentation -- with the joints measured (``obs[:14]``) and the *commanded* mount pose (the
+    hand-eye offset is the robot's unknown). ``twin`` must render ``size`` x ``size`` frames."""
     if (twin.width, twin.height) != (size, size):
         raise ValueError(f"the twin renders {twin.width}x{twin.height}; the actor needs "
                          f"{size}x{size} (make it with width=height={size})")
     img = twin.render_images(camera="mount")
-    ids = _target_ids(env)
-    mask = np.isin(img["segmentation"], ids).astype(np.float32)
-    pixels = np.concatenate([img["rgb"].astype(np.float32) / 255.0,
-                             img["depth"][..., None].astype(np.float32), mask[..., None]], axis=-1)
-    coords = np.asarray(twin.mount_coords, np.float32)
-    cam = env.mount.camera(jnp.asarray(coords), size, size)  # commanded: the offset is hidden
-    cloud = target_cloud(cam, jnp.asarray(pixels[..., 3]), jnp.asarray(mask))
-    tool = env.tool_point(jnp.asarray(obs[:7], jnp.float32))  # the robot's own kinematics
-    return {"state": np.asarray(obs[:14], np.float32),
-            "camera": np.asarray(jax.nn.sigmoid(jnp.asarray(coords))), "pixels/mount": pixels,
-            "tool": np.asarray(tool), "target": np.asarray(cloud)}
+    mask = np.isin(img["segmentation"], env.target_geom_ids).astype(np.float32)
+    out = _from_image(env)(np.asarray(obs[:14], np.float32),
+                           np.asarray(twin.mount_coords, np.float32),
+                           img["rgb"].astype(np.float32) / 255.0,
+                           img["depth"].astype(np.float32), mask)
+    return {k: np.asarray(v) for k, v in out.items()}
 
 
-def _target_ids(env) -> np.ndarray:
-    m = env.sim.mj_model
-    return np.asarray([m.geom(g).id for g in env.target_geoms])
+@functools.lru_cache(maxsize=None)
+def _from_image(env):
+    """``env.observation_from_image``, jitted once per task (it runs every real step)."""
+    return jax.jit(env.observation_from_image)
 
 
 def sim_state(env, obs: jax.Array):
@@ -130,8 +122,6 @@ class Deployer:
         self._choose = {}
 
     def _chooser(self, restarts: int, steps: int):
-        from twinrl.learn.camera_choice import select_camera
-
         key = (restarts, steps)
         if key not in self._choose:
             cfg = dataclasses.replace(self.sensing, restarts=restarts, ascent_steps=steps)

@@ -505,29 +505,41 @@ class ArmTask(Env):
 
     def image_observation(self, state, coords: jax.Array | None = None, *, size: int | None = None,
                           tau: float = 0.0) -> dict:
-        """What a robot has: ``{"state": joint angles and velocities (14,), "camera": the pose it
-        commanded, as fractions (3,) of the mount's azimuth, elevation and distance ranges (bounded,
-        so an ascent of Q cannot push a network's input outside what it was trained on), "pixels/mount": (size, size, 5), "tool": (3,), "target":
-        (7,)}`` -- ``tool``: the tool point by the nominal kinematics of the measured joints;
-        ``target``: ``target_cloud`` of the image's depth and mask; the image at ``coords``: RGB, depth (m) and the target
-        geoms' share of each pixel (the renderer's coverage: the hard 0/1 mask at ``tau == 0``,
-        soft and differentiable in the pose at ``tau > 0``). The image actor's and the sensing
-        Q's observation (``twinrl.learn.imitation``, ``twinrl.learn.sensing``)."""
+        """What a robot has (``observation_from_image``) when the simulator renders ``state`` from
+        the mount at ``coords``: the target mask is the target geoms' share of each pixel (the
+        renderer's coverage: the hard 0/1 mask at ``tau == 0``, soft and differentiable in the
+        pose at ``tau > 0``). The image actor's and the sensing Q's observation
+        (``twinrl.learn.imitation``, ``twinrl.learn.sensing``)."""
         coords = jnp.asarray(self.mount.default if coords is None else coords, jnp.float32)
         img = self.render(state, coords, tau=tau, size=size)
         mask = jnp.sum(img.weights[..., self._target_columns], axis=-1)
-        pixels = jnp.concatenate([img.rgb, img.depth[..., None], mask[..., None]], axis=-1)
-        n = int(size or self.config.image_size)
-        joints = state.obs[:2 * N_JOINTS]
+        return self.observation_from_image(state.obs[:2 * N_JOINTS], coords, img.rgb, img.depth,
+                                           mask)
+
+    def observation_from_image(self, joints, coords, rgb, depth, mask) -> dict:
+        """The image observation's layout, one for the simulator's renders and the real camera's
+        frames (``twinrl.sim2real.active``): ``{"state": joint angles and velocities (14,),
+        "camera": the commanded pose as fractions (3,) of the mount's azimuth, elevation and
+        distance ranges (bounded, so an ascent of Q cannot push a network's input outside what it
+        was trained on), "pixels/mount": (n, n, 5) RGB, depth (m) and the target's mask, "tool":
+        the tool point by the nominal kinematics of the measured joints (3,), "target":
+        ``target_cloud`` of the depth and mask, back-projected from the commanded pose (7,)}``."""
+        n = depth.shape[0]
+        pixels = jnp.concatenate([rgb, depth[..., None], mask[..., None]], axis=-1)
         return {"state": joints, "camera": jax.nn.sigmoid(coords), "pixels/mount": pixels,
                 "tool": self.tool_point(joints[:N_JOINTS]),
-                "target": target_cloud(self.mount.camera(coords, n, n), img.depth, mask)}
+                "target": target_cloud(self.mount.camera(coords, n, n), depth, mask)}
+
+    @functools.cached_property
+    def target_geom_ids(self) -> np.ndarray:
+        """MuJoCo geom ids of ``target_geoms`` (NumPy: built inside a trace, a cached jax array
+        would leak it)."""
+        return np.asarray([self.sim.mj_model.geom(g).id for g in self.target_geoms])
 
     @functools.cached_property
     def _target_columns(self) -> np.ndarray:
-        # NumPy, not a jax array: first built inside a trace, a cached jax array would leak it
         drawn = list(self.renderer.geom_ids)
-        return np.asarray([drawn.index(self.sim.mj_model.geom(g).id) for g in self.target_geoms])
+        return np.asarray([drawn.index(i) for i in self.target_geom_ids])
 
     # ------------------------------------------------------------------ checks
     def scripted_action(self, obs: np.ndarray) -> np.ndarray:
