@@ -8,7 +8,7 @@ finds an accelerator):
   single, vmap 16;
 - trajectory optimisation from the privileged state (``twinrl.learn.trajopt``, first order with
   a line search, ``--iterations`` improvements from zero actions, then up to ``--restarts``
-  more attempts on the starts not solved, from the next initial guess of ``initial_guesses``)
+  more attempts on the starts not solved, from the next initial guess of ``twinrl.learn.plans.initial_guesses``)
   on ``--starts`` random initial states: success rate (the task's ``success`` at the episode's
   end), on the first attempt and in all, which attempt solved how many, and seconds per solved
   trajectory (wall time of all the solves / solved ones; compile excluded and reported apart);
@@ -29,7 +29,6 @@ sequences go to ``DIR/<task>_plans.npz`` (the demonstrations the imitation stage
 from __future__ import annotations
 
 import argparse
-import functools
 import sys
 import time
 from pathlib import Path
@@ -39,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl import envs
+from twinrl.learn import plans as plans_lib
 from twinrl.learn import trajopt
 from twinrl.report import print_table, write_json
 
@@ -118,105 +118,6 @@ def visibility(env, states: int, min_pixels: int, grid: int = 5) -> dict:
             "visible_min_pixels": min_pixels, "target_pixels_default_pose": int(default)}
 
 
-def _smooth_noise(key, shape, knots: int = 6, scale: float = 0.15):
-    """Smooth random actions: ``scale``-sd values at ``knots`` evenly spread steps, linearly
-    interpolated over the horizon."""
-    T = shape[-2]
-    z = scale * jax.random.normal(key, shape[:-2] + (knots, shape[-1]))
-    t = jnp.linspace(0.0, knots - 1.0, T)
-    interp = lambda c: jnp.interp(t, jnp.arange(knots, dtype=t.dtype), c)  # noqa: E731
-    return jnp.clip(jnp.vectorize(interp, signature="(k)->(t)")(
-        jnp.swapaxes(z, -1, -2)).swapaxes(-1, -2), -1.0, 1.0)
-
-
-def initial_guesses(env, restarts: int) -> list[str]:
-    """The initial action sequence of each attempt: zeros first; then, for a task with an
-    ``approach_point`` (``ArmTask.approach_plan``), the straight-line approach, the approach
-    stopping 2 cm short, and smooth random actions; for the others random actions
-    (N(0, 0.3^2), clipped) -- a local method's usual remedies for a poor local optimum, most
-    structured first."""
-    has_approach = env.approach_point(env.reset(jax.random.PRNGKey(0)).pipeline_state.qpos) \
-        is not None
-    later = ["approach", "approach-2cm", "smooth"] if has_approach else ["random"]
-    return ["zero"] + [later[min(i, len(later) - 1)] for i in range(restarts)]
-
-
-def solve(env, starts: int, iterations: int, batch: int, seed: int, config, restarts: int = 2,
-          say=print) -> dict:
-    """Trajectory optimisation from ``starts`` random initial states, ``batch`` at a time: from
-    zero actions, then, for the starts not solved, up to ``restarts`` times more from the next of
-    ``initial_guesses``."""
-    T = env.episode_length
-    keys = jax.random.split(jax.random.PRNGKey(seed), starts)
-
-    def one(key, a0):
-        s = env.reset(key)
-        rollout_fn, reward_fn = trajopt.env_problem(env, s)
-        a, hist = trajopt.optimize(rollout_fn, reward_fn, a0, config, iterations)
-        final, rewards = env.unroll(s, a)
-        q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
-        return a, rewards.sum(), env.success(q, v), hist.value[0]
-
-    def guess(kind, key, noise_key):
-        zeros = jnp.zeros((T, env.action_size))
-        if kind == "zero":
-            return zeros
-        if kind == "random":
-            return jnp.clip(0.3 * jax.random.normal(noise_key, zeros.shape), -1.0, 1.0)
-        if kind == "smooth":
-            return _smooth_noise(noise_key, zeros.shape)
-        return env.approach_plan(env.reset(key), 0.02 if kind == "approach-2cm" else 0.0)
-
-    kinds = initial_guesses(env, restarts)
-    f = jax.jit(jax.vmap(one))
-    guesses = {k: jax.jit(jax.vmap(functools.partial(guess, k))) for k in set(kinds)}
-    zeros = jnp.zeros((batch, T, env.action_size))
-    compile_s, _ = _timed(f.lower(keys[:batch], zeros).compile)
-    plans = np.zeros((starts, T, env.action_size), np.float32)
-    returns, initial = np.full(starts, -np.inf), np.zeros(starts)
-    success = np.zeros(starts)
-    tries = np.zeros(starts, int)
-    solved_by = {}
-    t0 = time.perf_counter()
-    for attempt, kind in enumerate(kinds):
-        todo = np.flatnonzero(success == 0)
-        before = int(success.sum())
-        for i in range(0, todo.size, batch):
-            idx = todo[i:i + batch]
-            pad = np.resize(idx, batch)  # pad the last batch to the compiled size
-            noise = jax.random.split(jax.random.PRNGKey(seed + 1000 * attempt + i), batch)
-            a0 = guesses[kind](keys[pad], noise)
-            a, r, ok, r0 = (np.asarray(x) for x in jax.block_until_ready(f(keys[pad], a0)))
-            n = idx.size
-            better = (ok[:n] > success[idx]) | ((ok[:n] == success[idx]) & (r[:n] > returns[idx]))
-            for j in np.flatnonzero(better):
-                plans[idx[j]], returns[idx[j]], success[idx[j]] = a[j], r[j], ok[j]
-            if attempt == 0:
-                initial[idx] = r0[:n]
-            tries[idx] += 1
-            say(f"[bench] {env.name}: attempt {attempt + 1} ({kind}), "
-                f"{min(i + batch, todo.size)}/{todo.size} optimised, solved "
-                f"{int(success.sum())}/{starts} ({time.perf_counter() - t0:.0f} s)")
-        solved_by[f"{attempt + 1}:{kind}"] = int(success.sum()) - before
-        if attempt == 0:
-            first = float(success.mean())
-        if success.all():
-            break
-    wall = time.perf_counter() - t0
-    return {
-        "starts": starts, "iterations": iterations, "restarts": restarts,
-        "initial_guesses": kinds, "solved_by_attempt": solved_by,
-        "trajopt_compile_s": compile_s,
-        "success_rate": float(success.mean()),
-        "success_rate_first_attempt": first,
-        "seconds_per_solved": wall / max(1, int(success.sum())),
-        "optimisations_run": int(tries.sum()),
-        "return_initial_mean": float(initial.mean()),
-        "return_final_mean": float(returns.mean()),
-        "_plans": plans, "_keys": np.asarray(keys), "_success": success,
-    }
-
-
 def replay(env, plans: np.ndarray, keys: np.ndarray, twin_seeds, zero: bool = False) -> float:
     """Success rate of the optimised open-loop plans replayed on real twins (``RealTwin`` of each
     of ``twin_seeds`` in turn; ``zero``: without perturbation), each from its plan's start state.
@@ -287,11 +188,12 @@ def main(argv=None) -> int:
             row.update(visibility(env, args.visibility_states, args.min_pixels))
         if "trajopt" not in args.skip:
             print(f"[bench] {name}: trajopt on {args.starts} starts ...", flush=True)
-            res = solve(env, args.starts, args.iterations, args.batch, args.seed, config,
-                        args.restarts, say=lambda s: print(s, flush=True))
-            args.out.mkdir(parents=True, exist_ok=True)
-            plans, keys, solved = res.pop("_plans"), res.pop("_keys"), res.pop("_success")
-            np.savez(args.out / f"{name}_plans.npz", actions=plans, keys=keys, success=solved)
+            res = plans_lib.plan(env, args.starts, args.iterations, args.batch, args.seed,
+                                 config, args.restarts,
+                                 say=lambda s: print(f"[bench] {s}", flush=True))
+            plans_lib.save(args.out / f"{name}_plans.npz", res)
+            plans, keys = res.pop("plans"), res.pop("keys")
+            res.pop("success")
             row.update(res)
             if args.replay:
                 print(f"[bench] {name}: replaying the plans on real twins ...", flush=True)

@@ -567,7 +567,12 @@ def _run_parser(sub) -> None:
                     "identifies the simulator (sysid), refits the hybrid dynamics, learns in sim "
                     "(--algo), and deploys with residual adaptation, recording the real episodes. "
                     "Writes summary.json, report.md, returns.png, params.png and final.mp4; "
-                    "--resume continues a killed run without losing recorded data.")
+                    "--resume continues a killed run without losing recorded data. On a "
+                    "manipulation task (peg_insertion, needle_threading, spatula_flipping) it "
+                    "runs the SAM-RL loop instead: round 0 records episodes with images; each "
+                    "round calibrates the camera mount from them, plans demonstrations in the "
+                    "identified twin, clones an image actor, learns the sensing-aware Q and "
+                    "deploys with the camera Q chooses (summary.json, success.png, final.mp4).")
     p.add_argument("--env", default="cartpole_swingup",
                    help="task name (default cartpole_swingup)")
     p.add_argument("--rounds", type=int, default=None, help="rounds after round 0 (default 1)")
@@ -580,6 +585,10 @@ def _run_parser(sub) -> None:
                    help="training epochs per round (default: tuned per task)")
     p.add_argument("--no-oracle", action="store_true",
                    help="skip the oracle policy (evaluation only; saves a training run)")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="manipulation tasks: a setting of the SAM-RL loop (twinrl.loop_arm."
+                        "ArmLoopConfig), repeatable, e.g. --set demonstrations=16 --set "
+                        "imitation.fit_steps=1000 --set camera=default")
     p.add_argument("--resume", action="store_true", help="continue a killed run in --out")
     _common(p, "runs/loop")
     p.set_defaults(func=_cmd_run)
@@ -587,8 +596,14 @@ def _run_parser(sub) -> None:
 
 def _cmd_run(args) -> int:
     from twinrl.loop import LoopConfig, LoopError, run
+    from twinrl.loop_arm import is_arm_task
 
     _check_task(args.env)
+    if is_arm_task(args.env):
+        return _run_arm(args)
+    if args.set:
+        raise UsageError("--set configures the manipulation loop (peg_insertion, "
+                         "needle_threading, spatula_flipping); use --rounds, --algo, ... here")
     overrides = {k: v for k, v in (("rounds", args.rounds),
                                    ("episodes_per_round", args.episodes_per_round),
                                    ("algo", args.algo), ("epochs", args.epochs)) if v is not None}
@@ -598,6 +613,30 @@ def _cmd_run(args) -> int:
         config = LoopConfig(**overrides)
         run(args.env, args.out, config, seed=args.seed, resume=args.resume)
     except LoopError as e:
+        raise UsageError(str(e)) from None
+    return 0
+
+
+def _run_arm(args) -> int:
+    """``twinrl run`` on a manipulation task: the SAM-RL loop (``twinrl.loop_arm``)."""
+    from twinrl.learn.runner import RunError, parse_overrides
+    from twinrl.loop import LoopError
+    from twinrl import loop_arm
+
+    for flag, value in (("--algo", args.algo), ("--epochs", args.epochs)):
+        if value is not None:
+            raise UsageError(f"{flag} is the state-based loop's; the manipulation loop learns an "
+                             f"image actor by imitation (see --set imitation.FIELD=VALUE)")
+    try:
+        overrides = parse_overrides(args.set)
+        for k, v in (("rounds", args.rounds), ("episodes_per_round", args.episodes_per_round)):
+            if v is not None:
+                overrides[k] = v
+        if args.no_oracle:
+            overrides["eval_episodes"] = 0
+        config = loop_arm.make_config(overrides)
+        loop_arm.run(args.env, args.out, config, seed=args.seed, resume=args.resume)
+    except (LoopError, RunError) as e:
         raise UsageError(str(e)) from None
     return 0
 

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 __all__ = ["param_errors", "real_return", "policy_real_return", "oracle_return",
-           "visual_errors"]
+           "visual_errors", "hand_eye_errors", "deployed_success"]
 
 
 def _twin(env_name, seed, perturbation=None, secret=None, **kwargs):
@@ -136,3 +136,43 @@ def oracle_return(env_name, seed, out, config, progress, perturbation=None, secr
         continue_run(env_name, config.algo, out, seed=seed, epochs=config.epochs,
                      progress=progress, env=env, checkpoint_every=config.checkpoint_every)
     return real_return(env_name, seed, out / "policy", config.eval_episodes, perturbation, secret)
+
+
+def hand_eye_errors(env_name, seed, mount, perturbation=None, secret=None) -> dict[str, float]:
+    """The camera mount's hand-eye calibration (``CameraMount.pos_offset``/``rot_offset``, in the
+    commanded camera frame) against the real twin's hidden camera offset: position (mm) and
+    rotation (deg) errors, and what they were before calibration (the nominal zero offset)."""
+    import mujoco
+
+    from twinrl.real.perturbation import rotvec_quat
+
+    twin = _twin(env_name, seed, perturbation, secret)
+    try:
+        p = twin.oracle().perturbation
+    finally:
+        twin.close()
+
+    def rot_err(a, b):
+        qa, qb = rotvec_quat(np.asarray(a, np.float64)), rotvec_quat(np.asarray(b, np.float64))
+        d = np.empty(4)
+        mujoco.mju_mulQuat(d, np.array([qa[0], -qa[1], -qa[2], -qa[3]]), qb)
+        return float(np.rad2deg(2 * np.arccos(np.clip(abs(d[0]), -1.0, 1.0))))
+
+    true_pos = np.asarray(p.camera_pos_offset, np.float64)
+    return {"hand_eye_pos_err_mm": float(np.linalg.norm(np.asarray(mount.pos_offset) - true_pos)
+                                         * 1e3),
+            "hand_eye_rot_err_deg": rot_err(mount.rot_offset, p.camera_rot_offset),
+            "uncalibrated_pos_err_mm": float(np.linalg.norm(true_pos) * 1e3),
+            "uncalibrated_rot_err_deg": rot_err(np.zeros(3), p.camera_rot_offset)}
+
+
+def deployed_success(env_name, seed, deployer, config, perturbation=None, secret=None,
+                     size: int = 64) -> dict:
+    """``deployer.run`` (``twinrl.sim2real.active.Deployer``) on the real twin in this process,
+    nothing recorded: the evaluation episodes of a deployed image actor (e.g. with the fixed
+    camera, the baseline the chosen camera must beat)."""
+    twin = _twin(env_name, seed, perturbation, secret, width=size, height=size)
+    try:
+        return deployer.run(twin, config, seed=50_000 + int(seed))
+    finally:
+        twin.close()

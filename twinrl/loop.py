@@ -523,7 +523,8 @@ def _check_settings(env_name: str, out: Path, config: LoopConfig, seed: int,
 
     if env_name not in envs.names():
         raise LoopError(f"unknown task {env_name!r}; registered: {', '.join(envs.names())}")
-    algorithm(config.algo)
+    if hasattr(config, "algo"):  # the manipulation loop's config (twinrl.loop_arm) has none
+        algorithm(config.algo)
     # The perturbation (a custom twin's) is not a setting the loop may read back: the twin's
     # server keeps it with the salt in eval/twin.json and refuses a resume with another one.
     settings = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config)}

@@ -208,6 +208,42 @@ def test_hand_eye_offset_moves_the_real_camera_and_camera_moves_are_counted():
     ideal.close()
 
 
+def test_a_hand_eye_calibration_at_one_pose_puts_the_camera_right_at_every_pose():
+    """``CameraMount.with_hand_eye`` of the true camera at the default pose (what the loop's
+    calibration fits) gives the mount whose camera is the real one at any other commanded pose;
+    an ``envs.make`` with a ``System`` holding that camera builds the task with it."""
+    from twinrl.envs.system import System
+    from twinrl.render import Camera, quat_to_mat
+
+    p = Perturbation(camera_pos_offset=(0.012, -0.02, 0.03), camera_rot_offset=(0.02, -0.03, 0.01))
+    twin = RealTwin("peg_insertion", perturbation=p, width=64, height=64)
+    twin.reset(seed=0)
+    model = twin.oracle().model
+    cid = model.camera("mount").id
+    mount = envs.make("peg_insertion").mount
+
+    def true_camera(coords):
+        twin.move_camera(coords)
+        m = twin.oracle().model
+        return np.asarray(m.cam_pos[cid]), np.asarray(m.cam_quat[cid])
+
+    pos, quat = true_camera(np.asarray(mount.default))
+    fitted = Camera(pos, quat, np.float64(mount.fovy), 64, 64)
+    env = envs.make("peg_insertion", system=System.nominal("peg_insertion").replace(
+        cameras={"mount": fitted}))
+    np.testing.assert_allclose(env.mount.pos_offset, p.camera_pos_offset, atol=1e-5)
+    for coords in ([1.5, -0.7, 0.4], [-2.0, 1.0, -1.0]):
+        pos, quat = true_camera(np.asarray(coords))
+        cam = env.mount.camera(jnp.asarray(coords, jnp.float32))
+        np.testing.assert_allclose(np.asarray(cam.pos), pos, atol=2e-5)
+        R = np.asarray(quat_to_mat(jnp.asarray(quat / np.linalg.norm(quat), jnp.float32)))
+        np.testing.assert_allclose(np.asarray(cam.xmat), R, atol=2e-5)
+        # the nominal mount misses it by the offset
+        assert np.linalg.norm(np.asarray(mount.camera(jnp.asarray(coords, jnp.float32)).pos)
+                              - pos) > 0.03
+    twin.close()
+
+
 def test_grasp_offset_moves_the_tool_in_the_hand():
     p = Perturbation(tool_pos_offset=(0.003, 0.0, -0.002))
     twin = RealTwin("peg_insertion", perturbation=p)

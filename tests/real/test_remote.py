@@ -87,6 +87,17 @@ def test_no_model_perturbation_or_renderer_is_reachable_from_the_client(served):
     assert created_here == 0, "a RealTwin was built in the client's process"
 
 
+def test_only_a_robots_requests_are_served(served):
+    client = served[0]
+    call = client._TwinClient__call  # what a client could send over the pipe
+    for op, args in (("oracle", ()), ("attr", ("_perturbation",)), ("__class__", ())):
+        with pytest.raises(ValueError, match="no operation"):
+            call(op, *args)
+    assert client.camera_steps == 0 and client.mount_coords is None  # a task without a mount
+    with pytest.raises(ValueError, match="no success measure"):
+        client.success()
+
+
 def test_the_public_seed_does_not_reproduce_the_hidden_perturbation(served):
     client, secret, traj, _, _ = served
     truth = hidden_perturbation(TASK, SEED, secret)

@@ -4,10 +4,12 @@ Learning code talks to a robot through an interface (observations, actions, came
 to the physics behind it. ``TwinClient`` is that interface for the real twin: a ``gymnasium.Env``
 whose ``RealTwin`` (MuJoCo model, hidden ``Perturbation``, renderer) lives in a server process
 started with the ``spawn`` context and reached over a pipe (messages ``reset``, ``step``,
-``render``, ``render_images``, ``close``). The client holds the observation and action spaces, the
-task's name, time step and episode length, the camera names and image size: what a robot's driver
-publishes. It holds no model, perturbation or renderer, so ``client._model`` and its like raise
-``AttributeError`` and nothing reachable from the client is one (``tests/real/test_remote.py``).
+``render``, ``render_images``, ``move_camera``, ``success``, ``close``, and reads of the mount's
+``camera_steps`` and ``mount_coords``; nothing else). The client holds the observation and action
+spaces, the task's name, time step and episode length, the camera names and image size: what a
+robot's driver publishes. It holds no model, perturbation or renderer, so ``client._model`` and
+its like raise ``AttributeError`` and nothing reachable from the client is one
+(``tests/real/test_remote.py``).
 
 The hidden perturbation is drawn from the public seed *and a secret salt* (128 bits) the server
 keeps in ``secret`` (a JSON file in the run's evaluation directory, which the learning stages
@@ -135,14 +137,22 @@ def _serve(conn, parent: int) -> None:
                 conn.send(("ok", None))
                 return
             try:
-                conn.send(("ok", getattr(twin, op)(*args, **kwargs)))
+                if op == "attr" and args and args[0] in _ATTRS:  # what a robot's driver reports
+                    conn.send(("ok", getattr(twin, args[0])))
+                elif op in _OPS:
+                    conn.send(("ok", getattr(twin, op)(*args, **kwargs)))
+                else:
+                    raise ValueError(f"the real twin has no operation {op!r}")
             except Exception:  # noqa: BLE001 - a bad request fails that call, not the server
                 conn.send(("error", traceback.format_exc()))
     finally:
         twin.close()
 
 
-_OPS = ("reset", "step", "render", "render_images", "move_camera")
+_OPS = ("reset", "step", "render", "render_images", "move_camera", "success")
+"""The requests the server answers (and ``close``); anything else is refused."""
+_ATTRS = ("camera_steps", "mount_coords")
+"""The twin's attributes a client may read (``op == "attr"``): the camera mount's odometry."""
 
 
 class TwinClient(gym.Env):
@@ -227,6 +237,21 @@ class TwinClient(gym.Env):
     def move_camera(self, coords) -> int:
         """Move the camera mount (arm tasks), as ``RealTwin.move_camera``; returns the steps."""
         return self.__call("move_camera", np.asarray(coords, np.float64))
+
+    def success(self) -> float:
+        """The task's success of the episode's current state, as ``RealTwin.success`` (an
+        operator's verdict: evaluation and bookkeeping, never a learning signal)."""
+        return float(self.__call("success"))
+
+    @property
+    def camera_steps(self) -> int:
+        """Control steps the camera mount has spent moving since the last reset."""
+        return int(self.__call("attr", "camera_steps"))
+
+    @property
+    def mount_coords(self):
+        """The commanded camera-mount coordinates (None before the first move)."""
+        return self.__call("attr", "mount_coords")
 
     def close(self) -> None:
         proc = self.__proc

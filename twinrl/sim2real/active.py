@@ -63,15 +63,17 @@ class DeployConfig(JSONConfig):
                           optional=("restarts", "ascent_steps"))
 
 
-def real_image_observation(twin, env, obs: np.ndarray, size: int) -> dict[str, np.ndarray]:
+def real_image_observation(twin, env, obs: np.ndarray, size: int,
+                           img: dict | None = None) -> dict[str, np.ndarray]:
     """The image actor's observation on the real twin: ``ArmTask.observation_from_image`` of the
     real OpenGL frame -- RGB in [0, 1], depth (m), the target geoms' mask from the real
     segmentation -- with the joints measured (``obs[:14]``) and the *commanded* mount pose (the
-    hand-eye offset is the robot's unknown). ``twin`` must render ``size`` x ``size`` frames."""
+    hand-eye offset is the robot's unknown, or what ``env.mount`` identified). ``twin`` must
+    render ``size`` x ``size`` frames; ``img`` is the mount's frame when already taken."""
     if (twin.width, twin.height) != (size, size):
         raise ValueError(f"the twin renders {twin.width}x{twin.height}; the actor needs "
                          f"{size}x{size} (make it with width=height={size})")
-    img = twin.render_images(camera="mount")
+    img = twin.render_images(camera="mount") if img is None else img
     mask = np.isin(img["segmentation"], env.target_geom_ids).astype(np.float32)
     out = _from_image(env)(np.asarray(obs[:14], np.float32),
                            np.asarray(twin.mount_coords, np.float32),
@@ -138,23 +140,32 @@ class Deployer:
         if config.camera == "selected" and self.q is None:
             raise ValueError("camera='selected' needs the sensing-aware Q (q, q_params, sensing)")
 
-    def run(self, twin, config: DeployConfig, seed: int = 0, progress=None) -> dict:
-        """``config.episodes`` episodes on ``twin`` (reset seeds ``seed``, ``seed + 1``, ...).
-        Returns per-episode ``success``, ``return``, ``steps`` (control steps acting),
-        ``camera_steps`` (steps spent moving the mount), ``choices`` (camera choices made),
-        the chosen ``coords`` (first choice of each episode) and totals/means, ``wall_s``."""
+    def run(self, twin, config: DeployConfig, seed: int = 0, progress=None, *, start: int = 0,
+            writer=None, on_episode: Callable[[dict], None] | None = None) -> dict:
+        """Episodes ``start .. config.episodes - 1`` on ``twin`` (episode ``i`` resets with seed
+        ``seed + i`` and draws its random choices from ``(seed, i)``, so a deployment resumed at
+        ``start`` runs the episodes an uninterrupted one would have). Returns per-episode
+        ``success``, ``return``, ``steps`` (control steps acting), ``camera_steps`` (steps spent
+        moving the mount), ``choices`` (camera choices made), the chosen ``coords`` (first
+        choice of each episode) and totals/means, ``wall_s``.
+
+        ``writer`` (a ``twinrl.real.dataset.DatasetWriter`` recording ``rgb``, ``depth`` and
+        ``segmentation``) records every transition as it happens, with the mount's frame after
+        the step (the frame the next action sees); ``on_episode(row)`` gets each episode's row
+        when it ends."""
         self.check(config)
         env, c = self.env, config
         restarts = int(c.restarts or (self.sensing.restarts if self.sensing else 1))
         steps = int(c.ascent_steps or (self.sensing.ascent_steps if self.sensing else 1))
-        rng = np.random.default_rng(seed)
         rows = {k: [] for k in ("success", "return", "steps", "camera_steps", "choices")}
         coords_log = []
+        kinds = ("rgb", "depth", "segmentation")
         t0 = time.perf_counter()
-        for i in range(int(c.episodes)):
+        for i in range(int(start), int(c.episodes)):
+            rng = np.random.default_rng([int(seed), i])
             obs, _ = twin.reset(seed=int(seed) + i)
             before = twin.camera_steps
-            choices, ret, first = 0, 0.0, None
+            choices, ret, first, img = 0, 0.0, None, None
             for t in range(env.episode_length):
                 if c.camera != "oracle" and (t == 0 or (c.reselect_every
                                                          and t % c.reselect_every == 0)):
@@ -162,20 +173,33 @@ class Deployer:
                     twin.move_camera(coords)
                     choices += 1
                     first = coords if first is None else first
-                o = (real_image_observation(twin, env, obs, self.size) if self.image
+                    img = None
+                if self.image and img is None:
+                    img = twin.render_images("mount", kinds)
+                o = (real_image_observation(twin, env, obs, self.size, img) if self.image
                      else np.asarray(obs, np.float32))
                 a = np.asarray(self._act(self.actor_params, o), np.float32)
                 if self.residual is not None:
                     a = np.clip(a + np.asarray(self.residual(obs), np.float32), -1.0, 1.0)
-                obs, r, term, trunc, _ = twin.step(a)
-                ret += r
+                nxt, r, term, trunc, info = twin.step(a)
+                img = (twin.render_images("mount", kinds)
+                       if self.image or writer is not None else None)
+                if writer is not None:
+                    writer.add(obs, a, r, nxt, term, trunc or (t + 1 == env.episode_length),
+                               info={k: v for k, v in info.items() if np.isscalar(v)},
+                               images=img)
+                obs, ret = nxt, ret + r
                 if term:
                     break
             ok = twin.success()
-            for k, v in (("success", ok), ("return", ret), ("steps", t + 1),
-                         ("camera_steps", twin.camera_steps - before), ("choices", choices)):
-                rows[k].append(v)
-            coords_log.append(None if first is None else np.asarray(first).tolist())
+            row = {"episode": i, "success": ok, "return": float(ret), "steps": t + 1,
+                   "camera_steps": twin.camera_steps - before, "choices": choices,
+                   "coords": None if first is None else np.asarray(first).tolist()}
+            for k in rows:
+                rows[k].append(row[k])
+            coords_log.append(row["coords"])
+            if on_episode is not None:
+                on_episode(row)
             if progress is not None:
                 progress(i + 1, {"success": float(np.mean(rows["success"])),
                                  "return": float(np.mean(rows["return"]))})

@@ -309,6 +309,13 @@ class CameraMount:
     max_speed: float = 0.25
     """Largest move (rad of azimuth/elevation, or m of distance) the mount makes per control step:
     moving the camera costs ``steps_to_move`` time steps."""
+    pos_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The camera's offset (m) from the commanded pose, in the commanded camera frame: the
+    hand-eye calibration (``with_hand_eye``), zero in the nominal model. A real mount's camera
+    sits where its hand-eye offset puts it (``RealTwin.move_camera``)."""
+    rot_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The camera's rotation (rotation vector, rad) from the commanded orientation, in the
+    commanded camera frame: the other half of the hand-eye calibration."""
 
     def _ranges(self):
         return np.array([self.azimuth, self.elevation, self.distance], np.float64)
@@ -352,12 +359,39 @@ class CameraMount:
         return quat_to_mat(self.quat(coords))
 
     def camera(self, coords: jax.Array, width: int = 64, height: int = 64):
-        """The ``twinrl.render.Camera`` at ``coords`` (differentiable in them)."""
-        from twinrl.render import Camera
+        """The ``twinrl.render.Camera`` at ``coords`` (differentiable in them), the hand-eye
+        offset (``pos_offset``, ``rot_offset``) included."""
+        from twinrl.render import Camera, quat_mul, rotvec_to_quat
 
         coords = jnp.asarray(coords)
-        return Camera(self.eye(coords), self.quat(coords), jnp.asarray(self.fovy, coords.dtype),
-                      int(width), int(height))
+        eye, quat = self.eye(coords), self.quat(coords)
+        if any(self.pos_offset) or any(self.rot_offset):
+            dt = coords.dtype
+            eye = eye + self.xmat(coords) @ jnp.asarray(self.pos_offset, dt)
+            quat = quat_mul(quat, rotvec_to_quat(jnp.asarray(self.rot_offset, dt)))
+        return Camera(eye, quat, jnp.asarray(self.fovy, coords.dtype), int(width), int(height))
+
+    def with_hand_eye(self, camera, coords=None) -> "CameraMount":
+        """This mount with the hand-eye offset that puts its camera at ``camera`` (a
+        ``twinrl.render.Camera``, e.g. Real2Sim's fit of frames taken with the mount commanded to
+        ``coords``, default ``default``): the offset of ``camera`` from the commanded pose, in the
+        commanded camera frame."""
+        from twinrl.render import quat_to_mat
+
+        c = jnp.asarray(self.default if coords is None else coords, jnp.float32)
+        R0 = np.asarray(self.xmat(c), np.float64)
+        eye0 = np.asarray(self.eye(c), np.float64)
+        R = np.asarray(quat_to_mat(jnp.asarray(camera.quat, jnp.float32)), np.float64)
+        dR = R0.T @ R
+        import mujoco
+
+        q = np.empty(4)
+        mujoco.mju_mat2Quat(q, dR.reshape(-1))
+        rv = np.empty(3)
+        mujoco.mju_quat2Vel(rv, q, 1.0)
+        dp = R0.T @ (np.asarray(camera.pos, np.float64) - eye0)
+        return dataclasses.replace(self, pos_offset=tuple(float(x) for x in dp),
+                                   rot_offset=tuple(float(x) for x in rv))
 
     def steps_to_move(self, coords_from, coords_to) -> int:
         """Control steps the mount needs between two poses at its speed limit."""
@@ -436,6 +470,21 @@ class ArmTask(Env):
     @property
     def action_size(self) -> int:
         return self.controller.action_size
+
+    @property
+    def sys(self):
+        """As ``Env.sys``; a ``System`` with a ``"mount"`` camera (Real2Sim's fit of frames taken
+        with the mount at its default pose) also sets the mount's hand-eye offset
+        (``CameraMount.with_hand_eye``), so every render and back-projection of this task uses the
+        identified camera."""
+        return self._sys
+
+    @sys.setter
+    def sys(self, value) -> None:
+        Env.sys.fset(self, value)
+        cam = (getattr(value, "cameras", None) or {}).get("mount")
+        if cam is not None and not isinstance(cam.pos, jax.core.Tracer):
+            self.mount = type(self).mount.with_hand_eye(cam)
 
     def set_posture(self, q_start) -> None:
         """Hold the controller's null space at ``q_start`` (the task's start posture)."""

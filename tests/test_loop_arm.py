@@ -1,0 +1,190 @@
+"""``twinrl.loop_arm`` (the SAM-RL loop on a manipulation task): a run killed with SIGKILL in the
+middle of a real deployment episode and resumed keeps every real transition and frame it had
+recorded, does not redo finished stages, re-runs the cut episode from its start (the same episode:
+the same reset seed, the same first transitions), and ends with every round's episodes complete.
+
+The stages that compile for minutes (the calibration's fit, trajopt, imitation) are replaced in the
+child process by cheap stand-ins (the nominal camera, zero plans, a seeded random target-cloud
+actor saved as a policy checkpoint); the deployment is the real one (``Deployer`` on the real
+twin's server, the actor acting on the real mount frames, the fixed default camera), slowed a few
+milliseconds a step so the kill lands inside an episode. Each real stage has its own tests.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from twinrl.real import dataset as ds
+
+K = 2
+T = 50  # the arm tasks' episode length
+
+CHILD = textwrap.dedent("""
+    import sys, time
+    from pathlib import Path
+    import jax, numpy as np
+    from twinrl import loop, loop_arm, report
+    from twinrl.learn import plans
+    from twinrl.learn.checkpoint import save_policy
+    from twinrl.learn.imitation import ImitationConfig, make_observer
+    from twinrl.learn.networks import NetworkConfig, make_network
+    from twinrl.sim2real import active
+
+    out, resume = Path(sys.argv[1]), sys.argv[2] == "resume"
+    log = out.parent / "calls.log"
+
+    def note(s):
+        with open(log, "a") as f:
+            f.write(s + "\\n")
+
+    def calibrate(run, r, rdir, data):
+        note(f"calibrate {len(data)}")
+        env = run.nominal_env
+        cam = env.mount.camera(np.asarray(env.mount.default, np.float32), 64, 64)
+        report.write_json(rdir / "calibration.json", {"camera": {
+            "pos": np.asarray(cam.pos), "quat": np.asarray(cam.quat),
+            "fovy": np.asarray(cam.fovy), "width": 64, "height": 64}})
+        run.prog.mark(f"round{r}/calibrate")
+
+    def plan(run, r, rdir, env):
+        note("plan")
+        T, m = env.episode_length, env.action_size
+        plans.save(rdir / "plans.npz", {"plans": np.zeros((2, T, m), np.float32),
+                                        "keys": np.zeros((2, 2), np.uint32),
+                                        "success": np.ones(2)})
+        run.prog.mark(f"round{r}/plan", plan_success=1.0)
+
+    def imitate(run, r, rdir, env):
+        note("imitation")
+        cfg = ImitationConfig(observation="target")
+        _, spec = make_observer(env, cfg)
+        net = make_network(spec, env.action_size, NetworkConfig(hidden=(8,), output="tanh"))
+        params = net.init(jax.random.key(r))
+        save_policy(rdir / "actor" / "policy", net, params, algo="imitation", env=env.name,
+                    config=cfg)
+        run.prog.mark(f"round{r}/imitation", sim_success=0.0)
+
+    stages = {"calibrate": calibrate, "plan": plan, "imitation": imitate}
+    loop_arm.ARM_ROUND = tuple(s.__class__(s.name, s.needs, s.gives, stages.get(s.name, s.make),
+                                           s.load, s.enabled) for s in loop_arm.ARM_ROUND)
+    real_act = active.Deployer.__init__
+
+    def slow_init(self, *a, **k):
+        real_act(self, *a, **k)
+        act = self._act
+        def slow(p, o):
+            time.sleep(0.01)
+            return act(p, o)
+        self._act = slow
+    active.Deployer.__init__ = slow_init
+
+    config = loop_arm.ArmLoopConfig(rounds=1, episodes_per_round=%d, camera="default",
+                                    eval_episodes=0, video=False)
+    note("start resume" if resume else "start")
+    loop_arm.run("peg_insertion", out, config, seed=2, resume=resume, progress=False)
+    note("finished")
+""" % K)
+
+
+def _child(out: Path, mode: str):
+    return subprocess.Popen([sys.executable, "-c", CHILD, str(out), mode],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _progress(out: Path) -> dict:
+    try:
+        return json.loads((out / "progress.json").read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return {"done": [], "rounds": {}}
+
+
+@pytest.fixture(scope="module")
+def killed(tmp_path_factory):
+    out = tmp_path_factory.mktemp("loop_arm") / "run"
+    out.parent.joinpath("x").mkdir()
+    p = _child(out, "fresh")
+    deadline = time.time() + 600
+    # wait for the first deployed episode to be recorded: the second is then under way
+    while time.time() < deadline and "round1/deploy_partial" not in _progress(out)["done"]:
+        assert p.poll() is None, p.communicate()[0]
+        time.sleep(0.02)
+    time.sleep(0.3)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    at_kill = ds.read(out / "dataset")
+    progress_at_kill = _progress(out)
+    p = _child(out, "resume")
+    text, _ = p.communicate(timeout=600)
+    assert p.returncode == 0, text
+    return out, at_kill, progress_at_kill
+
+
+def test_killed_inside_the_second_deployed_episode(killed):
+    _, at_kill, prog = killed
+    assert "round1/deploy" not in prog["done"] and "round1/imitation" in prog["done"]
+    assert len(prog["rounds"]["round1"]["deploy_partial"]) == 1
+    # round 0's K episodes and one deployed episode complete, the next one cut short
+    assert int(np.sum(at_kill.episode_complete)) == K + 1
+    assert (K + 1) * T < len(at_kill) < (K + 2) * T
+
+
+def test_resume_keeps_every_recorded_transition_and_frame(killed):
+    out, at_kill, _ = killed
+    final = ds.read(out / "dataset")
+    n = len(at_kill)
+    for name in ("obs", "action", "reward", "next_obs", "episode_id"):
+        np.testing.assert_array_equal(getattr(final, name)[:n], getattr(at_kill, name)[:n])
+    for kind in ("rgb", "depth", "segmentation"):
+        np.testing.assert_array_equal(final.images[kind][:n], at_kill.images[kind][:n])
+    # every round's episodes complete, plus the cut one kept as incomplete
+    assert int(np.sum(final.episode_complete)) == 2 * K
+    assert len(final.episode_complete) == 2 * K + 1
+    assert len(final) == 2 * K * T + (n - (K + 1) * T)
+
+
+def test_the_cut_episode_is_run_again_from_its_start(killed):
+    out, at_kill, _ = killed
+    final = ds.read(out / "dataset")
+    cut = final.episode_id == final.episode_id[len(at_kill) - 1]
+    rerun = final.episode_id == final.episode_id[-1]
+    m = int(cut.sum())
+    # the same reset seed and a deterministic actor on the same frames: the same transitions
+    np.testing.assert_allclose(final.obs[rerun][:m], final.obs[cut], atol=1e-6)
+    np.testing.assert_allclose(final.action[rerun][:m], final.action[cut], atol=1e-6)
+
+
+def test_finished_stages_are_not_redone_and_the_summary_counts_the_episodes(killed):
+    out, _, _ = killed
+    calls = (out.parent / "calls.log").read_text().split("\n")
+    assert calls.count("plan") == calls.count("imitation") == 1, calls
+    assert calls.index("start resume") > calls.index("imitation")
+    s = json.loads((out / "summary.json").read_text())
+    r1 = s["rounds"][1]
+    assert len(r1["real_successes"]) == K and r1["camera_steps"] == 0  # the fixed camera
+    assert r1["real_steps"] == len(ds.read(out / "dataset"))
+    assert (out / "success.png").exists()
+
+
+def test_bad_settings_fail_with_one_line(tmp_path):
+    from twinrl.loop import LoopError
+    from twinrl.loop_arm import make_config
+
+    with pytest.raises(LoopError, match="no setting 'cameras'"):
+        make_config({"cameras": "x"})
+    with pytest.raises(LoopError, match="imitation: .*observation"):
+        make_config({"imitation.observation": "depth"})
+    with pytest.raises(LoopError, match="image actor"):
+        make_config({"imitation.observation": "state"})
+    with pytest.raises(LoopError, match="camera must be"):
+        make_config({"camera": "oracle"})
+    c = make_config({"imitation.fit_steps": 10, "demonstrations": 3})
+    assert c.imitation["fit_steps"] == 10 and c.imitation["observation"] == "target"
+    assert c.demonstrations == 3

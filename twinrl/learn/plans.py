@@ -1,0 +1,153 @@
+"""Demonstrations by trajectory optimisation: optimised action sequences from random starts of a
+task, the expert that ``twinrl.learn.imitation`` clones (SAM-RL's "optimised trajectories").
+
+``plan(env, starts, ...)`` runs ``twinrl.learn.trajopt`` (first order with a line search) from
+``starts`` reset keys, ``batch`` at a time (vmap), from zero actions; the starts it did not solve
+are re-optimised up to ``restarts`` more times, each from the next of ``initial_guesses`` (for an
+arm task with an ``approach_point``: the straight-line approach, the approach stopping 2 cm short,
+smooth random actions; for others random actions). ``save``/``imitation.load_demonstrations``
+write and read ``<task>_plans.npz``: ``actions`` (N, T, m), ``keys`` (N, 2) and ``success`` (N,).
+
+Used by ``bench/manipulation.py`` (the suite's trajopt figures) and by the manipulation loop's
+``plan`` stage (``twinrl.loop_arm``), which plans in the identified twin.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twinrl.learn import trajopt
+
+__all__ = ["initial_guesses", "plan", "save"]
+
+
+def _smooth_noise(key, shape, knots: int = 6, scale: float = 0.15):
+    """Smooth random actions: ``scale``-sd values at ``knots`` evenly spread steps, linearly
+    interpolated over the horizon."""
+    T = shape[-2]
+    z = scale * jax.random.normal(key, shape[:-2] + (knots, shape[-1]))
+    t = jnp.linspace(0.0, knots - 1.0, T)
+    interp = lambda c: jnp.interp(t, jnp.arange(knots, dtype=t.dtype), c)  # noqa: E731
+    return jnp.clip(jnp.vectorize(interp, signature="(k)->(t)")(
+        jnp.swapaxes(z, -1, -2)).swapaxes(-1, -2), -1.0, 1.0)
+
+
+def initial_guesses(env, restarts: int) -> list[str]:
+    """The initial action sequence of each attempt: zeros first; then, for a task with an
+    ``approach_point`` (``ArmTask.approach_plan``), the straight-line approach, the approach
+    stopping 2 cm short, and smooth random actions; for the others random actions
+    (N(0, 0.3^2), clipped) -- a local method's usual remedies for a poor local optimum, most
+    structured first."""
+    has_approach = (hasattr(env, "approach_point") and env.approach_point(
+        env.reset(jax.random.PRNGKey(0)).pipeline_state.qpos) is not None)
+    later = ["approach", "approach-2cm", "smooth"] if has_approach else ["random"]
+    return ["zero"] + [later[min(i, len(later) - 1)] for i in range(restarts)]
+
+
+def plan(env, starts: int, iterations: int = 20, batch: int = 10, seed: int = 0,
+         config: trajopt.TrajoptConfig | None = None, restarts: int = 2,
+         say: Callable[[str], None] | None = None) -> dict:
+    """Trajectory optimisation of ``env`` from ``starts`` random initial states (reset keys split
+    from ``seed``), ``batch`` at a time: from zero actions, then, for the starts not solved
+    (``env.success`` at the episode's end), up to ``restarts`` times more from the next of
+    ``initial_guesses``. ``config`` defaults to first order, step 0.5, 6 line-search steps.
+
+    Returns the statistics (success rate, on the first attempt and in all, which attempt solved
+    how many, seconds per solved start, compile seconds, initial and final mean returns) and, under
+    ``plans``/``keys``/``success``, the arrays ``save`` writes."""
+    if starts < 1 or batch < 1 or iterations < 1 or restarts < 0:
+        raise ValueError(f"plan needs starts, batch, iterations >= 1 and restarts >= 0, got "
+                         f"{starts}, {batch}, {iterations}, {restarts}")
+    config = config or trajopt.TrajoptConfig(order=1, step_size=0.5, line_search_steps=6)
+    say = say or (lambda s: None)
+    T = env.episode_length
+    batch = min(batch, starts)
+    keys = jax.random.split(jax.random.PRNGKey(seed), starts)
+
+    def one(key, a0):
+        s = env.reset(key)
+        rollout_fn, reward_fn = trajopt.env_problem(env, s)
+        a, hist = trajopt.optimize(rollout_fn, reward_fn, a0, config, iterations)
+        final, rewards = env.unroll(s, a)
+        q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
+        return a, rewards.sum(), env.success(q, v), hist.value[0]
+
+    def guess(kind, key, noise_key):
+        zeros = jnp.zeros((T, env.action_size))
+        if kind == "zero":
+            return zeros
+        if kind == "random":
+            return jnp.clip(0.3 * jax.random.normal(noise_key, zeros.shape), -1.0, 1.0)
+        if kind == "smooth":
+            return _smooth_noise(noise_key, zeros.shape)
+        return env.approach_plan(env.reset(key), 0.02 if kind == "approach-2cm" else 0.0)
+
+    kinds = initial_guesses(env, restarts)
+    f = jax.jit(jax.vmap(one))
+    guesses = {k: jax.jit(jax.vmap(functools.partial(guess, k))) for k in set(kinds)}
+    t0 = time.perf_counter()
+    f = f.lower(keys[:batch], jnp.zeros((batch, T, env.action_size))).compile()
+    compile_s = time.perf_counter() - t0
+    plans = np.zeros((starts, T, env.action_size), np.float32)
+    returns, initial = np.full(starts, -np.inf), np.zeros(starts)
+    success = np.zeros(starts)
+    tries = np.zeros(starts, int)
+    solved_by, first = {}, 0.0
+    t0 = time.perf_counter()
+    for attempt, kind in enumerate(kinds):
+        todo = np.flatnonzero(success == 0)
+        before = int(success.sum())
+        for i in range(0, todo.size, batch):
+            idx = todo[i:i + batch]
+            pad = np.resize(idx, batch)  # pad the last batch to the compiled size
+            noise = jax.random.split(jax.random.PRNGKey(seed + 1000 * attempt + i), batch)
+            a0 = guesses[kind](keys[pad], noise)
+            a, r, ok, r0 = (np.asarray(x) for x in jax.block_until_ready(f(keys[pad], a0)))
+            n = idx.size
+            better = (ok[:n] > success[idx]) | ((ok[:n] == success[idx]) & (r[:n] > returns[idx]))
+            for j in np.flatnonzero(better):
+                plans[idx[j]], returns[idx[j]], success[idx[j]] = a[j], r[j], ok[j]
+            if attempt == 0:
+                initial[idx] = r0[:n]
+            tries[idx] += 1
+            say(f"{env.name}: attempt {attempt + 1} ({kind}), {min(i + batch, todo.size)}/"
+                f"{todo.size} optimised, solved {int(success.sum())}/{starts} "
+                f"({time.perf_counter() - t0:.0f} s)")
+        solved_by[f"{attempt + 1}:{kind}"] = int(success.sum()) - before
+        if attempt == 0:
+            first = float(success.mean())
+        if success.all():
+            break
+    wall = time.perf_counter() - t0
+    return {
+        "starts": starts, "iterations": iterations, "restarts": restarts,
+        "initial_guesses": kinds, "solved_by_attempt": solved_by,
+        "trajopt_compile_s": compile_s,
+        "success_rate": float(success.mean()),
+        "success_rate_first_attempt": first,
+        "seconds_per_solved": wall / max(1, int(success.sum())),
+        "optimisations_run": int(tries.sum()),
+        "return_initial_mean": float(initial.mean()),
+        "return_final_mean": float(returns.mean()),
+        "plans": plans, "keys": np.asarray(keys), "success": success,
+    }
+
+
+def save(path: str | Path, result: dict) -> Path:
+    """Write ``plan``'s arrays to ``path`` (``<task>_plans.npz``: ``actions``, ``keys``,
+    ``success``), atomically: a run killed while saving leaves no half-written file."""
+    import os
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez(tmp, actions=result["plans"], keys=result["keys"], success=result["success"])
+    os.replace(tmp, path)
+    return path

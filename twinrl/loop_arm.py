@@ -1,0 +1,534 @@
+"""The manipulation loop, SAM-RL's (Lv et al., RSS 2023): ``twinrl run --env peg_insertion``
+(``needle_threading``, ``spatula_flipping``).
+
+The robot has an arm that acts and a camera on a mount that it can move (``ArmTask.mount``); its
+real twin (``twinrl.real.remote.TwinClient``) hides link masses, damping, friction, servo gains,
+latency, observation noise, the camera's hand-eye offset and the tool's grasp in the hand. Round 0
+records ``K`` episodes of small exciting motions with the mount at its default pose, each step's
+RGB-D + segmentation frame with it. Every round ``r >= 1`` then runs these stages (``ARM_ROUND``,
+``twinrl.loop.Stage`` values, so a killed run resumes at the stage it was in):
+
+1. **calibrate**: the mount camera's hand-eye calibration by visual Real2Sim -- the camera pose
+   that makes the differentiable renderer's images of the recorded states match round 0's real
+   frames (``twinrl.real2sim.visual.fit_camera``), turned into the mount's offset
+   (``CameraMount.with_hand_eye``) and kept as the identified ``System``'s ``"mount"`` camera, so
+   every later render and back-projection of the target uses it;
+2. **sysid** (``ArmLoopConfig.sysid``): physical parameters and latency from the recorded
+   transitions (``twinrl.real2sim.sysid``), else the nominal ones;
+3. **plan**: trajectory-optimised demonstrations in the identified twin (``twinrl.learn.plans``);
+4. **imitation**: the image actor cloned from them (``twinrl.learn.imitation``; by default the
+   target-cloud actor, demonstrations rendered from several mount poses);
+5. **sensing**: the sensing-aware Q of that actor (``twinrl.learn.sensing``);
+6. **deploy**: ``K`` real episodes: the camera chosen by Q's ascent through the renderer from the
+   state read off the robot (``ArmLoopConfig.camera``), the mount moved there (its steps counted),
+   the actor acting on the real frames; every transition recorded as it happens, with its frame.
+
+Real success is the task's success of the twin's true final state (``TwinClient.success``: an
+operator's verdict, recorded per episode, never learned from). Evaluation only, in ``OUT/eval/``
+(which no stage reads): the calibration's error against the hidden hand-eye offset, and the same
+actor deployed with the fixed default camera on ``eval_episodes`` unrecorded episodes (the
+baseline the chosen camera must beat).
+
+Resume, as ``twinrl.loop``: each stage marks itself done in ``progress.json`` after writing its
+outputs; real episodes go to ``dataset/`` as they happen, so a run killed at any moment loses
+nothing recorded, and a resumed deployment starts at its first unrecorded episode (episode ``i``
+resets with seed ``seed + i``, so the episodes are those an uninterrupted run would have had).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from twinrl import eval as evaluation
+from twinrl import report
+from twinrl.loop import LoopError, Stage, _episodes_in, _Progress, _quiet, _read, _Run
+
+__all__ = ["ArmLoopConfig", "make_config", "run", "ARM_COLLECT", "ARM_ROUND", "is_arm_task"]
+
+IMAGE_KINDS = ("rgb", "depth", "segmentation")
+
+
+def _imitation_defaults() -> dict[str, Any]:
+    # the target-cloud actor (README: 42-50 % in sim on peg where the CNN reached 10-20 % in
+    # 25 min on 2 cores), demonstrations seen from 8 mount poses each
+    return {"observation": "target", "views": 8, "fit_steps": 3000, "dagger_rounds": 0,
+            "eval_episodes": 20}
+
+
+def _sensing_defaults() -> dict[str, Any]:
+    return {"states": 32, "cameras": 8, "restarts": 4, "ascent_steps": 15}
+
+
+@dataclasses.dataclass(frozen=True)
+class ArmLoopConfig:
+    """Settings of ``twinrl run`` on a manipulation task."""
+
+    rounds: int = 1
+    episodes_per_round: int = 5
+    """Real episodes recorded per round (round 0: exciting motions; later: the deployment)."""
+    calibrate: bool = True
+    """Hand-eye calibration of the camera mount from round 0's frames."""
+    calibration_frames: int = 10
+    """Round-0 frames the calibration fits, evenly spread."""
+    calibration_steps: int = 150
+    """Adam steps of the calibration (``VisualConfig.steps``), before its Levenberg-Marquardt
+    refinement."""
+    calibration_restarts: int = 1
+    """Random restarts of the calibration (``VisualConfig.restarts``). One, from the nominal
+    pose: a hand-eye offset is small (peg twin 3: 3.4 cm, 1.1 deg), and the nominal start alone
+    finds it to 0.6 mm / 0.04 deg, where 3 restarts took 273 s on 2 cores."""
+    sysid: bool = False
+    """Identify the physical parameters too. Off by default: the arm's servos track their
+    targets stiffly, so the image actor's success hangs on where it sees the target, not on
+    masses or damping, and sysid of the 7-joint arm through contact costs minutes on 2 cores."""
+    demonstrations: int = 32
+    """Random starts trajectory optimisation plans from (the solved ones are demonstrations)."""
+    trajopt_iterations: int = 20
+    trajopt_restarts: int = 2
+    imitation: Mapping[str, Any] = dataclasses.field(default_factory=_imitation_defaults)
+    """``ImitationConfig`` overrides of the image actor."""
+    sensing: Mapping[str, Any] = dataclasses.field(default_factory=_sensing_defaults)
+    """``SensingConfig`` overrides of the sensing-aware Q."""
+    camera: str = "selected"
+    """The deployment's camera: ``"selected"`` (Q's ascent), ``"default"`` or ``"random"``."""
+    eval_episodes: int = 10
+    """Evaluation-only real episodes (not recorded) of the deployed actor with the default
+    camera; 0: none."""
+    video: bool = True
+    """Write final.mp4: a deployment episode, the chosen view beside an overview of the scene."""
+
+    def __post_init__(self):
+        for name in ("rounds", "episodes_per_round", "calibration_frames", "calibration_steps",
+                     "calibration_restarts", "demonstrations", "trajopt_iterations"):
+            if int(getattr(self, name)) < 1:
+                raise LoopError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("trajopt_restarts", "eval_episodes"):
+            if int(getattr(self, name)) < 0:
+                raise LoopError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.camera not in ("selected", "default", "random"):
+            raise LoopError(f"camera must be 'selected', 'default' or 'random', got "
+                            f"{self.camera!r}")
+        from twinrl.learn.imitation import ImitationConfig
+        from twinrl.learn.sensing import SensingConfig
+
+        for cls, name in ((ImitationConfig, "imitation"), (SensingConfig, "sensing")):
+            try:
+                cls(**dict(getattr(self, name)))
+            except (TypeError, ValueError) as e:
+                raise LoopError(f"{name}: {e}") from None
+        if dict(self.imitation).get("observation", "state") == "state":
+            raise LoopError("imitation: the loop deploys an image actor; observation must be "
+                            "'target' or 'pixels'")
+
+
+def make_config(overrides: Mapping[str, Any] | None = None) -> ArmLoopConfig:
+    """``ArmLoopConfig`` with ``overrides`` (``twinrl run --set``): ``field=value``, and
+    ``imitation.FIELD=value`` / ``sensing.FIELD=value`` into those stages' settings (added to
+    the defaults)."""
+    names = {f.name for f in dataclasses.fields(ArmLoopConfig)}
+    flat: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {"imitation": {}, "sensing": {}}
+    for k, v in (overrides or {}).items():
+        head, _, rest = k.partition(".")
+        if head not in names or (rest and head not in nested):
+            raise LoopError(f"the manipulation loop has no setting {k!r}; settings: "
+                            f"{', '.join(sorted(names))} (and imitation.FIELD, sensing.FIELD)")
+        if rest:
+            nested[head][rest] = tuple(v) if isinstance(v, list) else v
+        else:
+            flat[head] = v
+    base = ArmLoopConfig.__dataclass_fields__
+    for head, more in nested.items():
+        if more:
+            flat[head] = {**dict(flat.get(head) or base[head].default_factory()), **more}
+    try:
+        return ArmLoopConfig(**flat)
+    except TypeError as e:
+        raise LoopError(str(e)) from None
+
+
+def is_arm_task(env_name: str) -> bool:
+    """Whether ``env_name`` is a manipulation task (an ``ArmTask``): ``twinrl run`` runs this
+    loop on it."""
+    from twinrl import envs
+    from twinrl.envs.arm.base import ArmTask
+
+    return issubclass(envs.registry.TASKS[env_name].env_class, ArmTask)
+
+
+# ------------------------------------------------------------------------------ the stages
+def _collect(run: _Run, r: int, rdir: Path) -> None:
+    """Round 0: ``K`` episodes of exciting motions, the mount at its default pose, recorded with
+    every step's frame (those the dataset already holds are not recorded again)."""
+    from twinrl.real.twin import record_episode
+    from twinrl.real2sim import sysid
+
+    K, T = run.K, run.nominal_env.episode_length
+    have = _episodes_in(run.out / "dataset")
+    run.say(f"[bold]round 0[/]: recording {K - have} exciting episodes with images"
+            f"{f' ({have} already recorded)' if have else ''}")
+    t0 = time.perf_counter()
+    for e in range(have, K):
+        acts = sysid.excitation_actions(np.random.default_rng([run.seed, e]), T,
+                                        run.nominal_env.action_size)
+        obs, _ = run.twin.reset(seed=run.seed + e)
+        record_episode(run.twin, run.writer, lambda o, t, a=acts: a[min(t, T - 1)], obs,
+                       images=True)
+    run.prog.mark("round0/collect", real_steps=int(len(_read(run.out / "dataset"))),
+                  seconds={"collect": time.perf_counter() - t0})
+
+
+def _calibrate(run: _Run, r: int, rdir: Path, data) -> None:
+    """Hand-eye calibration from round 0's frames (the mount at its default pose) ->
+    ``calibration.json`` (the fitted camera and the mount's offset)."""
+    from twinrl.real2sim import visual
+    from twinrl.render import Camera
+
+    env = run.nominal_env
+    first = np.flatnonzero(np.asarray(data.episode_id) < run.K)
+    idx = first[np.unique(np.linspace(0, first.size - 1, run.config.calibration_frames)
+                          .round().astype(int))]
+    frames = [{"rgb": data.images["rgb"][i], "depth": data.images["depth"][i],
+               "segmentation": data.images["segmentation"][i],
+               "qpos": np.asarray(env.state_from_obs(np.asarray(data.next_obs[i],
+                                                                np.float32))[0])}
+              for i in idx]
+    model = env.sim.mj_model
+    frames = visual.check_frames(frames, model.nq)
+    H, W = frames[0]["depth"].shape
+    cam0 = env.mount.camera(np.asarray(env.mount.default, np.float32), W, H)
+    cam0 = Camera(np.asarray(cam0.pos, np.float64), np.asarray(cam0.quat, np.float64),
+                  np.asarray(cam0.fovy, np.float64), W, H)
+    run.say(f"  hand-eye calibration on {len(frames)} real frames ...")
+    t0 = time.perf_counter()
+    cfg = visual.VisualConfig(steps=run.config.calibration_steps,
+                              restarts=run.config.calibration_restarts)
+    cam, info = visual.fit_camera(model, frames, cam0, cfg, run.seed + r)
+    mount = env.mount.with_hand_eye(cam)
+    report.write_json(rdir / "calibration.json", {
+        "camera": {"pos": np.asarray(cam.pos), "quat": np.asarray(cam.quat),
+                   "fovy": np.asarray(cam.fovy), "width": W, "height": H},
+        "pos_offset": mount.pos_offset, "rot_offset": mount.rot_offset, "frames": len(frames),
+        "loss": min(x["final_loss"] for x in info["runs"])})
+    run.ev.mark(f"round{r}/calibrate", **evaluation.hand_eye_errors(
+        run.env_name, run.seed, mount, run.perturbation, run.secret))
+    run.prog.mark(f"round{r}/calibrate", seconds=_seconds(run.prog, r, calibrate=time.perf_counter()
+                                                          - t0))
+
+
+def _load_camera(run: _Run, rdir: Path, data) -> dict[str, Any]:
+    from twinrl.render import Camera
+
+    f = rdir / "calibration.json"
+    if not run.config.calibrate or not f.exists():
+        return {"camera": None}
+    c = json.loads(f.read_text())["camera"]
+    return {"camera": Camera(np.asarray(c["pos"]), np.asarray(c["quat"]),
+                             np.asarray(c["fovy"]), int(c["width"]), int(c["height"]))}
+
+
+def _system(run: _Run, r: int, rdir: Path, data, camera) -> None:
+    """The identified ``System`` -> ``system.json``: sysid's parameters and latency (or the
+    nominal ones) with the calibrated mount camera."""
+    from twinrl.envs.system import System
+
+    t0 = time.perf_counter()
+    system = System.nominal(run.env_name)
+    if run.config.sysid:
+        from twinrl.real2sim import sysid
+
+        run.say(f"  sysid on {len(data)} real transitions ...")
+        res = sysid.fit(run.nominal_env, data, sysid.SysidConfig())
+        system = res.system
+        run.ev.mark(f"round{r}/sysid", param_rel_error=evaluation.param_errors(
+            run.env_name, run.seed, res, run.perturbation, run.secret))
+    if camera is not None:
+        system = system.replace(cameras={"mount": camera})
+    system.save(rdir / "system.json")
+    run.prog.mark(f"round{r}/sysid", latency=system.latency,
+                  seconds=_seconds(run.prog, r, sysid=time.perf_counter() - t0))
+
+
+def _load_system(run: _Run, rdir: Path, **_) -> dict[str, Any]:
+    from twinrl import envs
+    from twinrl.envs.system import System
+
+    system = System.load(rdir / "system.json")
+    return {"system": system, "env": envs.make(run.env_name, system=system)}
+
+
+def _plan(run: _Run, r: int, rdir: Path, env) -> None:
+    """Trajectory-optimised demonstrations in the identified twin -> ``plans.npz``."""
+    from twinrl.learn import plans
+
+    c = run.config
+    run.say(f"  planning {c.demonstrations} demonstrations in the identified twin ...")
+    t0 = time.perf_counter()
+    res = plans.plan(env, c.demonstrations, c.trajopt_iterations, min(10, c.demonstrations),
+                     run.seed + r, restarts=c.trajopt_restarts)
+    plans.save(rdir / "plans.npz", res)
+    run.prog.mark(f"round{r}/plan", plan_success=res["success_rate"],
+                  seconds=_seconds(run.prog, r, plan=time.perf_counter() - t0))
+
+
+def _imitate(run: _Run, r: int, rdir: Path, env) -> None:
+    """The image actor cloned from the demonstrations -> ``actor/``."""
+    from twinrl.learn.runner import continue_run
+
+    run.say("  cloning the image actor ...")
+    t0 = time.perf_counter()
+    overrides = {**dict(run.config.imitation), "demonstrations": str(rdir / "plans.npz")}
+    s = continue_run(run.env_name, "imitation", rdir / "actor", seed=run.seed + r,
+                     overrides=overrides, progress=run.progress, env=env)
+    run.prog.mark(f"round{r}/imitation", sim_success=s["final"].get("success"),
+                  seconds=_seconds(run.prog, r, imitation=time.perf_counter() - t0))
+
+
+def _sense(run: _Run, r: int, rdir: Path, env) -> None:
+    """The sensing-aware Q of the actor -> ``q/``."""
+    from twinrl.learn.runner import continue_run
+
+    run.say("  learning the sensing-aware Q ...")
+    t0 = time.perf_counter()
+    overrides = {**dict(run.config.sensing), "actor": str(rdir / "actor")}
+    s = continue_run(run.env_name, "sensing", rdir / "q", seed=run.seed + r,
+                     overrides=overrides, progress=run.progress, env=env)
+    run.prog.mark(f"round{r}/sensing", q_rank_corr=s["final"].get("rank_corr"),
+                  seconds=_seconds(run.prog, r, sensing=time.perf_counter() - t0))
+
+
+def _deployer(run: _Run, env, rdir: Path):
+    from twinrl.learn.sensing import SensingConfig, load_actor
+    from twinrl.sense import load_q
+    from twinrl.sim2real.active import Deployer
+
+    actor, actor_params, _ = load_actor(rdir / "actor")
+    q = q_params = sensing = None
+    if run.config.camera == "selected":
+        q, q_params, meta = load_q(rdir / "q")
+        sensing = SensingConfig.from_dict(meta.get("config") or {})
+    return Deployer(env, actor, actor_params, q=q, q_params=q_params, sensing=sensing)
+
+
+def _deploy(run: _Run, r: int, rdir: Path, env) -> None:
+    """``K`` real episodes of the image actor with the chosen camera, recorded as they happen
+    (a resumed deployment starts at its first unrecorded episode); then, evaluation only, the
+    same actor with the fixed default camera on ``eval_episodes`` unrecorded episodes."""
+    from twinrl.sim2real.active import DeployConfig
+
+    prog, K = run.prog, run.K
+    t0 = time.perf_counter()
+    deployer = _deployer(run, env, rdir)
+    rows = list(prog.record(r).get("deploy_partial", []))
+    have = len(rows)
+    run.say(f"  deploying on the real twin ({K - have} episodes, camera {run.config.camera}) ...")
+    cfg = DeployConfig(camera=run.config.camera, episodes=K)
+
+    def keep(row):
+        rows.append(report.to_jsonable(row))
+        prog.mark(f"round{r}/deploy_partial", deploy_partial=rows)
+
+    deployer.run(run.twin, cfg, seed=1000 * r + run.seed, start=have, writer=run.writer,
+                 on_episode=keep)
+    t_eval = time.perf_counter()
+    if run.config.eval_episodes:
+        base = evaluation.deployed_success(
+            run.env_name, run.seed, deployer, DeployConfig(camera="default",
+                                                           episodes=run.config.eval_episodes),
+            run.perturbation, run.secret, size=run.twin.width)
+        run.ev.mark(f"round{r}/deploy", default_camera_success=base["success_rate"],
+                    default_camera_successes=base["success"])
+    prog.mark(f"round{r}/deploy", real_success=float(np.mean([x["success"] for x in rows])),
+              real_successes=[x["success"] for x in rows],
+              real_return=float(np.mean([x["return"] for x in rows])),
+              camera_steps=int(sum(x["camera_steps"] for x in rows)),
+              chosen_coords=[x["coords"] for x in rows],
+              real_steps=int(len(_read(run.out / "dataset"))),
+              seconds=_seconds(prog, r, deploy=t_eval - t0,
+                               evaluation=time.perf_counter() - t_eval))
+
+
+ARM_COLLECT = Stage("collect", needs=(), gives=(), make=_collect)
+"""Round 0's stage."""
+
+ARM_ROUND = (
+    Stage("calibrate", needs=("data",), gives=("camera",), make=_calibrate, load=_load_camera,
+          enabled=lambda c: c.calibrate),
+    Stage("sysid", needs=("data", "camera"), gives=("system", "env"), make=_system,
+          load=_load_system),
+    Stage("plan", needs=("env",), gives=(), make=_plan),
+    Stage("imitation", needs=("env",), gives=(), make=_imitate),
+    Stage("sensing", needs=("env",), gives=(), make=_sense,
+          enabled=lambda c: c.camera == "selected"),
+    Stage("deploy", needs=("env",), gives=(), make=_deploy),
+)
+"""The stages of every round ``r >= 1``, in order."""
+
+
+def _seconds(prog: _Progress, r: int, **stages: float) -> dict[str, float]:
+    return {**prog.record(r).get("seconds", {}), **stages}
+
+
+# ------------------------------------------------------------------------------ the run
+def run(env_name: str, out: str | Path, config: ArmLoopConfig = ArmLoopConfig(), *,
+        seed: int = 0, resume: bool = False, progress: bool = True,
+        perturbation=None) -> dict[str, Any]:
+    """Run the manipulation loop on ``env_name``'s real twin (hidden perturbation drawn from
+    ``seed``) into ``out``; returns the summary (also ``out/summary.json``)."""
+    from twinrl.loop import _check_settings
+
+    if not is_arm_task(env_name):
+        raise LoopError(f"{env_name!r} is not a manipulation task (twinrl.loop runs it)")
+    out = _check_settings(env_name, Path(out), config, seed, resume)
+    ctx = _start(env_name, out, config, seed, progress, perturbation)
+    rounds = []
+    try:
+        ARM_COLLECT(ctx, 0, {})
+        rounds.append(_round_record(ctx, 0))
+        for r in range(1, config.rounds + 1):
+            ctx.say(f"[bold]round {r}[/] ({time.perf_counter() - ctx.t_start:.0f} s)")
+            artefacts = {"data": _read(out / "dataset", ctx.say)}
+            for stage in ARM_ROUND:
+                artefacts.update(stage(ctx, r, artefacts))
+            rounds.append(_round_record(ctx, r))
+    finally:
+        ctx.close()
+    return _finish(ctx, rounds)
+
+
+def _start(env_name, out, config, seed, progress, perturbation) -> _Run:
+    from twinrl import envs
+    from twinrl.real.dataset import DatasetWriter
+    from twinrl.real.remote import TwinClient
+
+    say = report.console.print if progress else _quiet
+    t_start = time.perf_counter()
+    ev_dir = out / "eval"
+    secret = ev_dir / "twin.json"
+    env = envs.make(env_name)
+    n = int(env.config.image_size)
+    twin = TwinClient(env_name, seed=seed, secret=secret, perturbation=perturbation, width=n,
+                      height=n)
+    obs0, _ = twin.reset(seed=seed)
+    shapes = {"rgb": (n, n, 3), "depth": (n, n), "segmentation": (n, n)}
+    writer = DatasetWriter(out / "dataset", env=env_name, obs_shape=obs0.shape,
+                           action_shape=twin.action_space.shape, obs_dtype=np.float32,
+                           action_dtype=np.float32, image_shapes=shapes)
+    return _Run(env_name, int(seed), out, config, perturbation, secret, twin, writer,
+                _Progress(out / "progress.json"), _Progress(ev_dir / "evaluation.json"), say,
+                progress, env, t_start)
+
+
+def _round_record(run: _Run, r: int) -> dict[str, Any]:
+    rec = run.prog.record(r)
+    keys = ("real_steps", "real_success", "real_successes", "real_return", "camera_steps",
+            "chosen_coords", "plan_success", "sim_success", "q_rank_corr", "latency", "seconds")
+    return {"round": r, **{k: rec.get(k) for k in keys}}
+
+
+def _finish(run: _Run, rounds: list[dict[str, Any]]) -> dict[str, Any]:
+    """The evaluation records merged into the rounds; ``summary.json``, the table, the plot and
+    the video."""
+    for rec in rounds:
+        rec.update(run.ev.record(rec["round"]))
+    real_episodes = run.K * (run.config.rounds + 1)
+    final = dict(rounds[-1])
+    summary = {"env": run.env_name, "seed": run.seed,
+               "config": report.to_jsonable(run.config), "rounds": rounds, "final": final,
+               "real_episodes": real_episodes,
+               "wall_s_this_process": time.perf_counter() - run.t_start}
+    out = run.out
+    if run.config.video:
+        t0 = time.perf_counter()
+        summary["video"] = str(_final_video(run))
+        summary["video_s"] = time.perf_counter() - t0
+    rows = [[r["round"], r["real_steps"], r.get("plan_success"), r.get("sim_success"),
+             r.get("q_rank_corr"), r.get("hand_eye_pos_err_mm"), r.get("real_success"),
+             r.get("default_camera_success"), r.get("camera_steps")] for r in rounds]
+    report.print_table(f"twinrl run {run.env_name} (seed {run.seed})",
+                       ["round", "real steps", "plans solved", "actor sim success", "Q rank",
+                        "hand-eye err mm", "real success", "default camera", "camera steps"],
+                       rows)
+    report.write_json(out / "summary.json", summary)
+    _plot(out, summary)
+    return summary
+
+
+def _plot(out: Path, summary: dict) -> None:
+    """``success.png``: per round, real success with the chosen camera against the fixed
+    default camera (evaluation), and the actor's success in the identified twin."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rounds = [r for r in summary["rounds"] if r["round"] >= 1]
+    if not rounds:
+        return
+    x = np.arange(len(rounds))
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    for k, (key, label) in enumerate((("sim_success", "actor in the identified twin"),
+                                      ("real_success", "real, chosen camera"),
+                                      ("default_camera_success", "real, default camera"))):
+        v = [np.nan if r.get(key) is None else r[key] for r in rounds]
+        ax.bar(x + (k - 1) * 0.27, v, 0.27, label=label)
+    ax.set_xticks(x, [f"round {r['round']}" for r in rounds])
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("success rate")
+    ax.set_title(f"{summary['env']} (seed {summary['seed']}): "
+                 f"{summary['real_episodes']} real episodes in all")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(out / "success.png", dpi=120)
+    plt.close(fig)
+
+
+def _final_video(run: _Run) -> Path:
+    """``final.mp4``: one more episode of the deployed actor on the real twin (not recorded), the
+    mount's view from the chosen pose (left) beside a fixed overview of the real scene (right)."""
+    from twinrl import envs
+    from twinrl.envs.system import System
+    from twinrl.real.remote import TwinClient
+    from twinrl.sim2real.active import DeployConfig
+
+    r = run.config.rounds
+    rdir = run.out / f"round{r}"
+    env = envs.make(run.env_name, system=System.load(rdir / "system.json"))
+    deployer = _deployer(run, env, rdir)
+    n = run.twin.width
+    twin = _FilmedTwin(TwinClient(run.env_name, seed=run.seed, secret=run.secret,
+                                  perturbation=run.perturbation, width=n, height=n))
+    try:
+        deployer.run(twin, DeployConfig(camera=run.config.camera, episodes=1),
+                     seed=90_000 + run.seed)
+    finally:
+        twin.close()
+    frames = report.label_frames(twin.frames, ["chosen view", "real scene"])
+    return report.write_video(run.out / "final.mp4", frames, fps=1.0 / env.dt)
+
+
+class _FilmedTwin:
+    """A twin client that keeps, after every step, the mount's frame beside the scene's
+    ``overview`` camera (each scaled up 3 times)."""
+
+    def __init__(self, twin):
+        self._twin, self.frames = twin, []
+
+    def __getattr__(self, name):
+        return getattr(self._twin, name)
+
+    def step(self, action):
+        out = self._twin.step(action)
+        views = [self._twin.render_images(c, ("rgb",))["rgb"] for c in ("mount", "overview")]
+        self.frames.append(np.concatenate([np.repeat(np.repeat(v, 3, 0), 3, 1) for v in views],
+                                          1))
+        return out
+
+    def close(self):
+        self._twin.close()
