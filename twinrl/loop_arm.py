@@ -16,8 +16,10 @@ RGB-D + segmentation frame with it. Every round ``r >= 1`` then runs these stage
 2. **sysid** (``ArmLoopConfig.sysid``): physical parameters and latency from the recorded
    transitions (``twinrl.real2sim.sysid``), else the nominal ones;
 3. **plan**: trajectory-optimised demonstrations in the identified twin (``twinrl.learn.plans``);
-4. **imitation**: the image actor cloned from them (``twinrl.learn.imitation``; by default the
-   target-cloud actor, demonstrations rendered from several mount poses);
+4. **imitation**: the image actor cloned from them (``twinrl.learn.imitation``, demonstrations
+   rendered from several mount poses): by default on the target's pose fitted to the mount's
+   depth image (``ArmTask.fit_target_pose``, peg and needle) or on the target cloud's
+   statistics (spatula);
 5. **sensing**: the sensing-aware Q of that actor (``twinrl.learn.sensing``);
 6. **deploy**: ``K`` real episodes: the camera chosen by Q's ascent through the renderer from the
    state read off the robot (``ArmLoopConfig.camera``), the mount moved there (its steps counted),
@@ -55,10 +57,15 @@ IMAGE_KINDS = ("rgb", "depth", "segmentation")
 
 
 def _imitation_defaults() -> dict[str, Any]:
-    # the target-cloud actor (README: 42-50 % in sim on peg where the CNN reached 10-20 % in
-    # 25 min on 2 cores), demonstrations seen from 8 mount poses each
-    return {"observation": "target", "views": 8, "fit_steps": 3000, "dagger_rounds": 0,
-            "eval_episodes": 20}
+    # demonstrations seen from 8 mount poses each; the observation is the task's (_observation)
+    return {"views": 8, "fit_steps": 3000, "dagger_rounds": 0, "eval_episodes": 20}
+
+
+def _observation(env, imitation: Mapping[str, Any]) -> str:
+    """The image actor's observation: the setting's, else ``"pose"`` where the task's target pose
+    is fitted from the image (peg, needle), else ``"target"`` (the target cloud's statistics; the
+    CNN on pixels reached 10-20 % in 25 min on 2 cores)."""
+    return imitation.get("observation") or ("pose" if env.target_joints else "target")
 
 
 def _sensing_defaults() -> dict[str, Any]:
@@ -87,7 +94,7 @@ class ArmLoopConfig:
     """Identify the physical parameters too. Off by default: the arm's servos track their
     targets stiffly, so the image actor's success hangs on where it sees the target, not on
     masses or damping, and sysid of the 7-joint arm through contact costs minutes on 2 cores."""
-    demonstrations: int = 32
+    demonstrations: int = 48
     """Random starts trajectory optimisation plans from (the solved ones are demonstrations)."""
     trajopt_iterations: int = 20
     trajopt_restarts: int = 2
@@ -122,7 +129,7 @@ class ArmLoopConfig:
                 cls(**dict(getattr(self, name)))
             except (TypeError, ValueError) as e:
                 raise LoopError(f"{name}: {e}") from None
-        if dict(self.imitation).get("observation", "state") == "state":
+        if dict(self.imitation).get("observation") == "state":
             raise LoopError("imitation: the loop deploys an image actor; observation must be "
                             "'target' or 'pixels'")
 
@@ -283,7 +290,8 @@ def _imitate(run: _Run, r: int, rdir: Path, env) -> None:
 
     run.say("  cloning the image actor ...")
     t0 = time.perf_counter()
-    overrides = {**dict(run.config.imitation), "demonstrations": str(rdir / "plans.npz")}
+    overrides = {**dict(run.config.imitation), "demonstrations": str(rdir / "plans.npz"),
+                 "observation": _observation(env, run.config.imitation)}
     s = continue_run(run.env_name, "imitation", rdir / "actor", seed=run.seed + r,
                      overrides=overrides, progress=run.progress, env=env)
     run.prog.mark(f"round{r}/imitation", sim_success=s["final"].get("success"),

@@ -378,3 +378,43 @@ def test_target_cloud_finds_the_hole_from_anywhere_it_is_seen(made):
         assert t[6] > np.log1p(5), (coords, t)
         assert np.linalg.norm(t[:2] - hole[:2]) < 0.03, (coords, t[:3], hole)
         assert np.all(t[3:6] > 1e-3) and np.all(t[3:6] < 0.05)
+
+
+def test_target_pose_is_fitted_to_one_depth_image(made):
+    """``fit_target_pose`` (peg): from random mount poses where the fixture shows, the fixture at
+    the fitted pose sits within millimetres of where it is (median), where the target cloud's
+    mean is centimetres off (the faces a pose shows); ``"estimate"`` is the privileged
+    observation of that state. (The needle's eye, seen only from near its axis, takes minutes of
+    random poses to see 12 times: measured apart, 0.9 mm median against the mean's 2.3 mm.)"""
+    name = "peg_insertion"
+    env = made[name]
+    model = env.sim.mj_model
+    d = mujoco.MjData(model)
+
+    def target_centre(qpos):
+        d.qpos[:] = qpos
+        mujoco.mj_kinematics(model, d)
+        return d.geom_xpos[env.target_geom_ids].mean(0)
+
+    obs_of = jax.jit(lambda s, c: env.image_observation(s, c))
+    rng = np.random.default_rng(1)
+    fit_err, mean_err = [], []
+    for k in range(4):
+        s = env.reset(jax.random.PRNGKey(k))
+        q = np.asarray(s.pipeline_state.qpos, np.float64)
+        true = target_centre(q)
+        seen = 0
+        while seen < 3:
+            u = rng.uniform(0.1, 0.9, 3)
+            o = obs_of(s, jnp.asarray(np.log(u / (1 - u)), jnp.float32))
+            if float(o["target"][6]) < np.log1p(20):  # fewer than 20 target pixels
+                continue
+            seen += 1
+            q_hat = np.asarray(env.estimated_state(jnp.asarray(s.obs[:14]), o["pose"])[0])
+            fit_err.append(np.linalg.norm(target_centre(q_hat) - true))
+            mean_err.append(np.linalg.norm(np.asarray(o["target"])[:3] - true))
+            # the hole's entries of the privileged observation
+            np.testing.assert_allclose(np.asarray(o["estimate"])[14:], np.asarray(s.obs)[14:],
+                                       atol=3e-3)
+    assert np.median(fit_err) < 0.003, fit_err
+    assert np.median(fit_err) < np.median(mean_err) / 3, (fit_err, mean_err)

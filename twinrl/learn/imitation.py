@@ -11,10 +11,9 @@ order with a line search, warm-started from the actor's own remaining actions, s
 the actor's plan improved by the simulator's gradient); the labels join the data set and the actor
 is refitted on all of it.
 
-Demonstrations are ``(keys, actions)``: the reset keys of the start states and the optimised action
-sequences (``bench/manipulation.py`` writes them, with a ``success`` flag per plan, to
-``<task>_plans.npz``; ``load_demonstrations`` keeps the successful ones). The states are
-re-simulated here, so a demonstration file holds no state and no image.
+Demonstrations are ``(keys, actions)``: start states' reset keys and optimised action sequences
+(``twinrl.learn.plans`` writes them with a ``success`` flag per plan to ``<task>_plans.npz``;
+``load_demonstrations`` keeps the successful ones), re-simulated here.
 
 Observations (``ImitationConfig.observation``):
 
@@ -27,15 +26,15 @@ Observations (``ImitationConfig.observation``):
 - ``"target"``: the same image reduced to what its depth and target mask say of the target (the
   mean and spread of its back-projected points and its pixel count, ``arm.base.target_cloud``),
   with the tool point its kinematics give the measured joints: an MLP, not a CNN (on 2 CPU cores
-  a CNN cloned 49 demonstrations to 10-20 % success in 7-25 minutes).
+  a CNN cloned 49 demonstrations to 10-20 % success in 7-25 minutes);
+- ``"pose"``: the privileged observation's layout of the joints and the target's pose fitted to
+  that cloud (``ArmTask.fit_target_pose``: to 1 mm where the cloud's mean is 2-3 cm off).
 
-With ``views > 1`` every demonstration is rendered from that many mount poses (the simulator
-can show a state from anywhere; one pose per demonstration teaches nothing about the others).
+With ``views > 1`` every demonstration is rendered from that many mount poses (one pose per
+demonstration teaches nothing about the others).
 
-``train`` follows the trainers' contract, ``(policy, params, metrics)``; the metrics say per round
-the data set's size, the fit's loss and the actor's success rate and return on ``eval_episodes``
-fresh start states.
-"""
+``train`` follows the trainers' contract, ``(policy, params, metrics)``; metrics per round: data
+size, fit loss, the actor's success and return on ``eval_episodes`` fresh starts."""
 
 from __future__ import annotations
 
@@ -65,8 +64,7 @@ class ImitationConfig(JSONConfig):
     """Path of a ``<task>_plans.npz`` (``twinrl train --algo imitation --set
     demonstrations=PATH``); ``train``'s ``demos`` argument takes precedence."""
     observation: str = "state"
-    """``"state"`` (privileged vector), ``"pixels"`` (proprioception + mount image, a CNN) or
-    ``"target"`` (proprioception + the mount image's target cloud, ``arm.base.target_cloud``)."""
+    """``"state"``, ``"pixels"``, ``"target"`` or ``"pose"`` (module docstring)."""
     camera: str = "random"
     """Pixels: the mount pose per episode, ``"random"`` over its workspace or ``"default"``."""
     image_size: int = 64
@@ -105,7 +103,7 @@ class ImitationConfig(JSONConfig):
             at_least_one=("fit_steps", "batch_size", "relabel_every", "relabel_iterations",
                           "eval_episodes", "image_size", "dagger_episodes", "views"),
             non_negative=("dagger_rounds", "rgb_jitter"), widths=("hidden", "conv_strides"),
-            choices={"observation": ("state", "pixels", "target"),
+            choices={"observation": ("state", "pixels", "target", "pose"),
                      "camera": ("random", "default"), "image_head": ("dense", "keypoints")})
         if len(self.conv_strides) != 3:
             raise ValueError(f"conv_strides must name 3 strides, got {self.conv_strides}")
@@ -147,9 +145,11 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
     if not hasattr(env, "image_observation"):
         raise ValueError(f"observation={config.observation!r} needs a task with a camera mount; "
                          f"{env.name} has none")
-    n = int(config.image_size)
-    spec = ({"state": (PROPRIO,), "pixels/mount": (n, n, 5)} if config.observation == "pixels"
-            else {"state": (PROPRIO,), "tool": (3,), "target": (7,)})
+    n, o = int(config.image_size), (int(env.observation_size),)
+    if config.observation == "pose" and not getattr(env, "target_joints", ()):
+        raise ValueError(f"observation='pose' needs ArmTask.target_joints; {env.name} has none")
+    spec = {"pixels": {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}, "pose": {"estimate": o},
+            "target": {"state": (PROPRIO,), "tool": (3,), "target": (7,)}}[config.observation]
     if config.camera_input:
         spec["camera"] = (3,)
 

@@ -112,7 +112,8 @@ def load_actor(path) -> tuple[Network, object, dict]:
     from twinrl.learn.checkpoint import load_policy
 
     net, params, meta = load_policy(path)
-    if not isinstance(net.obs_spec, dict) or not {"pixels/mount", "target"} & set(net.obs_spec):
+    if not isinstance(net.obs_spec, dict) or not {"pixels/mount", "target", "estimate"} & set(
+            net.obs_spec):
         raise SensingError(f"{path}: not an image actor (its observation is {net.obs_spec!r}); "
                          f"train one with --algo imitation --set observation=pixels")
     return net, params, meta

@@ -63,29 +63,33 @@ class DeployConfig(JSONConfig):
                           optional=("restarts", "ascent_steps"))
 
 
-def real_image_observation(twin, env, obs: np.ndarray, size: int,
-                           img: dict | None = None) -> dict[str, np.ndarray]:
+def real_image_observation(twin, env, obs: np.ndarray, size: int, img: dict | None = None,
+                           keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """The image actor's observation on the real twin: ``ArmTask.observation_from_image`` of the
     real OpenGL frame -- RGB in [0, 1], depth (m), the target geoms' mask from the real
     segmentation -- with the joints measured (``obs[:14]``) and the *commanded* mount pose (the
     hand-eye offset is the robot's unknown, or what ``env.mount`` identified). ``twin`` must
-    render ``size`` x ``size`` frames; ``img`` is the mount's frame when already taken."""
+    render ``size`` x ``size`` frames; ``img`` is the mount's frame when already taken;
+    ``keys``: only these entries (an actor's ``obs_spec``), only their work done."""
     if (twin.width, twin.height) != (size, size):
         raise ValueError(f"the twin renders {twin.width}x{twin.height}; the actor needs "
                          f"{size}x{size} (make it with width=height={size})")
     img = twin.render_images(camera="mount") if img is None else img
     mask = np.isin(img["segmentation"], env.target_geom_ids).astype(np.float32)
-    out = _from_image(env)(np.asarray(obs[:14], np.float32),
-                           np.asarray(twin.mount_coords, np.float32),
-                           img["rgb"].astype(np.float32) / 255.0,
-                           img["depth"].astype(np.float32), mask)
+    out = _from_image(env, None if keys is None else tuple(keys))(
+        np.asarray(obs[:14], np.float32), np.asarray(twin.mount_coords, np.float32),
+        img["rgb"].astype(np.float32) / 255.0, img["depth"].astype(np.float32), mask)
     return {k: np.asarray(v) for k, v in out.items()}
 
 
 @functools.lru_cache(maxsize=None)
-def _from_image(env):
-    """``env.observation_from_image``, jitted once per task (it runs every real step)."""
-    return jax.jit(env.observation_from_image)
+def _from_image(env, keys=None):
+    """``env.observation_from_image`` (its ``keys`` only), jitted once per task and keys (it
+    runs every real step)."""
+    if keys is None:
+        return jax.jit(env.observation_from_image)
+    return jax.jit(lambda *a: {k: v for k, v in env.observation_from_image(*a).items()
+                               if k in keys})
 
 
 def sim_state(env, obs: jax.Array):
@@ -176,7 +180,8 @@ class Deployer:
                     img = None
                 if self.image and img is None:
                     img = twin.render_images("mount", kinds)
-                o = (real_image_observation(twin, env, obs, self.size, img) if self.image
+                o = (real_image_observation(twin, env, obs, self.size, img,
+                                            tuple(self.actor.obs_spec)) if self.image
                      else np.asarray(obs, np.float32))
                 a = np.asarray(self._act(self.actor_params, o), np.float32)
                 if self.residual is not None:

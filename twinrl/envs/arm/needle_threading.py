@@ -89,6 +89,7 @@ class NeedleThreading(ArmTask):
     mount = CameraMount(target=(0.52, 0.05, 0.2), azimuth=(-2.2, 2.2), elevation=(-0.3, 1.3),
                         distance=(0.3, 0.7), default=(0.0, 0.0, 0.0))
     target_geoms = ("eye_top", "eye_bottom", "eye_left", "eye_right")
+    target_joints = (7, 8, 9, 10)
     reward_term_names = ("align", "heading", "through", "small_control")
     perturbation_spec = ARM_PERTURBATIONS
     Config = NeedleThreadingConfig

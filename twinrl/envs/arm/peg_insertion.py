@@ -74,6 +74,7 @@ class PegInsertion(ArmTask):
     mount = CameraMount(target=(0.5, 0.0, 0.05), azimuth=(-2.2, 2.2), elevation=(0.2, 1.4),
                         distance=(0.4, 0.8), default=(0.0, 0.0, 0.0))
     target_geoms = ("wall_left", "wall_right", "wall_front", "wall_back")
+    target_joints = (7, 8)
     reward_term_names = ("align", "insert", "small_control")
     perturbation_spec = dataclasses.replace(ARM_PERTURBATIONS, tool_pos_std=0.004)
     Config = PegInsertionConfig
