@@ -481,11 +481,19 @@ def _plot(out: Path, summary: dict) -> None:
         return
     x = np.arange(len(rounds))
     fig, ax = plt.subplots(figsize=(6, 3.2))
-    for k, (key, label) in enumerate((("sim_success", "actor in the identified twin"),
-                                      ("real_success", "real, chosen camera"),
-                                      ("default_camera_success", "real, default camera"))):
+    c = summary["config"]
+    n_sim = (c.get("imitation") or {}).get("eval_episodes", 50)
+    for k, (key, label, n) in enumerate((
+            ("sim_success", f"actor in the identified twin ({n_sim} episodes)", None),
+            ("real_success", f"real, {c.get('camera')} camera (recorded)", "real_successes"),
+            ("default_camera_success", "real, default camera (evaluation)",
+             "default_camera_successes"))):
         v = [np.nan if r.get(key) is None else r[key] for r in rounds]
         ax.bar(x + (k - 1) * 0.27, v, 0.27, label=label)
+        for i, r in enumerate(rounds):  # the episodes behind each bar
+            if n and r.get(n):
+                ax.text(x[i] + (k - 1) * 0.27, v[i] + 0.02, f"{int(sum(r[n]))}/{len(r[n])}",
+                        ha="center", fontsize=7)
     ax.set_xticks(x, [f"round {r['round']}" for r in rounds])
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("success rate")

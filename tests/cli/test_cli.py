@@ -98,6 +98,11 @@ def test_the_runtime_log_is_hidden_by_default_and_shown_with_verbose(tmp_path):
      "--epochs does not apply to PPOConfig"),
     (["eval", "--checkpoint", "/no/such/ckpt"], "checkpoint /no/such/ckpt does not exist"),
     (["run", "--env", "cartpole_swingup", "--rounds", "0"], "rounds must be >= 1"),
+    (["run", "--env", "peg_insertion", "--set", "foo=1"],
+     "the manipulation loop has no setting 'foo'"),
+    (["run", "--env", "peg_insertion", "--set", "imitation.observation=state"],
+     "the loop deploys an image actor"),
+    (["run", "--env", "peg_insertion", "--algo", "shac"], "--algo is the state-based loop's"),
 ])
 def test_bad_input_gets_one_clear_line(args, message):
     out = twinrl(*args)
