@@ -260,11 +260,11 @@ def test_a_damaged_chunk_costs_its_records_not_the_run(tmp_path):
     data[-60] ^= 0xFF  # inside the body of the chunk's last step record
     chunk.write_bytes(bytes(data))
     said = []
-    got = loop._read(tmp_path, lambda *a, **k: said.append(" ".join(map(str, a))))
+    got = loop.read_dataset(tmp_path, lambda *a, **k: said.append(" ".join(map(str, a))))
     assert len(got) == 14 and got.step.tolist() == [*range(9), *range(10, 15)]
     assert len(said) == 1 and "\n" not in said[0]
     assert "14 intact transitions" in said[0] and "chunk-00000-00001.twr" in said[0]
-    assert loop._episodes_in(tmp_path) == 0  # the episode has a gap: incomplete, re-recorded
+    assert loop.episodes_in(tmp_path) == 0  # the episode has a gap: incomplete, re-recorded
 
 
 def test_resume_without_the_twins_secret_is_refused(tmp_path):

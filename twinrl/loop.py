@@ -60,7 +60,8 @@ import numpy as np
 from twinrl import eval as evaluation
 from twinrl import report
 
-__all__ = ["LoopConfig", "run", "LoopError", "Stage", "COLLECT", "ROUND"]
+__all__ = ["LoopConfig", "run", "LoopError", "Stage", "COLLECT", "ROUND", "RunContext", "Progress",
+           "check_settings", "episodes_in", "read_dataset", "quiet"]
 
 
 class LoopError(Exception):
@@ -126,7 +127,7 @@ class LoopConfig:
 
 
 # ------------------------------------------------------------------------------ bookkeeping
-class _Progress:
+class Progress:
     """``progress.json``: the finished stages and the per-round records, written atomically."""
 
     def __init__(self, path: Path):
@@ -211,7 +212,7 @@ class _OracleProcess:
 
 # ------------------------------------------------------------------------------ the stages
 @dataclasses.dataclass
-class _Run:
+class RunContext:
     """What every stage sees: the run's settings, the real twin (a ``TwinClient``), the dataset
     writer and the two records (``progress.json`` for the stages, ``eval/evaluation.json`` for
     evaluation, which no stage reads)."""
@@ -224,8 +225,8 @@ class _Run:
     secret: Path
     twin: Any
     writer: Any
-    prog: _Progress
-    ev: _Progress
+    prog: Progress
+    ev: Progress
     say: Callable[..., None]
     progress: bool
     nominal_env: Any
@@ -255,7 +256,7 @@ class Stage:
     load: Callable[..., dict[str, Any]] = lambda run, rdir, **_: {}
     enabled: Callable[[LoopConfig], bool] = lambda config: True
 
-    def __call__(self, run: _Run, r: int, artefacts: dict[str, Any]) -> dict[str, Any]:
+    def __call__(self, run: RunContext, r: int, artefacts: dict[str, Any]) -> dict[str, Any]:
         if not self.enabled(run.config):
             return dict.fromkeys(self.gives)
         rdir = run.out / f"round{r}"
@@ -271,13 +272,13 @@ class Stage:
         return given
 
 
-def _collect_excitation(run: _Run, r: int, rdir: Path) -> None:
+def _collect_excitation(run: RunContext, r: int, rdir: Path) -> None:
     """Round 0: ``K`` episodes of safe exciting open-loop actions, recorded (those the dataset
     already holds, from an interrupted run, are not recorded again)."""
     from twinrl.real2sim import sysid
 
     K, T = run.K, run.nominal_env.episode_length
-    have = _episodes_in(run.out / "dataset")
+    have = episodes_in(run.out / "dataset")
     run.say(f"[bold]round 0[/]: recording {K - have} exciting episodes on the real twin"
             f"{f' ({have} already recorded)' if have else ''}")
     acts = [sysid.excitation_actions(np.random.default_rng([run.seed, e]), T,
@@ -290,7 +291,7 @@ def _collect_excitation(run: _Run, r: int, rdir: Path) -> None:
                   seconds={"collect": time.perf_counter() - t0})
 
 
-def _fit_system(run: _Run, r: int, rdir: Path, data) -> None:
+def _fit_system(run: RunContext, r: int, rdir: Path, data) -> None:
     """sysid on every real transition so far -> ``sysid.json`` (the identified ``System``:
     parameters and action latency, with the fit's table and cost)."""
     from twinrl.real2sim import sysid
@@ -328,7 +329,7 @@ def _identified_system(rdir: Path, env_name: str):
                         f"({type(e).__name__}: {e}); start a new --out") from None
 
 
-def _load_system(run: _Run, rdir: Path, data) -> dict[str, Any]:
+def _load_system(run: RunContext, rdir: Path, data) -> dict[str, Any]:
     # the identified twin, latency included, is what every later stage simulates
     from twinrl import envs
 
@@ -336,7 +337,7 @@ def _load_system(run: _Run, rdir: Path, data) -> dict[str, Any]:
     return {"system": system, "env": envs.make(run.env_name, system=system)}
 
 
-def _fit_hybrid(run: _Run, r: int, rdir: Path, env, system, data) -> None:
+def _fit_hybrid(run: RunContext, r: int, rdir: Path, env, system, data) -> None:
     """The residual dynamics on top of the identified simulator -> ``hybrid/``."""
     from twinrl.sim2real import hybrid
 
@@ -349,13 +350,13 @@ def _fit_hybrid(run: _Run, r: int, rdir: Path, env, system, data) -> None:
                   seconds=_seconds(run.prog, r, hybrid=time.perf_counter() - t0))
 
 
-def _load_hybrid(run: _Run, rdir: Path, **_) -> dict[str, Any]:
+def _load_hybrid(run: RunContext, rdir: Path, **_) -> dict[str, Any]:
     from twinrl.sim2real import hybrid
 
     return {"hybrid": hybrid.load(rdir / "hybrid")}
 
 
-def _learn(run: _Run, r: int, rdir: Path, env, hybrid) -> None:
+def _learn(run: RunContext, r: int, rdir: Path, env, hybrid) -> None:
     """The policy learned in the identified simulator -> ``train/`` (resumes from its last
     saved epoch); with ``algo="hds"`` a fraction of rollouts goes through the hybrid model."""
     from twinrl.learn.runner import continue_run
@@ -377,7 +378,7 @@ def _learn(run: _Run, r: int, rdir: Path, env, hybrid) -> None:
                   seconds=_seconds(run.prog, r, learn=time.perf_counter() - t0))
 
 
-def _train_residual(run: _Run, r: int, rdir: Path, env, hybrid, data, policy_dir) -> None:
+def _train_residual(run: RunContext, r: int, rdir: Path, env, hybrid, data, policy_dir) -> None:
     """The residual policy trained through the hybrid model from recorded real states ->
     ``residual/``; kept only if it lowers the full-episode return neither through that model nor
     through the identified simulator (``residual.accept``), else saved as all zeros (exactly
@@ -414,14 +415,14 @@ def _train_residual(run: _Run, r: int, rdir: Path, env, hybrid, data, policy_dir
         run.prog.mark(f"round{r}/residual")
 
 
-def _deploy(run: _Run, r: int, rdir: Path, env, hybrid, policy_dir) -> None:
+def _deploy(run: RunContext, r: int, rdir: Path, env, hybrid, policy_dir) -> None:
     """``K`` real episodes of the deployed policy (pi_sim + residual), recorded as they happen
     (an interrupted deployment resumes at its first unrecorded episode); then, for evaluation
     only, pi_sim alone and the deployed policy on the same unrecorded episodes."""
     config, prog, K = run.config, run.prog, run.K
     t0 = time.perf_counter()
     act = _deployed_policy(config, env, hybrid, policy_dir, rdir)
-    have = _episodes_in(run.out / "dataset") - _episodes_before(prog, r, K)
+    have = episodes_in(run.out / "dataset") - _episodes_before(prog, r, K)
     run.say(f"  deploying on the real twin ({K - have} episodes) ...")
     rets = list(prog.record(r).get("deploy_returns_partial", []))
     for e in range(max(0, have), K):
@@ -460,7 +461,7 @@ ROUND = (
 real transition so far) and what earlier stages gave."""
 
 
-def _quiet(*args, **kwargs) -> None:
+def quiet(*args, **kwargs) -> None:
     pass
 
 
@@ -480,7 +481,7 @@ def _collect(twin, writer, episodes: int, policy, seed: int, rng: np.random.Gene
     return returns
 
 
-def _episodes_in(dataset_dir: Path) -> int:
+def episodes_in(dataset_dir: Path) -> int:
     from twinrl.real import dataset as ds
 
     if not (dataset_dir / "meta.json").exists():
@@ -497,7 +498,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     ``perturbation`` (a ``twinrl.real.perturbation.Perturbation``) replaces the drawn one: a
     benchmark's custom real twin, e.g. one with an effect the simulator cannot model. Like the drawn
     one it is applied by the twin and never shown to the learning stages."""
-    out = _check_settings(env_name, Path(out), config, seed, resume)
+    out = check_settings(env_name, Path(out), config, seed, resume)
     ctx, oracle_job = _start(env_name, out, config, seed, progress, perturbation)
     rounds: list[dict[str, Any]] = []
     try:
@@ -505,7 +506,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
         rounds.append(_round_record(ctx.prog, 0))
         for r in range(1, config.rounds + 1):
             ctx.say(f"[bold]round {r}[/] ({time.perf_counter() - ctx.t_start:.0f} s)")
-            artefacts = {"data": _read(out / "dataset", ctx.say)}
+            artefacts = {"data": read_dataset(out / "dataset", ctx.say)}
             for stage in ROUND:
                 artefacts.update(stage(ctx, r, artefacts))
             rounds.append(_round_record(ctx.prog, r))
@@ -514,7 +515,7 @@ def run(env_name: str, out: str | Path, config: LoopConfig = LoopConfig(), *, se
     return _finish(ctx, rounds, oracle_job)
 
 
-def _check_settings(env_name: str, out: Path, config: LoopConfig, seed: int,
+def check_settings(env_name: str, out: Path, config: LoopConfig, seed: int,
                     resume: bool) -> Path:
     """Refuse an unknown task or algorithm, and a resume with other settings or without the
     real twin's secret; then write ``loop.json``."""
@@ -554,7 +555,7 @@ def _start(env_name, out, config, seed, progress, perturbation):
     from twinrl.real.dataset import DatasetWriter
     from twinrl.real.remote import TwinClient
 
-    say = report.console.print if progress else _quiet
+    say = report.console.print if progress else quiet
     t_start = time.perf_counter()
     # Evaluation only, never read by the stages: the twin's secret, the oracle, the records.
     ev_dir = out / "eval"
@@ -569,13 +570,13 @@ def _start(env_name, out, config, seed, progress, perturbation):
     writer = DatasetWriter(out / "dataset", env=env_name, obs_shape=obs0.shape,
                            action_shape=twin.action_space.shape, obs_dtype=np.float32,
                            action_dtype=np.float32)
-    run = _Run(env_name, int(seed), out, config, perturbation, secret, twin, writer,
-               _Progress(out / "progress.json"), _Progress(ev_dir / "evaluation.json"), say,
+    run = RunContext(env_name, int(seed), out, config, perturbation, secret, twin, writer,
+               Progress(out / "progress.json"), Progress(ev_dir / "evaluation.json"), say,
                progress, envs.make(env_name), t_start)
     return run, oracle_job
 
 
-def _finish(run: _Run, rounds: list[dict[str, Any]], oracle_job) -> dict[str, Any]:
+def _finish(run: RunContext, rounds: list[dict[str, Any]], oracle_job) -> dict[str, Any]:
     """The oracle's return (evaluation only), merged with the evaluation records into the
     rounds now that the stages are done; ``summary.json``, the report and the final video."""
     config, env_name, seed, out = run.config, run.env_name, run.seed, run.out
@@ -660,7 +661,7 @@ def _final_video(out: Path, env_name: str, seed: int, config: LoopConfig, pertur
     return report.write_video(out / "final.mp4", frames, fps=1.0 / env.dt)
 
 
-def _read(path: Path, say=None):
+def read_dataset(path: Path, say=None):
     """Every intact transition of the dataset. Damage (a flipped byte, a truncated closed chunk)
     costs the records it hit, not the run: ``say`` gets one line saying what was dropped, and the
     loop goes on with the rest (a strict read would stop ``--resume`` for good)."""
@@ -675,21 +676,21 @@ def _read(path: Path, say=None):
 
 
 def _real_steps(out: Path) -> int:
-    return int(len(_read(out / "dataset")))
+    return int(len(read_dataset(out / "dataset")))
 
 
-def _episodes_before(prog: _Progress, r: int, K: int) -> int:
+def _episodes_before(prog: Progress, r: int, K: int) -> int:
     """Complete episodes recorded before round ``r``'s deployment: K per earlier stage."""
     return K * r
 
 
-def _seconds(prog: _Progress, r: int, **stages: float) -> dict[str, float]:
+def _seconds(prog: Progress, r: int, **stages: float) -> dict[str, float]:
     """Round ``r``'s wall-clock seconds per stage so far, with ``stages`` added (a resumed
     stage counts only this process's part)."""
     return {**prog.record(r).get("seconds", {}), **stages}
 
 
-def _round_record(prog: _Progress, r: int) -> dict[str, Any]:
+def _round_record(prog: Progress, r: int) -> dict[str, Any]:
     rec = prog.record(r)
     return {"round": r, "real_steps": rec.get("real_steps"), "real_return": rec.get("real_return"),
             "real_returns": rec.get("real_returns"), "sim_return": rec.get("sim_return"),

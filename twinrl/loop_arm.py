@@ -49,7 +49,8 @@ import numpy as np
 
 from twinrl import eval as evaluation
 from twinrl import report
-from twinrl.loop import LoopError, Stage, _episodes_in, _Progress, _quiet, _read, _Run
+from twinrl.loop import (LoopError, Progress, RunContext, Stage, episodes_in, quiet,
+                         read_dataset)
 
 __all__ = ["ArmLoopConfig", "make_config", "run", "ARM_COLLECT", "ARM_ROUND", "is_arm_task"]
 
@@ -170,14 +171,14 @@ def is_arm_task(env_name: str) -> bool:
 
 
 # ------------------------------------------------------------------------------ the stages
-def _collect(run: _Run, r: int, rdir: Path) -> None:
+def _collect(run: RunContext, r: int, rdir: Path) -> None:
     """Round 0: ``K`` episodes of exciting motions, the mount at its default pose, recorded with
     every step's frame (those the dataset already holds are not recorded again)."""
     from twinrl.real.twin import record_episode
     from twinrl.real2sim import sysid
 
     K, T = run.K, run.nominal_env.episode_length
-    have = _episodes_in(run.out / "dataset")
+    have = episodes_in(run.out / "dataset")
     run.say(f"[bold]round 0[/]: recording {K - have} exciting episodes with images"
             f"{f' ({have} already recorded)' if have else ''}")
     t0 = time.perf_counter()
@@ -187,11 +188,11 @@ def _collect(run: _Run, r: int, rdir: Path) -> None:
         obs, _ = run.twin.reset(seed=run.seed + e)
         record_episode(run.twin, run.writer, lambda o, t, a=acts: a[min(t, T - 1)], obs,
                        images=True)
-    run.prog.mark("round0/collect", real_steps=int(len(_read(run.out / "dataset"))),
+    run.prog.mark("round0/collect", real_steps=int(len(read_dataset(run.out / "dataset"))),
                   seconds={"collect": time.perf_counter() - t0})
 
 
-def _calibrate(run: _Run, r: int, rdir: Path, data) -> None:
+def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
     """Hand-eye calibration from round 0's frames (the mount at its default pose) ->
     ``calibration.json`` (the fitted camera and the mount's offset)."""
     from twinrl.real2sim import visual
@@ -229,7 +230,7 @@ def _calibrate(run: _Run, r: int, rdir: Path, data) -> None:
                                                           - t0))
 
 
-def _load_camera(run: _Run, rdir: Path, data) -> dict[str, Any]:
+def _load_camera(run: RunContext, rdir: Path, data) -> dict[str, Any]:
     from twinrl.render import Camera
 
     f = rdir / "calibration.json"
@@ -240,7 +241,7 @@ def _load_camera(run: _Run, rdir: Path, data) -> dict[str, Any]:
                              np.asarray(c["fovy"]), int(c["width"]), int(c["height"]))}
 
 
-def _system(run: _Run, r: int, rdir: Path, data, camera) -> None:
+def _system(run: RunContext, r: int, rdir: Path, data, camera) -> None:
     """The identified ``System`` -> ``system.json``: sysid's parameters and latency (or the
     nominal ones) with the calibrated mount camera."""
     from twinrl.envs.system import System
@@ -262,7 +263,7 @@ def _system(run: _Run, r: int, rdir: Path, data, camera) -> None:
                   seconds=_seconds(run.prog, r, sysid=time.perf_counter() - t0))
 
 
-def _load_system(run: _Run, rdir: Path, **_) -> dict[str, Any]:
+def _load_system(run: RunContext, rdir: Path, **_) -> dict[str, Any]:
     from twinrl import envs
     from twinrl.envs.system import System
 
@@ -270,7 +271,7 @@ def _load_system(run: _Run, rdir: Path, **_) -> dict[str, Any]:
     return {"system": system, "env": envs.make(run.env_name, system=system)}
 
 
-def _plan(run: _Run, r: int, rdir: Path, env) -> None:
+def _plan(run: RunContext, r: int, rdir: Path, env) -> None:
     """Trajectory-optimised demonstrations in the identified twin -> ``plans.npz``."""
     from twinrl.learn import plans
 
@@ -284,7 +285,7 @@ def _plan(run: _Run, r: int, rdir: Path, env) -> None:
                   seconds=_seconds(run.prog, r, plan=time.perf_counter() - t0))
 
 
-def _imitate(run: _Run, r: int, rdir: Path, env) -> None:
+def _imitate(run: RunContext, r: int, rdir: Path, env) -> None:
     """The image actor cloned from the demonstrations -> ``actor/``."""
     from twinrl.learn.runner import continue_run
 
@@ -298,7 +299,7 @@ def _imitate(run: _Run, r: int, rdir: Path, env) -> None:
                   seconds=_seconds(run.prog, r, imitation=time.perf_counter() - t0))
 
 
-def _sense(run: _Run, r: int, rdir: Path, env) -> None:
+def _sense(run: RunContext, r: int, rdir: Path, env) -> None:
     """The sensing-aware Q of the actor -> ``q/``."""
     from twinrl.learn.runner import continue_run
 
@@ -311,7 +312,7 @@ def _sense(run: _Run, r: int, rdir: Path, env) -> None:
                   seconds=_seconds(run.prog, r, sensing=time.perf_counter() - t0))
 
 
-def _deployer(run: _Run, env, rdir: Path):
+def _deployer(run: RunContext, env, rdir: Path):
     from twinrl.learn.sensing import SensingConfig, load_actor
     from twinrl.sense import load_q
     from twinrl.sim2real.active import Deployer
@@ -324,7 +325,7 @@ def _deployer(run: _Run, env, rdir: Path):
     return Deployer(env, actor, actor_params, q=q, q_params=q_params, sensing=sensing)
 
 
-def _deploy(run: _Run, r: int, rdir: Path, env) -> None:
+def _deploy(run: RunContext, r: int, rdir: Path, env) -> None:
     """``K`` real episodes of the image actor with the chosen camera, recorded as they happen
     (a resumed deployment starts at its first unrecorded episode); then, evaluation only, the
     same actor with the fixed default camera on ``eval_episodes`` unrecorded episodes."""
@@ -357,7 +358,7 @@ def _deploy(run: _Run, r: int, rdir: Path, env) -> None:
               real_return=float(np.mean([x["return"] for x in rows])),
               camera_steps=int(sum(x["camera_steps"] for x in rows)),
               chosen_coords=[x["coords"] for x in rows],
-              real_steps=int(len(_read(run.out / "dataset"))),
+              real_steps=int(len(read_dataset(run.out / "dataset"))),
               seconds=_seconds(prog, r, deploy=t_eval - t0,
                                evaluation=time.perf_counter() - t_eval))
 
@@ -379,7 +380,7 @@ ARM_ROUND = (
 """The stages of every round ``r >= 1``, in order."""
 
 
-def _seconds(prog: _Progress, r: int, **stages: float) -> dict[str, float]:
+def _seconds(prog: Progress, r: int, **stages: float) -> dict[str, float]:
     return {**prog.record(r).get("seconds", {}), **stages}
 
 
@@ -389,11 +390,11 @@ def run(env_name: str, out: str | Path, config: ArmLoopConfig = ArmLoopConfig(),
         perturbation=None) -> dict[str, Any]:
     """Run the manipulation loop on ``env_name``'s real twin (hidden perturbation drawn from
     ``seed``) into ``out``; returns the summary (also ``out/summary.json``)."""
-    from twinrl.loop import _check_settings
+    from twinrl.loop import check_settings
 
     if not is_arm_task(env_name):
         raise LoopError(f"{env_name!r} is not a manipulation task (twinrl.loop runs it)")
-    out = _check_settings(env_name, Path(out), config, seed, resume)
+    out = check_settings(env_name, Path(out), config, seed, resume)
     ctx = _start(env_name, out, config, seed, progress, perturbation)
     rounds = []
     try:
@@ -401,7 +402,7 @@ def run(env_name: str, out: str | Path, config: ArmLoopConfig = ArmLoopConfig(),
         rounds.append(_round_record(ctx, 0))
         for r in range(1, config.rounds + 1):
             ctx.say(f"[bold]round {r}[/] ({time.perf_counter() - ctx.t_start:.0f} s)")
-            artefacts = {"data": _read(out / "dataset", ctx.say)}
+            artefacts = {"data": read_dataset(out / "dataset", ctx.say)}
             for stage in ARM_ROUND:
                 artefacts.update(stage(ctx, r, artefacts))
             rounds.append(_round_record(ctx, r))
@@ -410,12 +411,12 @@ def run(env_name: str, out: str | Path, config: ArmLoopConfig = ArmLoopConfig(),
     return _finish(ctx, rounds)
 
 
-def _start(env_name, out, config, seed, progress, perturbation) -> _Run:
+def _start(env_name, out, config, seed, progress, perturbation) -> RunContext:
     from twinrl import envs
     from twinrl.real.dataset import DatasetWriter
     from twinrl.real.remote import TwinClient
 
-    say = report.console.print if progress else _quiet
+    say = report.console.print if progress else quiet
     t_start = time.perf_counter()
     ev_dir = out / "eval"
     secret = ev_dir / "twin.json"
@@ -428,19 +429,19 @@ def _start(env_name, out, config, seed, progress, perturbation) -> _Run:
     writer = DatasetWriter(out / "dataset", env=env_name, obs_shape=obs0.shape,
                            action_shape=twin.action_space.shape, obs_dtype=np.float32,
                            action_dtype=np.float32, image_shapes=shapes)
-    return _Run(env_name, int(seed), out, config, perturbation, secret, twin, writer,
-                _Progress(out / "progress.json"), _Progress(ev_dir / "evaluation.json"), say,
+    return RunContext(env_name, int(seed), out, config, perturbation, secret, twin, writer,
+                Progress(out / "progress.json"), Progress(ev_dir / "evaluation.json"), say,
                 progress, env, t_start)
 
 
-def _round_record(run: _Run, r: int) -> dict[str, Any]:
+def _round_record(run: RunContext, r: int) -> dict[str, Any]:
     rec = run.prog.record(r)
     keys = ("real_steps", "real_success", "real_successes", "real_return", "camera_steps",
             "chosen_coords", "plan_success", "sim_success", "q_rank_corr", "latency", "seconds")
     return {"round": r, **{k: rec.get(k) for k in keys}}
 
 
-def _finish(run: _Run, rounds: list[dict[str, Any]]) -> dict[str, Any]:
+def _finish(run: RunContext, rounds: list[dict[str, Any]]) -> dict[str, Any]:
     """The evaluation records merged into the rounds; ``summary.json``, the table, the plot and
     the video."""
     for rec in rounds:
@@ -505,7 +506,7 @@ def _plot(out: Path, summary: dict) -> None:
     plt.close(fig)
 
 
-def _final_video(run: _Run) -> Path:
+def _final_video(run: RunContext) -> Path:
     """``final.mp4``: one more episode of the deployed actor on the real twin (not recorded), the
     mount's view from the chosen pose (left) beside a fixed overview of the real scene (right)."""
     from twinrl import envs

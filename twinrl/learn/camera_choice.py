@@ -36,10 +36,14 @@ def uniform_coords(mount, key, shape=()) -> jax.Array:
     return jnp.log(u) - jnp.log1p(-u)
 
 
-def observer(env, image_size: int, tau: float = 0.0) -> Callable:
+def observer(env, image_size: int, tau: float = 0.0, keys=None) -> Callable:
     """``observe(state, coords)``: the image actor's observation (``ArmTask.image_observation``),
     soft in the pose when ``tau > 0``."""
-    return lambda s, coords: env.image_observation(s, coords, size=int(image_size), tau=tau)
+    if keys is None:
+        return lambda s, coords: env.image_observation(s, coords, size=int(image_size), tau=tau)
+    keys = tuple(keys)  # only what the networks read is computed (the pose fit costs)
+    return lambda s, coords: {k: v for k, v in env.image_observation(
+        s, coords, size=int(image_size), tau=tau).items() if k in keys}
 
 
 def image_size(env, actor: Network) -> int:
@@ -77,7 +81,8 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
     ``config``: a ``SensingConfig`` (its ``restarts``, ``ascent_steps``, ``ascent_lr``, ``tau``).
     Pure and jit-able (jit it with ``state`` and ``key`` as arguments)."""
     n = image_size(env, actor)
-    soft, hard = observer(env, n, tau=float(config.tau)), observer(env, n)
+    keys = tuple(actor.obs_spec)
+    soft, hard = observer(env, n, float(config.tau), keys), observer(env, n, keys=keys)
 
     def objective(obs_fn, c):
         o = obs_fn(state, c)
@@ -119,7 +124,7 @@ def landscape(env, q: Network, q_params, actor: Network, actor_params, state, di
     el = np.linspace(*mount.elevation, grid[1] + 2)[1:-1]
     dist = float(np.asarray(mount.spherical(jnp.full(3, distance_coord, jnp.float32)))[2])
     coords = np.array([mount.coords_of([a, e, dist]) for e in el for a in az], np.float32)
-    hard = observer(env, image_size(env, actor))
+    hard = observer(env, image_size(env, actor), keys=tuple(actor.obs_spec))
 
     @jax.jit
     def values(cs):

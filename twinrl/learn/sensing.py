@@ -138,7 +138,7 @@ def sensing_data(env, actor: Network, actor_params, config: SensingConfig, keys:
                  coords: jax.Array) -> SensingData:
     """The actor's episodes from ``reset(keys[i])`` with the camera held at ``coords[i, j]``
     (S, C, 3), and the examples Q learns from (module docstring)."""
-    observe = observer(env, image_size(env, actor))
+    observe = observer(env, image_size(env, actor), keys=tuple(actor.obs_spec))
     T = env.episode_length
     picks = jnp.arange(0, T, int(config.every))
 

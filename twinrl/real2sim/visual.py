@@ -304,9 +304,10 @@ def _optimise(loss_fn, params0, cfg: VisualConfig, rng: np.random.Generator, per
 
 # ---------------------------------------------------------------------- geometric refinement
 def _huber_residual(r, c):
-    """Residual whose square is twice the Huber loss of ``r`` (scale ``c``): linear tails."""
-    a = jnp.abs(r)
-    return jnp.where(a <= c, r, jnp.sign(r) * jnp.sqrt(jnp.maximum(2.0 * c * a - c * c, 0.0)))
+    """``twinrl.render.pointcloud.huber_residual``."""
+    from twinrl.render.pointcloud import huber_residual
+
+    return huber_residual(r, c)
 
 
 def _surface_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms, real: dict,

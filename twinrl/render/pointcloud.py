@@ -110,3 +110,10 @@ def sinkhorn_emd(a: jax.Array, b: jax.Array, wa: jax.Array | None = None,
     if debiased:
         cost = cost - 0.5 * (ot(a, a, wa, wa) + ot(b, b, wb, wb))
     return cost
+
+
+def huber_residual(r, c):
+    """Residual whose square is twice the Huber loss of ``r`` (scale ``c``): linear tails (a
+    robust least-squares residual for point-to-surface fits)."""
+    a = jnp.abs(r)
+    return jnp.where(a <= c, r, jnp.sign(r) * jnp.sqrt(jnp.maximum(2.0 * c * a - c * c, 0.0)))

@@ -617,9 +617,8 @@ class ArmTask(Env):
         iterations are unrolled); zeros where no target pixel shows. ``points``: target pixels
         used (a spread subset); ``joints``: the arm's measured angles. The target geoms must be
         primitives (not meshes)."""
-        from twinrl.real2sim.visual import _huber_residual
         from twinrl.render import Geoms
-        from twinrl.render.pointcloud import depth_to_points
+        from twinrl.render.pointcloud import depth_to_points, huber_residual
 
         from twinrl.render import primitives
 
@@ -655,7 +654,7 @@ class ArmTask(Env):
             g = geoms(x)
             d = jnp.stack([primitives.sdf(int(t), (pts - g.xpos[i]) @ g.xmat[i], g.size[i])
                            for i, t in zip(gid, types)], -1)
-            return sw * _huber_residual(jnp.min(d, -1), huber)
+            return sw * huber_residual(jnp.min(d, -1), huber)
 
         def step(_, x):
             r, J = resid(x), jax.jacfwd(resid)(x)
