@@ -61,7 +61,7 @@ from twinrl import eval as evaluation
 from twinrl import report
 
 __all__ = ["LoopConfig", "run", "LoopError", "Stage", "COLLECT", "ROUND", "RunContext", "Progress",
-           "check_settings", "episodes_in", "read_dataset", "quiet"]
+           "check_settings", "episodes_in", "read_dataset", "quiet", "seconds_so_far"]
 
 
 class LoopError(Exception):
@@ -306,7 +306,7 @@ def _fit_system(run: RunContext, r: int, rdir: Path, data) -> None:
     run.ev.mark(f"round{r}/sysid", param_rel_error=evaluation.param_errors(
         run.env_name, run.seed, res, run.perturbation, run.secret))
     run.prog.mark(f"round{r}/sysid", latency=res.latency, sysid_rollouts=res.sim_rollouts,
-                  seconds=_seconds(run.prog, r, sysid=time.perf_counter() - t0))
+                  seconds=seconds_so_far(run.prog, r, sysid=time.perf_counter() - t0))
 
 
 def _identified_system(rdir: Path, env_name: str):
@@ -347,7 +347,7 @@ def _fit_hybrid(run: RunContext, r: int, rdir: Path, env, system, data) -> None:
     hybrid.save(rdir / "hybrid", fit)
     run.prog.mark(f"round{r}/hybrid", hybrid_sim_rmse=fit.metrics["sim_val_rmse"],
                   hybrid_rmse=fit.metrics["hybrid_val_rmse"],
-                  seconds=_seconds(run.prog, r, hybrid=time.perf_counter() - t0))
+                  seconds=seconds_so_far(run.prog, r, hybrid=time.perf_counter() - t0))
 
 
 def _load_hybrid(run: RunContext, rdir: Path, **_) -> dict[str, Any]:
@@ -375,7 +375,7 @@ def _learn(run: RunContext, r: int, rdir: Path, env, hybrid) -> None:
                      env=env, train_kwargs=kwargs, checkpoint_every=config.checkpoint_every)
     run.prog.mark(f"round{r}/learn", sim_return=s["final"].get("return"),
                   train_epochs=s["epochs"],
-                  seconds=_seconds(run.prog, r, learn=time.perf_counter() - t0))
+                  seconds=seconds_so_far(run.prog, r, learn=time.perf_counter() - t0))
 
 
 def _train_residual(run: RunContext, r: int, rdir: Path, env, hybrid, data, policy_dir) -> None:
@@ -410,7 +410,7 @@ def _train_residual(run: RunContext, r: int, rdir: Path, env, hybrid, data, poli
                        sim_return_after=verdict.reference_after)
         save_policy(rdir / "residual", pol.delta, res_params, kind="residual", metrics=metrics)
         run.prog.mark(f"round{r}/residual",
-                      seconds=_seconds(run.prog, r, residual=time.perf_counter() - t0))
+                      seconds=seconds_so_far(run.prog, r, residual=time.perf_counter() - t0))
     else:  # trained by a run made before this stage had its own mark
         run.prog.mark(f"round{r}/residual")
 
@@ -440,7 +440,7 @@ def _deploy(run: RunContext, r: int, rdir: Path, env, hybrid, policy_dir) -> Non
     run.ev.mark(f"round{r}/deploy", sim_policy_real_return=no_adapt, adapted_real_return=adapted)
     prog.mark(f"round{r}/deploy", real_return=float(np.mean(rets)) if rets else None,
               real_returns=rets, real_steps=_real_steps(run.out),
-              seconds=_seconds(prog, r, deploy=t_eval - t0,
+              seconds=seconds_so_far(prog, r, deploy=t_eval - t0,
                                evaluation=time.perf_counter() - t_eval), **gate)
 
 
@@ -684,7 +684,7 @@ def _episodes_before(prog: Progress, r: int, K: int) -> int:
     return K * r
 
 
-def _seconds(prog: Progress, r: int, **stages: float) -> dict[str, float]:
+def seconds_so_far(prog: Progress, r: int, **stages: float) -> dict[str, float]:
     """Round ``r``'s wall-clock seconds per stage so far, with ``stages`` added (a resumed
     stage counts only this process's part)."""
     return {**prog.record(r).get("seconds", {}), **stages}

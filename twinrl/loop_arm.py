@@ -50,12 +50,9 @@ import numpy as np
 from twinrl import eval as evaluation
 from twinrl import report
 from twinrl.loop import (LoopError, Progress, RunContext, Stage, episodes_in, quiet,
-                         read_dataset)
+                         read_dataset, seconds_so_far)
 
 __all__ = ["ArmLoopConfig", "make_config", "run", "ARM_COLLECT", "ARM_ROUND", "is_arm_task"]
-
-IMAGE_KINDS = ("rgb", "depth", "segmentation")
-
 
 def _imitation_defaults() -> dict[str, Any]:
     # demonstrations seen from 8 mount poses each; the observation is the task's (_observation)
@@ -132,7 +129,7 @@ class ArmLoopConfig:
                 raise LoopError(f"{name}: {e}") from None
         if dict(self.imitation).get("observation") == "state":
             raise LoopError("imitation: the loop deploys an image actor; observation must be "
-                            "'target' or 'pixels'")
+                            "'pose', 'target' or 'pixels'")
 
 
 def make_config(overrides: Mapping[str, Any] | None = None) -> ArmLoopConfig:
@@ -226,8 +223,8 @@ def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
         "loss": min(x["final_loss"] for x in info["runs"])})
     run.ev.mark(f"round{r}/calibrate", **evaluation.hand_eye_errors(
         run.env_name, run.seed, mount, run.perturbation, run.secret))
-    run.prog.mark(f"round{r}/calibrate", seconds=_seconds(run.prog, r, calibrate=time.perf_counter()
-                                                          - t0))
+    run.prog.mark(f"round{r}/calibrate",
+                  seconds=seconds_so_far(run.prog, r, calibrate=time.perf_counter() - t0))
 
 
 def _load_camera(run: RunContext, rdir: Path, data) -> dict[str, Any]:
@@ -260,7 +257,7 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera) -> None:
         system = system.replace(cameras={"mount": camera})
     system.save(rdir / "system.json")
     run.prog.mark(f"round{r}/sysid", latency=system.latency,
-                  seconds=_seconds(run.prog, r, sysid=time.perf_counter() - t0))
+                  seconds=seconds_so_far(run.prog, r, sysid=time.perf_counter() - t0))
 
 
 def _load_system(run: RunContext, rdir: Path, **_) -> dict[str, Any]:
@@ -282,7 +279,7 @@ def _plan(run: RunContext, r: int, rdir: Path, env) -> None:
                      run.seed + r, restarts=c.trajopt_restarts)
     plans.save(rdir / "plans.npz", res)
     run.prog.mark(f"round{r}/plan", plan_success=res["success_rate"],
-                  seconds=_seconds(run.prog, r, plan=time.perf_counter() - t0))
+                  seconds=seconds_so_far(run.prog, r, plan=time.perf_counter() - t0))
 
 
 def _imitate(run: RunContext, r: int, rdir: Path, env) -> None:
@@ -296,7 +293,7 @@ def _imitate(run: RunContext, r: int, rdir: Path, env) -> None:
     s = continue_run(run.env_name, "imitation", rdir / "actor", seed=run.seed + r,
                      overrides=overrides, progress=run.progress, env=env)
     run.prog.mark(f"round{r}/imitation", sim_success=s["final"].get("success"),
-                  seconds=_seconds(run.prog, r, imitation=time.perf_counter() - t0))
+                  seconds=seconds_so_far(run.prog, r, imitation=time.perf_counter() - t0))
 
 
 def _sense(run: RunContext, r: int, rdir: Path, env) -> None:
@@ -309,7 +306,7 @@ def _sense(run: RunContext, r: int, rdir: Path, env) -> None:
     s = continue_run(run.env_name, "sensing", rdir / "q", seed=run.seed + r,
                      overrides=overrides, progress=run.progress, env=env)
     run.prog.mark(f"round{r}/sensing", q_rank_corr=s["final"].get("rank_corr"),
-                  seconds=_seconds(run.prog, r, sensing=time.perf_counter() - t0))
+                  seconds=seconds_so_far(run.prog, r, sensing=time.perf_counter() - t0))
 
 
 def _deployer(run: RunContext, env, rdir: Path):
@@ -359,7 +356,7 @@ def _deploy(run: RunContext, r: int, rdir: Path, env) -> None:
               camera_steps=int(sum(x["camera_steps"] for x in rows)),
               chosen_coords=[x["coords"] for x in rows],
               real_steps=int(len(read_dataset(run.out / "dataset"))),
-              seconds=_seconds(prog, r, deploy=t_eval - t0,
+              seconds=seconds_so_far(prog, r, deploy=t_eval - t0,
                                evaluation=time.perf_counter() - t_eval))
 
 
@@ -378,10 +375,6 @@ ARM_ROUND = (
     Stage("deploy", needs=("env",), gives=(), make=_deploy),
 )
 """The stages of every round ``r >= 1``, in order."""
-
-
-def _seconds(prog: Progress, r: int, **stages: float) -> dict[str, float]:
-    return {**prog.record(r).get("seconds", {}), **stages}
 
 
 # ------------------------------------------------------------------------------ the run

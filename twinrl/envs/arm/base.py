@@ -581,8 +581,8 @@ class ArmTask(Env):
         ``target_cloud`` of the depth and mask, back-projected from the commanded pose (7,),
         "pose": the target's joints fitted to that cloud (``fit_target_pose``) and "estimate":
         the privileged observation of the state they and the joints give (``estimated_state``;
-        both for tasks with ``target_joints`` only)}``. The camera is the mount's, hand-eye calibration included.
-        Under ``jax.jit`` only the keys a caller reads are computed.""" 
+        both for tasks with ``target_joints`` only)}``. The camera is the mount's, hand-eye
+        calibration included. Under ``jax.jit`` only the keys a caller reads are computed."""
         n = depth.shape[0]
         pixels = jnp.concatenate([rgb, depth[..., None], mask[..., None]], axis=-1)
         cam = self.mount.camera(coords, n, n)
@@ -615,17 +615,14 @@ class ArmTask(Env):
         pixels alone is off by the faces a pose shows and the arm hides (peg, 12 starts x 6
         steps x 4 random poses: 19-33 mm median). Differentiable in the pose and the images (the
         iterations are unrolled); zeros where no target pixel shows. ``points``: target pixels
-        used (a spread subset); ``joints``: the arm's measured angles. The target geoms must be
-        primitives (not meshes)."""
-        from twinrl.render import Geoms
+        used (a spread subset); ``joints``: the arm's measured angles and velocities (14,). The
+        target geoms must be primitives (not meshes)."""
+        from twinrl.render import Geoms, primitives
         from twinrl.render.pointcloud import depth_to_points, huber_residual
-
-        from twinrl.render import primitives
 
         idx = np.asarray(self.target_joints)
         model = self.sim.model_with(self.params)
         dt = depth.dtype
-        q0 = jnp.asarray(self.sim.mj_model.qpos0, dt).at[:N_JOINTS].set(joints[:N_JOINTS])
         pts, w = depth_to_points(camera, depth, mask)
         n = jnp.sum(w)
         # at most `points` of the target's pixels, spread over it (a fixed pseudo-random order
@@ -639,7 +636,7 @@ class ArmTask(Env):
         types = np.asarray(self.sim.mj_model.geom_type)[gid]
 
         def geoms(x):
-            return Geoms.from_mjx(model, self.sim.init(q0.at[idx].set(x)))
+            return Geoms.from_mjx(model, self.sim.init(self.estimated_state(joints, x)[0]))
 
         def centroid(x):
             return jnp.mean(geoms(x).xpos[gid], 0)
