@@ -56,7 +56,7 @@ __all__ = ["ArmLoopConfig", "make_config", "run", "ARM_COLLECT", "ARM_ROUND", "i
 
 def _imitation_defaults() -> dict[str, Any]:
     # demonstrations seen from 8 mount poses each; the observation is the task's (_observation)
-    return {"views": 8, "fit_steps": 3000, "dagger_rounds": 0, "eval_episodes": 20}
+    return {"views": 8, "dagger_rounds": 0, "eval_episodes": 20}
 
 
 def _observation(env, imitation: Mapping[str, Any]) -> str:
@@ -306,6 +306,7 @@ def _sense(run: RunContext, r: int, rdir: Path, env) -> None:
     s = continue_run(run.env_name, "sensing", rdir / "q", seed=run.seed + r,
                      overrides=overrides, progress=run.progress, env=env)
     run.prog.mark(f"round{r}/sensing", q_rank_corr=s["final"].get("rank_corr"),
+                  q_rank_corr_pooled=s["final"].get("rank_corr_pooled"),
                   seconds=seconds_so_far(run.prog, r, sensing=time.perf_counter() - t0))
 
 
@@ -430,7 +431,8 @@ def _start(env_name, out, config, seed, progress, perturbation) -> RunContext:
 def _round_record(run: RunContext, r: int) -> dict[str, Any]:
     rec = run.prog.record(r)
     keys = ("real_steps", "real_success", "real_successes", "real_return", "camera_steps",
-            "chosen_coords", "plan_success", "sim_success", "q_rank_corr", "latency", "seconds")
+            "chosen_coords", "plan_success", "sim_success", "q_rank_corr", "q_rank_corr_pooled",
+            "latency", "seconds")
     return {"round": r, **{k: rec.get(k) for k in keys}}
 
 

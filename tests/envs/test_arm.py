@@ -398,7 +398,7 @@ def test_target_pose_is_fitted_to_one_depth_image(made):
 
     obs_of = jax.jit(lambda s, c: env.image_observation(s, c))
     rng = np.random.default_rng(1)
-    fit_err, mean_err = [], []
+    fit_err, mean_err, rms = [], [], []
     for k in range(4):
         s = env.reset(jax.random.PRNGKey(k))
         q = np.asarray(s.pipeline_state.qpos, np.float64)
@@ -416,5 +416,9 @@ def test_target_pose_is_fitted_to_one_depth_image(made):
             # the hole's entries of the privileged observation
             np.testing.assert_allclose(np.asarray(o["estimate"])[14:], np.asarray(s.obs)[14:],
                                        atol=3e-3)
+            # what the fit stands on: the pixels it used, and a residual of a fraction of a mm
+            np.testing.assert_allclose(o["support"][0], o["target"][6], rtol=1e-5)
+            rms.append(float(o["support"][1]))
+    assert np.median(rms) < 1.0 and np.all(np.asarray(rms) >= 0), rms
     assert np.median(fit_err) < 0.003, fit_err
     assert np.median(fit_err) < np.median(mean_err) / 3, (fit_err, mean_err)

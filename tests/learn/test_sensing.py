@@ -68,7 +68,7 @@ def test_targets_are_the_actors_return_to_go_with_the_camera_held(peg):
 def test_q_fits_the_targets_and_reports_held_out_ranking(trained):
     cfg, q, q_params, m, rows = trained
     assert len(rows) == 1 and m["pairs"] == [5 * 3 * (T // 2)]
-    for k in ("loss", "val_loss", "rank_corr", "target_q_choice", "target_mean_pose",
+    for k in ("loss", "val_loss", "rank_corr", "rank_corr_pooled", "target_q_choice", "target_mean_pose",
               "target_best_pose", "return", "choice_raises_q", "choice_q_gain"):
         assert np.isfinite(m[k][0]), (k, m)
     assert -1.0 <= m["rank_corr"][0] <= 1.0
@@ -93,6 +93,8 @@ def test_ranking_figures_follow_the_order_q_gives_the_poses():
                                    jnp.zeros((S, C)))
         f = sensing.evaluate_ranking(q, {}, data)
         assert f["rank_corr"] == pytest.approx(corr)
+        # pooled over the states: the same order within each, equal targets across them
+        assert f["rank_corr_pooled"] == pytest.approx(corr)
         best, worst = float(targets.max()), float(targets.min())
         assert f["target_q_choice"] == pytest.approx(best if sign > 0 else worst)
         assert f["return"] == pytest.approx(10 * f["target_q_choice"])
@@ -245,3 +247,17 @@ def test_oracle_deployment_of_a_state_expert_succeeds_on_the_real_twin():
     real.close()
     assert res["success"] == [1.0, 1.0] and res["camera_steps"] == [0, 0]
     assert res["steps"] == [env.episode_length] * 2 and res["choices"] == [0, 0]
+
+
+def test_q_of_a_pose_actor_also_sees_the_pose_and_what_the_fit_stands_on():
+    # the pose actor's estimate is the same from every pose it is right from: Q needs the
+    # commanded pose and the fit's support to tell them apart; the camera choice computes both
+    from twinrl.learn.camera_choice import observed_keys
+
+    actor = make_network({"estimate": (24,)}, 3, NetworkConfig(hidden=(8,)))
+    q = sensing.make_q(actor, 3, sensing.SensingConfig(hidden=(8,)))
+    assert set(q.obs_spec) == {"estimate", "camera", "support", "action"}
+    assert observed_keys(actor, q) == ("camera", "estimate", "support")
+    pixels = make_network({"state": (14,), "pixels/mount": (PIX, PIX, 5)}, 3,
+                          NetworkConfig(hidden=(8,)))
+    assert sensing.q_inputs(pixels) == dict(pixels.obs_spec)  # an image Q reads the image

@@ -21,8 +21,8 @@ import optax
 
 from twinrl.learn.networks import Network
 
-__all__ = ["Selection", "uniform_coords", "observer", "image_size", "q_value", "select_camera",
-           "landscape"]
+__all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
+           "select_camera", "landscape"]
 
 
 EDGE = float(np.log(0.98 / 0.02))
@@ -44,6 +44,11 @@ def observer(env, image_size: int, tau: float = 0.0, keys=None) -> Callable:
     keys = tuple(keys)  # only what the networks read is computed (the pose fit costs)
     return lambda s, coords: {k: v for k, v in env.image_observation(
         s, coords, size=int(image_size), tau=tau).items() if k in keys}
+
+
+def observed_keys(actor: Network, q: Network) -> tuple[str, ...]:
+    """The observation keys the actor and Q read (Q's ``"action"`` is the actor's output)."""
+    return tuple(sorted((set(actor.obs_spec) | set(q.obs_spec)) - {"action"}))
 
 
 def image_size(env, actor: Network) -> int:
@@ -81,7 +86,7 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
     ``config``: a ``SensingConfig`` (its ``restarts``, ``ascent_steps``, ``ascent_lr``, ``tau``).
     Pure and jit-able (jit it with ``state`` and ``key`` as arguments)."""
     n = image_size(env, actor)
-    keys = tuple(actor.obs_spec)
+    keys = observed_keys(actor, q)
     soft, hard = observer(env, n, float(config.tau), keys), observer(env, n, keys=keys)
 
     def objective(obs_fn, c):
@@ -124,7 +129,7 @@ def landscape(env, q: Network, q_params, actor: Network, actor_params, state, di
     el = np.linspace(*mount.elevation, grid[1] + 2)[1:-1]
     dist = float(np.asarray(mount.spherical(jnp.full(3, distance_coord, jnp.float32)))[2])
     coords = np.array([mount.coords_of([a, e, dist]) for e in el for a in az], np.float32)
-    hard = observer(env, image_size(env, actor), keys=tuple(actor.obs_spec))
+    hard = observer(env, image_size(env, actor), keys=observed_keys(actor, q))
 
     @jax.jit
     def values(cs):

@@ -17,7 +17,8 @@ differentiable renderer* w.r.t. the pose. Here:
   say from which poses the actor got closer. Both are Monte-Carlo values of the actor that will be
   deployed, not of an optimal policy: Q answers "how well does *this* actor do from this view".
 - **Q** (``train``): a ``twinrl.learn.networks`` network of the actor's observation (joint
-  angles and velocities, the 64 x 64 RGB-D + target-mask image) and the action, regressed onto
+  angles and velocities, the 64 x 64 RGB-D + target-mask image; for an actor on the fitted
+  pose, the pose and what its fit stood on too: ``q_inputs``) and the action, regressed onto
   the targets. Its figures (``metrics``) are on held-out start states: the loss, the rank
   correlation between Q and the target across the poses of one state (what a camera choice needs
   Q to get right; a state's own difficulty does not matter there), the target at the pose Q
@@ -52,7 +53,7 @@ from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
 __all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
-           "observer", "sensing_data", "make_q", "q_value", "train", "select_camera",
+           "observer", "sensing_data", "q_inputs", "make_q", "q_value", "train", "select_camera",
            "evaluate_ranking", "load_actor"]
 
 
@@ -138,7 +139,7 @@ def sensing_data(env, actor: Network, actor_params, config: SensingConfig, keys:
                  coords: jax.Array) -> SensingData:
     """The actor's episodes from ``reset(keys[i])`` with the camera held at ``coords[i, j]``
     (S, C, 3), and the examples Q learns from (module docstring)."""
-    observe = observer(env, image_size(env, actor), keys=tuple(actor.obs_spec))
+    observe = observer(env, image_size(env, actor), keys=tuple(q_inputs(actor)))
     T = env.episode_length
     picks = jnp.arange(0, T, int(config.every))
 
@@ -161,9 +162,21 @@ def sensing_data(env, actor: Network, actor_params, config: SensingConfig, keys:
     return SensingData(obs, acts, targets, coords, returns, ok)
 
 
-def make_q(actor: Network, action_size: int, config: SensingConfig) -> Network:
-    """Q's network: the actor's observation spec plus the action, to one linear output."""
+def q_inputs(actor: Network) -> dict:
+    """Q's observation spec (the action aside): the actor's, and for an actor that acts on the
+    target's fitted pose (``"estimate"``) also the commanded ``"camera"`` pose and the fit's
+    ``"support"`` (``ArmTask.observation_from_image``: its pixel count and residual) -- the
+    estimate alone is nearly the same from every pose it is right from, and Q has to tell
+    from where it is not."""
     spec = dict(actor.obs_spec)
+    if "estimate" in spec:
+        spec.update(camera=(3,), support=(2,))
+    return spec
+
+
+def make_q(actor: Network, action_size: int, config: SensingConfig) -> Network:
+    """Q's network: ``q_inputs(actor)`` plus the action, to one linear output."""
+    spec = q_inputs(actor)
     spec["action"] = (int(action_size),)
     return make_network(spec, 1, NetworkConfig(hidden=tuple(config.hidden), activation="elu",
                                                output="linear", layer_norm=True))
@@ -179,17 +192,22 @@ def _fit(q: Network, params, obs, acts, targets, config: SensingConfig, key):
 
 
 def _rank_corr(a: np.ndarray, b: np.ndarray) -> float:
-    """Spearman's rank correlation of two vectors (0 when either is constant)."""
-    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
-    if np.std(ra) == 0 or np.std(rb) == 0 or np.ptp(a) == 0 or np.ptp(b) == 0:
+    """Spearman's rank correlation of two vectors, ties at their mean rank (0 when either is
+    constant)."""
+    from scipy.stats import rankdata
+
+    if np.ptp(a) == 0 or np.ptp(b) == 0:
         return 0.0
+    ra, rb = rankdata(a), rankdata(b)
     return float(np.corrcoef(ra, rb)[0, 1])
 
 
 def evaluate_ranking(q: Network, q_params, data: SensingData) -> dict:
     """On held-out data: Q's loss, its per-state rank correlation with the target across poses
-    (first example of each episode), the target at Q's preferred pose vs the poses' mean and
-    best, and the episode return from Q's preferred pose (``return``)."""
+    (first example of each episode; ``rank_corr``, what a camera choice needs) and over all the
+    held-out (state, pose) pairs (``rank_corr_pooled``: a state's own difficulty counts too),
+    the target at Q's preferred pose vs the poses' mean and best, and the episode return from
+    Q's preferred pose (``return``)."""
     flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
     obs = jax.tree_util.tree_map(flat, data.obs)
     pred = np.asarray(jax.jit(lambda p, o, a: q_value(q, p, o, a))(
@@ -201,6 +219,7 @@ def evaluate_ranking(q: Network, q_params, data: SensingData) -> dict:
     rows = np.arange(len(pick))
     return {"val_loss": float(np.mean((pred - target) ** 2)),
             "rank_corr": float(np.mean(corr)),
+            "rank_corr_pooled": _rank_corr(first_pred.ravel(), first_target.ravel()),
             "target_q_choice": float(np.mean(first_target[rows, pick])),
             "target_mean_pose": float(np.mean(first_target)),
             "target_best_pose": float(np.mean(first_target.max(axis=1))),
@@ -217,7 +236,7 @@ def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0
     checkpoint) on ``env``: data, fit, held-out figures (module docstring). Not resumable.
 
     Returns ``(q, q_params, metrics)`` with one row: ``pairs`` (training examples), ``loss``,
-    ``val_loss``, ``rank_corr``, ``target_q_choice`` / ``target_mean_pose`` /
+    ``val_loss``, ``rank_corr``, ``rank_corr_pooled``, ``target_q_choice`` / ``target_mean_pose`` /
     ``target_best_pose``, ``success_q_choice`` / ``success_mean_pose``, ``return`` (the held-out
     episodes' mean return from the pose Q prefers), ``choice_raises_q`` (the fraction of
     held-out start states on which ``select_camera`` ends above Q at the default pose) and

@@ -580,8 +580,10 @@ class ArmTask(Env):
         the tool point by the nominal kinematics of the measured joints (3,), "target":
         ``target_cloud`` of the depth and mask, back-projected from the commanded pose (7,),
         "pose": the target's joints fitted to that cloud (``fit_target_pose``) and "estimate":
-        the privileged observation of the state they and the joints give (``estimated_state``;
-        both for tasks with ``target_joints`` only)}``. The camera is the mount's, hand-eye
+        the privileged observation of the state they and the joints give (``estimated_state``)
+        and "support": how much the fit stands on (2,): log(1 + target pixels) and the fit's RMS
+        distance (mm) of those pixels' points from the fitted surfaces (the last three for tasks
+        with ``target_joints`` only)}``. The camera is the mount's, hand-eye
         calibration included. Under ``jax.jit`` only the keys a caller reads are computed."""
         n = depth.shape[0]
         pixels = jnp.concatenate([rgb, depth[..., None], mask[..., None]], axis=-1)
@@ -590,8 +592,10 @@ class ArmTask(Env):
                "tool": self.tool_point(joints[:N_JOINTS]),
                "target": target_cloud(cam, depth, mask)}
         if self.target_joints:
-            out["pose"] = pose = self.fit_target_pose(joints, cam, depth, mask)
+            pose, rms = self.fit_target_pose(joints, cam, depth, mask, with_residual=True)
+            out["pose"] = pose
             out["estimate"] = self.observe(*self.estimated_state(joints, pose))
+            out["support"] = jnp.stack([jnp.log1p(jnp.sum(mask)), 1e3 * rms])
         return out
 
     def estimated_state(self, joints, pose):
@@ -606,7 +610,7 @@ class ArmTask(Env):
         return qpos, qvel
 
     def fit_target_pose(self, joints, camera, depth, mask, iters: int = 8,
-                        huber: float = 0.004, points: int = 256) -> jax.Array:
+                        huber: float = 0.004, points: int = 256, with_residual: bool = False):
         """The target's pose (its joints' values, ``qpos[target_joints]``) from one depth image:
         the values that put the target pixels' points, back-projected from ``camera``, on the
         surfaces of the target geoms (their union's signed distance, ``Renderer.sdf``) -- a
@@ -616,7 +620,8 @@ class ArmTask(Env):
         steps x 4 random poses: 19-33 mm median). Differentiable in the pose and the images (the
         iterations are unrolled); zeros where no target pixel shows. ``points``: target pixels
         used (a spread subset); ``joints``: the arm's measured angles and velocities (14,). The
-        target geoms must be primitives (not meshes)."""
+        target geoms must be primitives (not meshes). ``with_residual``: return ``(pose, rms)``,
+        the fit's weighted RMS signed distance (m; 0 where no target pixel shows)."""
         from twinrl.render import Geoms, primitives
         from twinrl.render.pointcloud import depth_to_points, huber_residual
 
@@ -667,10 +672,15 @@ class ArmTask(Env):
         fits = jax.vmap(lambda x: jax.lax.fori_loop(0, iters, step, x))(starts)
         cost = jax.vmap(lambda x: jnp.sum(jnp.square(resid(x))))(fits)
         x = fits[jnp.argmin(cost)]
+        seen = n > 3.0
         # a hinge's angle modulo the target's symmetry, into (-period/2, period/2]
         period = jnp.asarray(self.target_hinge_period, dt)
         x = jnp.where(hinge, x - period * jnp.round(x / period), x)
-        return jnp.where(n > 3.0, x, 0.0)
+        x = jnp.where(seen, x, 0.0)
+        if not with_residual:
+            return x
+        r = jnp.sqrt(jnp.min(cost) + 1e-12)  # the pixels' weights sum to 1: an RMS (Huber)
+        return x, jnp.where(seen, r, 0.0)
 
     @functools.cached_property
     def target_geom_ids(self) -> np.ndarray:
