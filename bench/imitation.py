@@ -38,7 +38,7 @@ def main(argv=None) -> int:
     p.add_argument("--dagger-episodes", type=int, default=10)
     p.add_argument("--relabel-every", type=int, default=5)
     p.add_argument("--relabel-iterations", type=int, default=10)
-    p.add_argument("--fit-steps", type=int, default=3000)
+    p.add_argument("--fit-steps", type=int, default=imitation.ImitationConfig.fit_steps)
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("bench/results"))

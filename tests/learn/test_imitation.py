@@ -62,3 +62,16 @@ def test_demonstration_files_are_checked(tmp_path):
     assert d.keys.tolist() == [[2, 3]] and d.actions.shape == (1, 3, 1)
     with pytest.raises(ValueError, match="observation must be one of 'state', 'pixels'"):
         imitation.ImitationConfig(observation="rgb")
+
+
+def test_only_views_with_a_right_pose_estimate_are_cloned():
+    # the fit's estimate against the true state's observation: within 5 mm in every entry, or
+    # the pair is left out (an edge-on view's wrong heading would teach the wrong answer)
+    from brax.envs.base import State
+
+    truth = jnp.zeros((2, 3, 4))
+    est = truth.at[0, 1, 2].set(0.004).at[1, 2, 0].set(-0.02)
+    states = State(pipeline_state=None, obs=truth, reward=jnp.zeros((2, 3)), done=None)
+    w = imitation.accurate({"estimate": est}, states)
+    assert w.tolist() == [[1, 1, 1], [1, 1, 0]]
+    assert imitation.accurate({"state": est}, states).tolist() == [[1, 1, 1]] * 2

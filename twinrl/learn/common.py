@@ -220,14 +220,15 @@ def regression_loss(apply_fn, params, obs, targets, weights):
 
 def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
                        augment: Callable[[Any, jax.Array], Any] | None = None):
-    """A jitted ``fit(params, opt_state, obs, targets, n, key) -> (params, opt_state, losses)``:
-    ``steps`` steps of ``tx`` on ``regression_loss`` over minibatches of ``batch`` rows drawn from
-    the first ``n`` rows of ``obs`` (any pytree, e.g. a dict observation) and ``targets``;
+    """A jitted ``fit(params, opt_state, obs, targets, n, key, weights=None) -> (params,
+    opt_state, losses)``: ``steps`` steps of ``tx`` on ``regression_loss`` over minibatches of
+    ``batch`` rows drawn from the first ``n`` rows of ``obs`` (any pytree, e.g. a dict
+    observation) and ``targets``, weighted by ``weights`` (rows,) if given;
     ``augment(obs, key)`` transforms each minibatch (``rgb_jitter``). ``losses``: (steps,).
     The imitation actor's and the sensing Q's fit."""
     ones = jnp.ones((batch,))
 
-    def fit(params, opt, obs, targets, n, key):
+    def fit(params, opt, obs, targets, n, key, weights=None):
         def body(carry, k):
             p, s = carry
             k_idx, k_aug = (k, None) if augment is None else jax.random.split(k)
@@ -235,8 +236,9 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
             o = jax.tree_util.tree_map(lambda x: x[idx], obs)
             if augment is not None:
                 o = augment(o, k_aug)
+            w = ones if weights is None else weights[idx]
             value, g = jax.value_and_grad(regression_loss, argnums=1)(apply_fn, p, o,
-                                                                      targets[idx], ones)
+                                                                      targets[idx], w)
             u, s = tx.update(g, s, p)
             return (optax.apply_updates(p, u), s), value
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import functools
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -25,7 +25,37 @@ import numpy as np
 
 from twinrl.learn import trajopt
 
-__all__ = ["initial_guesses", "plan", "save"]
+__all__ = ["Demonstrations", "DemonstrationError", "load_demonstrations", "initial_guesses",
+           "plan", "save"]
+
+
+class DemonstrationError(ValueError):
+    """Missing, malformed or mismatched demonstrations (the CLI prints it as one line)."""
+
+
+class Demonstrations(NamedTuple):
+    keys: np.ndarray
+    """(N, 2) uint32 reset keys of the start states."""
+    actions: np.ndarray
+    """(N, T, m) the optimised action sequences."""
+
+
+def load_demonstrations(path: str | Path, successful_only: bool = True) -> Demonstrations:
+    """Demonstrations from a ``<task>_plans.npz`` (``save``): ``keys``,
+    ``actions`` and ``success``; only the successful plans unless ``successful_only=False``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no demonstration file {path}")
+    with np.load(path) as z:
+        missing = {"keys", "actions"} - set(z.files)
+        if missing:
+            raise DemonstrationError(f"{path} is not a demonstration file: no {sorted(missing)}")
+        keys, actions = np.asarray(z["keys"]), np.asarray(z["actions"], np.float32)
+        keep = (np.asarray(z["success"]) > 0 if successful_only and "success" in z.files
+                else np.ones(len(keys), bool))
+    if not keep.any():
+        raise DemonstrationError(f"{path} holds no successful demonstration")
+    return Demonstrations(keys[keep], actions[keep])
 
 
 def _smooth_noise(key, shape, knots: int = 6, scale: float = 0.15):
