@@ -68,8 +68,9 @@ def test_targets_are_the_actors_return_to_go_with_the_camera_held(peg):
 def test_q_fits_the_targets_and_reports_held_out_ranking(trained):
     cfg, q, q_params, m, rows = trained
     assert len(rows) == 1 and m["pairs"] == [5 * 3 * (T // 2)]
-    for k in ("loss", "val_loss", "rank_corr", "rank_corr_pooled", "target_q_choice", "target_mean_pose",
-              "target_best_pose", "return", "choice_raises_q", "choice_q_gain"):
+    for k in ("loss", "val_loss", "rank_corr", "rank_corr_pooled", "target_q_choice",
+              "target_mean_pose", "target_best_pose", "return", "choice_raises_q",
+              "choice_q_gain"):
         assert np.isfinite(m[k][0]), (k, m)
     assert -1.0 <= m["rank_corr"][0] <= 1.0
     assert 0.0 <= m["choice_raises_q"][0] <= 1.0 and m["choice_q_gain"][0] >= 0.0
