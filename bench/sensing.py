@@ -55,6 +55,9 @@ def main(argv=None) -> int:
     p.add_argument("--actor", nargs="*", default=[], help="TASK=DIR image actor checkpoints")
     p.add_argument("--q", nargs="*", default=[], help="TASK=DIR sensing-aware Q checkpoints")
     p.add_argument("--state-actor", nargs="*", default=[], help="TASK=DIR state actors (oracle)")
+    p.add_argument("--system", nargs="*", default=[],
+                   help="TASK=FILE identified System (a loop round's system.json: its calibrated "
+                        "mount camera); default: the nominal task")
     p.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
@@ -68,9 +71,14 @@ def main(argv=None) -> int:
         raise SystemExit("--episodes must be >= 1 and --seeds must name at least one seed")
     actors, qs = _per_task(args.actor, "--actor"), _per_task(args.q, "--q")
     states = _per_task(args.state_actor, "--state-actor")
+    systems = _per_task(args.system, "--system")
+    for task, path in systems.items():
+        if not path.is_file():
+            raise SystemExit(f"--system {task}={path}: no such file")
     rows, model_free = [], []
     for name in args.tasks:
-        rows += run_task(name, actors.get(name), qs.get(name), states.get(name), args)
+        rows += run_task(name, actors.get(name), qs.get(name), states.get(name), args,
+                         systems.get(name))
         write_json(args.out / "sensing.json", _result(args, rows, model_free))
         if args.model_free_steps > 0:
             sel = [r["success"] for r in rows if r["task"] == name and r["mode"] == "selected"]
@@ -96,7 +104,7 @@ def main(argv=None) -> int:
     return 0
 
 
-def run_task(name, actor_dir, q_dir, state_dir, args) -> list[dict]:
+def run_task(name, actor_dir, q_dir, state_dir, args, system=None) -> list[dict]:
     from twinrl.learn.camera_choice import image_size
     from twinrl.learn.checkpoint import load_policy
     from twinrl.learn.sensing import SensingConfig, load_actor
@@ -104,7 +112,12 @@ def run_task(name, actor_dir, q_dir, state_dir, args) -> list[dict]:
     from twinrl.sense import load_q
     from twinrl.sim2real import active
 
-    env = envs.make(name)
+    if system is not None:
+        from twinrl.envs.system import System
+
+        env = envs.make(name, system=System.load(system))
+    else:
+        env = envs.make(name)
     deployers, size = {}, None
     if actor_dir is not None:
         actor, actor_params, _ = load_actor(actor_dir)
