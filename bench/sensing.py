@@ -112,12 +112,9 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None) -> list[dict]
     from twinrl.sense import load_q
     from twinrl.sim2real import active
 
-    if system is not None:
-        from twinrl.envs.system import System
+    from twinrl.envs.system import System
 
-        env = envs.make(name, system=System.load(system))
-    else:
-        env = envs.make(name)
+    env = envs.make(name, system=None if system is None else System.load(system))
     deployers, size = {}, None
     if actor_dir is not None:
         actor, actor_params, _ = load_actor(actor_dir)

@@ -47,10 +47,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.learn import trajopt
-from twinrl.learn.plans import DemonstrationError, Demonstrations, load_demonstrations
 from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
                                  raw_key, rgb_jitter)
 from twinrl.learn.networks import NetworkConfig, make_network
+from twinrl.learn.plans import DemonstrationError, Demonstrations, load_demonstrations
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
            "demonstration_data", "accurate", "make_observer", "relabel", "train"]

@@ -595,7 +595,7 @@ class ArmTask(Env):
             pose, rms = self.fit_target_pose(joints, cam, depth, mask, with_residual=True)
             out["pose"] = pose
             out["estimate"] = self.observe(*self.estimated_state(joints, pose))
-            out["support"] = jnp.stack([jnp.log1p(jnp.sum(mask)), 1e3 * rms])
+            out["support"] = jnp.stack([out["target"][6], 1e3 * rms])  # the cloud's count
         return out
 
     def estimated_state(self, joints, pose):
