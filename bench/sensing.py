@@ -6,20 +6,34 @@ sensing-aware Q selects, (b) the default fixed camera, (c) a random reachable ca
 Per task and twin seed (``--seeds``: each a hidden perturbation, hand-eye offset included),
 ``--episodes`` real episodes per camera mode from the same start states (reset seeds
 ``1000 * seed + i``). Checkpoints per task, ``TASK=DIR`` (``twinrl train`` run directories):
-``--actor`` the image actor (``--algo imitation --set observation=pixels`` or ``=target``), ``--q`` its
-sensing-aware Q (``--algo sensing``), ``--state-actor`` the state actor (``--algo imitation``)
-for (d). Modes whose checkpoint is missing are left out. Real steps count the steps acting and,
-separately, the steps the camera mount spends moving.
+``--actor`` the image actor (``--algo imitation --set observation=pixels`` or ``=target``),
+``--q`` its sensing-aware Q (``--algo sensing``), ``--state-actor`` the state actor
+(``--algo imitation``) for (d). Modes whose checkpoint is missing are left out. Real steps
+count the steps acting and, separately, the steps the camera mount spends moving.
+
+``--run TASK=DIR`` takes all of these from a ``twinrl run`` (the SAM-RL loop) output directory:
+its last round's actor, Q and identified ``System`` (``--system``: the calibrated mount), and
+the loop's hidden twin: the run's seed and its secret salt (``DIR/eval/twin.json``; ``--secret``).
+The loop's twin is drawn from the seed *and* that salt (``twinrl.real.remote``), so it is not
+the public-seed twin ``--seeds`` names alone: a mount calibrated on one and deployed on the other
+is off by the difference of their hand-eye offsets (centimetres), so ``--system`` without
+``--secret`` is refused.
 
 ``--model-free-steps N`` (needs the ``bench`` extra: sbx-rl) also trains sbx SAC and TD3 on the
 state observation of each task's seed-0 twin for N real steps, evaluating success every
 ``--eval-every`` steps, and reports the real steps each needed to reach the selected camera's
 success (or that it did not within N).
 
-Prints a table and writes ``DIR/sensing.json`` and ``DIR/sensing.png`` (``--out DIR``).
+The selected camera is also compared with the default one episode by episode (``paired``: the
+same start states; the difference with a bootstrap 95 % interval and a sign test), which is the
+spread that one twin seed has. Prints the tables and writes ``DIR/sensing.json`` and
+``DIR/sensing.png`` (``--out DIR``).
 
     python bench/sensing.py --tasks peg_insertion --actor peg_insertion=runs/ia \\
         --q peg_insertion=runs/sq --state-actor peg_insertion=runs/sa --out bench/results
+    twinrl run --env needle_threading --out runs/needle
+    python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle \
+        --episodes 50 --modes selected default random --out bench/results
 """
 
 from __future__ import annotations
@@ -49,6 +63,32 @@ def _per_task(pairs: list[str], flag: str) -> dict[str, Path]:
     return out
 
 
+def _from_runs(runs: dict[str, Path], args) -> None:
+    """Fill the per-task checkpoints, System, secret and seed from ``--run TASK=DIR``."""
+    import json
+
+    for task, d in runs.items():
+        try:
+            summary = json.loads((d / "summary.json").read_text())
+        except (OSError, ValueError) as e:
+            raise SystemExit(f"--run {task}={d}: no finished twinrl run there ({e})") from None
+        if summary.get("env") != task:
+            raise SystemExit(f"--run {task}={d}: that run is on {summary.get('env')!r}")
+        r = summary["final"]["round"]
+        rdir = d / f"round{r}"
+        for flag, key, path in (("--actor", "actor", rdir / "actor"), ("--q", "q", rdir / "q"),
+                                ("--system", "system", rdir / "system.json"),
+                                ("--secret", "secret", d / "eval" / "twin.json")):
+            if key == "q" and not path.exists():
+                continue  # a camera=default loop learns no Q
+            if not path.exists():
+                raise SystemExit(f"--run {task}={d}: {path} is missing")
+            getattr(args, key).append(f"{task}={path}")
+        if args.seeds != [int(summary["seed"])]:
+            print(f"[bench] --run {task}: twin seed {summary['seed']} (the run's)", flush=True)
+        args.seeds = [int(summary["seed"])]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--tasks", nargs="*", default=list(TASKS), choices=TASKS)
@@ -57,7 +97,13 @@ def main(argv=None) -> int:
     p.add_argument("--state-actor", nargs="*", default=[], help="TASK=DIR state actors (oracle)")
     p.add_argument("--system", nargs="*", default=[],
                    help="TASK=FILE identified System (a loop round's system.json: its calibrated "
-                        "mount camera); default: the nominal task")
+                        "mount camera); default: the nominal task; needs --secret")
+    p.add_argument("--secret", nargs="*", default=[],
+                   help="TASK=FILE a run's twin secret (DIR/eval/twin.json): deploy on that "
+                        "run's hidden twin instead of the public-seed twin")
+    p.add_argument("--run", nargs="*", default=[],
+                   help="TASK=DIR a `twinrl run` loop directory: its last round's actor, Q, "
+                        "System, its twin's secret and seed")
     p.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
@@ -67,18 +113,25 @@ def main(argv=None) -> int:
     p.add_argument("--eval-every", type=int, default=5000)
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
+    _from_runs(_per_task(args.run, "--run"), args)
     if args.episodes < 1 or not args.seeds:
         raise SystemExit("--episodes must be >= 1 and --seeds must name at least one seed")
     actors, qs = _per_task(args.actor, "--actor"), _per_task(args.q, "--q")
     states = _per_task(args.state_actor, "--state-actor")
     systems = _per_task(args.system, "--system")
-    for task, path in systems.items():
-        if not path.is_file():
-            raise SystemExit(f"--system {task}={path}: no such file")
+    secrets = _per_task(args.secret, "--secret")
+    for flag, files in (("--system", systems), ("--secret", secrets)):
+        for task, path in files.items():
+            if not path.is_file():
+                raise SystemExit(f"{flag} {task}={path}: no such file")
+    for task in systems:
+        if task not in secrets:
+            raise SystemExit(f"--system {task}=...: give that run's --secret {task}=FILE too "
+                             "(or --run): its calibration belongs to the run's hidden twin")
     rows, model_free = [], []
     for name in args.tasks:
         rows += run_task(name, actors.get(name), qs.get(name), states.get(name), args,
-                         systems.get(name))
+                         systems.get(name), secrets.get(name))
         write_json(args.out / "sensing.json", _result(args, rows, model_free))
         if args.model_free_steps > 0:
             sel = [r["success"] for r in rows if r["task"] == name and r["mode"] == "selected"]
@@ -92,6 +145,14 @@ def main(argv=None) -> int:
     print_table(f"real-twin success ({args.episodes} episodes x {len(args.seeds)} seeds)", cols,
                 [[t[c] for c in ("task", "mode", "success", "sd", "return", "real_steps",
                                  "camera_steps", "wall_s")] for t in table])
+    pairs = paired(rows)
+    if pairs:
+        print_table("selected against default camera, paired episodes (same start states)",
+                    ["task", "episodes", "difference", "95 % interval", "only selected solved",
+                     "only default solved", "sign test p"],
+                    [[x["task"], x["episodes"], f"{100 * x['difference']:+.0f} points",
+                      f"{100 * x['ci95'][0]:+.0f} .. {100 * x['ci95'][1]:+.0f}", x["only_a"],
+                      x["only_b"], f"{x['sign_test_p']:.3f}"] for x in pairs])
     if model_free:
         print_table("model-free on the real twin (state observation)",
                     ["task", "algo", "target success", "steps to target", "best success",
@@ -104,10 +165,11 @@ def main(argv=None) -> int:
     return 0
 
 
-def run_task(name, actor_dir, q_dir, state_dir, args, system=None) -> list[dict]:
+def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None) -> list[dict]:
     from twinrl.learn.camera_choice import image_size
     from twinrl.learn.checkpoint import load_policy
     from twinrl.learn.sensing import SensingConfig, load_actor
+    from twinrl.real.remote import hidden_perturbation
     from twinrl.real.twin import RealTwin
     from twinrl.sense import load_q
     from twinrl.sim2real import active
@@ -135,7 +197,9 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None) -> list[dict]
         return []
     rows = []
     for seed in args.seeds:
-        twin = RealTwin(name, seed=seed, width=size or 64, height=size or 64)
+        hidden = None if secret is None else hidden_perturbation(name, seed, secret)
+        twin = RealTwin(name, seed=seed, perturbation=hidden, width=size or 64,
+                        height=size or 64)
         for mode, dep in deployers.items():
             cfg = active.DeployConfig(camera=mode, episodes=args.episodes,
                                       restarts=args.restarts, ascent_steps=args.ascent_steps)
@@ -169,6 +233,40 @@ def summarise(rows: list[dict]) -> list[dict]:
                         "real_steps": int(sum(r["real_steps"] for r in sel)),
                         "camera_steps": int(sum(r["camera_steps"] for r in sel)),
                         "wall_s": float(sum(r["wall_s"] for r in sel))})
+    return out
+
+
+def paired(rows: list[dict], a: str = "selected", b: str = "default", n_boot: int = 10_000,
+           seed: int = 0) -> list[dict]:
+    """Per task, mode ``a`` against ``b`` on the same start states (same twin seed, same reset
+    seed): the success difference, its 95 % interval by a bootstrap over the paired episodes,
+    the episodes only ``a`` / only ``b`` solved, and the exact sign test's two-sided p on
+    those (McNemar's)."""
+    from scipy.stats import binomtest
+
+    out = []
+    for task in dict.fromkeys(r["task"] for r in rows):
+        pairs = []
+        for ra in (r for r in rows if r["task"] == task and r["mode"] == a):
+            rb = next((r for r in rows if r["task"] == task and r["mode"] == b
+                       and r["seed"] == ra["seed"]), None)
+            if rb is None:
+                continue
+            # episode i of either mode reset with seed ``episodes["seed"] + i``
+            ea, eb = ra["episodes"], rb["episodes"]
+            if ea["seed"] == eb["seed"]:
+                pairs += [(float(x), float(y)) for x, y in zip(ea["success"], eb["success"])]
+        if not pairs:
+            continue
+        d = np.array([x - y for x, y in pairs])
+        boot = np.random.default_rng(seed).choice(d, (n_boot, d.size)).mean(axis=1)
+        wins, losses = int(np.sum(d > 0)), int(np.sum(d < 0))
+        out.append({"task": task, "a": a, "b": b, "episodes": int(d.size),
+                    "difference": float(d.mean()),
+                    "ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))],
+                    "only_a": wins, "only_b": losses,
+                    "sign_test_p": float(binomtest(wins, wins + losses).pvalue)
+                    if wins + losses else 1.0})
     return out
 
 
@@ -254,8 +352,8 @@ def _plot(path: Path, table: list[dict]) -> None:
 
 
 def _result(args, rows, model_free) -> dict:
-    return {"meta": run_meta(args), "table": summarise(rows), "rows": rows,
-            "model_free": model_free}
+    return {"meta": run_meta(args), "table": summarise(rows), "paired": paired(rows),
+            "rows": rows, "model_free": model_free}
 
 
 
