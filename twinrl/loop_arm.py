@@ -196,14 +196,8 @@ def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
     from twinrl.render import Camera
 
     env = run.nominal_env
-    first = np.flatnonzero(np.asarray(data.episode_id) < run.K)
-    idx = first[np.unique(np.linspace(0, first.size - 1, run.config.calibration_frames)
-                          .round().astype(int))]
-    frames = [{"rgb": data.images["rgb"][i], "depth": data.images["depth"][i],
-               "segmentation": data.images["segmentation"][i],
-               "qpos": np.asarray(env.state_from_obs(np.asarray(data.next_obs[i],
-                                                                np.float32))[0])}
-              for i in idx]
+    frames = visual.frames_from_dataset(run.env_name, data, run.config.calibration_frames,
+                                        episodes=range(run.K))
     model = env.sim.mj_model
     frames = visual.check_frames(frames, model.nq)
     H, W = frames[0]["depth"].shape

@@ -135,3 +135,32 @@ def test_visual_errors_against_the_twins_truth():
     assert abs(err["object_pos_err_mm"] - 2.0) < 1e-6
     assert abs(err["object_size_err_pct"] - 3.0) < 1e-4
     assert abs(err["object_colour_err_255"] - 5.0) < 1e-3
+
+
+def test_frames_from_dataset_spreads_over_the_chosen_episodes(tmp_path):
+    # 3 episodes of 4 steps on push; the frames come from episode 1 alone, spread over it, each
+    # with the qpos of the state its image shows (next_obs), and a wrong episode is refused
+    from twinrl.real.dataset import DatasetWriter
+
+    rng = np.random.default_rng(0)
+    shapes = {"rgb": (4, 5, 3), "depth": (4, 5), "segmentation": (4, 5)}
+    next_obs = []
+    with DatasetWriter(tmp_path / "ds", env="push", obs_shape=(12,), action_shape=(2,),
+                       image_shapes=shapes) as w:
+        for ep in range(3):
+            for t in range(4):
+                nxt = rng.normal(size=12)
+                next_obs.append(nxt)
+                images = {"rgb": np.full((4, 5, 3), 10 * ep + t, np.uint8),
+                          "depth": np.full((4, 5), 1.0 + t),
+                          "segmentation": np.zeros((4, 5), np.int32)}
+                w.add(rng.normal(size=12), [0.0, 0.0], 0.0, nxt, False, t == 3, images=images)
+    frames = V.frames_from_dataset("push", tmp_path / "ds", n=3, episodes=[1])
+    assert [int(f["rgb"][0, 0, 0]) for f in frames] == [10, 12, 13]
+    for f, row in zip(frames, (4, 6, 7)):
+        np.testing.assert_allclose(f["qpos"], V.state_from_obs("push", next_obs[row]))
+    assert len(V.frames_from_dataset("push", tmp_path / "ds", n=12)) == 12
+    with pytest.raises(ValueError, match="no rows of episodes"):
+        V.frames_from_dataset("push", tmp_path / "ds", episodes=[7])
+    with pytest.raises(ValueError, match="recorded on 'push'"):
+        V.frames_from_dataset("cartpole_swingup", tmp_path / "ds")

@@ -127,26 +127,41 @@ class VisualConfig:
 def state_from_obs(env_name: str, obs: np.ndarray) -> np.ndarray:
     """The ``qpos`` of a registered task's (noisy) observation, where the observation determines
     it (box height and tilt of ``push`` are taken at rest on the floor)."""
-    o = np.asarray(obs, np.float64)
+    return _state_map(env_name)(obs)
+
+
+def _state_map(env_name: str):
+    """``obs -> qpos`` of ``state_from_obs``, the task made once (an arm task's
+    ``Env.state_from_obs``)."""
     if env_name.startswith("cartpole"):
-        return np.array([o[0], np.arctan2(o[2], o[1])])
+        return lambda o: np.array([o[0], np.arctan2(o[2], o[1])], np.float64)
     if env_name == "pendulum_swingup":
-        return np.array([np.arctan2(o[1], o[0])])
+        return lambda o: np.array([np.arctan2(o[1], o[0])], np.float64)
     if env_name == "push":
-        yaw = np.arctan2(o[7], o[6])
-        return np.array([o[0], o[1], o[4], o[5], 0.05, np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)])
+        def push(o):
+            yaw = np.arctan2(o[7], o[6])
+            return np.array([o[0], o[1], o[4], o[5], 0.05, np.cos(yaw / 2), 0, 0,
+                             np.sin(yaw / 2)], np.float64)
+        return push
     from twinrl import envs
 
-    try:  # tasks whose observation fixes the pose (the arm tasks: Env.state_from_obs)
-        return np.asarray(envs.make(env_name).state_from_obs(o.astype(np.float32))[0],
-                          np.float64)
-    except NotImplementedError:
-        raise ValueError(f"no observation-to-state map for task {env_name!r}; pass frames with "
-                         "'qpos' instead") from None
+    env = envs.make(env_name)
+
+    def arm(o):
+        try:  # tasks whose observation fixes the pose (the arm tasks: Env.state_from_obs)
+            q = env.state_from_obs(np.asarray(o, np.float32))[0]
+        except NotImplementedError:
+            raise ValueError(f"no observation-to-state map for task {env_name!r}; pass frames "
+                             "with 'qpos' instead") from None
+        return np.asarray(q, np.float64)
+    return arm
 
 
-def frames_from_dataset(env_name: str, dataset, n: int = 12, seed: int = 0) -> list[dict]:
-    """``n`` frames evenly spread over a dataset recorded with ``twinrl collect --images``."""
+def frames_from_dataset(env_name: str, dataset, n: int = 12, seed: int = 0,
+                        episodes: Sequence[int] | None = None) -> list[dict]:
+    """``n`` frames evenly spread over a dataset recorded with ``twinrl collect --images`` (over
+    the rows of ``episodes`` only, when given: e.g. the loop's round-0 episodes, recorded with
+    the mount at its default pose)."""
     from twinrl.real.dataset import Dataset, read
 
     ds = dataset if isinstance(dataset, Dataset) else read(dataset)
@@ -154,16 +169,21 @@ def frames_from_dataset(env_name: str, dataset, n: int = 12, seed: int = 0) -> l
     if missing:
         raise ValueError(f"dataset {ds.path} has no {sorted(missing)} images: record it with "
                          "`twinrl collect --images`")
-    if len(ds) == 0:
-        raise ValueError(f"dataset {ds.path} is empty")
     if ds.meta.get("env") not in (None, env_name):
         raise ValueError(f"dataset {ds.path} was recorded on {ds.meta.get('env')!r}, "
                          f"not {env_name!r}")
-    idx = np.unique(np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int))
+    rows = np.arange(len(ds))
+    if episodes is not None:
+        rows = rows[np.isin(np.asarray(ds.episode_id), np.asarray(list(episodes)))]
+    if rows.size == 0:
+        raise ValueError(f"dataset {ds.path} is empty" if episodes is None else
+                         f"dataset {ds.path} has no rows of episodes {list(episodes)}")
+    idx = rows[np.unique(np.linspace(0, rows.size - 1, min(n, rows.size)).round().astype(int))]
+    to_qpos = _state_map(env_name)
     # images are rendered after the step: they show next_obs's state
     return [{"rgb": ds.images["rgb"][i], "depth": ds.images["depth"][i],
              "segmentation": ds.images["segmentation"][i],
-             "qpos": state_from_obs(env_name, ds.next_obs[i])} for i in idx]
+             "qpos": to_qpos(np.asarray(ds.next_obs[i], np.float64))} for i in idx]
 
 
 def check_frames(frames: Sequence[Mapping[str, Any]], nq: int) -> list[dict]:
