@@ -28,8 +28,13 @@ def x64():
 # Longest files first (fresh clone, cold cache, 2 workers: each of these took 65-270 s). xdist's
 # --dist loadfile hands files out in collection order, so the long ones start early and the short
 # ones fill the gaps at the end instead of one worker finishing a long file alone.
-_LONG_FIRST = ("physics/test_foreign_arm.py", "physics/test_foreign_cylinder.py",
-               "physics/test_foreign_contact.py", "physics/test_gradcheck.py", "learn/test_pods.py", "cli/test_train_cli.py",
+# learn/test_sensing.py alone took 12 min (fresh clone, 2026-11-24): started last, one worker ran
+# it while the other idled, and the suite took 27 min; its deployment half is its own file now.
+_LONG_FIRST = ("learn/test_sensing.py", "learn/test_sensing_deploy.py", "test_loop_arm.py",
+               "learn/test_imitation.py",
+               "physics/test_foreign_arm.py", "physics/test_foreign_cylinder.py",
+               "physics/test_foreign_contact.py", "physics/test_gradcheck.py",
+               "learn/test_pods.py", "cli/test_train_cli.py",
                "physics/test_solver.py", "envs/test_envs.py", "envs/test_ppo.py",
                "real2sim/test_sysid.py", "cli/test_cli.py", "learn/test_hds.py",
                "sim2real/test_hybrid_residual.py", "learn/test_shac.py",

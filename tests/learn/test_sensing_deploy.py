@@ -1,0 +1,132 @@
+"""Deployment with active sensing on a real twin (``twinrl.sim2real.active``), short peg
+insertion: the real mount image is the simulator's view of the read state, the deployer moves
+the camera to Q's choice and counts the moves, and a state expert deploys as ``oracle``.
+
+Apart from ``test_sensing.py`` so that the two files run on both test workers. The Q here is
+untrained: what is checked is the deployment's mechanics (Q's choice never below the default
+pose's Q by the hard image, camera steps counted), which any Q must get right.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from twinrl import envs
+from twinrl.learn import sensing
+from twinrl.learn.networks import Network, NetworkConfig, make_network
+
+T, PIX = 6, 16
+
+
+@pytest.fixture(scope="module")
+def peg():
+    env = envs.make("peg_insertion", episode_length=T)
+    spec = {"state": (14,), "pixels/mount": (PIX, PIX, 5)}
+    actor = make_network(spec, env.action_size, NetworkConfig(hidden=(16,), output="tanh"))
+    return env, actor, actor.init(jax.random.PRNGKey(0))
+
+
+@pytest.fixture(scope="module")
+def trained(peg):
+    """A sensing Q of the actor, initialised at random (its fit is ``test_sensing.py``'s)."""
+    env, actor, _ = peg
+    cfg = sensing.SensingConfig(hidden=(32,), restarts=2, ascent_steps=3)
+    q = sensing.make_q(actor, env.action_size, cfg)
+    return cfg, q, q.init(jax.random.PRNGKey(7)), None, None
+
+
+@pytest.fixture(scope="module")
+def twin():
+    from twinrl.real.perturbation import Perturbation
+    from twinrl.real.twin import RealTwin
+
+    t = RealTwin("peg_insertion", perturbation=Perturbation.none(), width=PIX, height=PIX,
+                 config={"episode_length": T})
+    yield t
+    t.close()
+
+
+def test_real_image_observation_is_the_simulators_view_of_the_read_state(peg, twin):
+    """What the image actor sees on the (unperturbed) real twin -- OpenGL RGB, depth and the
+    segmentation's target mask -- is what the simulator renders of the state read off the twin's
+    observation (``state_from_obs``), at an arbitrary mount pose."""
+    from twinrl.sim2real import active
+
+    env, _, _ = peg
+    obs, _ = twin.reset(seed=2)
+    coords = np.array([0.8, -0.5, 0.3])
+    twin.move_camera(coords)
+    real = active.real_image_observation(twin, env, obs, PIX)
+    sim = jax.jit(lambda o, c: env.image_observation(active.sim_state(env, o), c, size=PIX))(
+        jnp.asarray(obs), jnp.asarray(coords, jnp.float32))
+    np.testing.assert_allclose(real["state"], np.asarray(sim["state"]), atol=1e-6)
+    r, s = real["pixels/mount"], np.asarray(sim["pixels/mount"])
+    assert np.mean(np.abs(r[..., 3] - s[..., 3])) < 1e-3  # depth, m
+    assert np.mean(r[..., 4] == s[..., 4]) >= 0.97 and r[..., 4].sum() >= 3  # the target's mask
+    assert np.mean(np.abs(r[..., :3] - s[..., :3])) < 0.1  # RGB: shading differs (measured 0.06)
+    # the target cloud (mean, spread, log count) from the commanded pose: the same numbers
+    np.testing.assert_allclose(real["target"][:6], np.asarray(sim["target"])[:6], atol=2e-3)
+    assert abs(real["target"][6] - float(sim["target"][6])) < 0.15
+    with pytest.raises(ValueError, match="renders 16x16; the actor needs 32x32"):
+        active.real_image_observation(twin, env, obs, 32)
+
+
+def test_deployment_moves_the_camera_to_qs_choice_and_counts_the_moves(peg, trained, twin):
+    from twinrl.learn.camera_choice import q_value
+    from twinrl.sim2real import active
+
+    env, actor, actor_params = peg
+    cfg, q, q_params, _, _ = trained
+    dep = active.Deployer(env, actor, actor_params, q=q, q_params=q_params, sensing=cfg)
+    twin.move_camera(env.mount.default)
+    res = dep.run(twin, active.DeployConfig(camera="selected", episodes=2, reselect_every=4),
+                  seed=5)
+    assert res["steps"] == [T, T] and res["choices"] == [2, 2]
+    assert len(res["success"]) == 2 and set(res["success"]) <= {0.0, 1.0}
+    first = np.asarray(res["coords"][0])
+    # the first choice is Q's best by its hard image, never below the default pose's Q
+    obs, _ = twin.reset(seed=5)
+    state = active.sim_state(env, jnp.asarray(obs))
+    hard = lambda c: env.image_observation(state, jnp.asarray(c, jnp.float32), size=PIX)  # noqa
+    value = lambda c: float(q_value(q, q_params, hard(c), actor.apply(actor_params, hard(c))))
+    assert value(first) >= value(env.mount.default) - 1e-5
+    assert res["camera_steps"][0] >= env.mount.steps_to_move(env.mount.default, first)
+    # the fixed camera never moves; a random one moves as far as the mount says
+    twin.move_camera(env.mount.default)
+    fixed = dep.run(twin, active.DeployConfig(camera="default", episodes=2))
+    assert fixed["camera_steps"] == [0, 0] and fixed["choices"] == [1, 1]
+    rand = dep.run(twin, active.DeployConfig(camera="random", episodes=2), seed=1)
+    a, b = (np.asarray(c) for c in rand["coords"])
+    assert rand["camera_steps"][1] == env.mount.steps_to_move(a, b) and not np.allclose(a, b)
+    with pytest.raises(ValueError, match="needs the sensing-aware Q"):
+        active.Deployer(env, actor, actor_params).run(twin, active.DeployConfig(episodes=1))
+    with pytest.raises(ValueError, match="deploys a state policy"):
+        dep.run(twin, active.DeployConfig(camera="oracle", episodes=1))
+    with pytest.raises(ValueError, match="camera must be one of"):
+        active.DeployConfig(camera="best")
+
+
+def test_oracle_deployment_of_a_state_expert_succeeds_on_the_real_twin():
+    """``camera="oracle"``: a state policy on the twin's observation; the scripted peg expert
+    (in JAX) inserts the peg on the unperturbed twin, and the deployment says so."""
+    from twinrl.real.perturbation import Perturbation
+    from twinrl.real.twin import RealTwin
+    from twinrl.sim2real import active
+
+    env = envs.make("peg_insertion")
+    step = env.controller.max_step
+
+    def expert(_, obs):
+        d = obs[20:23]
+        lateral = jnp.hypot(d[0], d[1]) < 0.004
+        a = jnp.concatenate([-d[:2] / step, jnp.where(lateral, -1.0, (0.08 - d[2]) / step)[None]])
+        return jnp.clip(a, -1.0, 1.0)
+
+    policy = Network(init=lambda k: {}, apply=expert, in_size=env.observation_size, out_size=3,
+                     config=NetworkConfig(), obs_spec=env.observation_size)
+    real = RealTwin("peg_insertion", perturbation=Perturbation.none())
+    res = active.deploy(env, real, policy, {}, active.DeployConfig(camera="oracle", episodes=2))
+    real.close()
+    assert res["success"] == [1.0, 1.0] and res["camera_steps"] == [0, 0]
+    assert res["steps"] == [env.episode_length] * 2 and res["choices"] == [0, 0]
