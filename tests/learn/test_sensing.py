@@ -19,15 +19,12 @@ from twinrl.learn import sensing
 from twinrl.learn.checkpoint import save_policy
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
-T, PIX = 6, 16
+from tests.learn._peg import PIX, T, peg_image_actor
 
 
 @pytest.fixture(scope="module")
 def peg():
-    env = envs.make("peg_insertion", episode_length=T)
-    spec = {"state": (14,), "pixels/mount": (PIX, PIX, 5)}
-    actor = make_network(spec, env.action_size, NetworkConfig(hidden=(16,), output="tanh"))
-    return env, actor, actor.init(jax.random.PRNGKey(0))
+    return peg_image_actor()
 
 
 @pytest.fixture(scope="module")
@@ -133,7 +130,7 @@ def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoint
     cfg = cfg.__class__(**{**cfg.to_dict(), "actor": str(tmp_path / "actor")})
     save_policy(tmp_path / "q" / "policy", q, q_params, algo="sensing", env="peg_insertion",
                 config=cfg)
-    s = sense_cmd.sense("peg_insertion", tmp_path / "q", tmp_path / "out", seed=1, grid=(4, 3))
+    sense_cmd.sense("peg_insertion", tmp_path / "q", tmp_path / "out", seed=1, grid=(4, 3))
     import imageio.v3 as iio
 
     assert iio.imread(tmp_path / "out" / "sense.png").shape[1] > 1000

@@ -14,17 +14,14 @@ import pytest
 
 from twinrl import envs
 from twinrl.learn import sensing
-from twinrl.learn.networks import Network, NetworkConfig, make_network
+from twinrl.learn.networks import Network, NetworkConfig
 
-T, PIX = 6, 16
+from tests.learn._peg import PIX, T, peg_image_actor
 
 
 @pytest.fixture(scope="module")
 def peg():
-    env = envs.make("peg_insertion", episode_length=T)
-    spec = {"state": (14,), "pixels/mount": (PIX, PIX, 5)}
-    actor = make_network(spec, env.action_size, NetworkConfig(hidden=(16,), output="tanh"))
-    return env, actor, actor.init(jax.random.PRNGKey(0))
+    return peg_image_actor()
 
 
 @pytest.fixture(scope="module")
