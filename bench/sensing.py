@@ -166,6 +166,7 @@ def main(argv=None) -> int:
 
 
 def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None) -> list[dict]:
+    from twinrl.envs.system import System
     from twinrl.learn.camera_choice import image_size
     from twinrl.learn.checkpoint import load_policy
     from twinrl.learn.sensing import SensingConfig, load_actor
@@ -173,8 +174,6 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None) 
     from twinrl.real.twin import RealTwin
     from twinrl.sense import load_q
     from twinrl.sim2real import active
-
-    from twinrl.envs.system import System
 
     env = envs.make(name, system=None if system is None else System.load(system))
     deployers, size = {}, None
