@@ -559,19 +559,20 @@ class ArmTask(Env):
         return self.renderer.render(cam, Geoms.from_mjx(model, data), tau=tau)
 
     def image_observation(self, state, coords: jax.Array | None = None, *, size: int | None = None,
-                          tau: float = 0.0) -> dict:
+                          tau: float = 0.0, keys=None) -> dict:
         """What a robot has (``observation_from_image``) when the simulator renders ``state`` from
         the mount at ``coords``: the target mask is the target geoms' share of each pixel (the
         renderer's coverage: the hard 0/1 mask at ``tau == 0``, soft and differentiable in the
         pose at ``tau > 0``). The image actor's and the sensing Q's observation
-        (``twinrl.learn.imitation``, ``twinrl.learn.sensing``)."""
+        (``twinrl.learn.imitation``, ``twinrl.learn.sensing``). ``keys``: only these entries
+        (``observation_from_image``)."""
         coords = jnp.asarray(self.mount.default if coords is None else coords, jnp.float32)
         img = self.render(state, coords, tau=tau, size=size)
         mask = jnp.sum(img.weights[..., self._target_columns], axis=-1)
         return self.observation_from_image(state.obs[:2 * N_JOINTS], coords, img.rgb, img.depth,
-                                           mask)
+                                           mask, keys=keys)
 
-    def observation_from_image(self, joints, coords, rgb, depth, mask) -> dict:
+    def observation_from_image(self, joints, coords, rgb, depth, mask, keys=None) -> dict:
         """The image observation's layout, one for the simulator's renders and the real camera's
         frames (``twinrl.sim2real.active``): ``{"state": joint angles and velocities (14,),
         "camera": the commanded pose as fractions (3,) of the mount's azimuth, elevation and
@@ -584,19 +585,27 @@ class ArmTask(Env):
         and "support": how much the fit stands on (2,): log(1 + target pixels) and the fit's RMS
         distance (mm) of those pixels' points from the fitted surfaces (the last three for tasks
         with ``target_joints`` only)}``. The camera is the mount's, hand-eye
-        calibration included. Under ``jax.jit`` only the keys a caller reads are computed."""
+        calibration included. ``keys``: only these entries, and only their work traced (the pose
+        fit is most of it); default all."""
         n = depth.shape[0]
         pixels = jnp.concatenate([rgb, depth[..., None], mask[..., None]], axis=-1)
         cam = self.mount.camera(coords, n, n)
         out = {"state": joints, "camera": jax.nn.sigmoid(coords), "pixels/mount": pixels,
                "tool": self.tool_point(joints[:N_JOINTS]),
                "target": target_cloud(cam, depth, mask)}
-        if self.target_joints:
+        fitted = ("pose", "estimate", "support")
+        if self.target_joints and (keys is None or any(k in keys for k in fitted)):
             pose, rms = self.fit_target_pose(joints, cam, depth, mask, with_residual=True)
             out["pose"] = pose
             out["estimate"] = self.observe(*self.estimated_state(joints, pose))
             out["support"] = jnp.stack([out["target"][6], 1e3 * rms])  # the cloud's count
-        return out
+        if keys is None:
+            return out
+        missing = [k for k in keys if k not in out]
+        if missing:
+            raise KeyError(f"{self.name}'s image observation has no {missing}; it has "
+                           f"{sorted(out)}")
+        return {k: out[k] for k in keys}
 
     def estimated_state(self, joints, pose):
         """``(qpos, qvel)`` of the measured arm (``joints``: 7 angles, 7 velocities) and the
@@ -639,12 +648,18 @@ class ArmTask(Env):
         sw = jnp.sqrt(w / jnp.maximum(jnp.sum(w), 1e-3))
         gid = self.target_geom_ids
         types = np.asarray(self.sim.mj_model.geom_type)[gid]
+        size = jnp.asarray(model.geom_size, dt)[gid]
+        chain = self._target_chain
 
-        def geoms(x):
-            return Geoms.from_mjx(model, self.sim.init(self.estimated_state(joints, x)[0]))
+        def poses(x):  # the target geoms' (xpos, xmat): their own chain, or all of mjx's
+            qpos = self.estimated_state(joints, x)[0]
+            if chain.supports:
+                return chain(model, qpos)
+            g = Geoms.from_mjx(model, self.sim.init(qpos))
+            return g.xpos[gid], g.xmat[gid]
 
         def centroid(x):
-            return jnp.mean(geoms(x).xpos[gid], 0)
+            return jnp.mean(poses(x)[0], 0)
 
         eye = jnp.eye(idx.size, dtype=dt)
         x = jnp.zeros(idx.size, dt)
@@ -653,9 +668,9 @@ class ArmTask(Env):
         x = jnp.linalg.solve(Jc.T @ Jc + 1e-6 * eye, Jc.T @ (mean - centroid(x)))
 
         def resid(x):  # the signed distance to the union of the target geoms
-            g = geoms(x)
-            d = jnp.stack([primitives.sdf(int(t), (pts - g.xpos[i]) @ g.xmat[i], g.size[i])
-                           for i, t in zip(gid, types)], -1)
+            xpos, xmat = poses(x)
+            d = jnp.stack([primitives.sdf(int(t), (pts - xpos[i]) @ xmat[i], size[i])
+                           for i, t in enumerate(types)], -1)
             return sw * huber_residual(jnp.min(d, -1), huber)
 
         def step(_, x):
@@ -687,6 +702,14 @@ class ArmTask(Env):
         """MuJoCo geom ids of ``target_geoms`` (NumPy: built inside a trace, a cached jax array
         would leak it)."""
         return np.asarray([self.sim.mj_model.geom(g).id for g in self.target_geoms])
+
+    @functools.cached_property
+    def _target_chain(self):
+        """The target geoms' poses from their own chain's joints (``twinrl.physics.chain``):
+        a pose fit traces it in milliseconds where ``mjx.kinematics`` takes seconds."""
+        from twinrl.physics.chain import GeomChain
+
+        return GeomChain(self.sim.mj_model, self.target_geom_ids)
 
     @functools.cached_property
     def _target_columns(self) -> np.ndarray:
