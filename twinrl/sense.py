@@ -67,7 +67,8 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     chosen = np.asarray(sel.coords, np.float64)
     default = np.asarray(mount.default, np.float64)
     sph = functools.partial(_spherical, mount)
-    big = jax.jit(lambda c: env.image_observation(state, c, size=160)["pixels/mount"])
+    big = jax.jit(lambda c: env.image_observation(state, c, size=160,
+                                                  keys=("pixels/mount",))["pixels/mount"])
     images = {}
     for name, c in (("default", default), ("chosen", chosen)):
         px = np.asarray(big(jnp.asarray(c, jnp.float32)))
@@ -75,7 +76,7 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     pixels = {k: int(v[1].sum()) for k, v in images.items()}
     out.mkdir(parents=True, exist_ok=True)
     _plot_sense(out / "sense.png", env, az, el, vals, sel, images, env_name)
-    observe = jax.jit(observer(env, image_size(env, actor)))
+    observe = jax.jit(observer(env, image_size(env, actor), keys=("pixels/mount",)))
     small = [np.asarray(observe(state, jnp.asarray(c, jnp.float32))["pixels/mount"][..., :3])
              for c in (default, chosen)]
     import imageio.v3 as iio

@@ -41,9 +41,9 @@ def observer(env, image_size: int, tau: float = 0.0, keys=None) -> Callable:
     soft in the pose when ``tau > 0``."""
     if keys is None:
         return lambda s, coords: env.image_observation(s, coords, size=int(image_size), tau=tau)
-    keys = tuple(keys)  # only what the networks read is computed (the pose fit costs)
-    return lambda s, coords: {k: v for k, v in env.image_observation(
-        s, coords, size=int(image_size), tau=tau).items() if k in keys}
+    keys = tuple(keys)  # only what the networks read is traced (the pose fit costs)
+    return lambda s, coords: env.image_observation(s, coords, size=int(image_size), tau=tau,
+                                                   keys=keys)
 
 
 def observed_keys(actor: Network, q: Network) -> tuple[str, ...]:

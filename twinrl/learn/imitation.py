@@ -127,8 +127,7 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
         spec["camera"] = (3,)
 
     def observe(s, coords):  # only the keys the actor reads: the data set stores no others
-        o = env.image_observation(s, coords, size=n)
-        return {k: o[k] for k in spec}
+        return env.image_observation(s, coords, size=n, keys=tuple(spec))
 
     return observe, spec
 

@@ -88,8 +88,7 @@ def _from_image(env, keys=None):
     runs every real step)."""
     if keys is None:
         return jax.jit(env.observation_from_image)
-    return jax.jit(lambda *a: {k: v for k, v in env.observation_from_image(*a).items()
-                               if k in keys})
+    return jax.jit(lambda *a: env.observation_from_image(*a, keys=keys))
 
 
 def sim_state(env, obs: jax.Array):
