@@ -20,9 +20,10 @@ is off by the difference of their hand-eye offsets (centimetres), so ``--system`
 ``--secret`` is refused.
 
 ``--model-free-steps N`` (needs the ``bench`` extra: sbx-rl) also trains sbx SAC and TD3 on the
-state observation of each task's seed-0 twin for N real steps, evaluating success every
-``--eval-every`` steps, and reports the real steps each needed to reach the selected camera's
-success (or that it did not within N).
+state observation of each task's first ``--seeds`` twin (the run's own with ``--run``) for N
+real steps, evaluating success every ``--eval-every`` steps, and reports the real steps each
+needed to reach the selected camera's success, or ``--model-free-target`` (or that it did not
+within N).
 
 The selected camera is also compared with the default one episode by episode (``paired``: the
 same start states; the difference with a bootstrap 95 % interval and a sign test), which is the
@@ -110,6 +111,8 @@ def main(argv=None) -> int:
     p.add_argument("--restarts", type=int, default=None, help="ascents per choice (default: Q's)")
     p.add_argument("--ascent-steps", type=int, default=None)
     p.add_argument("--model-free-steps", type=int, default=0)
+    p.add_argument("--model-free-target", type=float, default=None,
+                   help="success SAC/TD3 must reach (default: the selected camera's here)")
     p.add_argument("--eval-every", type=int, default=5000)
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
@@ -135,9 +138,11 @@ def main(argv=None) -> int:
         write_json(args.out / "sensing.json", _result(args, rows, model_free))
         if args.model_free_steps > 0:
             sel = [r["success"] for r in rows if r["task"] == name and r["mode"] == "selected"]
-            target = float(np.mean(sel)) if sel else 0.8
+            target = (args.model_free_target if args.model_free_target is not None
+                      else float(np.mean(sel)) if sel else 0.8)
             for algo in ("td3", "sac"):
-                model_free.append(train_model_free(algo, name, target, args))
+                model_free.append(train_model_free(algo, name, target, args,
+                                                   secrets.get(name)))
                 write_json(args.out / "sensing.json", _result(args, rows, model_free))
     table = summarise(rows)
     cols = ["task", "mode", "success", "spread (sd over seeds)", "return", "real steps",
@@ -269,21 +274,26 @@ def paired(rows: list[dict], a: str = "selected", b: str = "default", n_boot: in
     return out
 
 
-def train_model_free(algo: str, task: str, target: float, args) -> dict:
-    """sbx ``algo`` on the seed-0 real twin's state observation for ``--model-free-steps``; the
-    real steps at which its deterministic policy first reached ``target`` success."""
+def train_model_free(algo: str, task: str, target: float, args, secret=None) -> dict:
+    """sbx ``algo`` on the real twin's state observation for ``--model-free-steps``: the first
+    ``--seeds``' twin, with the run's secret salt when given (``--run``/``--secret``: the twin the
+    loop learned on); the real steps at which its deterministic policy first reached ``target``
+    success (10 episodes from reset seeds 10,000+)."""
     from sim2real import LEARNING_STARTS, TD3_NOISE_SD, import_sbx
+    from twinrl.real.remote import hidden_perturbation
     from twinrl.real.twin import RealTwin
 
     sbx, BaseCallback, NormalActionNoise = import_sbx()
-    twin = RealTwin(task, seed=0)
+    seed = int(args.seeds[0])
+    hidden = None if secret is None else hidden_perturbation(task, seed, secret)
+    twin = RealTwin(task, seed=seed, perturbation=hidden)
     nu = twin.action_space.shape[0]
     kw = ({"action_noise": NormalActionNoise(np.zeros(nu), TD3_NOISE_SD * np.ones(nu))}
           if algo == "td3" else {})
     model = getattr(sbx, algo.upper())("MlpPolicy", twin, learning_starts=LEARNING_STARTS,
                                        seed=0, **kw)
     env, curve, t0 = twin.task, [], time.perf_counter()
-    evaluator = RealTwin(task, seed=0)
+    evaluator = RealTwin(task, seed=seed, perturbation=hidden)
 
     def success_rate() -> float:
         wins = 0.0
@@ -311,7 +321,8 @@ def train_model_free(algo: str, task: str, target: float, args) -> dict:
     twin.close()
     evaluator.close()
     reached = next((c["real_steps"] for c in curve if c["success"] >= target), None)
-    return {"task": task, "algo": algo, "target": target, "steps_to_target": reached,
+    return {"task": task, "algo": algo, "twin_seed": seed, "secret": secret is not None,
+            "target": target, "steps_to_target": reached,
             "best_success": max((c["success"] for c in curve), default=0.0),
             "real_steps_trained": int(model.num_timesteps), "curve": curve,
             "wall_s": time.perf_counter() - t0}

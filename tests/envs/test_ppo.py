@@ -2,11 +2,13 @@
 
 ``brax.training.agents.ppo.train.train`` wraps our ``Env`` with Brax's ``wrap`` (vmap, episode,
 auto-reset), so this is the compatibility test of the ``Env``/``State`` contract: ``push``
-(contacts, 2-D action) and the three arm tasks (the Cartesian controller inside ``step``) at tiny
-settings (8 environments, 20-step episodes, 640 environment steps),
-where only the contract is checked, and ``cartpole_balance`` (cartpole_swingup's model and step,
-the loop's default task, with another reset) long enough to learn, checked against a random
-policy. The time each took (compile included) is printed, not asserted (timings belong in bench/).
+(contacts, 2-D action) and one arm task (``spatula_flipping``: the Cartesian controller inside
+``step``, a free body in contact) at tiny settings (8 environments, 20-step episodes, 640
+environment steps), where only the contract is checked -- the three arm tasks share that
+contract's code (``ArmTask``) and each task's own reward terms and metrics are checked in
+``test_envs.py`` (each arm task here cost ~45 s of compiling, cold); and ``cartpole_balance``
+(cartpole_swingup's model and step, the loop's default task, with another reset) long enough to
+learn, checked against a random policy. The time each took (compile included) is printed, not asserted (timings belong in bench/).
 """
 
 import time
@@ -18,8 +20,7 @@ from brax.training.agents.ppo import train as ppo
 from twinrl import envs
 
 
-@pytest.mark.parametrize("name", ["push", "peg_insertion", "spatula_flipping",
-                                  "needle_threading"])
+@pytest.mark.parametrize("name", ["push", "spatula_flipping"])
 def test_brax_ppo_trains_unmodified_on_a_contact_task(name):
     env = envs.make(name)
     progress = []
