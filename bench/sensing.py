@@ -147,9 +147,11 @@ def main(argv=None) -> int:
     table = summarise(rows)
     cols = ["task", "mode", "success", "spread (sd over seeds)", "return", "real steps",
             "camera steps", "wall s"]
-    print_table(f"real-twin success ({args.episodes} episodes x {len(args.seeds)} seeds)", cols,
-                [[t[c] for c in ("task", "mode", "success", "sd", "return", "real_steps",
-                                 "camera_steps", "wall_s")] for t in table])
+    if table:
+        print_table(f"real-twin success ({args.episodes} episodes x {len(args.seeds)} seeds)",
+                    cols, [[t[c] for c in ("task", "mode", "success", "sd", "return",
+                                           "real_steps", "camera_steps", "wall_s")]
+                           for t in table])
     pairs = paired(rows)
     if pairs:
         print_table("selected against default camera, paired episodes (same start states)",
