@@ -19,12 +19,7 @@ from twinrl.learn import sensing
 from twinrl.learn.checkpoint import save_policy
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
-from tests.learn._peg import PIX, T, peg_image_actor
-
-
-@pytest.fixture(scope="module")
-def peg():
-    return peg_image_actor()
+from tests.learn._peg import PIX, T
 
 
 @pytest.fixture(scope="module")

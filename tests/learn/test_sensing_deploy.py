@@ -16,12 +16,7 @@ from twinrl import envs
 from twinrl.learn import sensing
 from twinrl.learn.networks import Network, NetworkConfig
 
-from tests.learn._peg import PIX, T, peg_image_actor
-
-
-@pytest.fixture(scope="module")
-def peg():
-    return peg_image_actor()
+from tests.learn._peg import PIX, T
 
 
 @pytest.fixture(scope="module")

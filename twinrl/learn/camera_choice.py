@@ -39,9 +39,7 @@ def uniform_coords(mount, key, shape=()) -> jax.Array:
 def observer(env, image_size: int, tau: float = 0.0, keys=None) -> Callable:
     """``observe(state, coords)``: the image actor's observation (``ArmTask.image_observation``),
     soft in the pose when ``tau > 0``."""
-    if keys is None:
-        return lambda s, coords: env.image_observation(s, coords, size=int(image_size), tau=tau)
-    keys = tuple(keys)  # only what the networks read is traced (the pose fit costs)
+    keys = None if keys is None else tuple(keys)  # only what the networks read is traced
     return lambda s, coords: env.image_observation(s, coords, size=int(image_size), tau=tau,
                                                    keys=keys)
 

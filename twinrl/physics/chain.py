@@ -20,31 +20,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from twinrl.render.camera import quat_mul, quat_to_mat, rotvec_to_quat
+
 __all__ = ["GeomChain"]
 
 _SLIDE, _HINGE = int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_HINGE)
-
-
-def _quat_mul(a, b):
-    w1, x1, y1, z1 = a[0], a[1], a[2], a[3]
-    w2, x2, y2, z2 = b[0], b[1], b[2], b[3]
-    return jnp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                      w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                      w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
-
-
-def _quat_to_mat(q):
-    q = q / jnp.linalg.norm(q)
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.stack([
-        jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
-        jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
-        jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])])
-
-
-def _axis_angle(axis, angle):
-    return jnp.concatenate([jnp.cos(angle / 2)[None], axis * jnp.sin(angle / 2)])
 
 
 class GeomChain:
@@ -87,22 +67,19 @@ class GeomChain:
         dt = jnp.result_type(qpos)
         pos, quat = jnp.zeros(3, dt), jnp.asarray([1.0, 0.0, 0.0, 0.0], dt)
         for b, js in zip(self.bodies, self.joints):
-            pos = pos + _quat_to_mat(quat) @ jnp.asarray(model.body_pos[b], dt)
-            quat = _quat_mul(quat, jnp.asarray(model.body_quat[b], dt))
+            pos = pos + quat_to_mat(quat) @ jnp.asarray(model.body_pos[b], dt)
+            quat = quat_mul(quat, jnp.asarray(model.body_quat[b], dt))
             for j in js:
                 a = int(self._qadr[j])
                 angle = qpos[a] - jnp.asarray(self._qpos0[a], dt)
                 axis = jnp.asarray(model.jnt_axis[j], dt)
                 if int(self._types[j]) == _SLIDE:
-                    pos = pos + _quat_to_mat(quat) @ axis * angle
+                    pos = pos + quat_to_mat(quat) @ axis * angle
                 else:
-                    anchor = pos + _quat_to_mat(quat) @ jnp.asarray(model.jnt_pos[j], dt)
-                    quat = _quat_mul(quat, _axis_angle(axis, angle))
-                    pos = anchor - _quat_to_mat(quat) @ jnp.asarray(model.jnt_pos[j], dt)
+                    anchor = pos + quat_to_mat(quat) @ jnp.asarray(model.jnt_pos[j], dt)
+                    quat = quat_mul(quat, rotvec_to_quat(axis * angle))
+                    pos = anchor - quat_to_mat(quat) @ jnp.asarray(model.jnt_pos[j], dt)
             quat = quat / jnp.linalg.norm(quat)
-        R = _quat_to_mat(quat)
         gp = jnp.asarray(model.geom_pos[self.geom_ids], dt)
         gq = jnp.asarray(model.geom_quat[self.geom_ids], dt)
-        xpos = pos + gp @ R.T
-        xmat = jax.vmap(lambda q: _quat_to_mat(_quat_mul(quat, q)))(gq)
-        return xpos, xmat
+        return pos + gp @ quat_to_mat(quat).T, quat_to_mat(quat_mul(quat, gq))

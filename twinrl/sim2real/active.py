@@ -86,8 +86,6 @@ def real_image_observation(twin, env, obs: np.ndarray, size: int, img: dict | No
 def _from_image(env, keys=None):
     """``env.observation_from_image`` (its ``keys`` only), jitted once per task and keys (it
     runs every real step)."""
-    if keys is None:
-        return jax.jit(env.observation_from_image)
     return jax.jit(lambda *a: env.observation_from_image(*a, keys=keys))
 
 
