@@ -51,6 +51,11 @@ def test_chain_equals_mjx_kinematics_on_a_nested_rotated_model():
             ref_pos, ref_mat = _mjx_poses(model, m, qpos, np.asarray(gid))
             np.testing.assert_allclose(xpos, ref_pos, atol=1e-12)
             np.testing.assert_allclose(xmat, ref_mat, atol=1e-12)
+        # and so do their derivatives in qpos (the pose fit's Gauss-Newton uses them)
+        jac = jax.jacfwd(lambda q: chain(model, q))(qpos)
+        ref = jax.jacfwd(lambda q: _mjx_poses(model, m, q, np.asarray(gid)))(qpos)
+        for a, b in zip(jac, ref):
+            np.testing.assert_allclose(a, b, atol=1e-10)
     # a body with a free joint: refused with a reason, not a wrong pose
     free = GeomChain(m, [m.geom("g3").id])
     assert not free.supports
