@@ -25,6 +25,12 @@ real steps, evaluating success every ``--eval-every`` steps, and reports the rea
 needed to reach the selected camera's success, or ``--model-free-target`` (or that it did not
 within N).
 
+``--where sim`` (with or instead of ``real``) runs the image actor's camera modes in the
+simulator as well -- the run's identified twin with ``--run``/``--system``, else the nominal task
+-- from ``--episodes`` start states ``reset(PRNGKey(1000 * seed + i))``: the success in sim of
+the actor as it is deployed, with its chosen camera (``camera_choice.view_outcomes``; the choice
+from the true simulated state, where the real deployment chooses from the state it measures).
+
 The selected camera is also compared with the default one episode by episode (``paired``: the
 same start states; the difference with a bootstrap 95 % interval and a sign test), which is the
 spread that one twin seed has. Prints the tables and writes ``DIR/sensing.json`` and
@@ -106,6 +112,8 @@ def main(argv=None) -> int:
                    help="TASK=DIR a `twinrl run` loop directory: its last round's actor, Q, "
                         "System, its twin's secret and seed")
     p.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
+    p.add_argument("--where", nargs="+", default=["real"], choices=("real", "sim"),
+                   help="deploy on the real twin, in the simulator (the identified twin), or both")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
     p.add_argument("--restarts", type=int, default=None, help="ascents per choice (default: Q's)")
@@ -131,11 +139,14 @@ def main(argv=None) -> int:
         if task not in secrets:
             raise SystemExit(f"--system {task}=...: give that run's --secret {task}=FILE too "
                              "(or --run): its calibration belongs to the run's hidden twin")
-    rows, model_free = [], []
+    rows, model_free, sim_rows = [], [], []
     for name in args.tasks:
-        rows += run_task(name, actors.get(name), qs.get(name), states.get(name), args,
-                         systems.get(name), secrets.get(name))
-        write_json(args.out / "sensing.json", _result(args, rows, model_free))
+        if "sim" in args.where:
+            sim_rows += run_sim(name, actors.get(name), qs.get(name), args, systems.get(name))
+        if "real" in args.where:
+            rows += run_task(name, actors.get(name), qs.get(name), states.get(name), args,
+                             systems.get(name), secrets.get(name))
+        write_json(args.out / "sensing.json", _result(args, rows, model_free, sim_rows))
         if args.model_free_steps > 0:
             sel = [r["success"] for r in rows if r["task"] == name and r["mode"] == "selected"]
             target = (args.model_free_target if args.model_free_target is not None
@@ -143,7 +154,7 @@ def main(argv=None) -> int:
             for algo in ("td3", "sac"):
                 model_free.append(train_model_free(algo, name, target, args,
                                                    secrets.get(name)))
-                write_json(args.out / "sensing.json", _result(args, rows, model_free))
+                write_json(args.out / "sensing.json", _result(args, rows, model_free, sim_rows))
     table = summarise(rows)
     cols = ["task", "mode", "success", "spread (sd over seeds)", "return", "real steps",
             "camera steps", "wall s"]
@@ -152,9 +163,16 @@ def main(argv=None) -> int:
                     cols, [[t[c] for c in ("task", "mode", "success", "sd", "return",
                                            "real_steps", "camera_steps", "wall_s")]
                            for t in table])
-    pairs = paired(rows)
-    if pairs:
-        print_table("selected against default camera, paired episodes (same start states)",
+    if sim_rows:
+        print_table(f"in the simulator (identified twin, {args.episodes} episodes x "
+                    f"{len(args.seeds)} seeds)", ["task", "mode", "success",
+                                                  "spread (sd over seeds)", "return", "wall s"],
+                    [[t[c] for c in ("task", "mode", "success", "sd", "return", "wall_s")]
+                     for t in summarise(sim_rows)])
+    for where, pairs in (("real twin", paired(rows)), ("simulator", paired(sim_rows))):
+        if not pairs:
+            continue
+        print_table(f"selected against default camera, paired episodes ({where}, same starts)",
                     ["task", "episodes", "difference", "95 % interval", "only selected solved",
                      "only default solved", "sign test p"],
                     [[x["task"], x["episodes"], f"{100 * x['difference']:+.0f} points",
@@ -166,7 +184,7 @@ def main(argv=None) -> int:
                      "real steps"],
                     [[m["task"], m["algo"], m["target"], m["steps_to_target"] or "not reached",
                       m["best_success"], m["real_steps_trained"]] for m in model_free])
-    path = write_json(args.out / "sensing.json", _result(args, rows, model_free))
+    path = write_json(args.out / "sensing.json", _result(args, rows, model_free, sim_rows))
     _plot(args.out / "sensing.png", table)
     print(f"wrote {path} and {args.out / 'sensing.png'}")
     return 0
@@ -221,6 +239,59 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None) 
                          "camera_steps": res["real_camera_steps"], "wall_s": res["wall_s"],
                          "episodes": res})
         twin.close()
+    return rows
+
+
+def run_sim(name, actor_dir, q_dir, args, system=None) -> list[dict]:
+    """The image actor's camera modes (``--modes`` but the oracle) in the simulator: per
+    ``--seeds`` seed, ``--episodes`` starts ``reset(PRNGKey(1000 * seed + i))``, the same for
+    every mode; "selected" is ``select_camera`` from each true start state."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from twinrl.envs.system import System
+    from twinrl.learn.camera_choice import select_camera, uniform_coords, view_outcomes
+    from twinrl.learn.sensing import SensingConfig, load_actor
+    from twinrl.sense import load_q
+
+    if actor_dir is None:
+        return []
+    env = envs.make(name, system=None if system is None else System.load(system))
+    actor, ap, _ = load_actor(actor_dir)
+    run = jax.jit(lambda k, c: view_outcomes(env, actor, ap, k, c))
+    choose = None
+    if q_dir is not None and "selected" in args.modes:
+        q, qp, meta = load_q(q_dir)
+        cfg = SensingConfig.from_dict(meta.get("config") or {})
+        cfg = dataclasses.replace(cfg, restarts=args.restarts or cfg.restarts,
+                                  ascent_steps=args.ascent_steps or cfg.ascent_steps)
+        choose = jax.jit(lambda k, kc: select_camera(env, q, qp, actor, ap, env.reset(k), kc,
+                                                     cfg).coords)
+    rows, n = [], int(args.episodes)
+    for seed in args.seeds:
+        keys = jnp.stack([jax.random.PRNGKey(1000 * seed + i) for i in range(n)])
+        for mode in ("selected", "default", "random"):
+            if mode not in args.modes or (mode == "selected" and choose is None):
+                continue
+            t0 = time.perf_counter()
+            if mode == "selected":
+                coords = jnp.stack([choose(k, jax.random.fold_in(k, 1)) for k in keys])
+            elif mode == "default":
+                coords = jnp.tile(jnp.asarray(env.mount.default, jnp.float32), (n, 1))
+            else:
+                coords = uniform_coords(env.mount, jax.random.PRNGKey(1000 * seed + n), (n,))
+            ret, ok = (np.asarray(x, np.float64) for x in run(keys, coords))
+            wall = time.perf_counter() - t0
+            print(f"[bench] {name} seed {seed} {mode:>8} (sim): success {ok.mean():.2f}, "
+                  f"return {ret.mean():.1f} ({wall:.0f} s)", flush=True)
+            rows.append({"task": name, "seed": seed, "mode": mode, "where": "sim",
+                         "success": float(ok.mean()), "return": float(ret.mean()),
+                         "real_steps": 0, "camera_steps": 0, "wall_s": wall,
+                         "episodes": {"seed": 1000 * seed, "success": ok.tolist(),
+                                      "return": ret.tolist(),
+                                      "coords": np.asarray(coords).tolist()}})
     return rows
 
 
@@ -363,9 +434,10 @@ def _plot(path: Path, table: list[dict]) -> None:
     plt.close(fig)
 
 
-def _result(args, rows, model_free) -> dict:
+def _result(args, rows, model_free, sim_rows=()) -> dict:
     return {"meta": run_meta(args), "table": summarise(rows), "paired": paired(rows),
-            "rows": rows, "model_free": model_free}
+            "rows": rows, "model_free": model_free, "sim_table": summarise(list(sim_rows)),
+            "sim_paired": paired(list(sim_rows)), "sim_rows": list(sim_rows)}
 
 
 

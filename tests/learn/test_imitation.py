@@ -75,3 +75,17 @@ def test_only_views_with_a_right_pose_estimate_are_cloned():
     w = imitation.accurate({"estimate": est}, states)
     assert w.tolist() == [[1, 1, 1], [1, 1, 0]]
     assert imitation.accurate({"state": est}, states).tolist() == [[1, 1, 1]] * 2
+
+
+def test_the_commanded_camera_pose_is_an_input_where_the_observation_is_in_its_frame():
+    # pixels and the target cloud are seen from the camera: the actor reads the pose it
+    # commanded; the fitted pose is in the world's frame, where the pose would only let the
+    # actor learn each view's fit error (unless asked for)
+    env = envs.make("peg_insertion")
+    spec = lambda **kw: imitation.make_observer(env, imitation.ImitationConfig(**kw))[1]  # noqa
+    assert "camera" in spec(observation="pixels") and "camera" in spec(observation="target")
+    assert set(spec(observation="pose")) == {"estimate"}
+    assert set(spec(observation="pose", camera_input=True)) == {"estimate", "camera"}
+    assert "camera" not in spec(observation="pixels", camera_input=False)
+    with pytest.raises(ValueError, match="camera_input must be one of None, True, False"):
+        imitation.ImitationConfig(camera_input="yes")

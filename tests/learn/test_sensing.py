@@ -16,6 +16,7 @@ from twinrl import envs
 from twinrl.cli import main
 from twinrl import sense as sense_cmd
 from twinrl.learn import sensing
+from twinrl.learn.camera_choice import view_outcomes
 from twinrl.learn.checkpoint import save_policy
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
@@ -55,6 +56,12 @@ def test_targets_are_the_actors_return_to_go_with_the_camera_held(peg):
     np.testing.assert_allclose(data.returns[1, 0], sum(rewards), rtol=1e-4)
     # the camera changes what the (untrained, image-driven) actor does, so the returns differ
     assert float(jnp.abs(data.returns[:, 0] - data.returns[:, 1]).max()) > 0
+    # the simulator's deployment of the same actor from the same starts and poses
+    # (bench/sensing.py --where sim) has those episodes' returns and successes
+    ret, ok = jax.jit(lambda k, c: view_outcomes(env, actor, actor_params, k, c))(
+        keys, coords[:, 1])
+    np.testing.assert_allclose(ret, data.returns[:, 1], rtol=1e-4)
+    np.testing.assert_array_equal(ok, data.success[:, 1])
 
 
 def test_q_fits_the_targets_and_reports_held_out_ranking(trained):

@@ -22,7 +22,7 @@ import optax
 from twinrl.learn.networks import Network
 
 __all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
-           "select_camera", "landscape"]
+           "select_camera", "landscape", "view_outcomes"]
 
 
 EDGE = float(np.log(0.98 / 0.02))
@@ -137,3 +137,23 @@ def landscape(env, q: Network, q_params, actor: Network, actor_params, state, di
         return jax.lax.map(one, cs)
 
     return az, el, np.asarray(values(jnp.asarray(coords))).reshape(len(el), len(az))
+
+
+def view_outcomes(env, actor: Network, actor_params, keys: jax.Array, coords: jax.Array):
+    """The image actor's episodes in the simulator from ``reset(keys[i])`` with the mount held
+    at ``coords[i]`` (N, 3) -- a deployment's counterpart in the (identified) twin, where the
+    camera choice of ``select_camera`` can be compared with the default and random poses
+    without a real episode (``bench/sensing.py --sim``): ``(returns (N,), successes (N,))``.
+    Pure and jit-able."""
+    observe = observer(env, image_size(env, actor), keys=tuple(actor.obs_spec))
+
+    def episode(key, c):
+        def body(s, _):
+            s2 = env.step(s, actor.apply(actor_params, observe(s, c)))
+            return s2, s2.reward
+
+        final, rewards = jax.lax.scan(body, env.reset(key), None, length=env.episode_length)
+        q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
+        return rewards.sum(), env.success(q, v).astype(jnp.float32)
+
+    return jax.vmap(episode)(keys, coords)

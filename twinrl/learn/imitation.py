@@ -71,9 +71,13 @@ class ImitationConfig(JSONConfig):
     image_size: int = 64
     views: int = 1
     """Image observations: mount poses each demonstration is rendered from (module docstring)."""
-    camera_input: bool = True
+    camera_input: bool | None = None
     """Image observations: the actor also sees the pose it commanded (``"camera"``), so it need
-    not infer from the image where it looks from."""
+    not infer from the image where it looks from. Default (None): yes for ``"pixels"`` and
+    ``"target"``, whose inputs are in the camera's frame; no for ``"pose"``, whose estimate is
+    in the world's, where the pose only lets the actor tell views apart and learn each one's
+    fit error: needle, 48 demonstrations x 8 views, the actor with it fed the *true* state
+    succeeded on 18 % of 50 starts, without it on 94 % (60 % on its estimates either way)."""
     image_head: str = "keypoints"
     """The CNN's head (``NetworkConfig.image_head``): ``"keypoints"`` (spatial softmax) or
     ``"dense"``."""
@@ -106,7 +110,8 @@ class ImitationConfig(JSONConfig):
                           "eval_episodes", "image_size", "dagger_episodes", "views"),
             non_negative=("dagger_rounds", "rgb_jitter"), widths=("hidden", "conv_strides"),
             choices={"observation": ("state", "pixels", "target", "pose"),
-                     "camera": ("random", "default"), "image_head": ("dense", "keypoints")})
+                     "camera": ("random", "default"), "image_head": ("dense", "keypoints"),
+                     "camera_input": (None, True, False)})
         if len(self.conv_strides) != 3:
             raise ValueError(f"conv_strides must name 3 strides, got {self.conv_strides}")
 
@@ -123,13 +128,20 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
         raise ValueError(f"observation='pose' needs ArmTask.target_joints; {env.name} has none")
     spec = {"pixels": {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}, "pose": {"estimate": o},
             "target": {"state": (PROPRIO,), "tool": (3,), "target": (7,)}}[config.observation]
-    if config.camera_input:
+    if uses_camera(config):
         spec["camera"] = (3,)
 
     def observe(s, coords):  # only the keys the actor reads: the data set stores no others
         return env.image_observation(s, coords, size=n, keys=tuple(spec))
 
     return observe, spec
+
+
+def uses_camera(config: ImitationConfig) -> bool:
+    """Whether the actor reads the commanded camera pose (``ImitationConfig.camera_input``)."""
+    if config.camera_input is None:
+        return config.observation in ("pixels", "target")
+    return bool(config.camera_input)
 
 
 def _coords(env, config: ImitationConfig, key):
