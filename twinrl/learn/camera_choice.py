@@ -143,7 +143,7 @@ def view_outcomes(env, actor: Network, actor_params, keys: jax.Array, coords: ja
     """The image actor's episodes in the simulator from ``reset(keys[i])`` with the mount held
     at ``coords[i]`` (N, 3) -- a deployment's counterpart in the (identified) twin, where the
     camera choice of ``select_camera`` can be compared with the default and random poses
-    without a real episode (``bench/sensing.py --sim``): ``(returns (N,), successes (N,))``.
+    without a real episode (``bench/sensing.py --where sim``): ``(returns (N,), successes (N,))``.
     Pure and jit-able."""
     observe = observer(env, image_size(env, actor), keys=tuple(actor.obs_spec))
 

@@ -128,7 +128,7 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
         raise ValueError(f"observation='pose' needs ArmTask.target_joints; {env.name} has none")
     spec = {"pixels": {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}, "pose": {"estimate": o},
             "target": {"state": (PROPRIO,), "tool": (3,), "target": (7,)}}[config.observation]
-    if uses_camera(config):
+    if _uses_camera(config):
         spec["camera"] = (3,)
 
     def observe(s, coords):  # only the keys the actor reads: the data set stores no others
@@ -137,7 +137,7 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
     return observe, spec
 
 
-def uses_camera(config: ImitationConfig) -> bool:
+def _uses_camera(config: ImitationConfig) -> bool:
     """Whether the actor reads the commanded camera pose (``ImitationConfig.camera_input``)."""
     if config.camera_input is None:
         return config.observation in ("pixels", "target")
