@@ -338,6 +338,19 @@ def test_state_from_obs_inverts_observe(name, made):
     np.testing.assert_allclose(np.asarray(q2), q, atol=2e-6)
     np.testing.assert_allclose(np.asarray(v2), v, atol=2e-6)
     np.testing.assert_allclose(np.asarray(env.observe(q2, v2)), np.asarray(obs), atol=2e-6)
+    # batched, as sysid's windows, the hybrid model and the residual's start states call it: a
+    # (2, 3, obs) batch gives each row's own state (the row-sliced bug read rows as features)
+    q_b, v_b = np.stack([q, q2]), np.stack([v, np.zeros_like(v)])
+    obs_b = np.stack([np.asarray(env.observe(jnp.asarray(a), jnp.asarray(b)))
+                      for a, b in zip(q_b, v_b)])
+    obs_b = np.stack([obs_b] * 3, axis=1)
+    qb, vb = env.state_from_obs(obs_b)
+    assert qb.shape == (2, 3, env.sim.nq) and vb.shape == (2, 3, env.sim.nv)
+    for i in range(2):
+        q1, v1 = env.state_from_obs(obs_b[i, 0])
+        for j in range(3):
+            np.testing.assert_allclose(np.asarray(qb[i, j]), np.asarray(q1), atol=1e-6)
+            np.testing.assert_allclose(np.asarray(vb[i, j]), np.asarray(v1), atol=1e-6)
 
 
 @pytest.mark.parametrize("name", ARM_TASKS)

@@ -151,11 +151,14 @@ class NeedleThreading(ArmTask):
     def state_from_obs(self, obs):
         """``(qpos, qvel)`` of an observation: the joints, the eye's offset from its origin and
         its yaw (from its axis); the eye does not move (velocity zero)."""
-        yaw = jnp.arctan2(obs[24], obs[23]) - EYE_HEADING
+        obs = jnp.asarray(obs)
+        yaw = jnp.arctan2(obs[..., 24], obs[..., 23]) - EYE_HEADING
         yaw = jnp.arctan2(jnp.sin(yaw), jnp.cos(yaw))
-        qpos = jnp.concatenate([obs[:7], obs[20:23] - jnp.asarray(NEEDLE_ORIGIN, obs.dtype),
-                                yaw[None]])
-        return qpos, jnp.concatenate([obs[7:14], jnp.zeros(4, obs.dtype)])
+        qpos = jnp.concatenate([obs[..., :7],
+                                obs[..., 20:23] - jnp.asarray(NEEDLE_ORIGIN, obs.dtype),
+                                yaw[..., None]], axis=-1)
+        zero = jnp.zeros(obs.shape[:-1] + (4,), obs.dtype)
+        return qpos, jnp.concatenate([obs[..., 7:14], zero], axis=-1)
 
     def reward_terms(self, qpos, qvel, action):
         c = self.config

@@ -119,8 +119,11 @@ class PegInsertion(ArmTask):
     def state_from_obs(self, obs):
         """``(qpos, qvel)`` of an observation: the joints, and the fixture's offset from the
         hole's position (the fixture does not move: its velocity is zero)."""
-        qpos = jnp.concatenate([obs[:7], obs[17:19] - jnp.array([0.5, 0.0], obs.dtype)])
-        return qpos, jnp.concatenate([obs[7:14], jnp.zeros(2, obs.dtype)])
+        obs = jnp.asarray(obs)
+        qpos = jnp.concatenate([obs[..., :7], obs[..., 17:19] - jnp.array([0.5, 0.0], obs.dtype)],
+                               axis=-1)
+        zero = jnp.zeros(obs.shape[:-1] + (2,), obs.dtype)
+        return qpos, jnp.concatenate([obs[..., 7:14], zero], axis=-1)
 
     def reward_terms(self, qpos, qvel, action):
         c = self.config

@@ -199,15 +199,19 @@ class SpatulaFlipping(ArmTask):
         """``(qpos, qvel)`` of an observation, up to what it does not say: the pancake's spin
         about its own axis (its orientation is the smallest turn from flat to its up axis) and its
         angular velocity (zero). The stopper does not move."""
-        up = obs[20:23]
+        obs = jnp.asarray(obs)
+        up = obs[..., 20:23]
         # the quaternion of the smallest rotation taking z to ``up``: (1 + u_z, -u_y, u_x, 0)
-        quat = jnp.stack([1.0 + up[2], -up[1], up[0], jnp.zeros_like(up[0])])
-        quat = jnp.where(up[2] > -1.0 + 1e-6, quat, jnp.array([0.0, 1.0, 0.0, 0.0], obs.dtype))
-        quat = quat / jnp.linalg.norm(quat)
-        qpos = jnp.concatenate([obs[:7], obs[26:28] - jnp.asarray(STOPPER_ORIGIN, obs.dtype),
-                                obs[17:20], quat])
-        zero = jnp.zeros(2, obs.dtype)
-        return qpos, jnp.concatenate([obs[7:14], zero, obs[23:26], jnp.zeros(3, obs.dtype)])
+        quat = jnp.stack([1.0 + up[..., 2], -up[..., 1], up[..., 0], jnp.zeros_like(up[..., 0])],
+                         axis=-1)
+        flipped = jnp.array([0.0, 1.0, 0.0, 0.0], obs.dtype)
+        quat = jnp.where(up[..., 2:3] > -1.0 + 1e-6, quat, flipped)
+        quat = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
+        qpos = jnp.concatenate([obs[..., :7],
+                                obs[..., 26:28] - jnp.asarray(STOPPER_ORIGIN, obs.dtype),
+                                obs[..., 17:20], quat], axis=-1)
+        zero = lambda n: jnp.zeros(obs.shape[:-1] + (n,), obs.dtype)
+        return qpos, jnp.concatenate([obs[..., 7:14], zero(2), obs[..., 23:26], zero(3)], axis=-1)
 
     def reward_terms(self, qpos, qvel, action):
         centre, up = self.pancake(qpos)
