@@ -86,8 +86,9 @@ CHILD = textwrap.dedent("""
         self._act = slow
     active.Deployer.__init__ = slow_init
 
+    # no sysid: minutes of float64 arm rollouts, and resume is the same for every stage
     config = loop_arm.ArmLoopConfig(rounds=1, episodes_per_round=%d, camera="default",
-                                    eval_episodes=0, video=False)
+                                    eval_episodes=0, video=False, sysid=False)
     note("start resume" if resume else "start")
     loop_arm.run("peg_insertion", out, config, seed=2, resume=resume, progress=False)
     note("finished")

@@ -353,6 +353,23 @@ def test_state_from_obs_inverts_observe(name, made):
             np.testing.assert_allclose(np.asarray(vb[i, j]), np.asarray(v1), atol=1e-6)
 
 
+def test_sysid_windows_start_at_the_recorded_arm_states(made):
+    """The arm loop's sysid (``ArmLoopConfig.sysid``) cuts the recorded episodes into shooting
+    windows, each starting at the state read off its first observation: on the needle, two
+    episodes of 10 steps, windows of 5 -> four windows at the states recorded at steps 0 and 5."""
+    from twinrl.real2sim import sysid
+
+    env = made["needle_threading"]
+    states = [env.initial_state(jax.random.PRNGKey(k)) for k in range(20)]
+    obs = np.stack([np.asarray(env.observe(q, v)) for q, v in states]).reshape(2, 10, -1)
+    act = np.zeros((2, 10, env.action_size), np.float32)
+    w = sysid.windows_from_dataset(env, {"obs": obs, "action": act, "next_obs": obs}, 5,
+                                   max_latency=1)
+    assert w.qpos0.shape == (4, env.sim.nq) and w.actions.shape == (4, 6, env.action_size)
+    for i, k in enumerate((0, 5, 10, 15)):
+        np.testing.assert_allclose(w.qpos0[i], np.asarray(states[k][0]), atol=2e-6)
+
+
 @pytest.mark.parametrize("name", ARM_TASKS)
 def test_real_success_is_judged_at_the_true_tool(name, made):
     """``RealTwin.success`` judges at the tool the real engine carries. The scripted expert's
