@@ -246,7 +246,7 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera) -> None:
         from twinrl.real2sim import sysid
 
         run.say(f"  sysid on {len(data)} real transitions ...")
-        res = sysid.fit(run.nominal_env, data, _sysid_config(run.nominal_env))
+        res = sysid.fit(run.nominal_env, data, _sysid_config())
         system = res.system
         run.ev.mark(f"round{r}/sysid", param_rel_error=evaluation.param_errors(
             run.env_name, run.seed, res, run.perturbation, run.secret))
@@ -257,14 +257,15 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera) -> None:
                   seconds=seconds_so_far(run.prog, r, sysid=time.perf_counter() - t0))
 
 
-def _sysid_config(env):
+def _sysid_config():
     """The arm's sysid: latency 0-1 and the 7 joints' servo gains and damping (what the
-    exciting motions show); 15 Levenberg-Marquardt steps per latency (it had converged by 10
-    on needle twin 2), no bound tests (damping is far from 0)."""
+    exciting motions show; ``panda.xml`` names joints and servos ``joint1``..``joint7``);
+    15 Levenberg-Marquardt steps per latency (it had converged by 10 on needle twin 2), no
+    bound tests (damping is far from 0)."""
+    from twinrl.envs.arm.base import N_JOINTS
     from twinrl.real2sim import sysid
 
-    names = tuple(n for n in sysid.param_names(env, ("damping", "gain"))
-                  if n.split("/")[1].startswith("joint"))
+    names = tuple(f"{f}/joint{i}" for f in ("damping", "gain") for i in range(1, N_JOINTS + 1))
     return sysid.SysidConfig(params=names, lm_steps=15, bound_lr=0.0)
 
 
