@@ -340,12 +340,14 @@ def test_state_from_obs_inverts_observe(name, made):
     np.testing.assert_allclose(np.asarray(env.observe(q2, v2)), np.asarray(obs), atol=2e-6)
     # batched, as sysid's windows, the hybrid model and the residual's start states call it: a
     # (2, 3, obs) batch gives each row's own state (the row-sliced bug read rows as features)
-    q_b, v_b = np.stack([q, q2]), np.stack([v, np.zeros_like(v)])
+    q_other = np.asarray(env.initial_state(jax.random.PRNGKey(5))[0], np.float64)
+    q_b, v_b = np.stack([q, q_other]), np.stack([v, np.zeros_like(v)])
     obs_b = np.stack([np.asarray(env.observe(jnp.asarray(a), jnp.asarray(b)))
                       for a, b in zip(q_b, v_b)])
     obs_b = np.stack([obs_b] * 3, axis=1)
     qb, vb = env.state_from_obs(obs_b)
     assert qb.shape == (2, 3, env.sim.nq) and vb.shape == (2, 3, env.sim.nv)
+    assert not np.allclose(np.asarray(qb[0, 0]), np.asarray(qb[1, 0]))
     for i in range(2):
         q1, v1 = env.state_from_obs(obs_b[i, 0])
         for j in range(3):
