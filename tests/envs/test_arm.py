@@ -448,6 +448,9 @@ def test_target_pose_is_fitted_to_one_depth_image(made):
             # the hole's entries of the privileged observation
             np.testing.assert_allclose(np.asarray(o["estimate"])[14:], np.asarray(s.obs)[14:],
                                        atol=3e-3)
+            # ... which is what perfect perception gives (the residual's training input)
+            np.testing.assert_allclose(np.asarray(o["estimate"]),
+                                       np.asarray(env.estimate_from_obs(s.obs)), atol=3e-3)
             # what the fit stands on: the pixels it used, and a residual of a fraction of a mm
             np.testing.assert_allclose(o["support"][0], o["target"][6], rtol=1e-5)
             rms.append(float(o["support"][1]))

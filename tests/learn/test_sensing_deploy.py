@@ -119,6 +119,20 @@ def test_oracle_deployment_of_a_state_expert_succeeds_on_the_real_twin():
                      config=NetworkConfig(), obs_spec=env.observation_size)
     real = RealTwin("peg_insertion", perturbation=Perturbation.none())
     res = active.deploy(env, real, policy, {}, active.DeployConfig(camera="oracle", episodes=2))
-    real.close()
     assert res["success"] == [1.0, 1.0] and res["camera_steps"] == [0, 0]
     assert res["steps"] == [env.episode_length] * 2 and res["choices"] == [0, 0]
+
+    # a residual sees the measured observation and the actor's action, and its correction is
+    # what is sent: one that cancels the expert leaves the peg where it started
+    seen = []
+
+    def cancel(obs, a):
+        seen.append((np.array(obs), np.array(a)))
+        return -a
+
+    res = active.deploy(env, real, policy, {}, active.DeployConfig(camera="oracle", episodes=1),
+                        residual=cancel)
+    real.close()
+    assert res["success"] == [0.0] and len(seen) == env.episode_length
+    for obs, a in seen[:3]:
+        np.testing.assert_allclose(a, np.asarray(expert(None, jnp.asarray(obs))), atol=1e-6)

@@ -10,7 +10,8 @@ An episode on the real robot (here: a ``RealTwin``, MuJoCo C and its OpenGL came
    hand-eye offset; the steps the move takes are counted, ``camera_steps``);
 3. every step, take the real mount image (RGB, depth, and the target's mask from the real
    segmentation), and act with the image actor -- plus a residual policy's correction if one is
-   given (``residual(obs) -> delta``, added and clipped to [-1, 1]);
+   given (``residual(obs, action) -> delta`` of the measured observation and the actor's action,
+   added and clipped to [-1, 1]; ``residual_correction``);
 4. re-choose the camera every ``reselect_every`` steps if asked (0: once per episode).
 
 ``camera``:
@@ -41,7 +42,7 @@ from twinrl.learn.camera_choice import image_size, select_camera
 from twinrl.learn.common import JSONConfig
 
 __all__ = ["CAMERAS", "DeployConfig", "real_image_observation", "sim_state", "Deployer",
-           "deploy"]
+           "deploy", "pose_actor_on_state", "residual_correction"]
 
 CAMERAS = ("selected", "default", "random", "oracle")
 
@@ -111,7 +112,8 @@ class Deployer:
       actor, actor_params: the image actor (``observation="pixels"``), or for ``camera="oracle"``
         a state policy (``observation="state"``).
       q, q_params, sensing: the sensing-aware Q and its ``SensingConfig`` (``camera="selected"``).
-      residual: optional ``residual(obs) -> delta action`` added to the actor's action.
+      residual: optional ``residual(obs, action) -> delta``: a correction of the actor's action
+        from the measured observation and that action, added (``residual_correction``).
     """
 
     def __init__(self, env, actor, actor_params, *, q=None, q_params=None, sensing=None,
@@ -182,7 +184,7 @@ class Deployer:
                      else np.asarray(obs, np.float32))
                 a = np.asarray(self._act(self.actor_params, o), np.float32)
                 if self.residual is not None:
-                    a = np.clip(a + np.asarray(self.residual(obs), np.float32), -1.0, 1.0)
+                    a = np.clip(a + np.asarray(self.residual(obs, a), np.float32), -1.0, 1.0)
                 nxt, r, term, trunc, info = twin.step(a)
                 img = (twin.render_images("mount", kinds)
                        if self.image or writer is not None else None)
@@ -231,3 +233,34 @@ def deploy(env, twin, actor, actor_params, config: DeployConfig = DeployConfig()
     """One-off ``Deployer(...).run(twin, config, seed)`` (see ``Deployer``)."""
     return Deployer(env, actor, actor_params, q=q, q_params=q_params, sensing=sensing,
                     residual=residual).run(twin, config, seed, progress)
+
+
+def pose_actor_on_state(env, actor):
+    """A ``"pose"`` image actor (``observation="pose"``: it reads ``{"estimate": ...}``) as a
+    ``Network`` on the task's state observation, as perfect perception would feed it
+    (``ArmTask.estimate_from_obs``): the base policy a residual is trained on through a model
+    that renders no images (``twinrl.sim2real.residual``). Takes one observation or a batch."""
+    from twinrl.learn.networks import Network
+
+    if not isinstance(actor.obs_spec, dict) or set(actor.obs_spec) != {"estimate"}:
+        raise ValueError(f"a residual on the state needs a 'pose' actor (it reads the pose "
+                         f"estimate only); this one reads {sorted(actor.obs_spec or {})}")
+
+    def apply(params, obs):
+        obs = jnp.asarray(obs, jnp.float32)
+        f = lambda o: actor.apply(params, {"estimate": env.estimate_from_obs(o)})  # noqa: E731
+        for _ in range(obs.ndim - 1):
+            f = jax.vmap(f)
+        return f(obs)
+
+    n = int(env.observation_size)
+    return Network(actor.init, apply, n, actor.out_size, actor.config, n)
+
+
+def residual_correction(delta, res_params) -> Callable:
+    """``(obs, action) -> delta``: a trained residual's correction (``delta`` is
+    ``ResidualPolicy.delta``, as its checkpoint holds it) of the measured observation and the
+    deployed actor's action, jitted: the ``Deployer``'s ``residual``."""
+    f = jax.jit(lambda o, a: delta.apply(res_params, jnp.concatenate([o, a], -1)))
+    return lambda obs, a: np.asarray(f(jnp.asarray(obs, jnp.float32),
+                                       jnp.asarray(a, jnp.float32)))

@@ -618,6 +618,33 @@ class ArmTask(Env):
         qvel = jnp.zeros(self.sim.nv, dt).at[:N_JOINTS].set(joints[N_JOINTS:2 * N_JOINTS])
         return qpos, qvel
 
+    @functools.cached_property
+    def _target_hinges(self) -> np.ndarray:
+        """Which of ``target_joints`` are hinges (the others slide)."""
+        m = self.sim.mj_model
+        idx = np.asarray(self.target_joints)
+        return np.asarray(m.jnt_type)[np.searchsorted(np.asarray(m.jnt_qposadr), idx)] == 3
+
+    def _wrap_target_pose(self, pose):
+        """The target's hinge angles modulo its symmetry (``target_hinge_period``), into
+        (-period/2, period/2]: the pose an image can tell."""
+        period = jnp.asarray(self.target_hinge_period, pose.dtype)
+        return jnp.where(self._target_hinges, pose - period * jnp.round(pose / period), pose)
+
+    def estimate_from_obs(self, obs):
+        """The image observation's ``"estimate"`` under perfect perception: the privileged
+        observation of the state the measured joints (``obs[:14]``) and the target's true pose
+        (``state_from_obs``; at rest, hinges modulo the target's symmetry) give -- what a
+        ``"pose"`` actor reads when ``fit_target_pose`` is exact. The residual policy of the
+        manipulation loop is trained through a model on it (``twinrl.loop_arm``), which renders
+        no images. One observation (``obs`` of shape ``(observation_size,)``)."""
+        if not self.target_joints:
+            raise ValueError(f"{self.name} has no target_joints: no pose estimate")
+        obs = jnp.asarray(obs, jnp.float32)
+        pose = self.state_from_obs(obs)[0][np.asarray(self.target_joints)]
+        return self.observe(*self.estimated_state(obs[:2 * N_JOINTS],
+                                                  self._wrap_target_pose(pose)))
+
     def fit_target_pose(self, joints, camera, depth, mask, iters: int = 8,
                         huber: float = 0.004, points: int = 256, with_residual: bool = False):
         """The target's pose (its joints' values, ``qpos[target_joints]``) from one depth image:
@@ -680,18 +707,14 @@ class ArmTask(Env):
 
         # restarts: the guess, and the guess moved by +-2.5 and +-5 cm (slides) / +-0.3 and
         # +-0.6 rad (hinges) along each joint; the fit with the smallest residual wins
-        hinge = np.asarray(self.sim.mj_model.jnt_type)[
-            np.searchsorted(np.asarray(self.sim.mj_model.jnt_qposadr), idx)] == 3
+        hinge = self._target_hinges
         delta = jnp.asarray(np.where(hinge, 0.3, 0.025), dt)
         starts = jnp.concatenate([x[None]] + [x + m * delta * eye for m in (1, -1, 2, -2)])
         fits = jax.vmap(lambda x: jax.lax.fori_loop(0, iters, step, x))(starts)
         cost = jax.vmap(lambda x: jnp.sum(jnp.square(resid(x))))(fits)
         x = fits[jnp.argmin(cost)]
         seen = n > 3.0
-        # a hinge's angle modulo the target's symmetry, into (-period/2, period/2]
-        period = jnp.asarray(self.target_hinge_period, dt)
-        x = jnp.where(hinge, x - period * jnp.round(x / period), x)
-        x = jnp.where(seen, x, 0.0)
+        x = jnp.where(seen, self._wrap_target_pose(x), 0.0)
         if not with_residual:
             return x
         r = jnp.sqrt(jnp.min(cost) + 1e-12)  # the pixels' weights sum to 1: an RMS (Huber)
