@@ -11,8 +11,13 @@ Per task and twin seed (``--seeds``: each a hidden perturbation, hand-eye offset
 (``--algo imitation``) for (d). Modes whose checkpoint is missing are left out. Real steps
 count the steps acting and, separately, the steps the camera mount spends moving.
 
+``--residual TASK=DIR`` adds a residual policy's correction (``twinrl.sim2real.residual``; the
+loop's ``roundR/residual``) to the image actor's actions on the real twin (not in ``--where
+sim``).
+
 ``--run TASK=DIR`` takes all of these from a ``twinrl run`` (the SAM-RL loop) output directory:
-its last round's actor, Q and identified ``System`` (``--system``: the calibrated mount), and
+its last round's actor, Q, identified ``System`` (``--system``: the calibrated mount) and
+residual policy if the loop accepted one (``--no-residual``: leave it out), and
 the loop's hidden twin: the run's seed and its secret salt (``DIR/eval/twin.json``; ``--secret``).
 The loop's twin is drawn from the seed *and* that salt (``twinrl.real.remote``), so it is not
 the public-seed twin ``--seeds`` names alone: a mount calibrated on one and deployed on the other
@@ -83,11 +88,15 @@ def _from_runs(runs: dict[str, Path], args) -> None:
             raise SystemExit(f"--run {task}={d}: that run is on {summary.get('env')!r}")
         r = summary["final"]["round"]
         rdir = d / f"round{r}"
+        accepted = summary["final"].get("residual_accepted") and not args.no_residual
         for flag, key, path in (("--actor", "actor", rdir / "actor"), ("--q", "q", rdir / "q"),
                                 ("--system", "system", rdir / "system.json"),
-                                ("--secret", "secret", d / "eval" / "twin.json")):
+                                ("--secret", "secret", d / "eval" / "twin.json"),
+                                ("--residual", "residual", rdir / "residual")):
             if key == "q" and not path.exists():
                 continue  # a camera=default loop learns no Q
+            if key == "residual" and not accepted:
+                continue
             if not path.exists():
                 raise SystemExit(f"--run {task}={d}: {path} is missing")
             getattr(args, key).append(f"{task}={path}")
@@ -108,6 +117,10 @@ def main(argv=None) -> int:
     p.add_argument("--secret", nargs="*", default=[],
                    help="TASK=FILE a run's twin secret (DIR/eval/twin.json): deploy on that "
                         "run's hidden twin instead of the public-seed twin")
+    p.add_argument("--residual", nargs="*", default=[],
+                   help="TASK=DIR a residual policy checkpoint added to the image actor")
+    p.add_argument("--no-residual", action="store_true",
+                   help="with --run: leave out the residual policy the loop accepted")
     p.add_argument("--run", nargs="*", default=[],
                    help="TASK=DIR a `twinrl run` loop directory: its last round's actor, Q, "
                         "System, its twin's secret and seed")
@@ -129,6 +142,7 @@ def main(argv=None) -> int:
         raise SystemExit("--episodes must be >= 1 and --seeds must name at least one seed")
     actors, qs = _per_task(args.actor, "--actor"), _per_task(args.q, "--q")
     states = _per_task(args.state_actor, "--state-actor")
+    residuals = _per_task(args.residual, "--residual")
     systems = _per_task(args.system, "--system")
     secrets = _per_task(args.secret, "--secret")
     for flag, files in (("--system", systems), ("--secret", secrets)):
@@ -145,7 +159,7 @@ def main(argv=None) -> int:
             sim_rows += run_sim(name, actors.get(name), qs.get(name), args, systems.get(name))
         if "real" in args.where:
             rows += run_task(name, actors.get(name), qs.get(name), states.get(name), args,
-                             systems.get(name), secrets.get(name))
+                             systems.get(name), secrets.get(name), residuals.get(name))
         write_json(args.out / "sensing.json", _result(args, rows, model_free, sim_rows))
         if args.model_free_steps > 0:
             sel = [r["success"] for r in rows if r["task"] == name and r["mode"] == "selected"]
@@ -190,7 +204,8 @@ def main(argv=None) -> int:
     return 0
 
 
-def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None) -> list[dict]:
+def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
+             residual=None) -> list[dict]:
     from twinrl.envs.system import System
     from twinrl.learn.camera_choice import image_size
     from twinrl.learn.checkpoint import load_policy
@@ -209,7 +224,13 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None) 
         if q_dir is not None:
             q, q_params, meta = load_q(q_dir)
             sensing = SensingConfig.from_dict(meta.get("config") or {})
-        dep = active.Deployer(env, actor, actor_params, q=q, q_params=q_params, sensing=sensing)
+        correction = None
+        if residual is not None:
+            correction = active.residual_correction(*load_policy(residual)[:2])
+            print(f"[bench] {name}: the image actor plus the residual policy {residual}",
+                  flush=True)
+        dep = active.Deployer(env, actor, actor_params, q=q, q_params=q_params, sensing=sensing,
+                              residual=correction)
         for mode in ("selected", "default", "random"):
             if mode in args.modes and (mode != "selected" or q is not None):
                 deployers[mode] = dep
