@@ -199,7 +199,7 @@ def main(argv=None) -> int:
                     [[m["task"], m["algo"], m["target"], m["steps_to_target"] or "not reached",
                       m["best_success"], m["real_steps_trained"]] for m in model_free])
     path = write_json(args.out / "sensing.json", _result(args, rows, model_free, sim_rows))
-    _plot(args.out / "sensing.png", table)
+    _plot(args.out / "sensing.png", table, summarise(sim_rows))
     print(f"wrote {path} and {args.out / 'sensing.png'}")
     return 0
 
@@ -422,33 +422,40 @@ def train_model_free(algo: str, task: str, target: float, args, secret=None) -> 
             "wall_s": time.perf_counter() - t0}
 
 
-def _plot(path: Path, table: list[dict]) -> None:
+def _plot(path: Path, table: list[dict], sim_table: list[dict] = ()) -> None:
+    """Success per task and camera mode: the real twin, and beside it the identified twin
+    (``--where sim``) when measured."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if not table:
+    panels = [(where, t) for where, t in (("real twin", table),
+                                          ("identified twin (sim)", list(sim_table))) if t]
+    if not panels:
         return
-    tasks = list(dict.fromkeys(t["task"] for t in table))
-    fig, ax = plt.subplots(figsize=(2.2 + 2.4 * len(tasks), 3.4))
-    width = 0.8 / len(MODES)
-    for j, mode in enumerate(MODES):
-        xs, ys, es = [], [], []
-        for i, task in enumerate(tasks):
-            t = next((t for t in table if t["task"] == task and t["mode"] == mode), None)
-            if t is not None:
-                xs.append(i + (j - 1.5) * width)
-                ys.append(100 * t["success"])
-                es.append(100 * t["sd"])
-        if xs:
-            ax.bar(xs, ys, width, yerr=es, capsize=3, label=mode)
-    ax.set_xticks(range(len(tasks)), tasks)
-    ax.set_ylabel("real-twin success (%)")
-    ax.set_ylim(0, 105)
-    ax.legend(fontsize=8, title="camera", title_fontsize=8)
-    ax.set_title("image actor by camera, and the state oracle\n(bars: mean over twin seeds; "
-                 "lines: sd)", fontsize=9)
+    tasks = list(dict.fromkeys(t["task"] for _, tab in panels for t in tab))
+    fig, axes = plt.subplots(1, len(panels), figsize=(len(panels) * (2.2 + 2.4 * len(tasks)),
+                                                      3.4), squeeze=False, sharey=True)
+    for ax, (where, tab) in zip(axes[0], panels):
+        modes = [m for m in MODES if any(t["mode"] == m for t in tab)]
+        width = 0.8 / len(modes)
+        for j, mode in enumerate(modes):
+            xs, ys, es = [], [], []
+            for i, task in enumerate(tasks):
+                t = next((t for t in tab if t["task"] == task and t["mode"] == mode), None)
+                if t is not None:
+                    xs.append(i + (j - (len(modes) - 1) / 2) * width)
+                    ys.append(100 * t["success"])
+                    es.append(100 * t["sd"])
+            if xs:
+                ax.bar(xs, ys, width, yerr=es, capsize=3, label=mode)
+        ax.set_xticks(range(len(tasks)), tasks)
+        ax.set_ylim(0, 105)
+        ax.set_title(f"{where}\n(bars: mean over twin seeds; lines: sd)", fontsize=9)
+        ax.legend(fontsize=8, title="camera", title_fontsize=8)
+    axes[0][0].set_ylabel("success (%)")
+    fig.suptitle("image actor by camera, and the state oracle", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
