@@ -85,13 +85,12 @@ def _residual_defaults() -> dict[str, Any]:
     # whole episodes (the arm tasks' 50 steps) from the task's starts, as the gate judges it:
     # from the recorded exciting states (20 steps) the residual raised its own objective and
     # lowered the task's return, and was rejected (ResidualConfig.starts); 16 rollouts a step,
-    # 60 steps: 1.5 s a step on 2 cores, after a 3-4 min compile
+    # 60 steps: 1.2-1.5 s a step on 2 cores, after a 1-4 min compile (needle)
     return {"starts": "reset", "horizon": 50, "batch_size": 16, "steps": 60}
 
 
-NESTED = {"imitation": "ImitationConfig", "sensing": "SensingConfig",
-          "residual_policy": "ResidualConfig"}
-"""The settings ``make_config`` takes as ``NAME.FIELD=value``: overrides of these configs."""
+NESTED = ("imitation", "sensing", "residual_policy")
+"""The settings ``make_config`` takes as ``NAME.FIELD=value`` (overrides of a stage's config)."""
 
 
 @dataclasses.dataclass(frozen=True)
