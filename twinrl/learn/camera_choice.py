@@ -22,7 +22,7 @@ import optax
 from twinrl.learn.networks import Network
 
 __all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
-           "select_camera", "landscape", "view_outcomes"]
+           "select_camera", "landscape", "view_outcomes", "q_predictions"]
 
 
 EDGE = float(np.log(0.98 / 0.02))
@@ -157,3 +157,12 @@ def view_outcomes(env, actor: Network, actor_params, keys: jax.Array, coords: ja
         return rewards.sum(), env.success(q, v).astype(jnp.float32)
 
     return jax.vmap(episode)(keys, coords)
+
+
+def q_predictions(q, q_params, data) -> np.ndarray:
+    """Q at every example of a ``twinrl.learn.sensing.SensingData``, shaped as its targets
+    (S, C, K)."""
+    flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
+    obs = jax.tree_util.tree_map(flat, data.obs)
+    return np.asarray(jax.jit(lambda p, o, a: q_value(q, p, o, a))(
+        q_params, obs, flat(data.actions))).reshape(data.targets.shape)

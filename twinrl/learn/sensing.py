@@ -46,15 +46,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.learn.camera_choice import (Selection, image_size, observer, q_value,
-                                        select_camera, uniform_coords)
+from twinrl.learn.camera_choice import (Selection, image_size, observer, q_predictions,
+                                        q_value, select_camera, uniform_coords)
 from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
                                  raw_key, rgb_jitter)
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
 __all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
            "observer", "sensing_data", "q_inputs", "make_q", "q_value", "train", "select_camera",
-           "evaluate_ranking", "load_actor"]
+           "evaluate_ranking", "q_predictions", "rank_corr_per_state", "load_actor"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,19 +202,22 @@ def _rank_corr(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(ra, rb)[0, 1])
 
 
+def rank_corr_per_state(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Spearman's correlation of Q (``pred``, ``q_predictions``) with the target across the
+    poses of each start state, at the episodes' first example: (S,)."""
+    return np.asarray([_rank_corr(p, t) for p, t in zip(pred[:, :, 0], target[:, :, 0])])
+
+
 def evaluate_ranking(q: Network, q_params, data: SensingData) -> dict:
     """On held-out data: Q's loss, its per-state rank correlation with the target across poses
     (first example of each episode; ``rank_corr``, what a camera choice needs) and over all the
     held-out (state, pose) pairs (``rank_corr_pooled``: a state's own difficulty counts too),
     the target at Q's preferred pose vs the poses' mean and best, and the episode return from
     Q's preferred pose (``return``)."""
-    flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
-    obs = jax.tree_util.tree_map(flat, data.obs)
-    pred = np.asarray(jax.jit(lambda p, o, a: q_value(q, p, o, a))(
-        q_params, obs, flat(data.actions))).reshape(data.targets.shape)
+    pred = q_predictions(q, q_params, data)
     target = np.asarray(data.targets)
     first_pred, first_target = pred[:, :, 0], target[:, :, 0]
-    corr = [_rank_corr(p, t) for p, t in zip(first_pred, first_target)]
+    corr = rank_corr_per_state(pred, target)
     pick = np.argmax(first_pred, axis=1)
     rows = np.arange(len(pick))
     return {"val_loss": float(np.mean((pred - target) ** 2)),

@@ -1,0 +1,117 @@
+"""How well a loop's sensing-aware Q ranks camera poses, on many fresh simulated states.
+
+The Q stage reports its ranking on the states it held out: a fifth of ``SensingConfig.states``
+(6 of the loop's 32), each Spearman's correlation over 8 poses, so its mean moves by about
++-0.15 from one draw of states to the next. Here, for each ``--run TASK=DIR`` (a ``twinrl run``
+output directory: its last round's actor, Q and identified twin), ``--states`` start states that
+no stage saw (keys from ``--key``) x ``--cameras`` poses uniform over the mount's workspace, the
+actor's episodes in the identified twin (``sensing.sensing_data``, the same examples and target
+as Q's training), and:
+
+- ``rank_corr``: the mean over states of Spearman's correlation between Q and the target across
+  the poses of a state (the issue's "rank correlation between Q and the measured outcome of
+  (camera, action) pairs", per state: what a camera choice needs), with a bootstrap 95 % interval
+  over states; ``rank_corr_pooled``, over all (state, pose) pairs;
+- the target and success at Q's preferred pose among the sampled ones, against their mean;
+- ``choice_raises_q``: on the first ``--choices`` states, how often the gradient ascent through
+  the renderer (``select_camera``, Q's own settings) ends above Q at the default pose.
+
+Prints a table and writes ``DIR/q_rank.json`` (``--out DIR``).
+
+    python bench/q_rank.py --run needle_threading=runs/needle --states 40 --out bench/results
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from twinrl import envs
+from twinrl.report import print_table, run_meta, write_json
+
+
+def evaluate(task: str, run: Path, args) -> dict:
+    from twinrl.envs.system import System
+    from twinrl.learn import sensing
+    from twinrl.learn.camera_choice import select_camera, uniform_coords
+    from twinrl.sense import load_q
+
+    summary = json.loads((run / "summary.json").read_text())
+    if summary.get("env") != task:
+        raise SystemExit(f"--run {task}={run}: that run is on {summary.get('env')!r}")
+    rdir = run / f"round{summary['final']['round']}"
+    env = envs.make(task, system=System.load(rdir / "system.json"))
+    actor, ap, _ = sensing.load_actor(rdir / "actor")
+    q, qp, meta = load_q(rdir / "q")
+    cfg = sensing.SensingConfig.from_dict(meta.get("config") or {})
+    t0 = time.perf_counter()
+    k_states, k_cams, k_choice = jax.random.split(jax.random.PRNGKey(args.key), 3)
+    keys = jax.random.split(k_states, args.states)
+    coords = uniform_coords(env.mount, k_cams, (args.states, args.cameras))
+    data = sensing.sensing_data(env, actor, ap, cfg, keys, coords)
+    figures = sensing.evaluate_ranking(q, qp, data)
+    per_state = sensing.rank_corr_per_state(sensing.q_predictions(q, qp, data),
+                                            np.asarray(data.targets))
+    boot = np.random.default_rng(0).choice(per_state, (10_000, len(per_state))).mean(1)
+    choose = jax.jit(lambda s, k: select_camera(env, q, qp, actor, ap, s, k, cfg))
+    reset = jax.jit(env.reset)
+    gains = np.asarray([float(sel.value) - float(sel.default_value) for sel in (
+        choose(reset(keys[i]), k) for i, k in enumerate(
+            jax.random.split(k_choice, min(args.choices, args.states))))])
+    out = {"task": task, "run": str(run), "twin_seed": summary.get("seed"),
+           "states": args.states, "cameras": args.cameras, **figures,
+           "rank_corr_ci95": np.percentile(boot, [2.5, 97.5]).tolist(),
+           "rank_corr_per_state": per_state.tolist(),
+           "loop_rank_corr": summary["final"].get("q_rank_corr"),
+           "choice_raises_q": float(np.mean(gains > 0)), "choices": len(gains),
+           "wall_s": time.perf_counter() - t0}
+    print(f"[bench] {task} {run.name}: rank {out['rank_corr']:.2f} "
+          f"({out['rank_corr_ci95'][0]:.2f} .. {out['rank_corr_ci95'][1]:.2f}), ascent raises Q "
+          f"on {100 * out['choice_raises_q']:.0f} % ({out['wall_s']:.0f} s)", flush=True)
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--run", nargs="+", required=True, help="TASK=DIR twinrl run directories")
+    p.add_argument("--states", type=int, default=40)
+    p.add_argument("--cameras", type=int, default=8)
+    p.add_argument("--choices", type=int, default=20,
+                   help="states on which the ascent through the renderer is run")
+    p.add_argument("--key", type=int, default=777_000,
+                   help="PRNG key of the states and poses (the loop's Q drew its own from the "
+                        "run's seed)")
+    p.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = p.parse_args(argv)
+    if args.states < 2 or args.cameras < 2 or args.choices < 0:
+        raise SystemExit("--states and --cameras must be >= 2, --choices >= 0")
+    rows = []
+    for item in args.run:
+        task, sep, path = item.partition("=")
+        if not sep or task not in envs.registry.TASKS:
+            raise SystemExit(f"--run takes TASK=DIR; got {item!r}")
+        if not (Path(path) / "summary.json").exists():
+            raise SystemExit(f"--run {item}: no finished twinrl run there")
+        rows.append(evaluate(task, Path(path), args))
+        write_json(args.out / "q_rank.json", {"meta": run_meta(args), "rows": rows})
+    print_table(f"Q's ranking of camera poses on {args.states} fresh states x {args.cameras} "
+                f"poses (identified twin)",
+                ["task", "twin", "rank per state (95 %)", "loop's (held-out 1/5)", "pooled",
+                 "success: Q's pose / mean pose", "ascent raises Q"],
+                [[r["task"], r["twin_seed"], f"{r['rank_corr']:.2f} ({r['rank_corr_ci95'][0]:.2f}"
+                  f" .. {r['rank_corr_ci95'][1]:.2f})", r["loop_rank_corr"],
+                  f"{r['rank_corr_pooled']:.2f}",
+                  f"{r['success_q_choice']:.2f} / {r['success_mean_pose']:.2f}",
+                  f"{100 * r['choice_raises_q']:.0f} % of {r['choices']}"] for r in rows])
+    print(f"wrote {args.out / 'q_rank.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
