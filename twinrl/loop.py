@@ -393,21 +393,12 @@ def _train_residual(run: RunContext, r: int, rdir: Path, env, hybrid, data, poli
         pol = residual.make_residual(base, base_params)
         run.say("  training the residual policy through the hybrid model ...")
         dynamics = hybrid_dynamics.make_dynamics(env, hybrid)
-        seed = run.seed + r
-        res_params, metrics = residual.train(env, dynamics, pol, data.obs,
-                                             rng=jax.random.key(seed))
-        verdict = residual.accept(env, dynamics, pol, res_params, jax.random.key(seed + 1),
-                                  reference=env.step)
+        res_params, metrics, verdict = residual.train_gated(env, dynamics, pol, data.obs,
+                                                            seed=run.seed + r)
         said = "accepted" if verdict.accepted else "rejected (deploying pi_sim)"
         run.say(f"  residual {said}: full-episode return through the hybrid model "
                 f"{verdict.before:.1f} -> {verdict.after:.1f}, the identified simulator "
                 f"{verdict.reference_before:.1f} -> {verdict.reference_after:.1f}")
-        if not verdict.accepted:  # the exact pi_sim: an all-zero delta outputs tanh(0) = 0
-            res_params = jax.tree_util.tree_map(jnp.zeros_like, res_params)
-        metrics = {k: v[-1] for k, v in metrics.items()}
-        metrics.update(accepted=float(verdict.accepted), model_return_before=verdict.before,
-                       model_return_after=verdict.after, sim_return_before=verdict.reference_before,
-                       sim_return_after=verdict.reference_after)
         save_policy(rdir / "residual", pol.delta, res_params, kind="residual", metrics=metrics)
         run.prog.mark(f"round{r}/residual",
                       seconds=seconds_so_far(run.prog, r, residual=time.perf_counter() - t0))

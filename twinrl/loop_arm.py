@@ -398,19 +398,12 @@ def _residual(run: RunContext, r: int, rdir: Path, env, system, data) -> None:
     cfg = residual.ResidualConfig(**dict(run.config.residual_policy))
     pol = residual.make_residual(active.pose_actor_on_state(env, actor), actor_params, cfg)
     run.say("  training the residual policy through the hybrid model ...")
-    params, metrics = residual.train(env, dynamics, pol, data.obs, cfg, jax.random.key(seed))
     # no tolerance on the twin: a precision task's success turns on millimetres
-    v = residual.accept(env, dynamics, pol, params, jax.random.key(seed + 1), reference=env.step,
-                        tolerance=0.0)
+    params, metrics, v = residual.train_gated(env, dynamics, pol, data.obs, cfg, seed,
+                                              tolerance=0.0)
     run.say(f"  residual {'accepted' if v.accepted else 'rejected (deploying the actor alone)'}"
             f": return through the hybrid model {v.before:.2f} -> {v.after:.2f}, the identified "
             f"twin {v.reference_before:.2f} -> {v.reference_after:.2f}")
-    if not v.accepted:  # an all-zero delta outputs tanh(0) = 0: exactly the actor
-        params = jax.tree_util.tree_map(jax.numpy.zeros_like, params)
-    metrics = {k: x[-1] for k, x in metrics.items()}
-    metrics.update(accepted=float(v.accepted), model_return_before=v.before,
-                   model_return_after=v.after, sim_return_before=v.reference_before,
-                   sim_return_after=v.reference_after)
     save_policy(rdir / "residual", pol.delta, params, kind="residual", metrics=metrics)
     run.prog.mark(f"round{r}/residual", residual_accepted=v.accepted, **errors,
                   residual_model_return=[v.before, v.after],

@@ -153,6 +153,25 @@ def test_accept_compares_full_episodes_from_the_task_start(res_setup):
     assert v.accepted and v.reference_after == v.after
 
 
+def test_train_gated_deploys_the_trained_delta_only_when_accepted(res_setup):
+    """``train_gated`` (both loops' residual stage): ``train`` from key ``seed``, ``accept``
+    from key ``seed + 1`` against ``env.step``; the parameters are exactly the trained ones when
+    accepted and exactly zero otherwise, and the metrics carry the verdict."""
+    nominal, data, fit, pol = res_setup
+    cfg = residual.ResidualConfig(hidden=(16,), horizon=5, batch_size=4, steps=3)
+    dyn = hybrid.make_dynamics(nominal, fit.model)
+    trained, _ = residual.train(nominal, dyn, pol, data.obs, cfg, jax.random.key(5))
+    want = residual.accept(nominal, dyn, pol, trained, jax.random.key(6), reference=nominal.step,
+                           tolerance=0.0)
+    p, m, v = residual.train_gated(nominal, dyn, pol, data.obs, cfg, seed=5, tolerance=0.0)
+    assert v == want
+    expect = trained if v.accepted else jax.tree.map(jnp.zeros_like, trained)
+    for got, exp in zip(jax.tree.leaves(p), jax.tree.leaves(expect)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(exp))
+    assert m["accepted"] == float(v.accepted) and m["model_return_after"] == v.after
+    assert m["sim_return_before"] == v.reference_before and np.isfinite(m["objective"])
+
+
 def test_single_episode_is_stopped_on_its_held_out_last_block(setup):
     """One recorded episode still gets a validation set: its last transitions, which the network
     is not fitted to (early stopping on the training data picked whatever fit it best)."""

@@ -48,7 +48,7 @@ from twinrl.learn.networks import Network, NetworkConfig, make_network
 from twinrl.physics.gradients import global_norm, hygiene
 
 __all__ = ["ResidualConfig", "ResidualPolicy", "make_residual", "train", "model_return", "accept",
-           "Verdict"]
+           "Verdict", "train_gated"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -250,3 +250,23 @@ def accept(env, dynamics, policy: ResidualPolicy, res_params, rng: jax.Array,
     ok = ok and bool(np.isfinite(ref_after)
                      and ref_after >= ref_before - tolerance * abs(ref_before))
     return Verdict(ok, before, after, ref_before, ref_after)
+
+
+def train_gated(env, dynamics, policy: ResidualPolicy, start_obs: np.ndarray,
+                config: ResidualConfig = ResidualConfig(), seed: int = 0,
+                tolerance: float = 0.01) -> tuple[Any, dict[str, float], Verdict]:
+    """What a loop deploys: ``train`` (key ``seed``), then ``accept`` (key ``seed + 1``; the
+    reference is ``env.step``, the identified simulator). Returns ``(res_params, metrics,
+    verdict)``: the trained parameters if accepted, else all zeros (``tanh(0) = 0``: exactly
+    ``pi_sim``); ``metrics`` the training's last row with ``accepted`` and the verdict's returns
+    (``model_return_*`` through ``dynamics``, ``sim_return_*`` through ``env.step``)."""
+    res_params, metrics = train(env, dynamics, policy, start_obs, config, jax.random.key(seed))
+    verdict = accept(env, dynamics, policy, res_params, jax.random.key(seed + 1),
+                     reference=env.step, tolerance=tolerance)
+    if not verdict.accepted:
+        res_params = jax.tree_util.tree_map(jnp.zeros_like, res_params)
+    last = {k: v[-1] for k, v in metrics.items()}
+    last.update(accepted=float(verdict.accepted), model_return_before=verdict.before,
+                model_return_after=verdict.after, sim_return_before=verdict.reference_before,
+                sim_return_after=verdict.reference_after)
+    return res_params, last, verdict
