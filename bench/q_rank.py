@@ -55,9 +55,9 @@ def evaluate(task: str, run: Path, args) -> dict:
     keys = jax.random.split(k_states, args.states)
     coords = uniform_coords(env.mount, k_cams, (args.states, args.cameras))
     data = sensing.sensing_data(env, actor, ap, cfg, keys, coords)
-    figures = sensing.evaluate_ranking(q, qp, data)
-    per_state = sensing.rank_corr_per_state(sensing.q_predictions(q, qp, data),
-                                            np.asarray(data.targets))
+    pred = sensing.q_predictions(q, qp, data)
+    figures = sensing.evaluate_ranking(q, qp, data, pred)
+    per_state = sensing.rank_corr_per_state(pred, np.asarray(data.targets))
     boot = np.random.default_rng(0).choice(per_state, (10_000, len(per_state))).mean(1)
     choose = jax.jit(lambda s, k: select_camera(env, q, qp, actor, ap, s, k, cfg))
     reset = jax.jit(env.reset)

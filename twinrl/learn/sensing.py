@@ -208,13 +208,13 @@ def rank_corr_per_state(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.asarray([_rank_corr(p, t) for p, t in zip(pred[:, :, 0], target[:, :, 0])])
 
 
-def evaluate_ranking(q: Network, q_params, data: SensingData) -> dict:
+def evaluate_ranking(q: Network, q_params, data: SensingData, pred=None) -> dict:
     """On held-out data: Q's loss, its per-state rank correlation with the target across poses
     (first example of each episode; ``rank_corr``, what a camera choice needs) and over all the
     held-out (state, pose) pairs (``rank_corr_pooled``: a state's own difficulty counts too),
     the target at Q's preferred pose vs the poses' mean and best, and the episode return from
-    Q's preferred pose (``return``)."""
-    pred = q_predictions(q, q_params, data)
+    Q's preferred pose (``return``). ``pred``: ``q_predictions`` of ``data``, if computed."""
+    pred = q_predictions(q, q_params, data) if pred is None else np.asarray(pred)
     target = np.asarray(data.targets)
     first_pred, first_target = pred[:, :, 0], target[:, :, 0]
     corr = rank_corr_per_state(pred, target)
