@@ -72,6 +72,9 @@ def _gradcheck_parser(sub) -> None:
     p.add_argument("--gradient", default="implicit", choices=("implicit", "unrolled"),
                    help="derivative of the constraint solve: of its converged solution (implicit "
                         "function theorem, default) or of its fixed iterations")
+    p.add_argument("--contacts", default="mjx", choices=("mjx", "mujoco"),
+                   help="collision rules: stock MJX's (default) or MuJoCo C's box on a plane "
+                        "(every lower corner touches; MJX keeps those within 1 mm of the deepest)")
     p.add_argument("--settle", type=int, default=0, metavar="N",
                    help="run N physics steps (MuJoCo C, no actuation) before the check, so it "
                         "starts where the model has come to rest, e.g. a walker on the ground")
@@ -126,11 +129,13 @@ def _cmd_gradcheck(args) -> int:
 
             env = envs.make(t)
             sims.append(Sim.load(env.mjcf(), frame_skip=int(env.config.frame_skip), name=t,
-                                 iterations=args.iterations, gradient=args.gradient))
+                                 iterations=args.iterations, gradient=args.gradient,
+                                 contacts=args.contacts))
             if args.scenario is None:
                 scenarios[t] = env.gradcheck_scenario(args.horizon or 30, seed=args.seed)
         else:
-            sims.append(Sim.load(t, iterations=args.iterations, gradient=args.gradient))
+            sims.append(Sim.load(t, iterations=args.iterations, gradient=args.gradient,
+                                 contacts=args.contacts))
     if not args.x64:
         report.console.print("[yellow]float32: finite differences are coarse; use --x64 for the "
                              "real check[/yellow]")

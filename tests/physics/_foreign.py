@@ -13,9 +13,9 @@ FOREIGN = Path(__file__).parent / "foreign"
 HORIZON = 30  # 0.15 s at dt 0.005: each drop is free for ~10 steps, then impact and settling
 
 
-def check_foreign_scene(name: str) -> None:
+def check_foreign_scene(name: str, contacts: str = "mjx") -> None:
     with jax.enable_x64(True):
-        sim = Sim.load(FOREIGN / f"{name}.xml")
+        sim = Sim.load(FOREIGN / f"{name}.xml", contacts=contacts)
         r = gradcheck(sim, horizon=HORIZON, scenario="wave" if sim.nu else "zero")
     assert r.dtype == "float64"
     assert r.nan_count == 0

@@ -23,6 +23,17 @@ Every other pair type is stock MJX's collision function, through the same driver
 (``collision`` mirrors ``mujoco.mjx._src.collision_driver.collision`` with this table);
 ``fwd_position`` mirrors ``mujoco.mjx._src.forward.fwd_position`` with this ``collision``.
 Forward results equal stock MJX's (tested).
+
+Contact rules (``CONTACTS``; ``Sim(contacts=...)``). ``"mjx"`` (default) is the above. ``"mujoco"``
+replaces MJX's one rule that differs from MuJoCo C's: a box on a plane. MJX (``plane_convex``)
+keeps only the box corners within a 1 mm skin of the deepest one (then the four spanning the
+largest area): a box rocking a few degrees has corners 2-5 mm into the floor that get no
+contact, and a corner's force jumps on or off as the deepest point moves by a millimetre.
+MuJoCo C (``mjc_PlaneBox``) gives every corner on the plane's side of the box's centre its
+contact, active as soon as it touches; this module's ``plane_box_mujoco`` does the same, so the
+contact set changes only where a corner crosses the plane (the force is continuous there).
+Measured on recorded states of the push real twin (MuJoCo C): one control step of MJX's rule
+missed the box's velocity by up to 0.15 m/s (90th percentile 4e-3), this rule by 2e-5.
 """
 
 from __future__ import annotations
@@ -31,6 +42,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from mujoco.mjx._src import collision_convex as _convex
 from mujoco.mjx._src import collision_driver as _driver
 from mujoco.mjx._src import collision_sdf as _sdf
 from mujoco.mjx._src import constraint as _constraint
@@ -38,7 +50,8 @@ from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src.types import GeomType
 
-__all__ = ["collision", "fwd_position", "cylinder_sdf", "REFINED"]
+__all__ = ["collision", "fwd_position", "cylinder_sdf", "plane_box_mujoco", "check_contacts",
+           "REFINED", "CONTACTS"]
 
 
 def _safe_norm(x: jax.Array) -> jax.Array:
@@ -89,16 +102,47 @@ def _cylinder_cylinder(c1, c2):
     return jax.vmap(optim)(x0)
 
 
+# The corners 0..3 of a box (sign bits x, y, z); corner 7 - i is the opposite of corner i.
+_CORNERS = tuple((1.0 if i & 1 else -1.0, 1.0 if i & 2 else -1.0, 1.0 if i & 4 else -1.0)
+                 for i in range(4))
+
+
+@_convex.collider(ncon=4)
+def plane_box_mujoco(plane, box):
+    """Plane-box contacts as MuJoCo C makes them (``mjc_PlaneBox``): one per box corner on the
+    plane's side of the box's centre (of each pair of opposite corners, the lower one), with
+    the corner's signed distance; the constraint stage activates those within the margin, as C
+    skips the others. Contact point halfway into the penetration, normal the plane's z."""
+    n = plane.mat[:, 2]
+    corner = (jnp.asarray(_CORNERS) * box.size) @ box.mat.T  # offsets from the box's centre
+    corner = jnp.where((corner @ n <= 0.0)[:, None], corner, -corner)
+    dist = jnp.dot(box.pos - plane.pos, n) + corner @ n
+    pos = box.pos + corner - 0.5 * dist[:, None] * n
+    return dist, pos, jnp.stack([_math.make_frame(n)] * 4, axis=0)
+
+
 _REPLACED = {_sdf.sphere_cylinder: _sphere_cylinder, _sdf.capsule_cylinder: _capsule_cylinder,
              _sdf.ellipsoid_cylinder: _ellipsoid_cylinder,
              _sdf.cylinder_cylinder: _cylinder_cylinder}
 _FUNCTIONS = {types: _REPLACED.get(f, f) for types, f in _driver._COLLISION_FUNC.items()}
 REFINED = tuple(types for types, f in _driver._COLLISION_FUNC.items() if f in _REPLACED)
 """Geom-type pairs collided with ``cylinder_sdf`` instead of MJX's ``_cylinder``."""
+_RULES = {"mjx": _FUNCTIONS,
+          "mujoco": {**_FUNCTIONS, (GeomType.PLANE, GeomType.BOX): plane_box_mujoco}}
+CONTACTS = tuple(_RULES)
+"""Contact rules: ``"mjx"`` (stock MJX's colliders) and ``"mujoco"`` (MuJoCo C's box on a plane)."""
 
 
-def collision(m, d):
-    """``mjx`` collision with the refined SDF colliders (same driver loop as stock)."""
+def check_contacts(contacts: str) -> str:
+    if contacts not in _RULES:
+        raise ValueError(f"contacts must be one of {', '.join(CONTACTS)}, got {contacts!r}")
+    return contacts
+
+
+def collision(m, d, contacts: str = "mjx"):
+    """``mjx`` collision with the refined SDF colliders (same driver loop as stock); ``contacts``
+    picks the rule set (``CONTACTS``)."""
+    table = _RULES[check_contacts(contacts)]
     if d._impl.ncon == 0:
         return d
     max_geom_pairs = _driver._numeric(m, "max_geom_pairs")
@@ -112,7 +156,7 @@ def collision(m, d):
             dist = jax.vmap(jnp.linalg.norm)(pos2 - pos1) - (size1 + size2)
             _, idx = jax.lax.top_k(-dist, k=max_geom_pairs)
             contact = jax.tree_util.tree_map(lambda x, idx=idx: x[idx], contact)
-        func = _FUNCTIONS[key.types]
+        func = table[key.types]
         dist, pos, frame = func(m, d, key, contact.geom)
         if func.ncon > 1:
             contact = jax.tree_util.tree_map(lambda x, r=func.ncon: jnp.repeat(x, r, axis=0),
@@ -134,7 +178,7 @@ def collision(m, d):
     return d.tree_replace({"_impl.contact": contact})
 
 
-def fwd_position(m, d):
+def fwd_position(m, d, contacts: str = "mjx"):
     """``mjx`` position stage with ``collision`` above."""
     d = _smooth.kinematics(m, d)
     d = _smooth.com_pos(m, d)
@@ -143,6 +187,6 @@ def fwd_position(m, d):
     d = _smooth.crb(m, d)
     d = _smooth.tendon_armature(m, d)
     d = _smooth.factor_m(m, d)
-    d = collision(m, d)
+    d = collision(m, d, contacts)
     d = _constraint.make_constraint(m, d)
     return _smooth.transmission(m, d)

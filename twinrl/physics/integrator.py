@@ -101,7 +101,7 @@ def _implicit(m, d):
     return _advance(m, d, d.act_dot, qacc)
 
 
-def _rk4(m, d, iterations, gradient):
+def _rk4(m, d, iterations, gradient, contacts):
     a, b = _fwd._RK4_A, _fwd._RK4_B
     times = d.time + jnp.tril(a).sum(axis=0) * m.opt.timestep
     d0 = d
@@ -113,7 +113,7 @@ def _rk4(m, d, iterations, gradient):
         kact = d0.act + a[i, i] * d.act_dot * m.opt.timestep
         kqvel = d0.qvel + a[i, i] * d.qacc * m.opt.timestep
         d = forward(m, d.replace(qpos=kqpos, qvel=kqvel, act=kact, time=times[i]), iterations,
-                    gradient)
+                    gradient, contacts)
         qvel += b[i + 1] * kqvel
         qacc += b[i + 1] * d.qacc
         act_dot += b[i + 1] * d.act_dot
@@ -121,16 +121,18 @@ def _rk4(m, d, iterations, gradient):
     return _advance(m, d, act_dot, qacc, qvel)
 
 
-def step(m, d, iterations: int | None = None, gradient: str = "implicit"):
+def step(m, d, iterations: int | None = None, gradient: str = "implicit",
+         contacts: str = "mjx"):
     """``mjx.step`` with the differentiable solve (Euler, implicitfast or RK4 integrator).
 
-    ``gradient``: how reverse mode goes through the constraint solve (``twinrl.physics.solver``).
+    ``gradient``: how reverse mode goes through the constraint solve (``twinrl.physics.solver``);
+    ``contacts``: the collision rule set (``twinrl.physics.collision.CONTACTS``).
     """
-    d = forward(m, d, iterations, gradient)
+    d = forward(m, d, iterations, gradient, contacts)
     if m.opt.integrator == IntegratorType.EULER:
         return _euler(m, d)
     if m.opt.integrator == IntegratorType.IMPLICITFAST:
         return _implicit(m, d)
     if m.opt.integrator == IntegratorType.RK4:
-        return _rk4(m, d, iterations, gradient)
+        return _rk4(m, d, iterations, gradient, contacts)
     raise NotImplementedError(f"integrator {m.opt.integrator} is not supported by MJX")

@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from twinrl.physics import gradients, integrator, solver
+from twinrl.physics import collision, gradients, integrator, solver
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, scene_path
 
@@ -92,6 +92,9 @@ class Sim:
         ``"unrolled"`` (the derivative of the fixed iterations; wrong by orders of magnitude
         where a solve's line search switches pieces, e.g. a box landing flat). The forward is
         the same either way. See ``twinrl.physics.solver``.
+      contacts: collision rules: ``"mjx"`` (default, stock MJX's) or ``"mujoco"`` (a box on a
+        plane touches with every lower corner, as MuJoCo C makes it; MJX keeps only corners
+        within 1 mm of the deepest). See ``twinrl.physics.collision``.
     """
 
     mj_model: mujoco.MjModel
@@ -101,16 +104,18 @@ class Sim:
     gradient: str = "implicit"
     bundled: bool = False
     """Loaded by a bundled scene's name (not a user's file that happens to share it)."""
+    contacts: str = "mjx"
 
     @classmethod
     def load(cls, mjcf, *, frame_skip: int = 1, iterations: int | None = None,
              ls_iterations: int | None = None, name: str | None = None,
-             gradient: str = "implicit") -> "Sim":
+             gradient: str = "implicit", contacts: str = "mjx") -> "Sim":
         if frame_skip < 1:
             raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
         if gradient not in solver.GRADIENTS:
             raise ValueError(f"gradient must be one of {', '.join(solver.GRADIENTS)}, "
                              f"got {gradient!r}")
+        collision.check_contacts(contacts)
         for what, n in (("iterations", iterations), ("ls_iterations", ls_iterations)):
             if n is not None and int(n) < 1:
                 raise ValueError(f"{what} must be >= 1, got {n}")
@@ -124,10 +129,11 @@ class Sim:
                 Path(str(mjcf)).stem if not str(mjcf).lstrip().startswith("<") else "mjcf")
         return cls(mj_model=mj_model, model=mjx.put_model(mj_model), frame_skip=frame_skip,
                    name=name, gradient=gradient,
-                   bundled=isinstance(mjcf, str) and mjcf in SCENES)
+                   bundled=isinstance(mjcf, str) and mjcf in SCENES, contacts=contacts)
 
     def recompiled(self, mj_model: mujoco.MjModel) -> "Sim":
-        """The same simulator (frame skip, name, gradient mode) on an edited ``mj_model``."""
+        """The same simulator (frame skip, name, gradient mode, contacts) on an edited
+        ``mj_model``."""
         return dataclasses.replace(self, mj_model=mj_model, model=mjx.put_model(mj_model))
 
     # ------------------------------------------------------------------ shapes
@@ -172,7 +178,7 @@ class Sim:
         """One control step (``frame_skip`` physics steps) with ``ctrl = action``."""
         m = self.model_with(params)
         d = data.replace(ctrl=jnp.asarray(action, data.ctrl.dtype).reshape(self.nu))
-        step = lambda d: integrator.step(m, d, iterations, self.gradient)
+        step = lambda d: integrator.step(m, d, iterations, self.gradient, self.contacts)
         if self.frame_skip == 1:
             return step(d)
         d, _ = jax.lax.scan(lambda d, _: (step(d), None), d, None, length=self.frame_skip)

@@ -180,10 +180,11 @@ def solve(m, d, iterations: int | None = None, gradient: str = "implicit"):
     })
 
 
-def forward(m, d, iterations: int | None = None, gradient: str = "implicit"):
+def forward(m, d, iterations: int | None = None, gradient: str = "implicit",
+            contacts: str = "mjx"):
     """``mjx.forward`` with the differentiable solve (and differentiable SDF contacts,
-    ``twinrl.physics.collision``)."""
-    d = _collision.fwd_position(m, d)
+    ``twinrl.physics.collision``; ``contacts``: its rule set, ``collision.CONTACTS``)."""
+    d = _collision.fwd_position(m, d, contacts)
     d = _sensor.sensor_pos(m, d)
     d = _fwd.fwd_velocity(m, d)
     d = _sensor.sensor_vel(m, d)
