@@ -10,12 +10,16 @@ Per bundled scene (T = 100-step open-loop rollouts, float32, CPU unless JAX find
 ``--gradient implicit unrolled`` measures both derivatives of the constraint solve in one run
 (``twinrl.physics.solver``: the implicit-function-theorem derivative, the default, adds one
 nv x nv solve per step to the backward pass); the table then has a row per scene and mode.
+``--contacts mjx mujoco`` does the same for the collision rules (``twinrl.physics.collision``:
+MuJoCo C's box on a plane), ``--iterations N`` overrides the scenes' solver iterations (the
+stock columns always run stock MJX's collision and the scene's iterations).
 
 Timings are the best of ``--repeats`` calls after a warm-up call. Prints a table, writes JSON.
 
     python bench/physics.py --out bench/results            # all scenes
     python bench/physics.py --scenes cartpole push --repeats 5
     python bench/physics.py --scenes push --gradient implicit unrolled
+    python bench/physics.py --scenes push --contacts mjx mujoco --iterations 12
 """
 
 from __future__ import annotations
@@ -56,8 +60,9 @@ def _compile(fn, *args) -> tuple[float, object]:
     return time.perf_counter() - t0, fn
 
 
-def bench_scene(name: str, repeats: int, gradient: str = "implicit") -> dict:
-    sim = Sim.load(name, gradient=gradient)
+def bench_scene(name: str, repeats: int, gradient: str = "implicit", contacts: str = "mjx",
+                iterations: int | None = None) -> dict:
+    sim = Sim.load(name, gradient=gradient, contacts=contacts, iterations=iterations)
     sc = scenario(name, sim.nq, sim.nv, sim.nu, sim.mj_model.qpos0, horizon=T)
     q0, v0 = jnp.asarray(sc.qpos, jnp.float32), jnp.asarray(sc.qvel, jnp.float32)
     acts = jnp.asarray(sc.actions, jnp.float32)
@@ -72,7 +77,8 @@ def bench_scene(name: str, repeats: int, gradient: str = "implicit") -> dict:
     batch = lambda f: jax.jit(jax.vmap(f))
     a256, a16 = jnp.broadcast_to(acts, (256,) + acts.shape), jnp.broadcast_to(acts, (16,) + acts.shape)
 
-    out: dict = {"scene": name, "gradient": gradient, "T": T, "nv": sim.nv, "nu": sim.nu,
+    out: dict = {"scene": name, "gradient": gradient, "contacts": contacts, "T": T, "nv": sim.nv,
+                 "nu": sim.nu,
                  "solver_iterations": int(sim.mj_model.opt.iterations)}
     out["compile_forward_s"], _ = _compile(ours, acts)
     out["compile_grad_s"], _ = _compile(grad, acts)
@@ -121,18 +127,27 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--gradient", nargs="*", default=["implicit"], choices=("implicit", "unrolled"),
                    help="derivative(s) of the constraint solve to measure (default implicit)")
+    p.add_argument("--contacts", nargs="*", default=["mjx"], choices=("mjx", "mujoco"),
+                   help="collision rules to measure (default mjx, stock)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="solver iterations (default: each scene's MJCF)")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
+    if args.iterations is not None and args.iterations < 1:
+        p.error(f"--iterations must be >= 1, got {args.iterations}")
     rows = []
     for name in args.scenes:
         for gradient in args.gradient:
-            print(f"[bench] {name} ({gradient}) ...", flush=True)
-            rows.append(bench_scene(name, args.repeats, gradient))
+            for contacts in args.contacts:
+                print(f"[bench] {name} ({gradient}, {contacts}) ...", flush=True)
+                rows.append(bench_scene(name, args.repeats, gradient, contacts, args.iterations))
     print_table(f"physics throughput (env-steps/s, T={T}, {jax.devices()[0].platform})",
-                ["scene", "gradient", "compile fwd s", "compile grad s", "fwd 1", "fwd vmap256",
+                ["scene", "gradient", "contacts", "iterations", "compile fwd s", "compile grad s",
+                 "fwd 1", "fwd vmap256",
                  "grad 1", "grad vmap16", "grad/fwd 1", "grad/fwd 16", "stock fwd 1",
                  "stock vmap256", "MuJoCo C"],
-                [[r["scene"], r["gradient"], r["compile_forward_s"], r["compile_grad_s"],
+                [[r["scene"], r["gradient"], r["contacts"], r["solver_iterations"],
+                  r["compile_forward_s"], r["compile_grad_s"],
                   r["forward_steps_per_s_single"], r["forward_steps_per_s_vmap256"],
                   r["grad_steps_per_s_single"], r["grad_steps_per_s_vmap16"],
                   r["grad_forward_ratio_single"], r["grad_forward_ratio_vmap16"],
