@@ -58,8 +58,6 @@ def _contacts_c(m, qpos):
 def test_box_on_plane_contacts_equal_mujoco_c(scene):
     # The contacts the constraint stage activates (distance below the margin, here 0): the same
     # points and depths as MuJoCo C's; stock MJX's miss some of them on rocking boxes.
-    from mujoco import mjx
-
     mx = mjx.put_model(scene)
     pos_stage = {rule: jax.jit(lambda d, r=rule: collision.fwd_position(mx, d, r))
                  for rule in collision.CONTACTS}
