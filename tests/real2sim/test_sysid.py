@@ -176,6 +176,17 @@ def test_dataset_on_disk_gives_the_same_windows(env, exact, tmp_path):
     b = sysid.windows_from_dataset(env, data, WINDOW, max_latency=1)
     for x, y in zip(a[:-1], b[:-1]):
         np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-6)
+    # select: a mask or indices keep those windows, every field alike
+    odd = b.select(np.arange(len(b.qpos0)) % 2 == 1)
+    assert len(odd.qpos0) == len(b.qpos0) // 2 and odd.max_latency == b.max_latency
+    np.testing.assert_array_equal(odd.targets, b.targets[1::2])
+    np.testing.assert_array_equal(b.select([2, 0]).start, b.start[[2, 0]])
+    with pytest.raises(ValueError, match="keeps none of the"):
+        b.select(np.zeros(len(b.qpos0), bool))
+    with pytest.raises(ValueError, match="a mask needs shape"):
+        b.select(np.ones(3, bool))
+    with pytest.raises(ValueError, match="or indices in"):
+        b.select([len(b.qpos0)])
     with pytest.raises(ValueError, match="recorded on 'pendulum_swingup'"):
         other = tmp_path / "pend"
         with DatasetWriter(other, env="pendulum_swingup", obs_shape=5, action_shape=1) as w:
@@ -206,6 +217,27 @@ def test_state_from_obs_round_trips_observe():
         np.testing.assert_allclose(v2, v, atol=1e-6)
     with pytest.raises(NotImplementedError, match="does not determine the state"):
         envs.make("push").state_from_obs(np.zeros(12))
+
+
+def test_push_pusher_clear_measures_the_gap_to_the_box_footprint():
+    # The pusher put behind a yawed box, along the box's own x axis, at a given surface gap: clear
+    # past the 5 mm margin, not within it -- from the task's observation and from full states.
+    state, task = envs.make("push", observation="state"), envs.make("push")
+    yaw = 0.4
+    q = np.zeros(9)
+    q[2:5] = (0.2, -0.1, 0.05)
+    q[5], q[8] = np.cos(yaw / 2), np.sin(yaw / 2)
+    v = np.zeros(8)
+    clear = {}
+    for gap in (0.0, 0.004, 0.006, 0.2):
+        q[0:2] = q[2:4] - (0.05 + 0.03 + gap) * np.array([np.cos(yaw), np.sin(yaw)])
+        clear[gap] = (bool(state.pusher_clear(np.concatenate([q, v]))),
+                      bool(task.pusher_clear(np.asarray(task.observe(q, v)))))
+    assert clear == {0.0: (False, False), 0.004: (False, False), 0.006: (True, True),
+                     0.2: (True, True)}, clear
+    assert state.pusher_clear(np.zeros((3, 4, 17))).shape == (3, 4)
+    with pytest.raises(ValueError, match="observations have 12 entries; this env's have 17"):
+        state.pusher_clear(np.zeros(12))
 
 
 def test_excitation_actions_hold_levels():

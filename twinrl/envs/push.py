@@ -70,6 +70,8 @@ class Push(Env):
         m = self.sim.mj_model
         self.goal = jnp.asarray(np.array(m.geom("goal").pos[:2]), jnp.float32)
         self._box_qpos0 = np.array(m.qpos0[2:9])
+        self._box_half = float(m.geom("box").size[0])
+        self._pusher_radius = float(m.geom("pusher").size[0])
 
     def initial_state(self, rng):
         c = self.config
@@ -150,6 +152,27 @@ class Push(Env):
             return np.clip(a, -1.0, 1.0).astype(np.float32)
 
         return policy
+
+    def pusher_clear(self, obs, margin: float = 0.005) -> np.ndarray:
+        """Whether the pusher is more than ``margin`` (m) from the box in each observation
+        (``...`` x this env's observation; the task's or ``observation="state"``), from the planar
+        pose: the gap between the sphere and the box's square footprint. Identification uses it
+        to fit the pusher's own gains and damping on windows where it touches nothing
+        (``twinrl.real2sim.sysid.Windows.select``) before the box's mass and friction."""
+        o = np.asarray(obs, np.float64)
+        if o.shape[-1] != self.observation_size:
+            raise ValueError(f"pusher_clear: observations have {o.shape[-1]} entries; this env's "
+                             f"have {self.observation_size}")
+        if self.config.observation == "state":  # [qpos (9), qvel (8)]; yaw from the quaternion
+            yaw = 2.0 * np.arctan2(o[..., 8], o[..., 5])
+            c, s, box = np.cos(yaw), np.sin(yaw), o[..., 2:4]
+        else:
+            n = np.maximum(np.hypot(o[..., 6], o[..., 7]), 1e-9)
+            c, s, box = o[..., 6] / n, o[..., 7] / n, o[..., 4:6]
+        d = o[..., 0:2] - box
+        local = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
+        outside = np.maximum(np.abs(local) - self._box_half, 0.0)
+        return np.linalg.norm(outside, axis=-1) - self._pusher_radius > margin
 
     def reward_terms(self, qpos, qvel, action):
         c = self.config

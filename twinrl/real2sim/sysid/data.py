@@ -111,6 +111,24 @@ class Windows(NamedTuple):
     """(n,) step within the episode at which each window starts."""
     max_latency: int
 
+    def select(self, keep) -> "Windows":
+        """The windows ``keep`` picks: a boolean mask (n,) or indices. E.g. a first fit of a
+        robot's own parameters on the windows where it touches nothing (``Push.pusher_clear``),
+        before the object's parameters on all of them."""
+        n = len(self.qpos0)
+        k = np.asarray(keep)
+        if k.dtype == bool:
+            if k.shape != (n,):
+                raise ValueError(f"Windows.select: a mask needs shape ({n},), got {k.shape}")
+            k = np.flatnonzero(k)
+        elif k.size and (k.ndim != 1 or not np.issubdtype(k.dtype, np.integer)
+                         or k.min() < -n or k.max() >= n):
+            raise ValueError(f"Windows.select: give a boolean mask ({n},) or indices in "
+                             f"[0, {n}), got {keep!r}")
+        if k.size == 0:
+            raise ValueError(f"Windows.select keeps none of the {n} windows")
+        return Windows(*(getattr(self, f)[k] for f in Windows._fields[:-1]), self.max_latency)
+
 
 def _episodes_of(data) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
     """``(label, obs, action, next_obs)`` per episode from a Dataset, a mapping or a list."""

@@ -271,7 +271,7 @@ def build_problem(env: Env, data, config: SysidConfig | None = None) -> Problem:
                              f"{config.max_latency}")
         if config.max_windows is not None and len(w.qpos0) > config.max_windows:
             keep = np.linspace(0, len(w.qpos0) - 1, int(config.max_windows)).round().astype(int)
-            w = Windows(*(getattr(w, k)[keep] for k in Windows._fields[:-1]), w.max_latency)
+            w = w.select(keep)
         return Problem(env, w, config)
 
 
