@@ -51,6 +51,13 @@ class PushConfig(TaskConfig):
             raise ValueError(f"goal_weight must be in [0, 1], got {self.goal_weight}")
 
 
+def _yaw_cos_sin(quat):
+    """cos and sin of the yaw of a box quaternion ``(w, x, y, z)`` (leading axis): exact for a
+    yaw-only rotation, smooth in the quaternion everywhere (NumPy or JAX arrays)."""
+    w, x, y, z = quat[0], quat[1], quat[2], quat[3]
+    return 1.0 - 2.0 * (y * y + z * z), 2.0 * (w * z + x * y)
+
+
 class Push(Env):
     scene = "push"
     cameras = ("top",)
@@ -86,10 +93,7 @@ class Push(Env):
         return qpos, jnp.zeros(self.sim.nv)
 
     def observe(self, qpos, qvel):
-        w, x, y, z = qpos[5], qpos[6], qpos[7], qpos[8]
-        # cos/sin of yaw for a yaw-only rotation; smooth in the quaternion everywhere
-        cos_yaw = 1.0 - 2.0 * (y * y + z * z)
-        sin_yaw = 2.0 * (w * z + x * y)
+        cos_yaw, sin_yaw = _yaw_cos_sin(qpos[5:9])
         box = qpos[2:4]
         return jnp.concatenate([
             qpos[0:2], qvel[0:2], box, jnp.stack([cos_yaw, sin_yaw]), qvel[2:4], self.goal - box,
@@ -163,12 +167,12 @@ class Push(Env):
         if o.shape[-1] != self.observation_size:
             raise ValueError(f"pusher_clear: observations have {o.shape[-1]} entries; this env's "
                              f"have {self.observation_size}")
-        if self.config.observation == "state":  # [qpos (9), qvel (8)]; yaw from the quaternion
-            yaw = 2.0 * np.arctan2(o[..., 8], o[..., 5])
-            c, s, box = np.cos(yaw), np.sin(yaw), o[..., 2:4]
-        else:
-            n = np.maximum(np.hypot(o[..., 6], o[..., 7]), 1e-9)
-            c, s, box = o[..., 6] / n, o[..., 7] / n, o[..., 4:6]
+        if self.config.observation == "state":  # [qpos (9), qvel (8)]
+            (c, s), box = _yaw_cos_sin(np.moveaxis(o[..., 5:9], -1, 0)), o[..., 2:4]
+        else:  # observe's cos/sin of yaw
+            c, s, box = o[..., 6], o[..., 7], o[..., 4:6]
+        n = np.maximum(np.hypot(c, s), 1e-9)  # unit length under a tilt too
+        c, s = c / n, s / n
         d = o[..., 0:2] - box
         local = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
         outside = np.maximum(np.abs(local) - self._box_half, 0.0)

@@ -124,7 +124,7 @@ class Windows(NamedTuple):
         elif k.size and (k.ndim != 1 or not np.issubdtype(k.dtype, np.integer)
                          or k.min() < -n or k.max() >= n):
             raise ValueError(f"Windows.select: give a boolean mask ({n},) or indices in "
-                             f"[0, {n}), got {keep!r}")
+                             f"[-{n}, {n}), got {keep!r}")
         if k.size == 0:
             raise ValueError(f"Windows.select keeps none of the {n} windows")
         return Windows(*(getattr(self, f)[k] for f in Windows._fields[:-1]), self.max_latency)
