@@ -38,6 +38,7 @@ import numpy as np
 
 import twinrl
 from twinrl.physics import SCENES, Sim
+from twinrl.physics.collision import CONTACTS
 from twinrl.physics.scenes import scenario
 from twinrl.report import print_table, write_json
 
@@ -127,7 +128,7 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--gradient", nargs="*", default=["implicit"], choices=("implicit", "unrolled"),
                    help="derivative(s) of the constraint solve to measure (default implicit)")
-    p.add_argument("--contacts", nargs="*", default=["mjx"], choices=("mjx", "mujoco"),
+    p.add_argument("--contacts", nargs="*", default=["mjx"], choices=CONTACTS,
                    help="collision rules to measure (default mjx, stock)")
     p.add_argument("--iterations", type=int, default=None,
                    help="solver iterations (default: each scene's MJCF)")

@@ -96,20 +96,19 @@ def scan(factors=(0.95, 0.98, 0.99, 0.995, 1.0, 1.005, 1.01, 1.02, 1.05)) -> lis
     from twinrl.real2sim import sysid
     from twinrl.real2sim.sysid.problem import build_problem
 
-    config = {"observation": "state"}
-    hidden = real.make_real("push", seed=0, config=config).oracle().perturbation
+    from push_sysid import WEIGHTS, box_contact_truth, floor_held  # this script's neighbour
+
+    config = {"observation": "state", "contacts": "mujoco", "solver_iterations": 12}
+    twin_config = {"observation": "state"}
+    hidden = real.make_real("push", seed=0, config=twin_config).oracle().perturbation
     pert = dataclasses.replace(Perturbation.none(), friction_scale=hidden.friction_scale)
-    twin = real.make_real("push", seed=0, perturbation=pert, config=config)
-    truth = twin.oracle().params  # evaluation only
+    twin = real.make_real("push", seed=0, perturbation=pert, config=twin_config)
     data = sysid.collect(twin, episodes=5, seed=0)
-    friction = np.array(truth.friction)
-    env = envs.make("push", contacts="mujoco", solver_iterations=12, **config)
-    floor, box = (env.sim.mj_model.geom(g).id for g in ("floor", "box"))
-    friction[box], friction[floor] = max(friction[box], friction[floor]), 0.05
-    env = envs.make("push", params=truth.replace(friction=friction), contacts="mujoco",
-                    solver_iterations=12, **config)
-    weights = tuple(0.0 if i in (4, 5, 6, 7, 13, 14, 15, 16) else 1.0 for i in range(17))
-    cfg = sysid.SysidConfig(params=("friction/box",), observation_weights=weights, loss="l2",
+    env = envs.make("push", **config)
+    truth = box_contact_truth(env, twin.oracle().params)  # evaluation only
+    env = envs.make("push", params=truth.replace(friction=floor_held(env, truth.friction)),
+                    **config)
+    cfg = sysid.SysidConfig(params=("friction/box",), observation_weights=WEIGHTS, loss="l2",
                             window=1, latency=0)
     rows = []
     with jax.enable_x64(True):

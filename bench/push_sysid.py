@@ -35,6 +35,7 @@ import numpy as np
 
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import envs, real, report
+from twinrl.physics.collision import CONTACTS
 from twinrl.real.perturbation import Perturbation
 from twinrl.real2sim import sysid
 from twinrl.real2sim.sysid.config import LOSSES, parse_param
@@ -51,6 +52,24 @@ PUSHER = ("gain/fx", "gain/fy", "damping/px", "damping/py")
 PUSHER_WEIGHTS = tuple(1.0 if i in (0, 1, 9, 10) else 0.0 for i in range(17))
 POSITION_WEIGHTS = tuple(1.0 if i in (0, 1, 2, 3, 8) else 0.0 for i in range(17))
 CLEAR_WINDOW = 5  # steps per stage-1 window: short, so that some keep clear of the box
+
+
+def box_contact_truth(env, params):
+    """The twin's ``params`` with the box's friction replaced by the box-floor contact's
+    coefficient, the larger of the two geoms' (MuJoCo's rule): with the floor held at
+    ``FLOOR_FRICTION`` the fit's box value stands for the contact's, so that is its truth (the
+    floor's value on twins whose floor is the rougher)."""
+    floor, box = (env.sim.mj_model.geom(g).id for g in ("floor", "box"))
+    friction = np.array(params.friction)
+    friction[box] = max(friction[box], friction[floor])
+    return params.replace(friction=friction)
+
+
+def floor_held(env, friction):
+    """``friction`` with the floor's coefficient at ``FLOOR_FRICTION``."""
+    friction = np.array(friction)
+    friction[env.sim.mj_model.geom("floor").id] = FLOOR_FRICTION
+    return friction
 
 
 def staged(env, data, known, loss):
@@ -83,17 +102,10 @@ def run(args) -> dict:
     sim_config = dict(contacts=args.contacts, solver_iterations=args.iterations, **config)
     env = envs.make("push", **sim_config)
     true_of = lambda n: float(param_value(truth.params.as_dict(), *parse_param(env, n)))  # noqa
-    # The box-floor contact takes the larger of the two geoms' coefficients (MuJoCo's rule). The
-    # fit holds the floor's at 0.05, so its box coefficient is the contact's: the truth to compare
-    # with is max(box, floor) of the twin, which is the floor's on twins whose floor is the rougher.
-    floor, box = (env.sim.mj_model.geom(g).id for g in ("floor", "box"))
-    friction = np.array(truth.params.friction)
-    friction[box] = max(friction[box], friction[floor])
-    contact_truth = truth.params.replace(friction=friction)
+    contact_truth = box_contact_truth(env, truth.params)
     if args.start == "truth":
-        friction = friction.copy()
-        friction[floor] = FLOOR_FRICTION
-        env = envs.make("push", params=truth.params.replace(friction=friction), **sim_config)
+        env = envs.make("push", params=contact_truth.replace(
+            friction=floor_held(env, contact_truth.friction)), **sim_config)
     known = (("mass/pusher", true_of("mass/pusher")), ("friction/floor", FLOOR_FRICTION))
     t = time.perf_counter()
     if args.staged:
@@ -124,7 +136,7 @@ def main(argv=None) -> int:
     ap.add_argument("--episodes", type=int, default=5)
     ap.add_argument("--only", nargs="+", choices=PARTS, default=None,
                     help="perturb only these parts of the twin's hidden perturbation")
-    ap.add_argument("--contacts", choices=("mjx", "mujoco"), default="mjx")
+    ap.add_argument("--contacts", choices=CONTACTS, default="mjx")
     ap.add_argument("--iterations", type=int, default=None,
                     help="solver iterations of the fitting simulator (default: push.xml's 6)")
     ap.add_argument("--loss", choices=LOSSES, default="huber")
