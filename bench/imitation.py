@@ -38,6 +38,8 @@ def main(argv=None) -> int:
     p.add_argument("--dagger-episodes", type=int, default=10)
     p.add_argument("--relabel-every", type=int, default=5)
     p.add_argument("--relabel-iterations", type=int, default=10)
+    p.add_argument("--solved-labels", action="store_true",
+                   help="keep only the DAgger labels whose improved plan solves the task")
     p.add_argument("--fit-steps", type=int, default=imitation.ImitationConfig.fit_steps)
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes")
     p.add_argument("--seed", type=int, default=0)
@@ -51,10 +53,12 @@ def main(argv=None) -> int:
             cfg = imitation.ImitationConfig(
                 observation=obs, dagger_rounds=args.rounds, dagger_episodes=args.dagger_episodes,
                 relabel_every=args.relabel_every, relabel_iterations=args.relabel_iterations,
+                solved_labels=args.solved_labels,
                 fit_steps=args.fit_steps, eval_episodes=args.episodes)
             say = lambda r, row: print(  # noqa: E731
                 f"[bench] {name} {obs}: round {r}: pairs {int(row['pairs'])}, loss "
-                f"{row['loss']:.4f}, success {row['success']:.2f}, return {row['return']:.1f} "
+                f"{row['loss']:.4f}, success {row['success']:.2f}, return {row['return']:.1f}, "
+                f"labels solved {row['labels_solved']:.2f} "
                 f"({row['wall_s']:.0f} s)", flush=True)
             t0 = time.perf_counter()
             _, _, m = imitation.train(env, cfg, args.seed, demos=demos, progress_fn=say)

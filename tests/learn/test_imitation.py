@@ -46,6 +46,34 @@ def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos):
     assert m["return"][-1] >= float(np.mean(rand)) + margin, (m, float(np.mean(rand)))
 
 
+def test_relabel_judges_each_plan_where_its_episode_ends(pendulum_demos):
+    env, demos, _ = pendulum_demos
+
+    class SwungOut(type(env)):
+        def success(self, qpos, qvel):  # the pole more than 0.3 rad out
+            return (jnp.abs(qpos[0]) > 0.3).astype(jnp.float32)
+
+    env = SwungOut(env.config)
+    # a step too small to move the plan: the improved plan is the warm start, the demonstration
+    cfg = imitation.ImitationConfig(relabel_iterations=1, step_size=1e-9)
+    starts = jax.vmap(env.reset)(jnp.asarray(demos.keys[:2]))
+    plans = jnp.asarray(demos.actions[:2])
+    rep = lambda x: jnp.repeat(x, T, axis=0)  # noqa: E731
+    left = jnp.tile(jnp.arange(1, T + 1), 2)  # each start judged after 1 .. T of its steps
+    _, solved = jax.jit(lambda s, w, n: imitation.relabel(env, s, w, cfg, n))(
+        jax.tree_util.tree_map(rep, starts), rep(plans), left)
+
+    def swung_out(s, a):
+        def body(s, a):
+            s = env.step(s, a)
+            return s, env.success(s.pipeline_state.qpos, s.pipeline_state.qvel)
+        return jax.lax.scan(body, s, a)[1]
+
+    expected = np.asarray(jax.vmap(swung_out)(starts, plans)).reshape(-1)
+    assert 0 < expected.sum() < expected.size  # the verdict changes along the plans
+    np.testing.assert_array_equal(np.asarray(solved), expected)
+
+
 def test_demonstration_files_are_checked(tmp_path):
     with pytest.raises(FileNotFoundError, match="no demonstration file"):
         imitation.load_demonstrations(tmp_path / "none.npz")

@@ -46,11 +46,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.learn import trajopt
 from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
                                  raw_key, rgb_jitter)
 from twinrl.learn.networks import NetworkConfig, make_network
-from twinrl.learn.plans import DemonstrationError, Demonstrations, load_demonstrations
+from twinrl.learn.plans import (DemonstrationError, Demonstrations, load_demonstrations,
+                                relabel)
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
            "demonstration_data", "accurate", "make_observer", "relabel", "train"]
@@ -100,6 +100,9 @@ class ImitationConfig(JSONConfig):
     relabel_every: int = 5
     """Label one in this many of the states the actor visits (trajopt per label is the cost)."""
     relabel_iterations: int = 10
+    solved_labels: bool = False
+    """DAgger keeps only the labels whose improved plan solves the task from that state (tasks
+    with ``success``): the first action of a plan that fails is not an expert's."""
     step_size: float = 0.5
     """Trajopt's largest first-order step when labelling (``TrajoptConfig.step_size``)."""
     eval_episodes: int = 50
@@ -196,19 +199,6 @@ def accurate(obs, states, tol: float = 0.005) -> jax.Array:
     return (err < tol).astype(jnp.float32)
 
 
-def relabel(env, states, warm: jax.Array, config: ImitationConfig) -> jax.Array:
-    """The expert's action at each of ``states`` (a batched ``State``): trajopt from the state,
-    ``relabel_iterations`` first-order steps from the warm start ``warm`` (B, T, m); returns the
-    first action of each improved plan (B, m)."""
-    cfg = trajopt.TrajoptConfig(order=1, step_size=config.step_size, line_search_steps=6)
-
-    def one(s, a0):
-        a, _ = trajopt.optimize(*trajopt.env_problem(env, s), a0, cfg, config.relabel_iterations)
-        return a[0]
-
-    return jax.vmap(one)(states, warm)
-
-
 def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int = 0, *,
           demos: Demonstrations | None = None,
           progress_fn: Callable[[int, dict], None] | None = None, checkpoint_fn=None,
@@ -219,7 +209,9 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     Returns ``(policy, params, metrics)``: the actor ``Network`` (tanh output, actions in
     [-1, 1]), its parameters, and per round (``epoch``) ``pairs`` (data set size), ``loss``
     (the fit's mean squared action error), ``success`` and ``return`` of the actor on
-    ``eval_episodes`` fresh start states, ``labels`` (expert labels added that round), ``wall_s``.
+    ``eval_episodes`` fresh start states, ``labels`` (expert labels added that round),
+    ``labels_solved`` (the fraction of them whose improved plan solves the task; NaN in the
+    last round, which labels nothing), ``wall_s``.
     """
     c = config
     if restore is not None:
@@ -275,8 +267,11 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
         warm = jax.vmap(lambda a: jax.vmap(lambda t: jnp.where(
             (steps < T - t)[:, None], jnp.roll(a, -t, axis=0), 0.0))(jnp.asarray(picks)))(sent)
         states = jax.tree_util.tree_map(sel, s)
-        labels = relabel(env, states, warm.reshape((states.reward.shape[0], T, sent.shape[-1])), c)
-        return jax.tree_util.tree_map(sel, o), labels, sel(accurate(o, s))
+        left = jnp.tile(T - jnp.asarray(picks), sent.shape[0])
+        labels, solved = relabel(env, states, warm.reshape((left.size, T, sent.shape[-1])), c,
+                                 left)
+        w = sel(accurate(o, s)) * (solved if c.solved_labels else 1.0)
+        return jax.tree_util.tree_map(sel, o), labels, w, jnp.mean(solved)
 
     log = MetricLog()
     for r in range(int(c.dagger_rounds) + 1):
@@ -284,15 +279,15 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
         params, opt, losses = fit(params, opt, obs, acts, n, k_fit, weights)
         loss = jnp.mean(losses[-max(1, int(c.fit_steps) // 10):])
         ret, ok = evaluate(params, k_eval)  # the same fresh states every round
-        added = 0
+        added, solved = 0, float("nan")
         if r < int(c.dagger_rounds):
-            new_obs, labels, new_w = visit_and_label(params, k_visit)
+            new_obs, labels, new_w, solved = visit_and_label(params, k_visit)
             put = lambda buf, x: jax.lax.dynamic_update_slice_in_dim(buf, x, n, 0)  # noqa: E731
             obs = jax.tree_util.tree_map(put, obs, new_obs)
             weights = put(weights, new_w)
             acts, n, added = put(acts, labels), n + per_round, per_round
         row = log.record(epoch=r, pairs=n - added, loss=loss, success=ok, **{"return": ret},
-                         labels=added)
+                         labels=added, labels_solved=solved)
         if progress_fn is not None:
             progress_fn(r, row)
     return net, params, log.as_dict()

@@ -26,7 +26,7 @@ import numpy as np
 from twinrl.learn import trajopt
 
 __all__ = ["Demonstrations", "DemonstrationError", "load_demonstrations", "initial_guesses",
-           "plan", "save"]
+           "plan", "relabel", "save"]
 
 
 class DemonstrationError(ValueError):
@@ -181,3 +181,26 @@ def save(path: str | Path, result: dict) -> Path:
     np.savez(tmp, actions=result["plans"], keys=result["keys"], success=result["success"])
     os.replace(tmp, path)
     return path
+
+
+def relabel(env, states, warm: jax.Array, config,
+            steps_left: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """The expert's action at each of ``states`` (a batched ``State``): trajopt from the state,
+    ``relabel_iterations`` first-order steps from the warm start ``warm`` (B, T, m). Returns the
+    first action of each improved plan (B, m) and whether that plan solves the task (B,): the
+    task's ``success`` after ``steps_left`` (B,) of its steps (where the episode the state came
+    from ends; default all T), all 1 for a task without ``success``. ``config``: an
+    ``imitation.ImitationConfig`` (its ``step_size`` and ``relabel_iterations``)."""
+    cfg = trajopt.TrajoptConfig(order=1, step_size=config.step_size, line_search_steps=6)
+    nq, T = env.sim.nq, warm.shape[1]
+    left = jnp.full(warm.shape[:1], T) if steps_left is None else jnp.asarray(steps_left)
+
+    def one(s, a0, n):
+        rollout_fn, reward_fn = trajopt.env_problem(env, s)
+        a, _ = trajopt.optimize(rollout_fn, reward_fn, a0, cfg, config.relabel_iterations)
+        if not hasattr(env, "success"):
+            return a[0], jnp.ones((), jnp.float32)
+        end = rollout_fn(a)[jnp.clip(n - 1, 0, T - 1)]
+        return a[0], env.success(end[:nq], end[nq:]).astype(jnp.float32)
+
+    return jax.vmap(one)(states, warm, left)
