@@ -9,7 +9,8 @@ Each round runs the actor from fresh start states, and every ``relabel_every``-t
 is labelled by trajectory optimisation from that very state (``twinrl.learn.trajopt``, first
 order with a line search, warm-started from the actor's own remaining actions, so the label is
 the actor's plan improved by the simulator's gradient); the labels join the data set and the actor
-is refitted on all of it.
+is refitted on all of it. With ``solved_labels`` only the labels whose improved plan solves the
+task are kept (spatula: 66-96 % of them per round; the filtered run reached 90 %).
 
 Demonstrations are ``(keys, actions)``: start states' reset keys and optimised action sequences
 (``twinrl.learn.plans`` writes them with a ``success`` flag per plan to ``<task>_plans.npz``;
