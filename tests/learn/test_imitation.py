@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twinrl import envs
-from twinrl.learn import imitation, trajopt
+from twinrl.learn import imitation, plans, trajopt
 
 T = 60
 
@@ -46,7 +46,9 @@ def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos):
     assert m["return"][-1] >= float(np.mean(rand)) + margin, (m, float(np.mean(rand)))
 
 
-def test_relabel_judges_each_plan_where_its_episode_ends(pendulum_demos):
+def test_a_plan_is_judged_where_its_episode_ends(pendulum_demos):
+    # DAgger's label filter (solved_labels) keeps a label when plans.solves says its plan,
+    # from the visited state, solves the task after the steps left in that episode
     env, demos, _ = pendulum_demos
 
     class SwungOut(type(env)):
@@ -54,14 +56,12 @@ def test_relabel_judges_each_plan_where_its_episode_ends(pendulum_demos):
             return (jnp.abs(qpos[0]) > 0.3).astype(jnp.float32)
 
     env = SwungOut(env.config)
-    # a step too small to move the plan: the improved plan is the warm start, the demonstration
-    cfg = imitation.ImitationConfig(relabel_iterations=1, step_size=1e-9)
     starts = jax.vmap(env.reset)(jnp.asarray(demos.keys[:2]))
-    plans = jnp.asarray(demos.actions[:2])
+    plans_ = jnp.asarray(demos.actions[:2])
     rep = lambda x: jnp.repeat(x, T, axis=0)  # noqa: E731
     left = jnp.tile(jnp.arange(1, T + 1), 2)  # each start judged after 1 .. T of its steps
-    _, solved = jax.jit(lambda s, w, n: imitation.relabel(env, s, w, cfg, n))(
-        jax.tree_util.tree_map(rep, starts), rep(plans), left)
+    solved = jax.jit(jax.vmap(lambda s, a, n: plans.solves(env, s, a, n)))(
+        jax.tree_util.tree_map(rep, starts), rep(plans_), left)
 
     def swung_out(s, a):
         def body(s, a):
@@ -69,7 +69,7 @@ def test_relabel_judges_each_plan_where_its_episode_ends(pendulum_demos):
             return s, env.success(s.pipeline_state.qpos, s.pipeline_state.qvel)
         return jax.lax.scan(body, s, a)[1]
 
-    expected = np.asarray(jax.vmap(swung_out)(starts, plans)).reshape(-1)
+    expected = np.asarray(jax.vmap(swung_out)(starts, plans_)).reshape(-1)
     assert 0 < expected.sum() < expected.size  # the verdict changes along the plans
     np.testing.assert_array_equal(np.asarray(solved), expected)
 

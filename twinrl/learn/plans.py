@@ -26,7 +26,7 @@ import numpy as np
 from twinrl.learn import trajopt
 
 __all__ = ["Demonstrations", "DemonstrationError", "load_demonstrations", "initial_guesses",
-           "plan", "relabel", "save"]
+           "plan", "relabel", "save", "solves"]
 
 
 class DemonstrationError(ValueError):
@@ -183,24 +183,33 @@ def save(path: str | Path, result: dict) -> Path:
     return path
 
 
+def solves(env, state, plan: jax.Array, steps: jax.Array | int) -> jax.Array:
+    """Whether ``plan`` (T, m) from ``state`` solves the task: the task's ``success`` after
+    ``steps`` of its steps (clipped to 1..T), 1.0 for a task without ``success``. Jit-able,
+    ``steps`` traced."""
+    if not hasattr(env, "success"):
+        return jnp.ones((), jnp.float32)
+    rollout_fn, _ = trajopt.env_problem(env, state)
+    T = plan.shape[0]
+    end = rollout_fn(plan)[jnp.clip(jnp.asarray(steps) - 1, 0, T - 1)]
+    nq = env.sim.nq
+    return env.success(end[:nq], end[nq:]).astype(jnp.float32)
+
+
 def relabel(env, states, warm: jax.Array, config,
             steps_left: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """The expert's action at each of ``states`` (a batched ``State``): trajopt from the state,
     ``relabel_iterations`` first-order steps from the warm start ``warm`` (B, T, m). Returns the
-    first action of each improved plan (B, m) and whether that plan solves the task (B,): the
-    task's ``success`` after ``steps_left`` (B,) of its steps (where the episode the state came
-    from ends; default all T), all 1 for a task without ``success``. ``config``: an
-    ``imitation.ImitationConfig`` (its ``step_size`` and ``relabel_iterations``)."""
+    first action of each improved plan (B, m) and whether that plan solves the task (B,;
+    ``solves`` after ``steps_left`` (B,) of its steps: where the episode the state came from
+    ends; default all T). ``config``: an ``imitation.ImitationConfig`` (its ``step_size`` and
+    ``relabel_iterations``)."""
     cfg = trajopt.TrajoptConfig(order=1, step_size=config.step_size, line_search_steps=6)
-    nq, T = env.sim.nq, warm.shape[1]
+    T = warm.shape[1]
     left = jnp.full(warm.shape[:1], T) if steps_left is None else jnp.asarray(steps_left)
 
     def one(s, a0, n):
-        rollout_fn, reward_fn = trajopt.env_problem(env, s)
-        a, _ = trajopt.optimize(rollout_fn, reward_fn, a0, cfg, config.relabel_iterations)
-        if not hasattr(env, "success"):
-            return a[0], jnp.ones((), jnp.float32)
-        end = rollout_fn(a)[jnp.clip(n - 1, 0, T - 1)]
-        return a[0], env.success(end[:nq], end[nq:]).astype(jnp.float32)
+        a, _ = trajopt.optimize(*trajopt.env_problem(env, s), a0, cfg, config.relabel_iterations)
+        return a[0], solves(env, s, a, n)
 
     return jax.vmap(one)(states, warm, left)
