@@ -37,10 +37,12 @@ def trained(peg):
 def test_targets_are_the_actors_return_to_go_with_the_camera_held(peg):
     env, actor, actor_params = peg
     cfg = sensing.SensingConfig(every=2)
-    keys = jax.random.split(jax.random.PRNGKey(4), 2)
-    coords = sensing.uniform_coords(env.mount, jax.random.PRNGKey(5), (2, 2))
+    # the shapes ``train`` gives its data below (5 + 1 held-out states, 3 poses): the same
+    # compiled episodes, which the persistent cache then serves the ``trained`` fixture
+    keys = jax.random.split(jax.random.PRNGKey(4), 6)
+    coords = sensing.uniform_coords(env.mount, jax.random.PRNGKey(5), (6, 3))
     data = sensing.sensing_data(env, actor, actor_params, cfg, keys, coords)
-    assert data.targets.shape == (2, 2, T // 2) and data.actions.shape == (2, 2, T // 2, 3)
+    assert data.targets.shape == (6, 3, T // 2) and data.actions.shape == (6, 3, T // 2, 3)
     # an independent replay of one episode, step by step: its return-to-go per step left
     observe = jax.jit(sensing.observer(env, PIX))
     step, act = jax.jit(env.step), jax.jit(actor.apply)
