@@ -1,7 +1,8 @@
 """Differentiable physics: MJX with a reverse-differentiable constraint solve.
 
 ``Sim`` (MJCF compiled for MJX; ``step``/``rollout``), ``PhysParams`` (identifiable parameters),
-``solver`` (fixed-iteration solve), ``gradients`` (truncation, clipping, NaN guard),
+``solver`` (fixed-iteration solve), ``smooth`` (kinematics and tree sums that trace ten times
+fewer equations than stock ``mjx``'s), ``gradients`` (truncation, clipping, NaN guard),
 ``gradcheck`` (reverse mode against central finite differences).
 """
 

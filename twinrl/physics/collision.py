@@ -50,6 +50,8 @@ from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src.types import GeomType
 
+from twinrl.physics import smooth as _tree
+
 __all__ = ["collision", "fwd_position", "cylinder_sdf", "plane_box_mujoco", "check_contacts",
            "REFINED", "CONTACTS"]
 
@@ -180,11 +182,11 @@ def collision(m, d, contacts: str = "mjx"):
 
 def fwd_position(m, d, contacts: str = "mjx"):
     """``mjx`` position stage with ``collision`` above."""
-    d = _smooth.kinematics(m, d)
-    d = _smooth.com_pos(m, d)
+    d = _tree.kinematics(m, d)
+    d = _tree.com_pos(m, d)
     d = _smooth.camlight(m, d)
     d = _smooth.tendon(m, d)
-    d = _smooth.crb(m, d)
+    d = _tree.crb(m, d)
     d = _smooth.tendon_armature(m, d)
     d = _smooth.factor_m(m, d)
     d = collision(m, d, contacts)

