@@ -34,7 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["ARM_XML", "DH", "FLANGE", "HOME", "JOINT_RANGE", "compose", "forward_kinematics",
-           "joint_frames", "jacobian", "heading", "orientation_error", "CartesianController",
+           "joint_frames", "jacobian", "kinematics_and_jacobian",
+           "heading", "orientation_error", "CartesianController",
            "CameraMount", "ik", "solve_ik", "ArmTask", "ArmConfig", "DOWN"]
 
 ARM_XML = Path(__file__).with_name("panda.xml")
@@ -97,47 +98,69 @@ def compose(task_xml: str | Path, base_pos=(0.0, 0.0, 0.0)) -> str:
 
 
 # ---------------------------------------------------------------------- kinematics
-def _dh_transform(a, d, alpha, theta):
-    """Modified DH: RotX(alpha) TransX(a) RotZ(theta) TransZ(d), as (R, p)."""
-    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
-    ct, st = jnp.cos(theta), jnp.sin(theta)
-    R = jnp.array([[ct, -st, 0.0], [st * ca, ct * ca, -sa], [st * sa, ct * sa, ca]])
-    p = jnp.array([a, -sa * d, ca * d])
-    return R, p
+def _dh_constants() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The modified-DH transforms RotX(alpha) TransX(a) RotZ(theta) TransZ(d) of the 7 joints as
+    ``R = cos(theta) C + sin(theta) S + K`` and a constant ``p`` (``a``, ``d``, ``alpha`` are
+    fixed): ``(C, S, K (7, 3, 3), p (7, 3))``."""
+    a, d, alpha = DH[:N_JOINTS].T
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    C, S, K = (np.zeros((N_JOINTS, 3, 3)) for _ in range(3))
+    C[:, 0, 0], C[:, 1, 1], C[:, 2, 1] = 1.0, ca, sa
+    S[:, 0, 1], S[:, 1, 0], S[:, 2, 0] = -1.0, ca, sa
+    K[:, 1, 2], K[:, 2, 2] = -sa, ca
+    return C, S, K, np.stack([a, -sa * d, ca * d], axis=1)
+
+
+_DH_C, _DH_S, _DH_K, _DH_P = _dh_constants()
 
 
 def joint_frames(q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     """World frames of the 7 joints and the flange for joint angles ``q`` (7,) (base at origin):
     ``(joint positions (7, 3), joint axes (7, 3), flange position (3,), flange rotation
-    (3, 3))``."""
-    R = jnp.eye(3, dtype=q.dtype)
-    p = jnp.zeros(3, q.dtype)
+    (3, 3))``.
+
+    Every joint's transform is computed at once (``_dh_constants``) and only the chain's
+    products are sequential: an arm step calls this four times, and a per-joint ``jnp.array``
+    of traced scalars was 1,155 of its 6,887 jaxpr equations."""
+    dt = q.dtype
+    ct, st = jnp.cos(q)[:, None, None], jnp.sin(q)[:, None, None]
+    Rs = ct * jnp.asarray(_DH_C, dt) + st * jnp.asarray(_DH_S, dt) + jnp.asarray(_DH_K, dt)
+    R = jnp.eye(3, dtype=dt)
+    p = jnp.zeros(3, dt)
     pos, axes = [], []
     for i in range(N_JOINTS):
-        a, d, alpha = DH[i]
-        Ri, pi = _dh_transform(a, d, alpha, q[i])
-        p = p + R @ pi
-        R = R @ Ri
+        p = p + R @ jnp.asarray(_DH_P[i], dt)
+        R = R @ Rs[i]
         pos.append(p)
         axes.append(R[:, 2])
     p = p + R[:, 2] * FLANGE
     return jnp.stack(pos), jnp.stack(axes), p, R
 
 
+def _tool_point(p, R, tcp):
+    tcp = jnp.asarray(tcp, p.dtype) + jnp.array([0.0, 0.0, TOOL_MOUNT], p.dtype)
+    return p + R @ tcp
+
+
 def forward_kinematics(q: jax.Array, tcp=(0.0, 0.0, 0.0), base=(0.0, 0.0, 0.0)):
     """``(position (3,), rotation (3, 3))`` of the tool centre point: ``tcp`` in the tool frame
     (which is the flange frame moved ``TOOL_MOUNT`` along its axis)."""
     _, _, p, R = joint_frames(q)
-    tcp = jnp.asarray(tcp, q.dtype) + jnp.array([0.0, 0.0, TOOL_MOUNT], q.dtype)
-    return p + R @ tcp + jnp.asarray(base, q.dtype), R
+    return _tool_point(p, R, tcp) + jnp.asarray(base, q.dtype), R
+
+
+def kinematics_and_jacobian(q: jax.Array, tcp=(0.0, 0.0, 0.0)):
+    """``forward_kinematics(q, tcp)`` and ``jacobian(q, tcp)`` from one pass over the chain:
+    ``(position (3,), rotation (3, 3), Jacobian (6, 7))``."""
+    pos, axes, p, R = joint_frames(q)
+    tip = _tool_point(p, R, tcp)
+    jp = jnp.cross(axes, tip[None, :] - pos)
+    return tip, R, jnp.concatenate([jp.T, axes.T], axis=0)
 
 
 def jacobian(q: jax.Array, tcp=(0.0, 0.0, 0.0)) -> jax.Array:
     """Geometric Jacobian (6, 7) of the tool centre point: rows 0-2 linear, 3-5 angular (world)."""
-    pos, axes, _, _ = joint_frames(q)
-    p, _ = forward_kinematics(q, tcp)
-    jp = jnp.cross(axes, p[None, :] - pos)
-    return jnp.concatenate([jp.T, axes.T], axis=0)
+    return kinematics_and_jacobian(q, tcp)[2]
 
 
 def _rot_z(angle):
@@ -199,8 +222,7 @@ class CartesianController:
     def __call__(self, q: jax.Array, action: jax.Array) -> jax.Array:
         """Joint targets (7,) for measured joint angles ``q`` (7,) and ``action`` (clipped)."""
         a = jnp.clip(action, -1.0, 1.0)
-        J = jacobian(q, self.tcp)
-        _, R = forward_kinematics(q, self.tcp)
+        _, R, J = kinematics_and_jacobian(q, self.tcp)
         turn = a[3] * self.max_yaw if self.yaw else jnp.zeros((), q.dtype)
         R_des = _rot_z(heading(R, self.nominal) + turn) @ jnp.asarray(self.nominal, q.dtype)
         dx = jnp.concatenate([self.max_step * a[:3],
@@ -269,9 +291,8 @@ def ik(target: jax.Array, q_init: jax.Array, tcp=(0.0, 0.0, 0.0), nominal=DOWN, 
     lo, hi = (jnp.asarray(JOINT_RANGE[:, i], dtype) for i in (0, 1))
 
     def body(_, q):
-        p, R = forward_kinematics(q, tcp)
+        p, R, J = kinematics_and_jacobian(q, tcp)
         err = jnp.concatenate([target - p, orientation_error(R, R_des)])
-        J = jacobian(q, tcp)
         pinv = J.T @ jnp.linalg.solve(J @ J.T + 1e-4 * jnp.eye(6, dtype=dtype),
                                       jnp.eye(6, dtype=dtype))
         dq = pinv @ err + _null_space(J) @ (0.1 * (rest - q))
