@@ -83,10 +83,9 @@ def _local_rotations(m, qpos):
     if rows.size == 0:
         return out
     adr = np.asarray(m.jnt_qposadr)[rows]
-    half = 0.5 * (qpos[adr] - jnp.asarray(m.qpos0, qpos.dtype)[adr])
+    angle = qpos[adr] - jnp.asarray(m.qpos0, qpos.dtype)[adr]
     axis = jnp.asarray(m.jnt_axis, qpos.dtype)[rows]
-    q = jnp.concatenate([jnp.cos(half)[:, None], axis * jnp.sin(half)[:, None]], axis=1)
-    return out.at[rows].set(q)
+    return out.at[rows].set(jax.vmap(_math.axis_angle_to_quat)(axis, angle))
 
 
 def kinematics(m, d):
@@ -272,22 +271,15 @@ def _before(m) -> np.ndarray:
     """``B[i, k] = 1`` where dof ``k`` moves the frame dof ``i`` is expressed in before ``i``'s
     own joint acts: dofs of the body's ancestors and of its earlier joints (and a free joint's
     translation for its rotation dofs), as ``com_vel``'s carry accumulates them."""
-    nv = int(m.nv)
     dof_body, dof_jnt = np.asarray(m.dof_bodyid), np.asarray(m.dof_jntid)
     types, dadr = np.asarray(m.jnt_type), np.asarray(m.jnt_dofadr)
-    anc = _ancestors(m)
-    b = np.zeros((nv, nv))
-    for i in range(nv):
-        for k in range(nv):
-            bi, bk = int(dof_body[i]), int(dof_body[k])
-            if bk != bi:
-                b[i, k] = anc[bi, bk]
-            elif dof_jnt[k] < dof_jnt[i]:
-                b[i, k] = 1.0
-            elif (dof_jnt[k] == dof_jnt[i] and types[dof_jnt[i]] == JointType.FREE
-                  and k - dadr[dof_jnt[k]] < 3 <= i - dadr[dof_jnt[i]]):
-                b[i, k] = 1.0
-    return b
+    body_i, body_k = dof_body[:, None], dof_body[None, :]
+    jnt_i, jnt_k = dof_jnt[:, None], dof_jnt[None, :]
+    local = np.arange(int(m.nv)) - dadr[dof_jnt]  # a dof's index within its joint
+    free_rotation_after_translation = ((jnt_k == jnt_i) & (types[jnt_i] == JointType.FREE)
+                                       & (local[None, :] < 3) & (local[:, None] >= 3))
+    earlier = np.where(body_k == body_i, jnt_k < jnt_i, _ancestors(m)[body_i, body_k] > 0)
+    return (earlier | free_rotation_after_translation).astype(float)
 
 
 def com_vel(m, d):
