@@ -36,7 +36,12 @@ gradcheck: $(STAMP)
 # flags below: 86 -> 30 frames/s). Fusion emitters off is twinrl's default anyway (set on import,
 # twinrl/_jaxconfig.py: with them on, MJX's kinematics inside a rollout's scan takes time
 # exponential in the arm's depth; bench/xla_cpu.py); it also halves compile times.
-TEST_XLA_FLAGS := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false
+# One LLVM module per executable instead of XLA's default split into parts compiled on parallel
+# threads: with two workers on two cores the threads only contend, and the split's own overhead
+# costs more than it saves (a peg insertion episode's value_and_grad at -O0, 2 cores: compile CPU
+# time 16.7 s -> 12.6-15.0 s).
+TEST_XLA_FLAGS := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false \
+	--xla_cpu_parallel_codegen_split_count=1
 test: $(STAMP)
 	XLA_FLAGS="$(XLA_FLAGS) $(TEST_XLA_FLAGS)" $(PY) -m pytest -n 2 --dist loadfile
 
