@@ -48,3 +48,18 @@ def test_import_turns_xla_cpu_fusion_emitters_off_unless_the_user_chose():
     assert late.stdout.strip() == ""  # too late to change: said once, in one line
     said = [ln for ln in late.stderr.splitlines() if "fusion emitters stay on" in ln]
     assert len(said) == 1 and "import twinrl first" in said[0]
+
+
+def test_cpu_flags_are_added_only_where_xla_knows_them():
+    # jaxlib 0.11.2's XLA aborts the process on --xla_cpu_use_fusion_emitters ("Unknown flag")
+    from twinrl import _jaxconfig
+
+    assert _jaxconfig.xla_knows_cpu_flags("0.9.2") and _jaxconfig.xla_knows_cpu_flags("0.4.38")
+    assert not _jaxconfig.xla_knows_cpu_flags("0.10.0")
+    assert not _jaxconfig.xla_knows_cpu_flags("0.11.2")
+    assert not _jaxconfig.xla_knows_cpu_flags("1.0.0.dev20270101")
+    assert _jaxconfig.xla_knows_cpu_flags()  # the pinned jaxlib: the flag is added (test above)
+    newer = _flags_after_import(pre="import jaxlib; jaxlib.__version__ = '0.11.2'\n",
+                                XLA_FLAGS="--xla_cpu_multi_thread_eigen=true")
+    assert newer.returncode == 0, newer.stderr[-2000:]
+    assert newer.stdout.split() == ["--xla_cpu_multi_thread_eigen=true"]

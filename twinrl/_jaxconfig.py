@@ -22,7 +22,10 @@ with them and 0.59 ms without; inside an episode's scan, a physics step of the P
 ``set_cpu_flags()`` therefore adds ``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` on
 import, unless the user's ``XLA_FLAGS`` already sets that flag or ``TWINRL_XLA_FLAGS=off``. XLA reads the variable when JAX starts its
 first backend, so a process that ran JAX computations before importing twinrl keeps its own
-setting and is told so once.
+setting and is told so once. The flag is added only under the pinned jaxlib's series (0.9 and
+older): jaxlib 0.11.2's XLA no longer knows it and aborts the whole process at its first
+computation on a flag it does not know ("Unknown flag in XLA_FLAGS", seen on a GPU machine), and
+a version twinrl was not measured on gets XLA's defaults rather than that risk.
 """
 
 from __future__ import annotations
@@ -41,6 +44,22 @@ import jax  # noqa: E402
 CPU_FLAGS = "--xla_cpu_use_fusion_emitters=false"
 """What ``set_cpu_flags`` adds to ``XLA_FLAGS`` (module docstring)."""
 
+CPU_FLAGS_BEFORE = (0, 10)
+"""The first jaxlib (major, minor) whose XLA no longer knows ``CPU_FLAGS``."""
+
+
+def xla_knows_cpu_flags(version: str | None = None) -> bool:
+    """Whether the installed jaxlib's XLA (or ``version``'s) accepts ``CPU_FLAGS``."""
+    if version is None:
+        import jaxlib
+
+        version = jaxlib.__version__
+    try:
+        major_minor = tuple(int(p) for p in version.split(".")[:2])
+    except ValueError:
+        return False
+    return major_minor < CPU_FLAGS_BEFORE
+
 
 def set_cpu_flags() -> bool:
     """Add ``CPU_FLAGS`` to ``XLA_FLAGS`` unless the user chose (module docstring); returns
@@ -53,6 +72,8 @@ def set_cpu_flags() -> bool:
     if "xla_cpu_use_fusion_emitters" in flags:
         return "xla_cpu_use_fusion_emitters=false" in flags
     if os.environ.get("TWINRL_XLA_FLAGS", "").strip().lower() in ("0", "off", "false", "no"):
+        return False
+    if not xla_knows_cpu_flags():
         return False
     if xla_bridge.backends_are_initialized():
         warnings.warn("twinrl: JAX started before twinrl was imported, so XLA's CPU fusion "
