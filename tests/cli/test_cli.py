@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from twinrl import cli
 from twinrl.real.dataset import read
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -104,11 +105,17 @@ def test_the_runtime_log_is_hidden_by_default_and_shown_with_verbose(tmp_path):
      "the loop deploys an image actor"),
     (["run", "--env", "peg_insertion", "--algo", "shac"], "--algo is the state-based loop's"),
 ])
-def test_bad_input_gets_one_clear_line(args, message):
-    out = twinrl(*args)
-    assert out.returncode == 2
-    assert message in out.stderr
-    assert "Traceback" not in out.stderr
+def test_bad_input_gets_one_clear_line(args, message, tmp_path, monkeypatch, capsys):
+    # in process (``cli.main``, as tests/cli/test_bad_input.py): each fails before any compile,
+    # and a subprocess per case cost ~3 s of imports; the malformed-MJCF case below runs the
+    # command itself
+    monkeypatch.chdir(tmp_path)
+    code = cli.main(args)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and message in lines[0], err
+    assert "Traceback" not in err
 
 
 def test_malformed_mjcf_gets_one_clear_line(tmp_path):
