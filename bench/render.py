@@ -2,8 +2,10 @@
 
 1. Speed: frames/s at 64x64 and 128x128, batch 1 and 16 (vmap over cameras), forward only and
    forward + gradient (of an image loss w.r.t. the camera and the geoms: poses, sizes, colours),
-   soft image (tau = 0.5), on each scene of ``--scenes`` (``SPEED_SCENES``: push; the manipulation
-   suite's arm scenes join that list once they exist).
+   soft image (tau = 0.5), on each scene of ``--scenes`` (``SPEED_SCENES``: push and the
+   manipulation suite's arm scenes, peg insertion, spatula flipping and needle threading, each
+   seen from its ``mount`` camera in the state of its task's ``reset``; the table gives each
+   scene's geom count).
 2. Geom-count sweep (``--sweep``, default 10 20 40): synthetic arm-like scenes (``sweep_mjcf``: a
    floor and a chain of capsule, box, cylinder and sphere links, always in the same volume), 64x64,
    batch 16; the cost of 40 geoms against 10, and how far per-pixel culling and layers move the
@@ -56,10 +58,11 @@ from twinrl.render import renderer as _renderer_mod  # noqa: E402
 
 CAMS = {"cartpole": ("front", [0.3, 0.5]), "pendulum": ("front", [0.7]),
         "push": ("top", None), "peg_in_hole": ("front", [0.01, -0.02])}
-SPEED_SCENES = ["push"]
-"""Scenes of the speed table: bundled scene names (``load_mjcf``), each with its camera in
-``SPEED_CAMERAS``. The manipulation suite's arm scenes go here once they exist."""
-SPEED_CAMERAS = {"push": "top"}
+ARM_TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
+SPEED_SCENES = ["push", *ARM_TASKS]
+"""Scenes of the speed table: bundled scene names (``load_mjcf``) or arm tasks (``envs.make``),
+each with its camera in ``SPEED_CAMERAS``."""
+SPEED_CAMERAS = {"push": "top", **{t: "mount" for t in ARM_TASKS}}
 TAU = 0.5
 
 
@@ -165,23 +168,35 @@ def _rows(best, scene, S, B, labels, **extra):
 
 
 def _load(scene):
+    """(model, camera name, data at the scene's state): an arm task's at its ``reset``."""
     if scene.startswith("sweep"):
         m = mujoco.MjModel.from_xml_string(sweep_mjcf(int(scene[5:])))
-        return m, "top"
-    return load_mjcf(scene), SPEED_CAMERAS.get(scene, CAMS.get(scene, ("top",))[0])
+        cam = "top"
+    elif scene in ARM_TASKS:
+        from twinrl import envs
+
+        env = envs.make(scene)
+        m, cam = env.sim.mj_model, SPEED_CAMERAS[scene]
+        d = mujoco.MjData(m)
+        d.qpos[:] = np.asarray(env.reset(jax.random.PRNGKey(0)).pipeline_state.qpos)
+        mujoco.mj_forward(m, d)
+        return m, cam, d
+    else:
+        m, cam = load_mjcf(scene), SPEED_CAMERAS.get(scene, CAMS.get(scene, ("top",))[0])
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    return m, cam, d
 
 
 def speed(mods, scenes, sizes=(64, 128), batches=(1, 16), repeats=5):
     rows = []
     for scene in scenes:
-        m, cam_name = _load(scene)
-        d = mujoco.MjData(m)
-        mujoco.mj_forward(m, d)
+        m, cam_name, d = _load(scene)
         for S in sizes:
             for B in batches:
                 print(f"[bench] {scene} {S}x{S} batch {B} ...", flush=True)
                 best = _time_interleaved(_cases(mods, m, d, cam_name, S, B), repeats)
-                rows += _rows(best, scene, S, B, list(mods))
+                rows += _rows(best, scene, S, B, list(mods), geoms=int(m.ngeom))
     return rows
 
 
@@ -190,9 +205,7 @@ def sweep(mods, counts, S=64, B=16, repeats=5):
     rows = []
     for n in counts:
         scene = f"sweep{n}"
-        m, cam_name = _load(scene)
-        d = mujoco.MjData(m)
-        mujoco.mj_forward(m, d)
+        m, cam_name, d = _load(scene)
         print(f"[bench] {scene} ({m.ngeom} geoms) {S}x{S} batch {B} ...", flush=True)
         best = _time_interleaved(_cases(mods, m, d, cam_name, S, B), repeats)
         g = Geoms.from_mujoco(m, d)
@@ -336,7 +349,7 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=Path("bench/results"),
                     help="directory of render.json")
     ap.add_argument("--scenes", nargs="*", default=SPEED_SCENES,
-                    help="scenes of the speed table (bundled names)")
+                    help="scenes of the speed table (bundled names or arm tasks)")
     ap.add_argument("--sweep", type=int, nargs="*", default=[10, 20, 40],
                     help="link counts of the geom-count sweep (none: skip it)")
     ap.add_argument("--baseline", default=None, metavar="REF",
@@ -373,8 +386,8 @@ def main(argv=None):
         t0 = time.perf_counter()
         out["speed"] = speed(mods, args.scenes, repeats=args.repeats)
         report.print_table(f"renderer speed (soft image, tau {TAU})",
-                           ["scene", "size", "batch", "mode", *cols],
-                           [[r["scene"], r["size"], r["batch"], r["mode"], *cells(r)]
+                           ["scene", "geoms", "size", "batch", "mode", *cols],
+                           [[r["scene"], r["geoms"], r["size"], r["batch"], r["mode"], *cells(r)]
                             for r in out["speed"]])
         if args.sweep:
             out["sweep"] = sweep(mods, args.sweep, repeats=args.repeats)
