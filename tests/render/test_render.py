@@ -252,8 +252,13 @@ def test_culling_keeps_the_image_and_its_gradient_where_geoms_do_not_crowd():
     mujoco.mj_forward(m, d)
     cam = Camera.from_mujoco(m, d, "c", 64, 64)
     g = Geoms.from_mujoco(m, d)
-    culled, full = Renderer.create(m, per_pixel=1), Renderer.create(m, per_pixel=4)
+    culled, full = Renderer.create(m, per_pixel=1, cull_above=0), Renderer.create(m, per_pixel=4)
     assert culled._culled(3, np.arange(1, 5)) and not full._culled(3, np.arange(1, 5))
+    # by default a type is culled only beyond cull_above (8) geoms: smaller ones are drawn whole
+    assert not Renderer.create(m, per_pixel=1)._culled(3, np.arange(8))
+    assert Renderer.create(m, per_pixel=1)._culled(3, np.arange(9))
+    with pytest.raises(ValueError, match="cull_above must be >= 0"):
+        Renderer.create(m, cull_above=-1)
     a, b = culled.render(cam, g), full.render(cam, g)
     assert len(np.unique(np.asarray(b.segmentation))) == 6  # sky, floor, the four capsules
     np.testing.assert_array_equal(a.segmentation, b.segmentation)

@@ -21,12 +21,13 @@ whose verdict shades every geom's point at that pixel (exact in the hard image; 
 it shades the other geoms' edge pixels too).
 
 Cost. Every pixel is tested against every plane and mesh, and against at most ``per_pixel`` geoms
-of each other primitive type: per pixel, the nearest whose bounding capsule its ray passes through
-or near (a rasteriser's culling, with the static shapes XLA needs); and only the ``layers``
-surfaces that show most at a pixel are composited (a cost quadratic in their number) and shaded.
-A scene with at most ``per_pixel`` geoms of each type and ``layers`` geoms in all is drawn exactly
-as without either; beyond, the hard image stays exact and the soft one loses only the coverage of
-surfaces crowded out of a pixel (``bench/render.py``'s sweep measures how much).
+of each other primitive type that has more than ``cull_above`` (8) of them: per pixel, the nearest
+whose bounding capsule its ray passes through or near (a rasteriser's culling, with the static
+shapes XLA needs); and only the ``layers`` surfaces that show most at a pixel are composited (a
+cost quadratic in their number) and shaded. A scene with at most ``max(per_pixel, cull_above)``
+geoms of each type and ``layers`` geoms in all is drawn exactly as without either; beyond, the
+hard image stays exact and the soft one loses only the coverage of surfaces crowded out of a
+pixel (``bench/render.py``'s sweep measures how much).
 
 Everything is a pure function of ``Camera`` and ``Geoms`` pytrees: jit, vmap (batches of cameras
 or scenes) and grad reach the camera pose and intrinsics, geom poses (``geom_xpos``/``geom_xmat``
@@ -171,11 +172,18 @@ class Renderer:
         boxes are solved exactly); the soft silhouette is placed to about ``0.62**iters`` of
         the geom's size.
       per_pixel: how many geoms of one primitive type (sphere, capsule, ...) each pixel's ray is
-        tested against, at most (planes and meshes: all of them). A type with more geoms is
-        culled per pixel (``_choose``): the geoms whose bounding capsule the ray passes through,
-        nearest first, then those it passes within the soft silhouette's band of; the others
-        contribute nothing there. Exact while no pixel has more candidates of one type; a scene
-        with at most ``per_pixel`` geoms of each type renders exactly as without culling.
+        tested against, at most, in a type that is culled (planes and meshes: never culled).
+        Culling (``_choose``) keeps, per pixel, the geoms whose bounding capsule the ray passes
+        through, nearest first, then those it passes within the soft silhouette's band of; the
+        others contribute nothing there. Exact while no pixel has more candidates of one type.
+      cull_above: a type is culled only when it has more than ``max(per_pixel, cull_above)``
+        geoms; smaller types are drawn whole, exactly. Culling switches the whole image to a
+        per-pixel layout (every group's shading inputs per pixel, one-hot gathers back to geoms)
+        that costs more than it saves unless it removes many candidates: 64x64 soft images with
+        the gradient, 2 CPU cores, drawing all of peg insertion's 8 capsules and 5 boxes is 1.8x
+        faster than culling them to 4, and a 21-geom chain's ~5 of each type 1.7x, while
+        spatula flipping's 16 capsules are 1.2x faster culled (``bench/render.py``). 0: cull
+        every type with more than ``per_pixel`` geoms.
       layers: how many surfaces each pixel composites and shades, at most: the most covering of
         those not hidden behind a solid one. The hard image is exact whatever its value; the soft
         one drops at most the coverage of a pixel's ``layers + 1``-th surface.
@@ -201,11 +209,12 @@ class Renderer:
     iters: int = 16
     per_pixel: int = 4
     layers: int = 8
+    cull_above: int = 8
 
     @classmethod
     def create(cls, model: mujoco.MjModel, *, geom_ids: Sequence[int] | None = None,
                shadows: bool = True, iters: int = 16, per_pixel: int = 4,
-               layers: int = 8) -> "Renderer":
+               layers: int = 8, cull_above: int = 8) -> "Renderer":
         if not isinstance(model, mujoco.MjModel):
             raise TypeError(f"model must be a mujoco.MjModel, got {type(model).__name__}")
         if geom_ids is None:
@@ -214,6 +223,8 @@ class Renderer:
         geom_ids = tuple(int(g) for g in geom_ids)
         if int(per_pixel) < 1 or int(layers) < 1:
             raise ValueError(f"per_pixel and layers must be >= 1, got {per_pixel}, {layers}")
+        if int(cull_above) < 0:
+            raise ValueError(f"cull_above must be >= 0, got {cull_above}")
         if not geom_ids:
             raise ValueError("no geom to draw")
         for g in geom_ids:
@@ -263,7 +274,7 @@ class Renderer:
             tri_geom=np.concatenate(tri_geom) if tri_geom else np.zeros(0, np.int32),
             tri_vert=np.concatenate(tri_vert) if tri_vert else np.zeros((0, 3), np.int32),
             shadows=bool(shadows), iters=int(iters), per_pixel=int(per_pixel),
-            layers=int(layers))
+            layers=int(layers), cull_above=int(cull_above))
 
     @property
     def ngeom(self) -> int:
@@ -425,7 +436,7 @@ class Renderer:
         return [(t, np.flatnonzero(types == t)) for t in sorted(set(self.types))]
 
     def _culled(self, t, idx) -> bool:
-        return t not in (0, _MESH) and len(idx) > self.per_pixel
+        return t not in (0, _MESH) and len(idx) > max(self.per_pixel, self.cull_above)
 
     def _choose(self, t, idx, o, r, xpos, xmat, size, reach, front):
         """The ``per_pixel`` geoms of ``idx`` (one primitive type) each ray is tested against.
