@@ -45,7 +45,8 @@ CPU_FLAGS = "--xla_cpu_use_fusion_emitters=false"
 """What ``set_cpu_flags`` adds to ``XLA_FLAGS`` (module docstring)."""
 
 CPU_FLAGS_BEFORE = (0, 10)
-"""The first jaxlib (major, minor) whose XLA no longer knows ``CPU_FLAGS``."""
+"""The jaxlib (major, minor) from which ``CPU_FLAGS`` is not added: 0.11.2's XLA rejects it,
+0.10 was not tried."""
 
 
 def xla_knows_cpu_flags(version: str | None = None) -> bool:

@@ -180,7 +180,7 @@ class Renderer:
         geoms; smaller types are drawn whole, exactly. Culling switches the whole image to a
         per-pixel layout (every group's shading inputs per pixel, one-hot gathers back to geoms)
         that costs more than it saves unless it removes many candidates: 64x64 soft images with
-        the gradient, 2 CPU cores, drawing all of peg insertion's 8 capsules and 5 boxes is 1.8x
+        the gradient, 2 CPU cores, drawing all of peg insertion's 8 capsules and 5 boxes is 2.4x
         faster than culling them to 4, and a 21-geom chain's ~5 of each type 1.7x, while
         spatula flipping's 16 capsules are 1.2x faster culled (``bench/render.py``). 0: cull
         every type with more than ``per_pixel`` geoms.
