@@ -29,6 +29,34 @@ def one_line_error(err, *fragments):
     return lines[0]
 
 
+@pytest.mark.parametrize("args, message", [
+    (["gradcheck", "/no/such/robot.xml"], "MJCF file not found: /no/such/robot.xml"),
+    (["gradcheck", "nosuchscene"], "unknown scene 'nosuchscene'"),
+    (["gradcheck", "pendulum", "--entries", "0"], "--entries must be >= 1, got 0"),
+    (["gradcheck", "pendulum", "--step", "-1"], "--step must be > 0, got -1.0"),
+    (["collect", "--env", "nosuchtask", "--episodes", "1"], "unknown task 'nosuchtask'"),
+    (["collect", "--env", "pendulum_swingup", "--episodes", "0"], "--episodes must be >= 1"),
+    (["sysid", "--env", "cartpole_swingup", "--from", "/no/such/data"],
+     "--from /no/such/data: no dataset there"),
+    (["train", "--env", "pendulum_swingup", "--algo", "shac", "--set", "no_such_field=1"],
+     "SHACConfig has no field 'no_such_field'"),
+    (["train", "--env", "pendulum_swingup", "--algo", "ppo", "--epochs", "3"],
+     "--epochs does not apply to PPOConfig"),
+    (["eval", "--checkpoint", "/no/such/ckpt"], "checkpoint /no/such/ckpt does not exist"),
+    (["run", "--env", "cartpole_swingup", "--rounds", "0"], "rounds must be >= 1"),
+    (["run", "--env", "peg_insertion", "--set", "foo=1"],
+     "the manipulation loop has no setting 'foo'"),
+    (["run", "--env", "peg_insertion", "--set", "imitation.observation=state"],
+     "the loop deploys an image actor"),
+    (["run", "--env", "peg_insertion", "--algo", "shac"], "--algo is the state-based loop's"),
+])
+def test_bad_input_gets_one_clear_line(args, message, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run(capsys, *args)
+    assert code == 2, err
+    one_line_error(err, message)
+
+
 def test_collect_again_appends_new_episodes_not_copies(tmp_path, capsys):
     for _ in range(2):
         code, _, err = run(capsys, "collect", "--env", "pendulum_swingup", "--episodes", "1",
