@@ -169,6 +169,7 @@ def _rows(best, scene, S, B, labels, **extra):
 
 def _load(scene):
     """(model, camera name, data at the scene's state): an arm task's at its ``reset``."""
+    qpos = None
     if scene.startswith("sweep"):
         m = mujoco.MjModel.from_xml_string(sweep_mjcf(int(scene[5:])))
         cam = "top"
@@ -177,13 +178,12 @@ def _load(scene):
 
         env = envs.make(scene)
         m, cam = env.sim.mj_model, SPEED_CAMERAS[scene]
-        d = mujoco.MjData(m)
-        d.qpos[:] = np.asarray(env.reset(jax.random.PRNGKey(0)).pipeline_state.qpos)
-        mujoco.mj_forward(m, d)
-        return m, cam, d
+        qpos = np.asarray(env.reset(jax.random.PRNGKey(0)).pipeline_state.qpos)
     else:
         m, cam = load_mjcf(scene), SPEED_CAMERAS.get(scene, CAMS.get(scene, ("top",))[0])
     d = mujoco.MjData(m)
+    if qpos is not None:
+        d.qpos[:] = qpos
     mujoco.mj_forward(m, d)
     return m, cam, d
 
