@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from twinrl.learn.common import vmap_scan
 from twinrl.learn.networks import Network
 
 __all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
@@ -96,21 +97,21 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
         env.mount, key, (int(config.restarts) - 1,))], axis=0)
     tx = optax.adam(float(config.ascent_lr))
 
-    def ascend(c0):
-        def body(carry, _):
-            c, s = carry
-            v, g = jax.value_and_grad(lambda c: objective(soft, c))(c)
-            g = jnp.where(jnp.isfinite(g), g, 0.0)
-            u, s = tx.update(-g, s, c)
-            # within the box Q was trained on (``uniform_coords``): past it the sigmoid is flat,
-            # the pose hardly moves, and Q would only be extrapolating
-            return (jnp.clip(optax.apply_updates(c, u), -EDGE, EDGE), s), v
+    def body(carry, _):
+        # every restart at once: Adam is elementwise, so one optimiser over (R, 3) poses is R
+        # independent ascents (and one scan of a vmapped gradient traces far faster than a
+        # vmap of R scans: ``twinrl.learn.common.vmap_scan``)
+        c, s = carry
+        v, g = jax.vmap(jax.value_and_grad(lambda c: objective(soft, c)))(c)
+        g = jnp.where(jnp.isfinite(g), g, 0.0)
+        u, s = tx.update(-g, s, c)
+        # within the box Q was trained on (``uniform_coords``): past it the sigmoid is flat,
+        # the pose hardly moves, and Q would only be extrapolating
+        return (jnp.clip(optax.apply_updates(c, u), -EDGE, EDGE), s), v
 
-        (c, _), trace = jax.lax.scan(body, (c0, tx.init(c0)), None,
-                                     length=int(config.ascent_steps))
-        return c, trace
-
-    ends, trace = jax.vmap(ascend)(starts)
+    (ends, _), trace = jax.lax.scan(body, (starts, tx.init(starts)), None,
+                                    length=int(config.ascent_steps))
+    trace = trace.T
     cands = jnp.concatenate([starts, ends], axis=0)
     values = jax.vmap(lambda c: objective(hard, c))(cands)
     values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
@@ -147,16 +148,14 @@ def view_outcomes(env, actor: Network, actor_params, keys: jax.Array, coords: ja
     Pure and jit-able."""
     observe = observer(env, image_size(env, actor), keys=tuple(actor.obs_spec))
 
-    def episode(key, c):
-        def body(s, _):
-            s2 = env.step(s, actor.apply(actor_params, observe(s, c)))
-            return s2, s2.reward
+    def body(s, _, c):
+        s2 = env.step(s, actor.apply(actor_params, observe(s, c)))
+        return s2, s2.reward
 
-        final, rewards = jax.lax.scan(body, env.reset(key), None, length=env.episode_length)
-        q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
-        return rewards.sum(), env.success(q, v).astype(jnp.float32)
-
-    return jax.vmap(episode)(keys, coords)
+    final, rewards = vmap_scan(body, jax.vmap(env.reset)(keys), coords,
+                               length=env.episode_length)
+    q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
+    return rewards.sum(1), jax.vmap(env.success)(q, v).astype(jnp.float32)
 
 
 def q_predictions(q, q_params, data) -> np.ndarray:

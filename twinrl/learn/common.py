@@ -41,7 +41,7 @@ from twinrl.physics.gradients import global_norm, hygiene
 
 __all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn",
            "RestoreFn", "compile_key", "JSONConfig", "tree_where", "make_optimizer",
-           "regression_loss", "make_regress", "make_minibatch_fit", "rgb_jitter"]
+           "regression_loss", "make_regress", "make_minibatch_fit", "rgb_jitter", "vmap_scan"]
 
 ProgressFn = Callable[[int, dict[str, float]], None]
 CheckpointFn = Callable[[int, Any, dict[str, list[float]]], None]
@@ -133,6 +133,25 @@ def tree_where(mask: jax.Array, a, b):
         lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
+def vmap_scan(body: Callable, init, consts=None, xs=None, length: int | None = None):
+    """What ``jax.vmap`` over the leading axis of ``init``, ``consts`` and ``xs`` of
+    ``lax.scan(lambda c, x: body(c, x, consts), init, xs, length)`` gives -- ``(final (B, ...),
+    ys (B, T, ...))``, ``xs`` (B, T, ...) -- built as one scan of the vmapped body.
+
+    Same values, traced several times faster for a big body (an arm episode: renderer, actor,
+    physics). JAX batches a vmapped scan by batching its body's jaxpr again for every carry that
+    turns batched in a step (a fixpoint: a state from ``reset`` has such leaves, Adam's zero
+    moments too), and a vmap of that vmap batches the batched body once more; here the body is
+    batched once, while it is traced. Sensing's episodes of 6 start states x 3 poses of peg
+    insertion: trace 36.6 s -> 9.5 s (2 cores). Anything not batched: close ``body`` over it.
+    """
+    step = jax.vmap(body)
+    swap = lambda tree: jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), tree)  # noqa
+    final, ys = jax.lax.scan(lambda c, x: step(c, x, consts), init,
+                             None if xs is None else swap(xs), length=length)
+    return final, swap(ys)
+
+
 def raw_key(rng) -> jax.Array:
     """A uint32[2] key from an int seed (None: 0), a raw key or a typed key; trainers carry raw
     keys in their state so that checkpoints hold plain arrays."""
@@ -157,22 +176,15 @@ def make_evaluator(env, apply_fn: Callable, episodes: int, episode_length: int |
     """
     T = int(episode_length or env.episode_length)
 
-    def one(params, key):
-        state = env.reset(key)
-
-        def body(s, _):
-            a = apply_fn(params, s.obs)
-            s2 = env.step(s, a)
-            r = jnp.where(s.done > 0, 0.0, s2.reward)
-            return s2, r
-
-        _, rewards = jax.lax.scan(body, state, None, length=T)
-        return rewards.sum()
-
     @jax.jit
     def evaluate(params, rng):
-        keys = jax.random.split(rng, episodes)
-        return jax.vmap(one, in_axes=(None, 0))(params, keys)
+        def body(s, _, __):
+            a = apply_fn(params, s.obs)
+            s2 = env.step(s, a)
+            return s2, jnp.where(s.done > 0, 0.0, s2.reward)
+
+        states = jax.vmap(env.reset)(jax.random.split(rng, episodes))
+        return vmap_scan(body, states, length=T)[1].sum(-1)
 
     return evaluate
 

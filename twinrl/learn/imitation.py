@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
-                                 raw_key, rgb_jitter)
+                                 raw_key, rgb_jitter, vmap_scan)
 from twinrl.learn.networks import NetworkConfig, make_network
 from twinrl.learn.plans import (DemonstrationError, Demonstrations, load_demonstrations,
                                 relabel)
@@ -157,22 +157,23 @@ def _coords(env, config: ImitationConfig, key):
     return jax.random.normal(key, (3,)) * 1.5  # unconstrained coords: spread over the workspace
 
 
-def _episode(env, observe, act, key, actions=None, coords=None):
-    """One episode from ``reset(key)``: by ``actions`` (T, m) if given, else by ``act(obs)``.
-    Returns the observations before each step, the states (for labelling), the actions sent,
-    the return and the final success."""
+def _episodes(env, observe, act, keys, actions=None, coords=None):
+    """Episodes from ``reset(keys[i])`` with the mount at ``coords[i]``: by ``actions`` (B, T, m)
+    if given, else by ``act(obs)``. Returns the observations before each step, the states (for
+    labelling), the actions sent (each (B, T, ...)), the returns and the final successes (B,)."""
 
-    def body(s, a):
-        obs = observe(s, coords)
+    def body(s, a, c):
+        obs = observe(s, c)
         a = act(obs) if a is None else a
         s2 = env.step(s, a)
         return s2, (obs, s, a, s2.reward)
 
-    final, (obs, states, sent, rewards) = jax.lax.scan(body, env.reset(key), actions,
-                                                       length=env.episode_length)
+    final, (obs, states, sent, rewards) = vmap_scan(body, jax.vmap(env.reset)(keys), coords,
+                                                    actions, length=env.episode_length)
     q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
-    success = env.success(q, v) if hasattr(env, "success") else jnp.zeros(())
-    return obs, states, sent, rewards.sum(), success
+    success = (jax.vmap(env.success)(q, v) if hasattr(env, "success")
+               else jnp.zeros(rewards.shape[:1]))
+    return obs, states, sent, rewards.sum(1), success
 
 
 def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng):
@@ -182,7 +183,7 @@ def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng)
     v = int(config.views) if config.observation != "state" else 1
     keys, actions = (np.repeat(np.asarray(x), v, axis=0) for x in demos)
     cams = jax.vmap(lambda k: _coords(env, config, k))(jax.random.split(rng, len(keys)))
-    run = jax.jit(jax.vmap(lambda k, a, c: _episode(env, observe, None, k, a, c)[:3]))
+    run = jax.jit(lambda k, a, c: _episodes(env, observe, None, k, a, c)[:3])
     obs, states, acts = run(jnp.asarray(keys), jnp.asarray(actions), cams)
     flat = lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:])  # noqa: E731
     return jax.tree_util.tree_map(flat, obs), flat(acts), flat(accurate(obs, states))
@@ -247,21 +248,19 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     jitter = rgb_jitter(c.rgb_jitter) if c.observation == "pixels" and c.rgb_jitter else None
     fit = make_minibatch_fit(net.apply, tx, int(c.fit_steps), int(c.batch_size), jitter)
 
-    def actor_episode(p, k):
-        k_cam, k_reset = jax.random.split(k)
-        return _episode(env, observe, lambda o: net.apply(p, o), k_reset,
-                        coords=_coords(env, c, k_cam))
+    def actor_episodes(p, k, n):
+        ks = jax.vmap(jax.random.split)(jax.random.split(k, n))  # (n, 2): camera, reset
+        return _episodes(env, observe, lambda o: net.apply(p, o), ks[:, 1],
+                         coords=jax.vmap(lambda k: _coords(env, c, k))(ks[:, 0]))
 
     @jax.jit
     def evaluate(p, k):
-        _, _, _, ret, ok = jax.vmap(actor_episode, in_axes=(None, 0))(
-            p, jax.random.split(k, c.eval_episodes))
+        _, _, _, ret, ok = actor_episodes(p, k, c.eval_episodes)
         return jnp.mean(ret), jnp.mean(ok)
 
     @jax.jit
     def visit_and_label(p, k):
-        o, s, sent, _, _ = jax.vmap(actor_episode, in_axes=(None, 0))(
-            p, jax.random.split(k, c.dagger_episodes))
+        o, s, sent, _, _ = actor_episodes(p, k, c.dagger_episodes)
         sel = lambda x: x[:, picks].reshape((x.shape[0] * picks.size,) + x.shape[2:])  # noqa
         steps = jnp.arange(T)
         # warm start at step t: the actor's own actions from t on, zeros past the episode

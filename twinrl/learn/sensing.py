@@ -49,7 +49,7 @@ import numpy as np
 from twinrl.learn.camera_choice import (Selection, image_size, observer, q_predictions,
                                         q_value, select_camera, uniform_coords)
 from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
-                                 raw_key, rgb_jitter)
+                                 raw_key, rgb_jitter, vmap_scan)
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
 __all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
@@ -143,21 +143,26 @@ def sensing_data(env, actor: Network, actor_params, config: SensingConfig, keys:
     T = env.episode_length
     picks = jnp.arange(0, T, int(config.every))
 
-    def episode(key, c):
-        def body(s, _):
-            o = observe(s, c)
-            a = actor.apply(actor_params, o)
-            s2 = env.step(s, a)
-            return s2, (o, a, s2.reward)
+    def body(s, _, c):
+        o = observe(s, c)
+        a = actor.apply(actor_params, o)
+        s2 = env.step(s, a)
+        return s2, (o, a, s2.reward)
 
-        final, (obs, acts, rewards) = jax.lax.scan(body, env.reset(key), None, length=T)
-        ok = env.success(final.pipeline_state.qpos, final.pipeline_state.qvel)
-        to_go = jnp.cumsum(rewards[::-1])[::-1] / jnp.arange(T, 0, -1)
-        target = to_go[picks] if config.target == "return" else jnp.full(picks.shape, ok)
-        sel = lambda x: x[picks]  # noqa: E731
-        return (jax.tree_util.tree_map(sel, obs), acts[picks], target, rewards.sum(), ok)
+    @jax.jit
+    def run(keys, coords):
+        S, C = coords.shape[:2]
+        starts = jax.vmap(env.reset)(jnp.repeat(keys, C, axis=0))  # episode i * C + j
+        final, (obs, acts, rewards) = vmap_scan(body, starts, coords.reshape(S * C, -1),
+                                                length=T)
+        ok = jax.vmap(env.success)(final.pipeline_state.qpos, final.pipeline_state.qvel)
+        to_go = jnp.cumsum(rewards[:, ::-1], axis=1)[:, ::-1] / jnp.arange(T, 0, -1)
+        target = (to_go[:, picks] if config.target == "return"
+                  else jnp.broadcast_to(ok[:, None], (S * C, picks.size)))
+        out = (jax.tree_util.tree_map(lambda x: x[:, picks], obs), acts[:, picks], target,
+               rewards.sum(1), ok)
+        return jax.tree_util.tree_map(lambda x: x.reshape((S, C) + x.shape[1:]), out)
 
-    run = jax.jit(jax.vmap(jax.vmap(episode, in_axes=(None, 0)), in_axes=(0, 0)))
     obs, acts, targets, returns, ok = run(keys, coords)
     return SensingData(obs, acts, targets, coords, returns, ok)
 

@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from twinrl.learn.common import vmap_scan
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 from twinrl.physics.gradients import global_norm, hygiene
 
@@ -146,7 +147,7 @@ def train(env, dynamics: Callable, policy: ResidualPolicy, start_obs: np.ndarray
         return qpos0[idx], qvel0[idx]
 
     def objective(p, key):
-        r, d2 = jax.vmap(rollout, in_axes=(None, 0, 0))(p, *starts(key))
+        r, d2 = rollout(p, *starts(key))
         value = r.sum(-1) - config.l2 * d2.sum(-1)
         return -jnp.mean(value), (jnp.mean(value), jnp.sqrt(jnp.mean(d2)))
 
@@ -177,22 +178,23 @@ def train(env, dynamics: Callable, policy: ResidualPolicy, start_obs: np.ndarray
 
 
 def _rollout_fn(env, dynamics, policy: ResidualPolicy, horizon: int):
-    """``(res_params, qpos, qvel) -> (rewards (H,), mean |delta|^2 per step (H,))`` of the
-    combined policy through ``dynamics`` from one state."""
+    """``(res_params, qpos (B, nq), qvel (B, nv)) -> (rewards (B, H), mean |delta|^2 per step
+    (B, H))`` of the combined policy through ``dynamics`` from each state."""
     template = env.reset(jax.random.key(0))
 
-    def rollout(p, qpos, qvel):
-        state = template.replace(pipeline_state=env.sim.init(qpos, qvel),
-                                 obs=env.observe(qpos, qvel))
+    def start(qpos, qvel):
+        return template.replace(pipeline_state=env.sim.init(qpos, qvel),
+                                obs=env.observe(qpos, qvel))
 
-        def body(s, _):
+    def rollouts(p, qpos, qvel):
+        def body(s, _, __):
             d, base = policy.correction(p, s.obs)
             s2 = dynamics(s, jnp.clip(base + d, -1.0, 1.0))
             return s2, (s2.reward, jnp.mean(d ** 2))
 
-        return jax.lax.scan(body, state, None, length=horizon)[1]
+        return vmap_scan(body, jax.vmap(start)(qpos, qvel), length=horizon)[1]
 
-    return rollout
+    return rollouts
 
 
 def model_return(env, dynamics, policy: ResidualPolicy, res_params, start_obs: np.ndarray,
@@ -206,7 +208,7 @@ def model_return(env, dynamics, policy: ResidualPolicy, res_params, start_obs: n
 def _mean_return_fn(env, dynamics, policy: ResidualPolicy, horizon: int):
     """``(res_params, qpos (B, nq), qvel (B, nv)) -> float``: mean ``horizon``-step return of the
     combined policy through ``dynamics`` from each state (compiled once, reusable)."""
-    f = jax.jit(jax.vmap(_rollout_fn(env, dynamics, policy, horizon), in_axes=(None, 0, 0)))
+    f = jax.jit(_rollout_fn(env, dynamics, policy, horizon))
     return lambda p, qpos, qvel: float(jnp.mean(f(p, qpos, qvel)[0].sum(-1)))
 
 
