@@ -585,6 +585,13 @@ class Renderer:
         if camera.pos.shape != (3,):
             raise ValueError(f"camera.pos must be (3,), got {camera.pos.shape}: "
                              "jax.vmap over a batch of cameras")
+        if isinstance(tau, (int, float)) and isinstance(gamma, (int, float)):
+            # one compiled function, not ~3,000 operations dispatched one by one (each compiled
+            # on its first use) when called outside jit; inside jit, an inlined call
+            return _render_jit(self, camera, geoms, float(tau), float(gamma))
+        return self._render(camera, geoms, tau, gamma)
+
+    def _render(self, camera: Camera, geoms: Geoms, tau, gamma) -> Images:
         soft = not (isinstance(tau, (int, float)) and tau == 0)
         H, W, G = camera.height, camera.width, self.ngeom
         o, r = camera.rays()
@@ -748,3 +755,7 @@ class Renderer:
         p = o + jnp.where(jnp.isfinite(s_hit), s_hit, self.far)[..., None] * r[..., None, :]
         vals = jnp.where(sel, jnp.einsum("...gi,ti->...gt", p, fn) - off, -jnp.inf)
         return fn[jnp.argmax(vals, -1)]
+
+
+_render_jit = jax.jit(lambda R, camera, geoms, tau, gamma: R._render(camera, geoms, tau, gamma),
+                      static_argnums=(0, 3, 4))
