@@ -572,7 +572,9 @@ class Renderer:
     # ------------------------------------------------------------------ images
     def render(self, camera: Camera, geoms: Geoms, *, tau: float = 0.0,
                gamma: float = 0.01) -> Images:
-        """Render ``geoms`` seen from ``camera``.
+        """Render ``geoms`` seen from ``camera``. Called outside ``jit`` with Python-number
+        ``tau`` and ``gamma``, it runs one function compiled on its first call per renderer,
+        image size, ``tau`` and ``gamma`` (not ~3,000 operations dispatched one by one).
 
         Args:
           tau: soft-silhouette temperature in pixels (0: the hard image; SoftRas's sigma).
