@@ -30,6 +30,10 @@ gradcheck: $(STAMP)
 
 # Two workers, one test file per worker: JAX compiles (most of the suite's time) are largely
 # single-threaded, so a second process keeps the second core busy.
+# --no-loadscope-reorder: xdist otherwise hands files out by their number of tests, not in
+# collection order, so tests/conftest.py's longest-first order had no effect (a 2-test
+# 178 s file ran near the end; per-file times of a fresh-clone run, replayed through
+# xdist's scheduling: 1,836 s for the longer worker by test count, 1,735 s longest first).
 # Tests: XLA's LLVM backend at optimisation level 0 compiles about twice as fast (measured on
 # tests/learn/test_trajopt.py, cold cache: 363 s -> 200 s) and the suite is compile-bound. Suite
 # only: code compiled so runs slower (the renderer's 64x64 forward+gradient, one core, with both
@@ -43,7 +47,7 @@ gradcheck: $(STAMP)
 TEST_XLA_FLAGS := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false \
 	--xla_cpu_parallel_codegen_split_count=1
 test: $(STAMP)
-	XLA_FLAGS="$(XLA_FLAGS) $(TEST_XLA_FLAGS)" $(PY) -m pytest -n 2 --dist loadfile
+	XLA_FLAGS="$(XLA_FLAGS) $(TEST_XLA_FLAGS)" $(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	$(PY) bench/physics.py --out bench/results
