@@ -178,7 +178,7 @@ class Sim:
         """One control step (``frame_skip`` physics steps) with ``ctrl = action``."""
         m = self.model_with(params)
         d = data.replace(ctrl=jnp.asarray(action, data.ctrl.dtype).reshape(self.nu))
-        step = lambda d: integrator.step(m, d, iterations, self.gradient, self.contacts)
+        step = lambda d: _step(m, d, iterations, self.gradient, self.contacts)
         if self.frame_skip == 1:
             return step(d)
         d, _ = jax.lax.scan(lambda d, _: (step(d), None), d, None, length=self.frame_skip)
@@ -215,6 +215,15 @@ class Sim:
             return d, Trajectory(d.qpos, d.qvel, _n_active(d))
 
         return jax.lax.scan(body, data, (jnp.arange(T), actions))
+
+
+# One physics step as a jitted function of (model, data): inside an outer trace it is a call whose
+# jaxpr JAX traces once per process (per shapes and static arguments) and whose derivatives and
+# batched forms it caches too, instead of retracing the step -- thousands of operations -- in
+# every function that steps a scene. Measured (peg insertion, 8 steps): a second vmapped gradient
+# of a rollout traced in 1.8 s instead of 13.8 s. The model's arrays are arguments (its NumPy
+# fields are static metadata of the ``mjx.Model`` pytree), as closed-over arrays were before.
+_step = jax.jit(integrator.step, static_argnums=(2, 3, 4))
 
 
 def _n_active(d: mjx.Data) -> jax.Array:

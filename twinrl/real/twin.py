@@ -34,6 +34,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import collections  # noqa: E402
 import copy  # noqa: E402
 import dataclasses  # noqa: E402
+import functools  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Mapping, Sequence  # noqa: E402
 
@@ -71,6 +72,31 @@ class Oracle:
     qpos: np.ndarray
     """The true (noise-free) state now."""
     qvel: np.ndarray
+
+
+def _task(name: str, config: dict) -> Env:
+    """``make(name, **config)``, one instance per (name, config) in a process where the config's
+    values are hashable (tasks are immutable), so twins of a task share its jitted functions."""
+    try:
+        key = (name, tuple(sorted(config.items())))
+        hash(key)
+    except TypeError:
+        return make(name, **config)
+    if key not in _TASKS:
+        _TASKS[key] = make(name, **config)
+    return _TASKS[key]
+
+
+_TASKS: dict = {}
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted(task: Env) -> tuple:
+    """The task's ``initial_state``, ``observe``, ``reward``, ``control`` and ``success`` (None
+    without one), jitted once per task instance."""
+    success = jax.jit(task.success) if hasattr(task, "success") else None
+    return (jax.jit(task.initial_state), jax.jit(task.observe), jax.jit(task.reward),
+            jax.jit(task.control), success)
 
 
 class RealTwin(gym.Env):
@@ -117,7 +143,7 @@ class RealTwin(gym.Env):
             raise ValueError(f"integrator must be one of {list(_INTEGRATORS)}, got {integrator!r}")
         if int(substeps) < 1 or int(iterations) < 1:
             raise ValueError(f"substeps and iterations must be >= 1, got {substeps}, {iterations}")
-        self.task: Env = make(task, **dict(config or {}))
+        self.task: Env = _task(task, dict(config or {}))
         self.task_name = task
         self.seed = int(seed)
         rngs = np.random.SeedSequence(self.seed).spawn(2)
@@ -138,14 +164,12 @@ class RealTwin(gym.Env):
         # for ``success``: the tool body, and kinematics scratch of the nominal and real models
         self._tool_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "tool")
         self._scratch = (mujoco.MjData(self.task.sim.mj_model), mujoco.MjData(model))
-        self._success = None
         self._n_physics = int(self.task.config.frame_skip) * int(substeps)
 
-        # The task's own functions (JAX, jitted once) so sim and real observe and reward alike.
-        self._initial_state = jax.jit(self.task.initial_state)
-        self._observe = jax.jit(self.task.observe)
-        self._reward = jax.jit(self.task.reward)
-        self._control = jax.jit(self.task.control)
+        # The task's own functions (JAX, jitted once per task and config in a process, shared by
+        # its twins) so sim and real observe and reward alike.
+        (self._initial_state, self._observe, self._reward, self._control,
+         self._success) = _jitted(self.task)
 
         nu = self.task.action_size
         obs_size = self.task.observation_size
@@ -279,8 +303,6 @@ class RealTwin(gym.Env):
         task = self.task
         if not hasattr(task, "success"):
             raise ValueError(f"task {self.task_name!r} has no success measure")
-        if self._success is None:
-            self._success = jax.jit(task.success)
         jnp = jax.numpy
         q, v = (jnp.asarray(x, jnp.float32) for x in (self._data.qpos, self._data.qvel))
         tool = self._tool_body
