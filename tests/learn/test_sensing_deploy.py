@@ -79,9 +79,13 @@ def test_deployment_moves_the_camera_to_qs_choice_and_counts_the_moves(peg, trai
     first = np.asarray(res["coords"][0])
     # the first choice is Q's best by its hard image, never below the default pose's Q
     obs, _ = twin.reset(seed=5)
-    state = active.sim_state(env, jnp.asarray(obs))
-    hard = lambda c: env.image_observation(state, jnp.asarray(c, jnp.float32), size=PIX)  # noqa
-    value = lambda c: float(q_value(q, q_params, hard(c), actor.apply(actor_params, hard(c))))
+
+    @jax.jit  # one compile, not the renderer's and the networks' operations one by one
+    def q_of(c):
+        hard = env.image_observation(active.sim_state(env, jnp.asarray(obs)), c, size=PIX)
+        return q_value(q, q_params, hard, actor.apply(actor_params, hard))
+
+    value = lambda c: float(q_of(jnp.asarray(c, jnp.float32)))  # noqa: E731
     assert value(first) >= value(env.mount.default) - 1e-5
     assert res["camera_steps"][0] >= env.mount.steps_to_move(env.mount.default, first)
     # the fixed camera never moves; a random one moves as far as the mount says

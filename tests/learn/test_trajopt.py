@@ -153,14 +153,16 @@ def test_max_step_norm_and_direction_scale():
         # a trust region: the accepted change is at most step_size * max_step_norm
         cfg = TrajoptConfig(order=2, step_size=1.0, line_search_steps=4, regularization=1e-9,
                             max_step_norm=0.05)
-        res = improve(rollout_fn, reward_fn, a0, cfg)
+        # each jitted: one compile, not every operation compiled on its own
+        res = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, cfg))(a0)
         assert bool(res.accepted)
         np.testing.assert_allclose(float(jnp.linalg.norm(res.actions - a0)), 0.05, rtol=1e-9)
         # direction_scale s with step_size 1 tries exactly step_size s's candidates
         base = TrajoptConfig(order=1, step_size=1.0, line_search_steps=5)
-        scaled = improve(rollout_fn, reward_fn, a0, base, direction_scale=jnp.float64(0.25))
-        plain = improve(rollout_fn, reward_fn, a0, TrajoptConfig(order=1, step_size=0.25,
-                                                                 line_search_steps=5))
+        scaled = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, base,
+                                           direction_scale=jnp.float64(0.25)))(a0)
+        plain = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, TrajoptConfig(
+            order=1, step_size=0.25, line_search_steps=5)))(a0)
         np.testing.assert_allclose(scaled.actions, plain.actions, rtol=1e-12)
         np.testing.assert_allclose(scaled.alpha, plain.alpha, rtol=1e-12)
     for bad, word in [(dict(discount=0.0), "discount"), (dict(discount=1.5), "discount"),

@@ -45,15 +45,19 @@ def test_chain_equals_mjx_kinematics_on_a_nested_rotated_model():
     rng = np.random.default_rng(0)
     with jax.enable_x64(True):
         model = mjx.put_model(m)  # float64 frames: the two must agree to round-off
+        # jitted: one compile each, not every operation compiled on its own
+        ours = lambda q: chain(model, q)  # noqa: E731
+        theirs = lambda q: _mjx_poses(model, m, q, np.asarray(gid))  # noqa: E731
+        poses, ref_poses = jax.jit(ours), jax.jit(theirs)
         for _ in range(5):
             qpos = jnp.asarray(m.qpos0 + rng.normal(0, 0.7, m.nq))
-            xpos, xmat = chain(model, qpos)
-            ref_pos, ref_mat = _mjx_poses(model, m, qpos, np.asarray(gid))
+            xpos, xmat = poses(qpos)
+            ref_pos, ref_mat = ref_poses(qpos)
             np.testing.assert_allclose(xpos, ref_pos, atol=1e-12)
             np.testing.assert_allclose(xmat, ref_mat, atol=1e-12)
         # and so do their derivatives in qpos (the pose fit's Gauss-Newton uses them)
-        jac = jax.jacfwd(lambda q: chain(model, q))(qpos)
-        ref = jax.jacfwd(lambda q: _mjx_poses(model, m, q, np.asarray(gid)))(qpos)
+        jac = jax.jit(jax.jacfwd(ours))(qpos)
+        ref = jax.jit(jax.jacfwd(theirs))(qpos)
         for a, b in zip(jac, ref):
             np.testing.assert_allclose(a, b, atol=1e-10)
     # a body with a free joint: refused with a reason, not a wrong pose
@@ -76,9 +80,11 @@ def test_chain_equals_mjx_kinematics_on_the_task_targets(name):
     assert set(chain.qpos_indices.tolist()) <= set(np.asarray(m.jnt_qposadr)[
         list(env.target_joints)].tolist())
     rng = np.random.default_rng(1)
+    ours, theirs = jax.jit(lambda q: chain(model, q)), jax.jit(lambda q: _mjx_poses(
+        model, m, q, gid))
     for _ in range(3):
         qpos = jnp.asarray(m.qpos0 + rng.normal(0, 0.1, m.nq), jnp.float32)
-        xpos, xmat = chain(model, qpos)
-        ref_pos, ref_mat = _mjx_poses(model, m, qpos, gid)
+        xpos, xmat = ours(qpos)
+        ref_pos, ref_mat = theirs(qpos)
         np.testing.assert_allclose(xpos, ref_pos, atol=2e-6)
         np.testing.assert_allclose(xmat, ref_mat, atol=2e-6)
