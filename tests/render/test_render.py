@@ -88,6 +88,25 @@ def test_mesh_renders_like_the_same_box():
     assert np.mean(np.abs(np.asarray(im.depth) - gl["depth"])) <= 1e-3
 
 
+def test_opengl_shadow_map_is_sized_to_the_image_and_the_model_is_left_alone(push):
+    # MuJoCo draws the shadow map at <quality shadowsize> (push: 4096^2) whatever the image's
+    # size: most of a software-OpenGL frame. Sized to a 32x32 image it casts the same shadows.
+    m, d = push
+    own = int(m.vis.quality.shadowsize)
+    sized, full = CameraRenderer(m, 32, 32), CameraRenderer(m, 32, 32, shadow_size=own)
+    none = CameraRenderer(m, 32, 32, shadows=False)
+    assert own > 1024 and sized.shadow_size == 1024 and full.shadow_size == own
+    assert int(m.vis.quality.shadowsize) == own
+    a, b, c = (r.images(d, "top", ("rgb",))["rgb"] for r in (sized, full, none))
+    assert np.mean(np.any(b != c, -1)) > 0.05  # shadows are in view,
+    assert np.mean(np.all(a == b, -1)) >= 0.99  # and the sized map casts the same ones
+    for r in (sized, full, none):
+        r.close()
+    with pytest.raises(ValueError, match="shadow_size"):
+        CameraRenderer(m, 32, 32, shadow_size=0)
+    assert int(m.vis.quality.shadowsize) == own
+
+
 @pytest.fixture(scope="module")
 def fd_setup(push, x64):
     m, d = push
