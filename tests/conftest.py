@@ -27,22 +27,23 @@ def x64():
 
 
 # Longest files first, in the order of their time in a fresh-clone run (cold cache, 2 workers,
-# 406da54: the files of >= 40 s, 255 s down to 41 s). xdist's --dist loadfile hands files out in
+# 11d31f5, re-ranked where later commits cut a file: the files of >= 30 s, 182 s down to 32 s). xdist's --dist loadfile hands files out in
 # collection order, so the long ones start early and the short ones fill the gaps at the end
 # instead of one worker finishing a long file alone (learn/test_sensing.py, started last, once
 # took 12 of a 27-minute suite while the other worker idled). Files move in this order as they
 # get faster or slower: re-rank them from a run's junit XML (per file: the sum of its tests).
-_LONG_FIRST = ("learn/test_sensing.py", "envs/test_envs.py", "envs/test_arm.py",
-               "physics/test_foreign_cylinder.py", "learn/test_pods.py", "cli/test_train_cli.py",
-               "test_loop_arm_residual.py", "learn/test_imitation.py",
-               "physics/test_foreign_drops.py", "physics/test_gradcheck.py", "real/test_twin.py",
-               "envs/test_ppo.py", "physics/test_solver.py", "sim2real/test_hybrid_residual.py",
-               "physics/test_foreign_contact.py", "cli/test_cli.py",
-               "learn/test_sensing_deploy.py", "real2sim/test_sysid.py", "envs/test_system.py",
-               "physics/test_smooth.py", "learn/test_trajopt.py", "render/test_render.py",
-               "test_loop.py", "real2sim/test_visual.py", "physics/test_chain.py",
-               "learn/test_hds.py", "learn/test_shac.py", "learn/test_runner.py",
-               "test_loop_arm.py", "cli/test_bad_input.py", "physics/test_foreign_arm.py")
+_LONG_FIRST = ("learn/test_sensing.py", "physics/test_foreign_cylinder.py",
+               "cli/test_train_cli.py", "envs/test_envs.py", "learn/test_pods.py",
+               "envs/test_arm.py", "cli/test_cli.py", "envs/test_ppo.py",
+               "learn/test_imitation.py", "test_loop_arm_residual.py",
+               "physics/test_foreign_drops.py", "physics/test_gradcheck.py",
+               "physics/test_foreign_contact.py", "render/test_render.py",
+               "physics/test_smooth.py", "physics/test_solver.py", "real2sim/test_sysid.py",
+               "sim2real/test_hybrid_residual.py", "real2sim/test_visual.py",
+               "envs/test_system.py", "learn/test_trajopt.py", "real/test_twin.py", "test_loop.py",
+               "learn/test_sensing_deploy.py", "learn/test_hds.py", "learn/test_shac.py",
+               "test_loop_arm.py", "physics/test_foreign_arm.py", "learn/test_runner.py",
+               "cli/test_bad_input.py", "physics/test_contacts_mujoco.py", "physics/test_chain.py")
 
 
 def pytest_collection_modifyitems(items):
