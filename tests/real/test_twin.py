@@ -155,6 +155,18 @@ def test_depth_and_segmentation_match_ray_casts(name):
     twin.close()
 
 
+def test_twins_of_a_task_share_its_jitted_functions_not_its_state():
+    # one task and one set of jitted functions per (task, config): a twin per seed compiles
+    # nothing again; another config is another task; the engines stay each twin's own
+    a, b = RealTwin("pendulum_swingup", seed=0), RealTwin("pendulum_swingup", seed=1)
+    c = RealTwin("pendulum_swingup", seed=0, config={"episode_length": 50})
+    assert a.task is b.task and a._observe is b._observe and a._control is b._control
+    assert c.task is not a.task and c.task.episode_length == 50 != a.task.episode_length
+    oa, _ = a.reset(seed=3)
+    ob, _ = b.reset(seed=4)
+    assert not np.allclose(oa, ob) and a.oracle().perturbation != b.oracle().perturbation
+
+
 def test_camera_offset_moves_the_image():
     nominal = RealTwin("cartpole_balance", perturbation=Perturbation.none(), width=160, height=120)
     offset = RealTwin("cartpole_balance", seed=0, width=160, height=120)

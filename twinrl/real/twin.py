@@ -74,29 +74,28 @@ class Oracle:
     qvel: np.ndarray
 
 
-def _task(name: str, config: dict) -> Env:
-    """``make(name, **config)``, one instance per (name, config) in a process where the config's
-    values are hashable (tasks are immutable), so twins of a task share its jitted functions."""
+def _task(name: str, config: dict) -> tuple[Env, tuple]:
+    """``make(name, **config)`` and its ``initial_state``, ``observe``, ``reward``, ``control``
+    and ``success`` (None without one), jitted. Shared by the twins of one (name, config) in a
+    process (tasks are immutable; the last 16 kept) so they compile these once, not per twin;
+    a config whose values are not hashable gets its own."""
     try:
         key = (name, tuple(sorted(config.items())))
         hash(key)
     except TypeError:
-        return make(name, **config)
-    if key not in _TASKS:
-        _TASKS[key] = make(name, **config)
-    return _TASKS[key]
+        return _make_jitted(make(name, **config))
+    return _jitted(name, key[1])
 
 
-_TASKS: dict = {}
-
-
-@functools.lru_cache(maxsize=None)
-def _jitted(task: Env) -> tuple:
-    """The task's ``initial_state``, ``observe``, ``reward``, ``control`` and ``success`` (None
-    without one), jitted once per task instance."""
+def _make_jitted(task: Env) -> tuple[Env, tuple]:
     success = jax.jit(task.success) if hasattr(task, "success") else None
-    return (jax.jit(task.initial_state), jax.jit(task.observe), jax.jit(task.reward),
-            jax.jit(task.control), success)
+    return task, (jax.jit(task.initial_state), jax.jit(task.observe), jax.jit(task.reward),
+                  jax.jit(task.control), success)
+
+
+@functools.lru_cache(maxsize=16)
+def _jitted(name: str, items: tuple) -> tuple[Env, tuple]:
+    return _make_jitted(make(name, **dict(items)))
 
 
 class RealTwin(gym.Env):
@@ -145,7 +144,8 @@ class RealTwin(gym.Env):
             raise ValueError(f"integrator must be one of {list(_INTEGRATORS)}, got {integrator!r}")
         if int(substeps) < 1 or int(iterations) < 1:
             raise ValueError(f"substeps and iterations must be >= 1, got {substeps}, {iterations}")
-        self.task: Env = _task(task, dict(config or {}))
+        self.task: Env
+        self.task, fns = _task(task, dict(config or {}))
         self.task_name = task
         self.seed = int(seed)
         rngs = np.random.SeedSequence(self.seed).spawn(2)
@@ -170,8 +170,7 @@ class RealTwin(gym.Env):
 
         # The task's own functions (JAX, jitted once per task and config in a process, shared by
         # its twins) so sim and real observe and reward alike.
-        (self._initial_state, self._observe, self._reward, self._control,
-         self._success) = _jitted(self.task)
+        self._initial_state, self._observe, self._reward, self._control, self._success = fns
 
         nu = self.task.action_size
         obs_size = self.task.observation_size
