@@ -111,7 +111,7 @@ class RealTwin(gym.Env):
       width, height: image size of ``render``/``render_images``.
       shadows: shadow mapping in ``render``/``render_images`` (MuJoCo's default, on), its map
         sized to the image (``CameraRenderer``'s ``shadow_size``: 1024^2 up to 256-pixel frames,
-        not the scene's 2048-4096^2; a 64x64 frame 4-5x faster in software OpenGL). Off is
+        not the scene's 2048-4096^2; a 64x64 frame 2-5x faster in software OpenGL). Off is
         faster still (videos); images fitted against should keep the default.
       config: task config overrides (as for ``twinrl.envs.make``).
       integrator: MuJoCo integrator of the real engine (``implicitfast``, ``rk4``, ``euler``,

@@ -76,12 +76,12 @@ class CameraRenderer:
         self.model = model
         # Shadow mapping (MuJoCo's default). Without a GPU (software OpenGL) drawing the shadow
         # map is most of a frame's cost, and it is drawn at the model's <quality shadowsize>
-        # (4096^2 by default) whatever the image's size. ``shadow_size`` (default: 4x the image's
-        # longer side, at least 1024, at most the model's) sizes it to the image: measured on
-        # this project's 2-core machine (llvmpipe), a 64x64 RGB frame of peg insertion took
-        # 47 ms at 4096 and 13 ms at 1024 (pendulum: 48 -> 9 ms), with the same mean pixel
-        # value to 0.01 of 255. The size is read when the OpenGL context is made; the model is
-        # left as it was.
+        # (MuJoCo's default 4096^2; the arm scenes set 2048^2) whatever the image's size.
+        # ``shadow_size`` (default: 4x the image's longer side, at least 1024, at most the
+        # model's) sizes it to the image: measured on this project's 2-core machine (llvmpipe),
+        # a 64x64 RGB frame of pendulum took 48 ms at its 4096 and 9 ms at 1024, of peg
+        # insertion 24 ms at its 2048 and 13 ms at 1024, with the same mean pixel value to 0.01
+        # of 255. The size is read when the OpenGL context is made; the model is left as it was.
         self.shadows = bool(shadows)
         own = int(model.vis.quality.shadowsize)
         self.shadow_size = int(shadow_size) if shadow_size is not None else min(
