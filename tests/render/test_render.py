@@ -184,6 +184,24 @@ def test_vmap_over_cameras_and_scenes(push):
     assert not np.array_equal(segs[0], segs[1])
 
 
+def test_renderers_of_one_scene_are_equal_and_share_the_compiled_render(push):
+    # equal by content, not identity: a second task (or real twin) made from the same MJCF
+    # renders through the first one's compiled image instead of tracing and compiling again
+    from twinrl.render import renderer as renderer_module
+
+    m, d = push
+    a, b = Renderer.create(m), Renderer.create(load_mjcf("push"))
+    assert a is not b and a == b and hash(a) == hash(b)
+    assert a != Renderer.create(m, shadows=False) and a != Renderer.create(m, geom_ids=[1, 2])
+    assert a != Renderer.create(load_mjcf("pendulum")) and a != "a renderer"
+    cam, g = look_at([0.3, -1.0, 1.0], [0.15, 0, 0], width=12, height=10), Geoms.from_mujoco(m, d)
+    first = a.render(cam, g, tau=0.3)
+    compiled = renderer_module._render_jit._cache_size()
+    second = b.render(cam, g, tau=0.3)
+    assert renderer_module._render_jit._cache_size() == compiled
+    np.testing.assert_array_equal(first.rgb, second.rgb)
+
+
 def test_from_mujoco_matches_look_at_and_projection(push):
     m, d = push
     cam = Camera.from_mujoco(m, d, "top", S, S)

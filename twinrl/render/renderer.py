@@ -37,6 +37,7 @@ of an ``mjx.Data``), ``geom_size``, ``geom_rgba`` and mesh vertices.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Sequence
 
 import jax
@@ -74,9 +75,7 @@ class Geoms:
         """Geoms of an ``mjx.Model``/``mjx.Data``; ``kinematics=True`` first recomputes the poses
         from ``qpos`` (``mjx.kinematics``), so gradients reach ``qpos`` and the model."""
         if kinematics:
-            from mujoco import mjx
-
-            data = mjx.kinematics(model, data)
+            data = _kinematics()(model, data)
         return cls(data.geom_xpos, data.geom_xmat.reshape(-1, 3, 3), model.geom_size,
                    model.geom_rgba, jnp.asarray(model.mesh_vert).reshape(-1, 3))
 
@@ -84,7 +83,8 @@ class Geoms:
     def from_mujoco(cls, model: mujoco.MjModel, data: mujoco.MjData, dtype=None) -> "Geoms":
         """Geoms of a MuJoCo C model/data (after ``mj_forward`` or ``mj_kinematics``)."""
         dt = dtype or jnp.result_type(float)
-        return cls(jnp.asarray(data.geom_xpos, dt), jnp.asarray(data.geom_xmat, dt).reshape(-1, 3, 3),
+        return cls(jnp.asarray(data.geom_xpos, dt),
+                   jnp.asarray(data.geom_xmat, dt).reshape(-1, 3, 3),
                    jnp.asarray(model.geom_size, dt), jnp.asarray(model.geom_rgba, dt),
                    jnp.asarray(model.mesh_vert, dt).reshape(-1, 3))
 
@@ -142,6 +142,28 @@ def _lights(model: mujoco.MjModel):
     )
 
 
+@functools.cache
+def _kinematics():
+    """``mjx.kinematics`` jitted: inside an outer trace, one equation whose trace (and its
+    derivatives and batched forms) every render of a model's state reuses -- tracing MJX's
+    kinematics of the arm takes seconds, and a camera ascent renders the same state twice."""
+    from mujoco import mjx
+
+    return jax.jit(mjx.kinematics)
+
+
+def _hashable(x):
+    """A value's hashable, comparable stand-in: arrays by dtype, shape and bytes, dicts by their
+    sorted items."""
+    if isinstance(x, np.ndarray):
+        return ("ndarray", x.dtype.str, x.shape, x.tobytes())
+    if isinstance(x, dict):
+        return ("dict",) + tuple((k, _hashable(v)) for k, v in sorted(x.items()))
+    if isinstance(x, (list, tuple)):
+        return (type(x).__name__,) + tuple(_hashable(v) for v in x)
+    return x
+
+
 def _to_local(v, xmat):
     """``v @ xmat`` per geom: ``v`` (..., g, 3); ``xmat`` (g, 3, 3) shared by every ray (a
     batched matrix product) or (..., g, 3, 3) per ray (written out elementwise, so it fuses)."""
@@ -162,7 +184,8 @@ def _to_world(v, xmat):
 @dataclasses.dataclass(frozen=True, eq=False)
 class Renderer:
     """Renders one ``mujoco.MjModel``'s geoms; holds only static structure (geom types, mesh
-    faces, lights, near/far planes), so its methods jit with it closed over.
+    faces, lights, near/far planes), so its methods jit with it closed over. Two renderers of
+    the same structure are equal (and hash alike), so they share compiled renders.
 
     Args:
       model: the ``mujoco.MjModel`` (the MJX model's source).
@@ -275,6 +298,22 @@ class Renderer:
             tri_vert=np.concatenate(tri_vert) if tri_vert else np.zeros((0, 3), np.int32),
             shadows=bool(shadows), iters=int(iters), per_pixel=int(per_pixel),
             layers=int(layers), cull_above=int(cull_above))
+
+    # Equal (and hashed) by content, not identity: ``render`` jits with the renderer static, so
+    # two renderers of the same scene (two tasks made from one MJCF, a task and its real twin)
+    # share one trace of the image, its gradient and its batched forms per process (and, called
+    # outside jit, one compile per image size) instead of one each.
+    @functools.cached_property
+    def _content(self) -> tuple:
+        return tuple(_hashable(getattr(self, f.name)) for f in dataclasses.fields(self))
+
+    def __eq__(self, other) -> bool:
+        if self is other:
+            return True
+        return type(other) is type(self) and self._content == other._content
+
+    def __hash__(self) -> int:
+        return hash(self._content)
 
     @property
     def ngeom(self) -> int:
