@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from twinrl.learn.common import vmap_scan
+from twinrl.learn.common import held_episodes
 from twinrl.learn.networks import Network
 
 __all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
@@ -147,15 +147,8 @@ def view_outcomes(env, actor: Network, actor_params, keys: jax.Array, coords: ja
     without a real episode (``bench/sensing.py --where sim``): ``(returns (N,), successes (N,))``.
     Pure and jit-able."""
     observe = observer(env, image_size(env, actor), keys=tuple(actor.obs_spec))
-
-    def body(s, _, c):
-        s2 = env.step(s, actor.apply(actor_params, observe(s, c)))
-        return s2, s2.reward
-
-    final, rewards = vmap_scan(body, jax.vmap(env.reset)(keys), coords,
-                               length=env.episode_length)
-    q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
-    return rewards.sum(1), jax.vmap(env.success)(q, v).astype(jnp.float32)
+    ep = held_episodes(env, observe, lambda o: actor.apply(actor_params, o), keys, coords=coords)
+    return ep.rewards.sum(1), ep.success
 
 
 def q_predictions(q, q_params, data) -> np.ndarray:

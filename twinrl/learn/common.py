@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable, Collection
+from typing import Any, Callable, Collection, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -41,7 +41,8 @@ from twinrl.physics.gradients import global_norm, hygiene
 
 __all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn",
            "RestoreFn", "compile_key", "JSONConfig", "tree_where", "make_optimizer",
-           "regression_loss", "make_regress", "make_minibatch_fit", "rgb_jitter", "vmap_scan"]
+           "regression_loss", "make_regress", "make_minibatch_fit", "rgb_jitter", "vmap_scan",
+           "Episodes", "held_episodes"]
 
 ProgressFn = Callable[[int, dict[str, float]], None]
 CheckpointFn = Callable[[int, Any, dict[str, list[float]]], None]
@@ -150,6 +151,45 @@ def vmap_scan(body: Callable, init, consts=None, xs=None, length: int | None = N
     final, ys = jax.lax.scan(lambda c, x: step(c, x, consts), init,
                              None if xs is None else swap(xs), length=length)
     return final, swap(ys)
+
+
+class Episodes(NamedTuple):
+    """A batch of B episodes of T steps (``held_episodes``)."""
+
+    obs: Any
+    """(B, T, ...) the observations before each step."""
+    states: Any
+    """(B, T) the ``State`` before each step."""
+    actions: jax.Array
+    """(B, T, m) the actions sent."""
+    rewards: jax.Array
+    """(B, T) each step's reward."""
+    success: jax.Array
+    """(B,) the final state's ``env.success`` (zeros for a task without one)."""
+
+
+def held_episodes(env, observe: Callable, act: Callable | None, keys: jax.Array,
+                  actions: jax.Array | None = None, coords: jax.Array | None = None) -> Episodes:
+    """Episodes from ``env.reset(keys[i])``, observed by ``observe(state, coords[i])`` -- an image
+    actor's camera held at ``coords[i]`` (B, 3) the whole episode, or ``None`` -- and acted by
+    ``actions`` (B, T, m) if given, else by ``act(observation)``: the image actor's episodes of
+    imitation (demonstrations re-rendered, evaluation, DAgger's visits), of the sensing Q's data
+    and of a camera choice's outcomes (``twinrl.learn.camera_choice.view_outcomes``). One scan of
+    the vmapped step (``vmap_scan``). Pure and jit-able; what the caller does not use of it,
+    XLA drops."""
+
+    def body(s, a, c):
+        obs = observe(s, c)
+        a = act(obs) if a is None else a
+        s2 = env.step(s, a)
+        return s2, (obs, s, a, s2.reward)
+
+    final, (obs, states, sent, rewards) = vmap_scan(body, jax.vmap(env.reset)(keys), coords,
+                                                    actions, length=env.episode_length)
+    q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
+    success = (jax.vmap(env.success)(q, v).astype(jnp.float32) if hasattr(env, "success")
+               else jnp.zeros(rewards.shape[:1], jnp.float32))
+    return Episodes(obs, states, sent, rewards, success)
 
 
 def raw_key(rng) -> jax.Array:

@@ -47,8 +47,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
-                                 raw_key, rgb_jitter, vmap_scan)
+from twinrl.learn.common import (JSONConfig, MetricLog, held_episodes, make_minibatch_fit,
+                                 make_optimizer, raw_key, rgb_jitter)
 from twinrl.learn.networks import NetworkConfig, make_network
 from twinrl.learn.plans import (DemonstrationError, Demonstrations, load_demonstrations,
                                 relabel)
@@ -157,25 +157,6 @@ def _coords(env, config: ImitationConfig, key):
     return jax.random.normal(key, (3,)) * 1.5  # unconstrained coords: spread over the workspace
 
 
-def _episodes(env, observe, act, keys, actions=None, coords=None):
-    """Episodes from ``reset(keys[i])`` with the mount at ``coords[i]``: by ``actions`` (B, T, m)
-    if given, else by ``act(obs)``. Returns the observations before each step, the states (for
-    labelling), the actions sent (each (B, T, ...)), the returns and the final successes (B,)."""
-
-    def body(s, a, c):
-        obs = observe(s, c)
-        a = act(obs) if a is None else a
-        s2 = env.step(s, a)
-        return s2, (obs, s, a, s2.reward)
-
-    final, (obs, states, sent, rewards) = vmap_scan(body, jax.vmap(env.reset)(keys), coords,
-                                                    actions, length=env.episode_length)
-    q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
-    success = (jax.vmap(env.success)(q, v) if hasattr(env, "success")
-               else jnp.zeros(rewards.shape[:1]))
-    return obs, states, sent, rewards.sum(1), success
-
-
 def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng):
     """The demonstrations' (observation, action) pairs, re-simulated (and rendered, from
     ``config.views`` mount poses each), and each pair's weight in the fit (``accurate``)."""
@@ -183,7 +164,7 @@ def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng)
     v = int(config.views) if config.observation != "state" else 1
     keys, actions = (np.repeat(np.asarray(x), v, axis=0) for x in demos)
     cams = jax.vmap(lambda k: _coords(env, config, k))(jax.random.split(rng, len(keys)))
-    run = jax.jit(lambda k, a, c: _episodes(env, observe, None, k, a, c)[:3])
+    run = jax.jit(lambda k, a, c: held_episodes(env, observe, None, k, a, c)[:3])
     obs, states, acts = run(jnp.asarray(keys), jnp.asarray(actions), cams)
     flat = lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:])  # noqa: E731
     return jax.tree_util.tree_map(flat, obs), flat(acts), flat(accurate(obs, states))
@@ -250,17 +231,17 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
 
     def actor_episodes(p, k, n):
         ks = jax.vmap(jax.random.split)(jax.random.split(k, n))  # (n, 2): camera, reset
-        return _episodes(env, observe, lambda o: net.apply(p, o), ks[:, 1],
-                         coords=jax.vmap(lambda k: _coords(env, c, k))(ks[:, 0]))
+        return held_episodes(env, observe, lambda o: net.apply(p, o), ks[:, 1],
+                             coords=jax.vmap(lambda k: _coords(env, c, k))(ks[:, 0]))
 
     @jax.jit
     def evaluate(p, k):
-        _, _, _, ret, ok = actor_episodes(p, k, c.eval_episodes)
-        return jnp.mean(ret), jnp.mean(ok)
+        ep = actor_episodes(p, k, c.eval_episodes)
+        return jnp.mean(ep.rewards.sum(1)), jnp.mean(ep.success)
 
     @jax.jit
     def visit_and_label(p, k):
-        o, s, sent, _, _ = actor_episodes(p, k, c.dagger_episodes)
+        o, s, sent = actor_episodes(p, k, c.dagger_episodes)[:3]
         sel = lambda x: x[:, picks].reshape((x.shape[0] * picks.size,) + x.shape[2:])  # noqa
         steps = jnp.arange(T)
         # warm start at step t: the actor's own actions from t on, zeros past the episode

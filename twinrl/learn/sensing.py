@@ -48,8 +48,8 @@ import numpy as np
 
 from twinrl.learn.camera_choice import (Selection, image_size, observer, q_predictions,
                                         q_value, select_camera, uniform_coords)
-from twinrl.learn.common import (JSONConfig, MetricLog, make_minibatch_fit, make_optimizer,
-                                 raw_key, rgb_jitter, vmap_scan)
+from twinrl.learn.common import (JSONConfig, MetricLog, held_episodes, make_minibatch_fit,
+                                 make_optimizer, raw_key, rgb_jitter)
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
 __all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
@@ -143,19 +143,12 @@ def sensing_data(env, actor: Network, actor_params, config: SensingConfig, keys:
     T = env.episode_length
     picks = jnp.arange(0, T, int(config.every))
 
-    def body(s, _, c):
-        o = observe(s, c)
-        a = actor.apply(actor_params, o)
-        s2 = env.step(s, a)
-        return s2, (o, a, s2.reward)
-
     @jax.jit
     def run(keys, coords):
         S, C = coords.shape[:2]
-        starts = jax.vmap(env.reset)(jnp.repeat(keys, C, axis=0))  # episode i * C + j
-        final, (obs, acts, rewards) = vmap_scan(body, starts, coords.reshape(S * C, -1),
-                                                length=T)
-        ok = jax.vmap(env.success)(final.pipeline_state.qpos, final.pipeline_state.qvel)
+        ep = held_episodes(env, observe, lambda o: actor.apply(actor_params, o),
+                           jnp.repeat(keys, C, axis=0), coords=coords.reshape(S * C, -1))
+        obs, acts, rewards, ok = ep.obs, ep.actions, ep.rewards, ep.success  # i * C + j: i, j
         to_go = jnp.cumsum(rewards[:, ::-1], axis=1)[:, ::-1] / jnp.arange(T, 0, -1)
         target = (to_go[:, picks] if config.target == "return"
                   else jnp.broadcast_to(ok[:, None], (S * C, picks.size)))
