@@ -1,0 +1,61 @@
+"""The trainers' shared episode kit (``twinrl.learn.common``): ``vmap_scan`` is a vmap of scans,
+and ``held_episodes`` is the task's own rollout, open or closed loop, on a short pendulum."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twinrl import envs
+from twinrl.learn.common import Episodes, held_episodes, vmap_scan
+
+
+def test_vmap_scan_equals_a_vmap_of_scans():
+    # a carry that a per-example constant and the inputs turn batched, outputs of two kinds
+    def body(c, x, k):
+        c = {"a": c["a"] * k + x, "n": c["n"] + 1}
+        return c, (c["a"].sum(), 2.0 * x)
+
+    rng = np.random.default_rng(0)
+    init = {"a": jnp.asarray(rng.normal(size=(4, 3))), "n": jnp.zeros(4, jnp.int32)}
+    k, xs = jnp.asarray(rng.normal(size=4)), jnp.asarray(rng.normal(size=(4, 6, 3)))
+    ref = jax.vmap(lambda c, k, x: jax.lax.scan(lambda c, x: body(c, x, k), c, x))(init, k, xs)
+    out = vmap_scan(body, init, k, xs)
+    for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    assert out[1][1].shape == (4, 6, 3) and int(out[0]["n"][0]) == 6
+
+
+def test_held_episodes_are_the_tasks_own_rollouts_open_and_closed_loop():
+    env = envs.make("pendulum_swingup", episode_length=5)
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (3, 5, env.action_size), minval=-1.0,
+                                 maxval=1.0)
+    observe = lambda s, c: s.obs  # noqa: E731  (no camera: coords None)
+    act = lambda o: jnp.tanh(o[:env.action_size])  # noqa: E731
+
+    def closed_loop(key):  # the reference: one episode, the policy acting on each observation
+        def body(s, _):
+            a = act(s.obs)
+            s = env.step(s, a)
+            return s, (a, s.reward)
+        return jax.lax.scan(body, env.reset(key), None, length=5)[1]
+
+    @jax.jit  # one compile for all of it
+    def run(keys, actions):
+        return (held_episodes(env, observe, None, keys, actions),
+                held_episodes(env, observe, act, keys),
+                jax.vmap(lambda k, a: env.unroll(env.reset(k), a)[1])(keys, actions),
+                jax.vmap(closed_loop)(keys))
+
+    open_loop, closed, rewards, (ref_actions, ref_rewards) = run(keys, actions)
+    assert isinstance(open_loop, Episodes) and open_loop.rewards.shape == (3, 5)
+    # open loop: the actions given, the rewards of env.unroll from the same resets
+    np.testing.assert_allclose(open_loop.rewards, rewards, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(open_loop.actions, actions)
+    np.testing.assert_array_equal(open_loop.obs, open_loop.states.obs)  # before each step
+    # a task without ``success``: zeros
+    np.testing.assert_array_equal(open_loop.success, np.zeros(3, np.float32))
+    # closed loop: each action is the policy's of the observation before the step
+    np.testing.assert_allclose(closed.actions, ref_actions, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(closed.rewards, ref_rewards, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(closed.rewards, open_loop.rewards)
