@@ -148,7 +148,8 @@ def sensing_data(env, actor: Network, actor_params, config: SensingConfig, keys:
         S, C = coords.shape[:2]
         ep = held_episodes(env, observe, lambda o: actor.apply(actor_params, o),
                            jnp.repeat(keys, C, axis=0), coords=coords.reshape(S * C, -1))
-        obs, acts, rewards, ok = ep.obs, ep.actions, ep.rewards, ep.success  # i * C + j: i, j
+        # episode i * C + j: start state i, camera pose j
+        obs, acts, rewards, ok = ep.obs, ep.actions, ep.rewards, ep.success
         to_go = jnp.cumsum(rewards[:, ::-1], axis=1)[:, ::-1] / jnp.arange(T, 0, -1)
         target = (to_go[:, picks] if config.target == "return"
                   else jnp.broadcast_to(ok[:, None], (S * C, picks.size)))
