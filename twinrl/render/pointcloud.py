@@ -116,4 +116,6 @@ def huber_residual(r, c):
     """Residual whose square is twice the Huber loss of ``r`` (scale ``c``): linear tails (a
     robust least-squares residual for point-to-surface fits)."""
     a = jnp.abs(r)
-    return jnp.where(a <= c, r, jnp.sign(r) * jnp.sqrt(jnp.maximum(2.0 * c * a - c * c, 0.0)))
+    tail = a > c  # there 2ca - c^2 > c^2: the square root's argument is kept off 0 elsewhere,
+    # where its infinite slope times the unused branch's zero would make the gradient NaN
+    return jnp.where(tail, jnp.sign(r) * jnp.sqrt(jnp.where(tail, 2.0 * c * a - c * c, 1.0)), r)
