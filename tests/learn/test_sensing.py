@@ -16,7 +16,7 @@ from twinrl import envs
 from twinrl.cli import main
 from twinrl import sense as sense_cmd
 from twinrl.learn import sensing
-from twinrl.learn.camera_choice import view_outcomes
+from twinrl.learn.camera_choice import checked_steps, view_outcomes
 from twinrl.learn.checkpoint import save_policy
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
@@ -124,6 +124,16 @@ def test_ascent_through_the_renderer_finds_where_the_target_shows():
     random = np.asarray(hard(sensing.uniform_coords(env.mount, jax.random.PRNGKey(9), (48,))))
     assert float(sel.value) >= np.quantile(random, 0.9), (float(sel.value), np.sort(random))
     assert float(sel.value) >= float(sel.default_value)
+    # the choice is the best hard-image score among the checked iterates of every ascent
+    checked, values = np.asarray(sel.checked), np.asarray(sel.checked_values)
+    np.testing.assert_array_equal(checked_steps(15, 3), [0, 3, 6, 9, 12, 15])
+    np.testing.assert_array_equal(checked_steps(20, 3), [0, 3, 6, 9, 12, 15, 18, 20])
+    assert checked.shape == (6, 4, 3) and values.shape == (6, 4)
+    np.testing.assert_array_equal(checked[0], np.asarray(sel.starts))
+    np.testing.assert_array_equal(checked[-1], np.asarray(sel.ends))
+    assert float(values[0, 0]) == float(sel.default_value)
+    assert float(sel.value) == values.max()
+    np.testing.assert_array_equal(np.asarray(sel.coords), checked.reshape(-1, 3)[values.argmax()])
 
 
 def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoints(
@@ -152,6 +162,8 @@ def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoint
         sense_cmd.sense("needle_threading", tmp_path / "q", tmp_path / "z")
     with pytest.raises(ValueError, match="target must be"):
         sensing.SensingConfig(target="value")
+    with pytest.raises(ValueError, match="check_every must be >= 1, got 0"):
+        sensing.SensingConfig(check_every=0)
 
 
 def test_q_of_a_pose_actor_also_sees_the_pose_and_what_the_fit_stands_on():

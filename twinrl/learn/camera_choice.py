@@ -6,8 +6,10 @@ them for ``twinrl sense``).
 coordinates (``CameraMount``: a sigmoid keeps every pose in its workspace), the image rendered
 soft (``tau``) so that the pose has a gradient through silhouettes, from the default pose and
 ``restarts - 1`` random ones; the winner is chosen by ``J`` on the *hard* image (the one the
-actor will see) among the starts and the ends of every ascent, so the choice is never worse, by
-Q, than the default pose. Q and its training live in ``twinrl.learn.sensing``.
+actor will see) among every ``check_every``-th iterate of every ascent, its start and end
+included, so the choice is never worse, by Q, than the default pose. (For an actor on the
+target's fitted pose, ``J`` reaches the pose through ``ArmTask.fit_target_pose``, whose
+derivative is its converged fit's.) Q and its training live in ``twinrl.learn.sensing``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from twinrl.learn.common import held_episodes
 from twinrl.learn.networks import Network
 
 __all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
-           "select_camera", "landscape", "view_outcomes", "q_predictions"]
+           "select_camera", "checked_steps", "landscape", "view_outcomes", "q_predictions"]
 
 
 EDGE = float(np.log(0.98 / 0.02))
@@ -76,14 +78,26 @@ class Selection(NamedTuple):
     """(R, 3) where they ended."""
     trace: jax.Array
     """(R, steps) the soft objective along each ascent."""
+    checked: jax.Array
+    """(K, R, 3) the iterates of each ascent scored on the hard image: every ``check_every``-th
+    from the start (``checked[0] == starts``), and the end (``checked[-1] == ends``)."""
+    checked_values: jax.Array
+    """(K, R) Q at them (hard image); ``checked_values[0, 0] == default_value``."""
+
+
+def checked_steps(steps: int, every: int) -> np.ndarray:
+    """The ascent iterates ``select_camera`` scores on the hard image: 0 (the start), every
+    ``every``-th, and ``steps`` (the end)."""
+    return np.unique(np.r_[np.arange(0, int(steps) + 1, max(1, int(every))), int(steps)])
 
 
 def select_camera(env, q: Network, q_params, actor: Network, actor_params, state, key,
                   config) -> Selection:
     """The mount pose maximising ``Q(o(c), pi(o(c)))`` for ``state`` (module docstring): Adam
-    ascent through the soft renderer from ``restarts`` starts, the winner by the hard image's Q.
-    ``config``: a ``SensingConfig`` (its ``restarts``, ``ascent_steps``, ``ascent_lr``, ``tau``).
-    Pure and jit-able (jit it with ``state`` and ``key`` as arguments)."""
+    ascent through the soft renderer from ``restarts`` starts, the winner by the hard image's Q
+    among the iterates ``checked_steps(ascent_steps, check_every)`` of every ascent.
+    ``config``: a ``SensingConfig`` (its ``restarts``, ``ascent_steps``, ``ascent_lr``, ``tau``,
+    ``check_every``). Pure and jit-able (jit it with ``state`` and ``key`` as arguments)."""
     n = image_size(env, actor)
     keys = observed_keys(actor, q)
     soft, hard = observer(env, n, float(config.tau), keys), observer(env, n, keys=keys)
@@ -107,16 +121,21 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
         u, s = tx.update(-g, s, c)
         # within the box Q was trained on (``uniform_coords``): past it the sigmoid is flat,
         # the pose hardly moves, and Q would only be extrapolating
-        return (jnp.clip(optax.apply_updates(c, u), -EDGE, EDGE), s), v
+        c = jnp.clip(optax.apply_updates(c, u), -EDGE, EDGE)
+        return (c, s), (v, c)
 
-    (ends, _), trace = jax.lax.scan(body, (starts, tx.init(starts)), None,
-                                    length=int(config.ascent_steps))
-    trace = trace.T
-    cands = jnp.concatenate([starts, ends], axis=0)
-    values = jax.vmap(lambda c: objective(hard, c))(cands)
+    steps = int(config.ascent_steps)
+    _, (trace, path) = jax.lax.scan(body, (starts, tx.init(starts)), None, length=steps)
+    # the soft image is only a surrogate: an ascent can pass the hard image's best on its way,
+    # so the hard Q scores iterates along the way, not only where each ascent ends
+    path = jnp.concatenate([starts[None], path], axis=0)[checked_steps(
+        steps, int(config.check_every))]
+    K, R = path.shape[:2]
+    values = jax.vmap(lambda c: objective(hard, c))(path.reshape(K * R, 3))
     values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
     best = jnp.argmax(values)
-    return Selection(cands[best], values[best], values[0], starts, ends, trace)
+    return Selection(path.reshape(K * R, 3)[best], values[best], values[0], starts, path[-1],
+                     trace.T, path, values.reshape(K, R))
 
 
 def landscape(env, q: Network, q_params, actor: Network, actor_params, state, distance_coord,

@@ -29,8 +29,8 @@ differentiable renderer* w.r.t. the pose. Here:
   unconstrained coordinates (``CameraMount``: a sigmoid keeps every pose in its workspace), the
   image rendered soft (``tau``) so that the pose has a gradient through silhouettes, from the
   default pose and ``restarts - 1`` random ones; the winner is chosen by ``J`` on the *hard*
-  image (the one the actor will see) among the starts and the ends of every ascent, so the choice
-  is never worse, by Q, than the default pose.
+  image (the one the actor will see) among every ``check_every``-th iterate of every ascent
+  (its start and end included), so the choice is never worse, by Q, than the default pose.
 
 ``twinrl train --algo sensing --env TASK --set actor=DIR`` trains Q for the image actor saved in
 ``DIR`` (a ``twinrl train --algo imitation --set observation=pixels`` run); ``twinrl sense --env
@@ -86,12 +86,15 @@ class SensingConfig(JSONConfig):
     """Adam's step in the mount's unconstrained coordinates."""
     tau: float = 1.0
     """Soft-silhouette width (pixels) of the renders the ascent differentiates."""
+    check_every: int = 3
+    """Every this many ascent steps (and at its start and end) the pose is scored on the hard
+    image; the choice is the best scored pose (``camera_choice.checked_steps``)."""
 
     def __post_init__(self):
         if self.target not in ("return", "success"):
             raise ValueError(f"target must be 'return' or 'success', got {self.target!r}")
         for name in ("states", "cameras", "every", "fit_steps", "batch_size", "restarts",
-                     "ascent_steps"):
+                     "ascent_steps", "check_every"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if int(self.cameras) < 2:
