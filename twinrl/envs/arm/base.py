@@ -676,9 +676,9 @@ class ArmTask(Env):
         pixels alone is off by the faces a pose shows and the arm hides (peg, 12 starts x 6
         steps x 4 random poses: 19-33 mm median). Differentiable in the camera and the images:
         the derivative is the converged fit's (implicit function theorem on its optimality
-        condition), not the unrolled iterations'; zeros where no target pixel shows. ``points``: target pixels
-        used (a spread subset); ``joints``: the arm's measured angles and velocities (14,). The
-        target geoms must be primitives (not meshes). ``with_residual``: return ``(pose, rms)``,
+        condition), not the unrolled iterations'; zeros where no target pixel shows.
+        ``points``: target pixels used (a spread subset); ``joints``: the arm's measured angles
+        and velocities (14,). The target geoms must be primitives (not meshes). ``with_residual``: return ``(pose, rms)``,
         the fit's weighted RMS signed distance (m; 0 where no target pixel shows)."""
         from twinrl.render import Geoms, primitives
         from twinrl.render.pointcloud import depth_to_points, huber_residual
@@ -721,13 +721,14 @@ class ArmTask(Env):
                            for i, t in enumerate(types)], -1)
             return sw * huber_residual(jnp.min(d, -1), huber)
 
+        eye = jnp.eye(idx.size, dtype=dt)
+
         def damped(A):
             return A + 1e-3 * jnp.diag(jnp.diag(A)) + 1e-9 * eye
 
         # the fit itself sees the data as constants: its derivative is the converged solution's
         # (below), not that of the unrolled iterations (~1e12 through the needle's soft images)
         data = sg(pts), sg(sw)
-        eye = jnp.eye(idx.size, dtype=dt)
         x = jnp.zeros(idx.size, dt)
         Jc = jax.jacfwd(centroid)(x)
         mean = jnp.sum(sg(w)[:, None] * data[0], 0) / jnp.maximum(sg(n), 1e-3)
