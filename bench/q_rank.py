@@ -86,15 +86,23 @@ def evaluate(task: str, run: Path, args) -> dict:
            "rank_corr_per_state": per_state.tolist(),
            "loop_rank_corr": summary["final"].get("q_rank_corr"),
            "retrain": dict(args.retrain), "train_s": train_s,
-           "choice_raises_q": float(np.mean(gains > 0)), "choices": len(gains),
-           "default_ascent_raises_q": float(np.mean(from_default > 0)),
-           "choice_q_gain": float(np.mean(gains)),
+           "choice_raises_q": _share(gains > 0), "choices": len(gains),
+           "default_ascent_raises_q": _share(from_default > 0),
+           "choice_q_gain": float(np.mean(gains)) if len(gains) else None,
            "wall_s": time.perf_counter() - t0}
     print(f"[bench] {task} {run.name}: rank {out['rank_corr']:.2f} "
           f"({out['rank_corr_ci95'][0]:.2f} .. {out['rank_corr_ci95'][1]:.2f}), ascent raises Q "
-          f"on {100 * out['choice_raises_q']:.0f} % (from the default pose alone "
-          f"{100 * out['default_ascent_raises_q']:.0f} %) ({out['wall_s']:.0f} s)", flush=True)
+          f"on {_pct(out['choice_raises_q'])} (from the default pose alone "
+          f"{_pct(out['default_ascent_raises_q'])}) ({out['wall_s']:.0f} s)", flush=True)
     return out
+
+
+def _share(flags: np.ndarray) -> float | None:
+    return float(np.mean(flags)) if len(flags) else None  # None: --choices 0
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.0f} %"
 
 
 def _setting(text: str) -> tuple[str, object]:
@@ -146,8 +154,8 @@ def main(argv=None) -> int:
                   f" .. {r['rank_corr_ci95'][1]:.2f})", r["loop_rank_corr"],
                   f"{r['rank_corr_pooled']:.2f}",
                   f"{r['success_q_choice']:.2f} / {r['success_mean_pose']:.2f}",
-                  f"{100 * r['choice_raises_q']:.0f} % of {r['choices']}",
-                  f"{100 * r['default_ascent_raises_q']:.0f} %"] for r in rows])
+                  f"{_pct(r['choice_raises_q'])} of {r['choices']}",
+                  _pct(r['default_ascent_raises_q'])] for r in rows])
     print(f"wrote {args.out / 'q_rank.json'}")
     return 0
 
