@@ -105,18 +105,22 @@ def _pct(x: float | None) -> str:
     return "-" if x is None else f"{100 * x:.0f} %"
 
 
-def _setting(text: str) -> tuple[str, object]:
+def _retrain_settings(items: list[str]) -> dict:
+    """``--retrain``'s ``FIELD=VALUE`` items (``twinrl train --set``'s parsing), each a
+    ``SensingConfig`` field."""
+    from twinrl.learn.runner import RunError, parse_overrides
     from twinrl.learn.sensing import SensingConfig
 
-    name, sep, value = text.partition("=")
-    fields = {f.name: f for f in dataclasses.fields(SensingConfig)}
-    if not sep or name not in fields:
-        raise SystemExit(f"--retrain takes FIELD=VALUE with a SensingConfig field "
-                         f"({', '.join(fields)}); got {text!r}")
     try:
-        return name, json.loads(value)
-    except json.JSONDecodeError:
-        return name, value
+        settings = parse_overrides(items)
+    except RunError as e:
+        raise SystemExit(f"--retrain: {e}") from None
+    fields = [f.name for f in dataclasses.fields(SensingConfig)]
+    unknown = sorted(set(settings) - set(fields))
+    if unknown:
+        raise SystemExit(f"--retrain: SensingConfig has no field {', '.join(unknown)}; its "
+                         f"fields: {', '.join(fields)}")
+    return settings
 
 
 def main(argv=None) -> int:
@@ -133,7 +137,7 @@ def main(argv=None) -> int:
     p.add_argument("--retrain", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="train a new Q with these SensingConfig settings and measure that one")
     args = p.parse_args(argv)
-    args.retrain = dict(_setting(s) for s in args.retrain)
+    args.retrain = _retrain_settings(args.retrain)
     if args.states < 2 or args.cameras < 2 or args.choices < 0:
         raise SystemExit("--states and --cameras must be >= 2, --choices >= 0")
     rows = []
