@@ -10,8 +10,10 @@ alone. ``--start truth`` starts the fit at the hidden truth (evaluation only), t
 objective whose minimum is elsewhere from a fit that stops short. ``--contacts``,
 ``--iterations`` and ``--loss`` choose the simulator and the objective. ``--staged`` fits the
 pusher first, on the windows where it keeps clear of the box, then the box from planar positions
-(``staged``). The box friction's truth is the box-floor contact's coefficient, the larger of the
-twin's box and floor values (the fit holds its floor's at 0.05).
+(``staged``); ``--slide-first`` fits the pusher, then the box's friction alone on the windows
+where it slides free, then its mass (``slide_first``). The box friction's truth is the box-floor
+contact's coefficient, the larger of the twin's box and floor values (the fit holds its floor's
+at 0.05).
 
 Prints a table (truth, identified, sd, relative error per parameter) and writes
 ``OUT/push_sysid.json``. About 2-3 minutes per case on 2 cores.
@@ -21,6 +23,7 @@ Prints a table (truth, identified, sd, relative error per parameter) and writes
     python bench/push_sysid.py --contacts mujoco --iterations 12 --only friction_scale --out B
     python bench/push_sysid.py --contacts mujoco --iterations 12 --start truth --out B
     python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --out B
+    python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --slide-first --out B
 """
 
 from __future__ import annotations
@@ -78,17 +81,53 @@ def staged(env, data, known, loss):
     (2) box mass, box friction and pusher friction on all windows, the pusher's values known,
     from planar positions only (the box's velocities chatter with its rocking; positions
     integrate it away). Returns both results and the number of stage-1 windows."""
-    c1 = sysid.SysidConfig(params=PUSHER, known=known, observation_weights=PUSHER_WEIGHTS,
-                           loss=loss, window=CLEAR_WINDOW)
-    w = sysid.windows_from_dataset(env, data, c1.window, max_latency=c1.max_latency)
-    states = np.concatenate([w.obs0[:, None], w.targets], axis=1)
-    clear = env.pusher_clear(states).all(axis=1)
-    first = sysid.fit(env, w.select(clear), c1)
-    pusher = tuple((n, float(v)) for n, v in zip(first.names, first.values) if n in PUSHER)
+    first, pusher, n_clear = pusher_first(env, data, known, loss)
     c2 = sysid.SysidConfig(params=("mass/box", "friction/box", "friction/pusher"),
                            known=known + pusher, observation_weights=POSITION_WEIGHTS,
                            loss=loss, latency=first.latency)
-    return first, sysid.fit(env, data, c2), int(clear.sum())
+    return first, sysid.fit(env, data, c2), n_clear
+
+
+SLIDE_WINDOW = 3  # steps per stage-2 window of ``slide_first``: a free slide lasts ~5
+SLIDE_SPEED = 0.05  # m/s: such a window starts with the box moving at least this fast
+BOX_POSITION_WEIGHTS = tuple(1.0 if i in (2, 3) else 0.0 for i in range(17))
+
+
+def pusher_first(env, data, known, loss):
+    """``staged``'s stage 1: the pusher's gains and damping, and the latency, on the
+    ``CLEAR_WINDOW``-step windows where it keeps clear of the box. Returns the fit, the pusher's
+    values as ``known`` entries and the number of windows."""
+    c1 = sysid.SysidConfig(params=PUSHER, known=known, observation_weights=PUSHER_WEIGHTS,
+                           loss=loss, window=CLEAR_WINDOW)
+    w = sysid.windows_from_dataset(env, data, c1.window, max_latency=c1.max_latency)
+    clear = env.pusher_clear(np.concatenate([w.obs0[:, None], w.targets], axis=1)).all(axis=1)
+    first = sysid.fit(env, w.select(clear), c1)
+    return first, tuple((n, float(v)) for n, v in zip(first.names, first.values)
+                        if n in PUSHER), int(clear.sum())
+
+
+def slide_first(env, data, known, loss):
+    """Three stages, the box's friction apart from its mass: (1) the pusher (``pusher_first``);
+    (2) the box's friction alone on the ``SLIDE_WINDOW``-step windows where the pusher keeps
+    clear and the box starts faster than ``SLIDE_SPEED`` -- it slides on its own, decelerating
+    at friction times g whatever its mass --, from the box's planar position; (3) box mass and
+    pusher friction on all windows from planar positions, the rest known. Free slides are short
+    on push (the pusher's damping caps the box near 0.3 m/s; it stops in ~5 steps, the first 2
+    with the pusher still near): 15-31 such windows (overlapping, stride 1) in 5 episodes.
+    Returns the three fits and the stage-1 and stage-2 window counts."""
+    first, pusher, n_clear = pusher_first(env, data, known, loss)
+    w = sysid.windows_from_dataset(env, data, SLIDE_WINDOW, stride=1, max_latency=1)
+    clear = env.pusher_clear(np.concatenate([w.obs0[:, None], w.targets], axis=1)).all(axis=1)
+    slide = clear & (np.linalg.norm(w.obs0[:, 11:13], axis=-1) > SLIDE_SPEED)
+    c2 = sysid.SysidConfig(params=("friction/box",), known=known + pusher,
+                           observation_weights=BOX_POSITION_WEIGHTS, loss=loss,
+                           window=SLIDE_WINDOW, latency=first.latency)
+    second = sysid.fit(env, w.select(slide), c2)
+    box = (("friction/box", float(second.values[0])),)
+    c3 = sysid.SysidConfig(params=("mass/box", "friction/pusher"), known=known + pusher + box,
+                           observation_weights=POSITION_WEIGHTS, loss=loss,
+                           latency=first.latency)
+    return first, second, sysid.fit(env, data, c3), n_clear, int(slide.sum())
 
 
 def run(args) -> dict:
@@ -108,12 +147,18 @@ def run(args) -> dict:
             friction=floor_held(env, contact_truth.friction)), **sim_config)
     known = (("mass/pusher", true_of("mass/pusher")), ("friction/floor", FLOOR_FRICTION))
     t = time.perf_counter()
-    if args.staged:
-        first, res, n_clear = staged(env, data, known, args.loss)
+    n_slide = None
+    if args.staged or args.slide_first:
+        if args.slide_first:
+            first, second, res, n_clear, n_slide = slide_first(env, data, known, args.loss)
+            box = [r for r in sysid.compare_to_truth(second, contact_truth, pert.latency_steps)
+                   if r["parameter"] == "friction/box"]
+        else:
+            (first, res, n_clear), box = staged(env, data, known, args.loss), []
         rows = ([r for r in sysid.compare_to_truth(first, contact_truth, pert.latency_steps)
-                 if r["parameter"] in PUSHER]
-                + [r for r in sysid.compare_to_truth(res, contact_truth, pert.latency_steps)
-                   if r["parameter"] not in PUSHER + ("friction/floor",)])
+                 if r["parameter"] in PUSHER] + box)
+        rows += [r for r in sysid.compare_to_truth(res, contact_truth, pert.latency_steps)
+                 if r["parameter"] not in [x["parameter"] for x in rows] + ["friction/floor"]]
     else:
         cfg = sysid.SysidConfig(params=PARAMS, known=known, observation_weights=WEIGHTS,
                                 loss=args.loss)
@@ -123,7 +168,8 @@ def run(args) -> dict:
         n_clear = None
     return dict(twin_seed=args.twin_seed, only=args.only, episodes=args.episodes,
                 contacts=args.contacts, iterations=args.iterations, loss=args.loss,
-                start=args.start, staged=args.staged, clear_windows=n_clear,
+                start=args.start, staged=args.staged, slide_first=args.slide_first,
+                clear_windows=n_clear, slide_windows=n_slide,
                 latency=res.latency, true_latency=pert.latency_steps,
                 obs_noise_std=pert.obs_noise_std, loss_value=res.loss,
                 seconds=time.perf_counter() - t, rows=rows)
@@ -141,17 +187,23 @@ def main(argv=None) -> int:
                     help="solver iterations of the fitting simulator (default: push.xml's 6)")
     ap.add_argument("--loss", choices=LOSSES, default="huber")
     ap.add_argument("--start", choices=("nominal", "truth"), default="nominal")
-    ap.add_argument("--staged", action="store_true",
+    stages = ap.add_mutually_exclusive_group()
+    stages.add_argument("--staged", action="store_true",
                     help="pusher first on windows clear of the box, then the box from positions")
+    stages.add_argument("--slide-first", action="store_true",
+                    help="pusher first, then box friction on free slides, then box mass")
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     if args.episodes < 1 or (args.iterations is not None and args.iterations < 1):
         ap.error("--episodes and --iterations must be >= 1")
     r = run(args)
+    stages = (f", slide first ({r['clear_windows']} clear, {r['slide_windows']} slide windows)"
+              if args.slide_first else f", staged ({r['clear_windows']} clear windows)"
+              if args.staged else "")
     report.print_table(
         f"push twin {args.twin_seed} ({'only ' + ', '.join(args.only) if args.only else 'all'}), "
         f"{args.contacts} contacts, {args.loss}, from {args.start}"
-        f"{', staged (%d clear windows)' % r['clear_windows'] if args.staged else ''}: "
+        f"{stages}: "
         f"loss {r['loss_value']:.3g}",
         ["parameter", "truth", "identified", "sd", "rel err", "status"],
         [[x["parameter"], x["truth"], x["identified"], x["sd"], x["rel_err"], x["status"]]

@@ -159,6 +159,18 @@ def test_push_excitation_moves_the_box_where_open_loop_does_not():
         d = sysid.collect(twin, episodes=2, seed=0, steps=100, policy=policy)
         moving[policy] = float(np.mean(np.linalg.norm(d["obs"][..., 11:13], axis=-1) > 0.01))
     assert moving["open_loop"] < 0.05 and moving["auto"] > 0.3, moving
+    # a user's own closed-loop excitation: made per episode from the rng, called per step
+    made, seen = [], []
+
+    def make(rng):
+        made.append(rng)
+        return lambda obs, t: (seen.append((np.asarray(obs).shape, t)),
+                               np.full(2, 0.7, np.float32))[1]
+
+    d = sysid.collect(twin, episodes=2, seed=0, steps=5, policy=make)
+    assert len(made) == 2 and isinstance(made[0], np.random.Generator)
+    assert seen[:5] == [((17,), t) for t in range(5)] and len(seen) == 10
+    np.testing.assert_allclose(d["action"], 0.7)
     with pytest.raises(ValueError, match="policy must be"):
         sysid.collect(twin, episodes=1, policy="scripted")
     with pytest.raises(ValueError, match="has no excitation_policy"):

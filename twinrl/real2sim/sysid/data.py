@@ -45,18 +45,22 @@ def excitation_actions(rng: np.random.Generator | int, T: int, m: int, *,
 
 
 def collect(twin, episodes: int, seed: int = 0, *, steps: int | None = None,
-            writer=None, policy: str = "auto", **excitation) -> dict[str, np.ndarray]:
+            writer=None, policy="auto", **excitation) -> dict[str, np.ndarray]:
     """Run an excitation on a real twin (a gymnasium env) for ``episodes``.
 
     ``policy``: ``"open_loop"``, ``excitation_actions`` (``excitation`` are its keyword
     arguments); ``"task"``, the task's closed-loop ``excitation_policy(rng)`` (push has one: open
-    loop rarely touches its box); ``"auto"`` (default), the task's where it has one.
+    loop rarely touches its box); ``"auto"`` (default), the task's where it has one; or your own
+    closed-loop excitation, a callable ``make(rng) -> policy(obs, t) -> action`` (the
+    contract of ``excitation_policy``), e.g. one designed for the parameters you identify.
     Returns ``{"obs", "action", "next_obs", "reward"}`` with shapes (E, T, ...); if ``writer``
     (a ``twinrl.real.dataset.DatasetWriter``) is given, every transition is also recorded there.
     """
-    if policy not in ("auto", "open_loop", "task"):
-        raise ValueError(f"policy must be 'auto', 'open_loop' or 'task', got {policy!r}")
-    task_policy = getattr(twin.task, "excitation_policy", None)
+    custom = callable(policy)
+    if not custom and policy not in ("auto", "open_loop", "task"):
+        raise ValueError(f"policy must be 'auto', 'open_loop', 'task' or a callable "
+                         f"make(rng) -> policy(obs, t), got {policy!r}")
+    task_policy = policy if custom else getattr(twin.task, "excitation_policy", None)
     if policy == "task" and task_policy is None:
         raise ValueError(f"task {twin.task.name!r} has no excitation_policy; use "
                          f"policy='open_loop'")
