@@ -31,7 +31,6 @@ Prints a table and writes ``OUT/q_fit.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import pickle
 import sys
 import time
@@ -42,7 +41,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from twinrl import envs
 from twinrl.report import print_table, run_meta, write_json
 
 
@@ -144,24 +142,12 @@ def main(argv=None) -> int:
     weights = {v: _parse_variant(v) for v in args.variants}
     if min(args.states) < 1 or args.test_states < 2 or args.cameras < 2 or args.seeds < 1:
         raise SystemExit("--states and --seeds must be >= 1, --test-states and --cameras >= 2")
-    task, sep, path = args.run.partition("=")
-    run = Path(path)
-    if not sep or task not in envs.registry.TASKS:
-        raise SystemExit(f"--run takes TASK=DIR; got {args.run!r}")
-    if not (run / "summary.json").exists():
-        raise SystemExit(f"--run {args.run}: no finished twinrl run there")
-    from twinrl.envs.system import System
-    from twinrl.learn import sensing
-    from twinrl.sense import load_q
+    from q_rank import load_run, parse_run  # noqa: E402  (bench/, beside this script)
 
-    summary = json.loads((run / "summary.json").read_text())
-    if summary.get("env") != task:
-        raise SystemExit(f"--run {args.run}: that run is on {summary.get('env')!r}")
-    rdir = run / f"round{summary['final']['round']}"
-    env = envs.make(task, system=System.load(rdir / "system.json"))
-    actor, ap, _ = sensing.load_actor(rdir / "actor")
-    q_run, qp_run, meta = load_q(rdir / "q")
-    cfg = sensing.SensingConfig.from_dict(meta.get("config") or {})
+    from twinrl.learn import sensing
+
+    task, run = parse_run(args.run)
+    _, env, actor, ap, q_run, qp_run, cfg = load_run(task, run)
 
     t0 = time.perf_counter()
     ident = dict(run=str(run.resolve()), train=max(args.states), test=args.test_states,

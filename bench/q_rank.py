@@ -44,10 +44,21 @@ from twinrl import envs
 from twinrl.report import print_table, run_meta, write_json
 
 
-def evaluate(task: str, run: Path, args) -> dict:
+def parse_run(item: str) -> tuple[str, Path]:
+    """``--run``'s ``TASK=DIR`` (a finished ``twinrl run`` directory), or a one-line exit."""
+    task, sep, path = item.partition("=")
+    if not sep or task not in envs.registry.TASKS:
+        raise SystemExit(f"--run takes TASK=DIR; got {item!r}")
+    if not (Path(path) / "summary.json").exists():
+        raise SystemExit(f"--run {item}: no finished twinrl run there")
+    return task, Path(path)
+
+
+def load_run(task: str, run: Path):
+    """A run's last round: ``(summary, env, actor, actor_params, q, q_params, config)``, the
+    env being the task in the round's identified twin and ``config`` Q's ``SensingConfig``."""
     from twinrl.envs.system import System
     from twinrl.learn import sensing
-    from twinrl.learn.camera_choice import select_camera, uniform_coords
     from twinrl.sense import load_q
 
     summary = json.loads((run / "summary.json").read_text())
@@ -57,7 +68,15 @@ def evaluate(task: str, run: Path, args) -> dict:
     env = envs.make(task, system=System.load(rdir / "system.json"))
     actor, ap, _ = sensing.load_actor(rdir / "actor")
     q, qp, meta = load_q(rdir / "q")
-    cfg = sensing.SensingConfig.from_dict(meta.get("config") or {})
+    return summary, env, actor, ap, q, qp, sensing.SensingConfig.from_dict(
+        meta.get("config") or {})
+
+
+def evaluate(task: str, run: Path, args) -> dict:
+    from twinrl.learn import sensing
+    from twinrl.learn.camera_choice import select_camera, uniform_coords
+
+    summary, env, actor, ap, q, qp, cfg = load_run(task, run)
     t0 = time.perf_counter()
     if args.retrain:
         cfg = sensing.SensingConfig.from_dict({**cfg.to_dict(), **args.retrain})
@@ -142,12 +161,7 @@ def main(argv=None) -> int:
         raise SystemExit("--states and --cameras must be >= 2, --choices >= 0")
     rows = []
     for item in args.run:
-        task, sep, path = item.partition("=")
-        if not sep or task not in envs.registry.TASKS:
-            raise SystemExit(f"--run takes TASK=DIR; got {item!r}")
-        if not (Path(path) / "summary.json").exists():
-            raise SystemExit(f"--run {item}: no finished twinrl run there")
-        rows.append(evaluate(task, Path(path), args))
+        rows.append(evaluate(*parse_run(item), args))
         write_json(args.out / "q_rank.json", {"meta": run_meta(args), "rows": rows})
     print_table(f"Q's ranking of camera poses on {args.states} fresh states x {args.cameras} "
                 f"poses (identified twin)",
