@@ -113,7 +113,7 @@ def slide_first(env, data, known, loss):
     at friction times g whatever its mass --, from the box's planar position; (3) box mass and
     pusher friction on all windows from planar positions, the rest known. Free slides are short
     on push (the pusher's damping caps the box near 0.3 m/s; it stops in ~5 steps, the first 2
-    with the pusher still near): 15-31 such windows (overlapping, stride 1) in 5 episodes.
+    with the pusher still near): 11-37 such windows (overlapping, stride 1) in 5 episodes.
     Returns the three fits and the stage-1 and stage-2 window counts."""
     first, pusher, n_clear = pusher_first(env, data, known, loss)
     w = sysid.windows_from_dataset(env, data, SLIDE_WINDOW, stride=1, max_latency=1)
