@@ -93,6 +93,12 @@ SLIDE_SPEED = 0.05  # m/s: such a window starts with the box moving at least thi
 BOX_POSITION_WEIGHTS = tuple(1.0 if i in (2, 3) else 0.0 for i in range(17))
 
 
+def clear_throughout(env, w) -> np.ndarray:
+    """Which windows ``w`` keep the pusher clear of the box at every step (``Push.pusher_clear``
+    of the start and every target state)."""
+    return env.pusher_clear(np.concatenate([w.obs0[:, None], w.targets], axis=1)).all(axis=1)
+
+
 def pusher_first(env, data, known, loss):
     """``staged``'s stage 1: the pusher's gains and damping, and the latency, on the
     ``CLEAR_WINDOW``-step windows where it keeps clear of the box. Returns the fit, the pusher's
@@ -100,7 +106,7 @@ def pusher_first(env, data, known, loss):
     c1 = sysid.SysidConfig(params=PUSHER, known=known, observation_weights=PUSHER_WEIGHTS,
                            loss=loss, window=CLEAR_WINDOW)
     w = sysid.windows_from_dataset(env, data, c1.window, max_latency=c1.max_latency)
-    clear = env.pusher_clear(np.concatenate([w.obs0[:, None], w.targets], axis=1)).all(axis=1)
+    clear = clear_throughout(env, w)
     first = sysid.fit(env, w.select(clear), c1)
     return first, tuple((n, float(v)) for n, v in zip(first.names, first.values)
                         if n in PUSHER), int(clear.sum())
@@ -116,12 +122,11 @@ def slide_first(env, data, known, loss):
     with the pusher still near): 11-37 such windows (overlapping, stride 1) in 5 episodes.
     Returns the three fits and the stage-1 and stage-2 window counts."""
     first, pusher, n_clear = pusher_first(env, data, known, loss)
-    w = sysid.windows_from_dataset(env, data, SLIDE_WINDOW, stride=1, max_latency=1)
-    clear = env.pusher_clear(np.concatenate([w.obs0[:, None], w.targets], axis=1)).all(axis=1)
-    slide = clear & (np.linalg.norm(w.obs0[:, 11:13], axis=-1) > SLIDE_SPEED)
     c2 = sysid.SysidConfig(params=("friction/box",), known=known + pusher,
                            observation_weights=BOX_POSITION_WEIGHTS, loss=loss,
                            window=SLIDE_WINDOW, latency=first.latency)
+    w = sysid.windows_from_dataset(env, data, c2.window, stride=1, max_latency=c2.max_latency)
+    slide = clear_throughout(env, w) & (np.linalg.norm(w.obs0[:, 11:13], axis=-1) > SLIDE_SPEED)
     second = sysid.fit(env, w.select(slide), c2)
     box = (("friction/box", float(second.values[0])),)
     c3 = sysid.SysidConfig(params=("mass/box", "friction/pusher"), known=known + pusher + box,

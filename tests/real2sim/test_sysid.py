@@ -164,8 +164,12 @@ def test_push_excitation_moves_the_box_where_open_loop_does_not():
 
     def make(rng):
         made.append(rng)
-        return lambda obs, t: (seen.append((np.asarray(obs).shape, t)),
-                               np.full(2, 0.7, np.float32))[1]
+
+        def policy(obs, t):
+            seen.append((np.asarray(obs).shape, t))
+            return np.full(2, 0.7, np.float32)
+
+        return policy
 
     d = sysid.collect(twin, episodes=2, seed=0, steps=5, policy=make)
     assert len(made) == 2 and isinstance(made[0], np.random.Generator)
