@@ -71,6 +71,48 @@ def test_grazing_rays_hit_or_miss_as_in_float64():
                 assert np.isfinite(s) == hits, (gtype, gap, o, d, s)
 
 
+def test_hits_have_the_closed_forms_derivative_implicitly(x64):
+    """``hit_implicit`` (the renderer's hit) equals each primitive's closed-form hit, and its
+    implicit derivative equals the closed form's own (both ways: grad and jacfwd) and central
+    differences, on rays that hit every face kind: sides, caps, slabs, the capsule's ends."""
+    from twinrl.render import primitives as P
+
+    rng = np.random.default_rng(1)
+    sizes = {0: [0.25, 0.2, 0.1], 2: [0.3, 0, 0], 3: [0.2, 0.3, 0], 4: [0.2, 0.3, 0.4],
+             5: [0.25, 0.2, 0], 6: [0.2, 0.3, 0.25]}
+    for gtype, size in sizes.items():
+        size = jnp.asarray(size, jnp.float64)
+        # rays from 2 m towards points spread over the geom's bounding box
+        aim = rng.uniform(-1, 1, (64, 3)) * np.maximum(np.asarray(size), 0.3) * [1, 1, 0.9]
+        if gtype == 0:
+            aim[:, 2] = 0.0
+        d = rng.normal(size=(64, 3))
+        d[:, 2] = -np.abs(d[:, 2]) - 0.3  # from above, so the plane is seen from its front
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o, r = jnp.asarray(aim - 2.0 * d), jnp.asarray(d)
+        closed = P.PRIMITIVES[gtype][1]
+        s_closed, s_impl = closed(o, r, size), P.hit_implicit(gtype, o, r, size)
+        np.testing.assert_array_equal(s_impl, s_closed)
+        ok = np.isfinite(np.asarray(s_closed))
+        assert 16 <= ok.sum() < 64, (gtype, ok.sum())  # hits and misses both
+
+        def total(f, o, r, size, ok=jnp.asarray(ok)):
+            return jnp.sum(jnp.where(ok, f(o, r, size), 0.0) * jnp.arange(64.0))
+
+        g_impl = jax.grad(lambda *a: total(lambda *b: P.hit_implicit(gtype, *b), *a),
+                          (0, 1, 2))(o, r, size)
+        g_closed = jax.grad(lambda *a: total(closed, *a), (0, 1, 2))(o, r, size)
+        for a, b in zip(g_impl, g_closed):
+            np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-9)
+        j_impl = jax.jacfwd(lambda sz: P.hit_implicit(gtype, o, r, sz))(size)
+        np.testing.assert_allclose(np.asarray(j_impl)[ok], np.asarray(
+            jax.jacfwd(lambda sz: closed(o, r, sz))(size))[ok], rtol=1e-8, atol=1e-9)
+        eps = 1e-7
+        fd = [(total(closed, o + eps * e, r, size) - total(closed, o - eps * e, r, size)) / (2 * eps)
+              for e in jnp.eye(3)[:, None, :] * jnp.ones((1, 64, 1))]
+        np.testing.assert_allclose(jnp.sum(g_impl[0], 0), fd, rtol=1e-5, atol=1e-6)
+
+
 def test_mesh_renders_like_the_same_box():
     xml = """<mujoco><asset><mesh name="cube" vertex="-.05 -.05 -.05 .05 -.05 -.05 -.05 .05 -.05
       .05 .05 -.05 -.05 -.05 .05 .05 -.05 .05 -.05 .05 .05 .05 .05 .05"/></asset>

@@ -377,15 +377,16 @@ class Renderer:
         return s_hit, jnp.stack(s_near, -1), jnp.stack(dist, -1), jnp.stack(normal, -2)
 
     def _cast_prim(self, t, o, r, xpos, xmat, size, soft, iters, normal_tau=None,
-                   hard_normals=False):
+                   hard_normals=False, differentiable=True):
         """One primitive type's geoms: ``xpos`` (g, 3), ``xmat`` (g, 3, 3), ``size`` (g, 3) for
-        every ray, or (..., g, 3[, 3]) per ray (the geoms culling chose for each pixel)."""
+        every ray, or (..., g, 3[, 3]) per ray (the geoms culling chose for each pixel).
+        ``differentiable=False``: the hits of rays whose gradient nobody takes (shadow rays)."""
         _, hit, closest, normal = prim.PRIMITIVES[t]
         # local frame: p_loc = xmat^T (p - xpos)
         o_l = _to_local(o[..., None, :] - xpos, xmat)
         r_l = (jnp.einsum("...i,gij->...gj", r, xmat) if xmat.ndim == 3
                else _to_local(r[..., None, :], xmat))
-        s_hit = hit(o_l, r_l, size)
+        s_hit = prim.hit_implicit(t, o_l, r_l, size) if differentiable else hit(o_l, r_l, size)
         if not soft:
             if not hard_normals:
                 return (s_hit,)
@@ -604,7 +605,8 @@ class Renderer:
             else:
                 gx, gm, gs, _, gid, _ = self._group_params(t, idx, o, l, xpos, xmat, size, none,
                                                            None, 0.0)
-                s = self._cast_prim(t, o, l, gx, gm, gs, False, self.iters)[0]
+                s = self._cast_prim(t, o, l, gx, gm, gs, False, self.iters,
+                                    differentiable=False)[0]
             blocked = blocked | jnp.any((gid != skip[..., None]) & (s < dist_l[..., None]), -1)
         return 1.0 - blocked.astype(p.dtype)
 
