@@ -113,6 +113,39 @@ def test_hits_have_the_closed_forms_derivative_implicitly(x64):
         np.testing.assert_allclose(jnp.sum(g_impl[0], 0), fd, rtol=1e-5, atol=1e-6)
 
 
+def test_a_large_vmapped_batch_is_drawn_in_chunks_alike(push, monkeypatch):
+    """A batch whose (pixel, surface) pairs exceed ``BATCH_ELEMENTS`` is drawn a chunk of
+    cameras at a time: the same images, and derivatives (reverse and forward mode) still go
+    through the whole batch."""
+    from twinrl.render import renderer as renderer_module
+
+    m, d = push
+    R, g = Renderer.create(m), Geoms.from_mujoco(m, d)
+    n = 14  # an image size no other test uses, so the batched render is traced anew here
+    assert R.surfaces() == 4 and R.batch_chunk(n, n, 6) == 6
+    monkeypatch.setattr(renderer_module, "BATCH_ELEMENTS", 2 * n * n * 4)
+    assert R.batch_chunk(n, n, 6) == 2 and R.batch_chunk(n, n, 5) == 1  # divisors only
+    cams = [look_at([0.3 + 0.1 * k, -1.0, 1.0], [0.15, 0, 0], width=n, height=n)
+            for k in range(6)]
+    batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *cams)
+    hard = jax.jit(jax.vmap(lambda c: R.render(c, g)))(batch)
+    soft = jax.jit(jax.vmap(lambda c: R.render(c, g, tau=0.5)))(batch)
+    assert "while" in jax.jit(jax.vmap(lambda c: R.render(c, g))).lower(batch).as_text()
+    for k, c in enumerate(cams):
+        one, one_soft = R.render(c, g), R.render(c, g, tau=0.5)
+        np.testing.assert_array_equal(hard.segmentation[k], one.segmentation)
+        np.testing.assert_allclose(hard.rgb[k], one.rgb, atol=1e-6)
+        np.testing.assert_allclose(soft.rgb[k], one_soft.rgb, atol=1e-6)
+
+    def loss(xpos):
+        im = jax.vmap(lambda c: R.render(c, g.replace(xpos=xpos), tau=0.5))(batch)
+        return jnp.sum(im.rgb ** 2)
+
+    grad, jac = jax.grad(loss)(g.xpos), jax.jacfwd(loss)(g.xpos)
+    assert np.all(np.isfinite(grad)) and np.abs(grad[BOX]).max() > 0
+    np.testing.assert_allclose(grad, jac, rtol=1e-3, atol=1e-4)
+
+
 def test_mesh_renders_like_the_same_box():
     xml = """<mujoco><asset><mesh name="cube" vertex="-.05 -.05 -.05 .05 -.05 -.05 -.05 .05 -.05
       .05 .05 -.05 -.05 -.05 .05 .05 -.05 .05 -.05 .05 .05 .05 .05 .05"/></asset>
