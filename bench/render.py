@@ -1,11 +1,13 @@
 """Benchmark of the differentiable renderer (twinrl.render) and of visual Real2Sim.
 
-1. Speed: frames/s at 64x64 and 128x128, batch 1 and 16 (vmap over cameras), forward only and
-   forward + gradient (of an image loss w.r.t. the camera and the geoms: poses, sizes, colours),
-   soft image (tau = 0.5), on each scene of ``--scenes`` (``SPEED_SCENES``: push and the
+1. Speed: frames/s at 64x64 and 128x128, batch 1 and 16 (vmap over cameras): the hard image
+   (what the arm tasks observe), the soft image (tau = 0.5) forward only and forward + gradient
+   (of an image loss w.r.t. the camera and the geoms: poses, sizes, colours), on each scene of ``--scenes`` (``SPEED_SCENES``: push and the
    manipulation suite's arm scenes, peg insertion, spatula flipping and needle threading, each
    seen from its ``mount`` camera in the state of its task's ``reset``; the table gives each
    scene's geom count).
+   Then the floor (``floor``, ``--no-floor`` skips it): the simplest soft image written in JAX
+   (spheres, coverage, composite, Lambert), timed alike: what XLA on this machine gives at best.
 2. Geom-count sweep (``--sweep``, default 10 20 40): synthetic arm-like scenes (``sweep_mjcf``: a
    floor and a chain of capsule, box, cylinder and sphere links, always in the same volume), 64x64,
    batch 16; the cost of 40 geoms against 10, and how far per-pixel culling and layers move the
@@ -134,9 +136,11 @@ def _cases(mods, m, d, cam_name, S, B, **create):
         def loss(c, g, R=R, target=target):
             return jnp.mean((R.render(c, g, tau=TAU).rgb - target) ** 2)
 
+        hard = jax.jit(jax.vmap(lambda c, R=R, g=g: R.render(c, g).rgb))
         fwd = jax.jit(jax.vmap(lambda c, R=R, g=g: R.render(c, g, tau=TAU).rgb))
         grad = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1)), in_axes=(0, None)))
-        out[label] = {"forward": (fwd, (cams,)), "forward+grad": (grad, (cams, g))}
+        out[label] = {"hard": (hard, (cams,)), "forward": (fwd, (cams,)),
+                      "forward+grad": (grad, (cams, g))}
     return out
 
 
@@ -157,7 +161,7 @@ def _time_interleaved(cases, repeats):
 
 def _rows(best, scene, S, B, labels, **extra):
     rows = []
-    for mode in ("forward", "forward+grad"):
+    for mode in ("hard", "forward", "forward+grad"):
         row = {"scene": scene, "size": S, "batch": B, "mode": mode, **extra}
         for k in labels:
             row[f"frames_per_s_{k}" if k != "new" else "frames_per_s"] = B / best[k, mode]
@@ -222,6 +226,61 @@ def sweep(mods, counts, S=64, B=16, repeats=5):
                       culled_soft_rgb_mean_diff=float(np.mean(diff)),
                       culled_soft_pixels_off=int(np.sum(np.max(diff, -1) > 0.01)))
     return rows
+
+
+def floor(S=64, B=16, n=4, repeats=5):
+    """The simplest soft image XLA can be asked for, timed like the renderer: ``n`` spheres in
+    front of the camera, each pixel's coverage a sigmoid of its ray's distance to the sphere (in
+    pixels), composited front to back with the smooth depth order, Lambert + ambient shading by
+    one light, no shadows, no boxes, cylinders, planes or culling; arrays (sphere, pixel) with the
+    pixels minor (what XLA's CPU code vectorises best). Forward and forward + gradient w.r.t. the
+    camera position and every sphere's centre, radius and colour, batch ``B`` (``jax.vmap``).
+    What a renderer written in JAX can reach on this machine at best: the renderer does all of
+    this and more per (pixel, geom) pair."""
+    rng = np.random.default_rng(0)
+    cen = jnp.asarray(np.c_[rng.uniform(-0.2, 0.2, (n, 2)), rng.uniform(0.0, 0.1, n)],
+                      jnp.float32)
+    rad = jnp.asarray(rng.uniform(0.05, 0.1, n), jnp.float32)
+    col = jnp.asarray(rng.uniform(0.2, 1.0, (n, 3)), jnp.float32)
+    px = 0.8 / S  # pixel size at unit depth (a ~44 degree field of view)
+    u = (jnp.arange(S, dtype=jnp.float32) + 0.5 - S / 2) * px
+    rx, ry = (a.ravel() for a in jnp.meshgrid(u, -u))
+    rz = -jnp.ones_like(rx)
+    light = np.array([0.3, 0.4, 0.866], np.float32)
+
+    def image(pos, cen, rad, col):
+        rr = rx * rx + ry * ry + rz * rz
+        s, cover, lam = [], [], []
+        for g in range(n):  # one (P,) array per sphere and quantity: no slicing, no stacking
+            oc = [pos[i] - cen[g, i] for i in range(3)]
+            sg = -(oc[0] * rx + oc[1] * ry + oc[2] * rz) / rr  # closest approach
+            p = [oc[0] + sg * rx, oc[1] + sg * ry, oc[2] + sg * rz]
+            dist = jnp.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2] + 1e-20)
+            s.append(sg)
+            cover.append(jax.nn.sigmoid(-(dist - rad[g]) / (TAU * px * sg)))
+            lam.append(0.3 + 0.7 * jnp.maximum(sum(light[i] * p[i] for i in range(3)) / dist,
+                                               0.0))
+        rgb = 0.0
+        for g in range(n):  # w_g = a_g prod_{k != g} (1 - a_k [k in front of g])
+            w = cover[g] * lam[g]
+            for k in range(n):
+                if k != g:
+                    w = w * (1.0 - cover[k] * jax.nn.sigmoid((s[g] - s[k]) / 0.01))
+            rgb = rgb + w[:, None] * col[g]
+        return rgb  # (P, 3)
+
+    target = image(jnp.array([0.0, 0.0, 1.5]), cen, rad, col)
+    cams = jnp.array([0.0, 0.0, 1.5], jnp.float32) + 0.001 * jnp.arange(B, dtype=jnp.float32)[:, None]
+
+    def loss(pos, cen, rad, col):
+        return jnp.mean((image(pos, cen, rad, col) - target) ** 2)
+
+    fwd = jax.jit(jax.vmap(image, in_axes=(0, None, None, None)))
+    grad = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1, 2, 3)), in_axes=(0, None, None, None)))
+    best = _time_interleaved({"new": {"forward": (fwd, (cams, cen, rad, col)),
+                                      "forward+grad": (grad, (cams, cen, rad, col))}}, repeats)
+    return [{"scene": f"floor: {n} spheres", "geoms": n, "size": S, "batch": B, "mode": mode,
+             "frames_per_s": B / best["new", mode]} for mode in ("forward", "forward+grad")]
 
 
 def agreement(S=64):
@@ -355,6 +414,8 @@ def main(argv=None):
     ap.add_argument("--baseline", default=None, metavar="REF",
                     help="also time twinrl/render of this git revision, interleaved")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--no-floor", dest="floor", action="store_false",
+                    help="skip the floor (the simplest soft image in JAX, timed alike)")
     ap.add_argument("--visual", action="store_true", help="also run the visual Real2Sim fits")
     ap.add_argument("--no-speed", action="store_true", help="skip the speed table and sweep")
     ap.add_argument("--no-agreement", action="store_true")
@@ -385,10 +446,15 @@ def main(argv=None):
     if not args.no_speed:
         t0 = time.perf_counter()
         out["speed"] = speed(mods, args.scenes, repeats=args.repeats)
-        report.print_table(f"renderer speed (soft image, tau {TAU})",
+        report.print_table(f"renderer speed (hard image; soft image, tau {TAU})",
                            ["scene", "geoms", "size", "batch", "mode", *cols],
                            [[r["scene"], r["geoms"], r["size"], r["batch"], r["mode"], *cells(r)]
                             for r in out["speed"]])
+        if args.floor:
+            out["floor"] = floor(repeats=args.repeats)
+            report.print_table("the floor: the simplest soft image in JAX (64x64, batch 16)",
+                               ["scene", "mode", "frames/s"],
+                               [[r["scene"], r["mode"], r["frames_per_s"]] for r in out["floor"]])
         if args.sweep:
             out["sweep"] = sweep(mods, args.sweep, repeats=args.repeats)
             report.print_table("geom-count sweep (64x64, batch 16)",
@@ -398,7 +464,7 @@ def main(argv=None):
                                  r["culled_seg_agreement"], r["culled_soft_rgb_max_diff"],
                                  r["culled_soft_rgb_mean_diff"], r["culled_soft_pixels_off"]]
                                 for r in out["sweep"]])
-            for mode in ("forward", "forward+grad"):
+            for mode in ("hard", "forward", "forward+grad"):
                 fps = {r["geoms"]: r["frames_per_s"] for r in out["sweep"] if r["mode"] == mode}
                 if len(fps) > 1:
                     lo, hi = min(fps), max(fps)
