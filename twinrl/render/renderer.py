@@ -823,10 +823,10 @@ class Renderer:
 BATCH_ELEMENTS = 2 ** 18
 """How many (pixel, surface) pairs a batched render (``jax.vmap`` over cameras or scenes) works
 on at once, at most: a larger batch is drawn in chunks of cameras (``Renderer.batch_chunk``), so
-that each operation's arrays stay in the CPU's caches. 64x64 images, batch 16, 2 CPU cores:
-peg insertion's 15 geoms (61k pairs a frame) drawn 4 at a time instead of all 16 at once,
-1.9x faster hard and 1.3x soft; push's 4 geoms (16k pairs a frame) stay one batch
-(``bench/render.py``)."""
+that each operation's arrays stay in the CPU's caches. Batch 16, 2 CPU cores: peg insertion's
+15 geoms (61k pairs a 64x64 frame) drawn 4 cameras at a time instead of all 16 at once, 1.3x
+faster hard and soft (1.8x / 1.3x at 128x128); push's 4 geoms (16k pairs a frame) stay one batch
+at 64x64 (``bench/render.py``)."""
 
 
 def _render_batched(R, camera, geoms, tau, gamma):
