@@ -99,17 +99,18 @@ def test_hits_have_the_closed_forms_derivative_implicitly(x64):
         def total(f, o, r, size, ok=jnp.asarray(ok)):
             return jnp.sum(jnp.where(ok, f(o, r, size), 0.0) * jnp.arange(64.0))
 
-        g_impl = jax.grad(lambda *a: total(lambda *b: P.hit_implicit(gtype, *b), *a),
-                          (0, 1, 2))(o, r, size)
-        g_closed = jax.grad(lambda *a: total(closed, *a), (0, 1, 2))(o, r, size)
+        g_impl = jax.jit(jax.grad(lambda *a: total(lambda *b: P.hit_implicit(gtype, *b), *a),
+                                  (0, 1, 2)))(o, r, size)
+        g_closed = jax.jit(jax.grad(lambda *a: total(closed, *a), (0, 1, 2)))(o, r, size)
         for a, b in zip(g_impl, g_closed):
             np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-9)
-        j_impl = jax.jacfwd(lambda sz: P.hit_implicit(gtype, o, r, sz))(size)
+        j_impl = jax.jit(jax.jacfwd(lambda sz: P.hit_implicit(gtype, o, r, sz)))(size)
         np.testing.assert_allclose(np.asarray(j_impl)[ok], np.asarray(
-            jax.jacfwd(lambda sz: closed(o, r, sz))(size))[ok], rtol=1e-8, atol=1e-9)
+            jax.jit(jax.jacfwd(lambda sz: closed(o, r, sz)))(size))[ok], rtol=1e-8, atol=1e-9)
         eps = 1e-7
-        fd = [(total(closed, o + eps * e, r, size) - total(closed, o - eps * e, r, size)) / (2 * eps)
-              for e in jnp.eye(3)[:, None, :] * jnp.ones((1, 64, 1))]
+        shift = jax.jit(jax.vmap(lambda e: total(closed, o + e, r, size)))
+        steps = eps * jnp.eye(3)[:, None, :] * jnp.ones((1, 64, 1))
+        fd = (shift(steps) - shift(-steps)) / (2 * eps)
         np.testing.assert_allclose(jnp.sum(g_impl[0], 0), fd, rtol=1e-5, atol=1e-6)
 
 
