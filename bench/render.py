@@ -2,10 +2,10 @@
 
 1. Speed: frames/s at 64x64 and 128x128, batch 1 and 16 (vmap over cameras): the hard image
    (what the arm tasks observe), the soft image (tau = 0.5) forward only and forward + gradient
-   (of an image loss w.r.t. the camera and the geoms: poses, sizes, colours), on each scene of ``--scenes`` (``SPEED_SCENES``: push and the
-   manipulation suite's arm scenes, peg insertion, spatula flipping and needle threading, each
-   seen from its ``mount`` camera in the state of its task's ``reset``; the table gives each
-   scene's geom count).
+   (of an image loss w.r.t. the camera and the geoms: poses, sizes, colours), on each scene of
+   ``--scenes`` (``SPEED_SCENES``: push and the manipulation suite's arm scenes, peg insertion,
+   spatula flipping and needle threading, each seen from its ``mount`` camera in the state of its
+   task's ``reset``; the table gives each scene's geom count).
    Then the floor (``floor``, ``--no-floor`` skips it): the simplest soft image written in JAX
    (spheres, coverage, composite, Lambert), timed alike: what XLA on this machine gives at best.
 2. Geom-count sweep (``--sweep``, default 10 20 40): synthetic arm-like scenes (``sweep_mjcf``: a
@@ -270,7 +270,8 @@ def floor(S=64, B=16, n=4, repeats=5):
         return rgb  # (P, 3)
 
     target = image(jnp.array([0.0, 0.0, 1.5]), cen, rad, col)
-    cams = jnp.array([0.0, 0.0, 1.5], jnp.float32) + 0.001 * jnp.arange(B, dtype=jnp.float32)[:, None]
+    cams = (jnp.array([0.0, 0.0, 1.5], jnp.float32)
+            + 0.001 * jnp.arange(B, dtype=jnp.float32)[:, None])
 
     def loss(pos, cen, rad, col):
         return jnp.mean((image(pos, cen, rad, col) - target) ** 2)
