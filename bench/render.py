@@ -1,11 +1,11 @@
 """Benchmark of the differentiable renderer (twinrl.render) and of visual Real2Sim.
 
-1. Speed: frames/s at 64x64 and 128x128, batch 1 and 16 (vmap over cameras): the hard image
-   (what the arm tasks observe), the soft image (tau = 0.5) forward only and forward + gradient
-   (of an image loss w.r.t. the camera and the geoms: poses, sizes, colours), on each scene of
-   ``--scenes`` (``SPEED_SCENES``: push and the manipulation suite's arm scenes, peg insertion,
-   spatula flipping and needle threading, each seen from its ``mount`` camera in the state of its
-   task's ``reset``; the table gives each scene's geom count).
+1. Speed: frames/s at 64x64 and 128x128 (``--sizes``), batch 1 and 16 (``--batches``; vmap over
+   cameras): the hard image (what the arm tasks observe), the soft image (tau = 0.5) forward only
+   and forward + gradient (of an image loss w.r.t. the camera and the geoms: poses, sizes,
+   colours), on each scene of ``--scenes`` (``SPEED_SCENES``: push and the manipulation suite's
+   arm scenes, peg insertion, spatula flipping and needle threading, each seen from its ``mount``
+   camera in the state of its task's ``reset``; the table gives each scene's geom count).
    Then the floor (``floor``, ``--no-floor`` skips it): the simplest soft image written in JAX
    (spheres, coverage, composite, Lambert), timed alike: what XLA on this machine gives at best.
 2. Geom-count sweep (``--sweep``, default 10 20 40): synthetic arm-like scenes (``sweep_mjcf``: a
@@ -192,6 +192,12 @@ def _load(scene):
     return m, cam, d
 
 
+def _progress(rows):
+    """One line of frames/s per mode, as each case finishes (a run cut short still shows them)."""
+    print("[bench]   " + ", ".join(f"{r['mode']} {r['frames_per_s']:.4g}" for r in rows)
+          + " frames/s", flush=True)
+
+
 def speed(mods, scenes, sizes=(64, 128), batches=(1, 16), repeats=5):
     rows = []
     for scene in scenes:
@@ -201,6 +207,7 @@ def speed(mods, scenes, sizes=(64, 128), batches=(1, 16), repeats=5):
                 print(f"[bench] {scene} {S}x{S} batch {B} ...", flush=True)
                 best = _time_interleaved(_cases(mods, m, d, cam_name, S, B), repeats)
                 rows += _rows(best, scene, S, B, list(mods), geoms=int(m.ngeom))
+                _progress(rows[-3:])
     return rows
 
 
@@ -212,6 +219,7 @@ def sweep(mods, counts, S=64, B=16, repeats=5):
         m, cam_name, d = _load(scene)
         print(f"[bench] {scene} ({m.ngeom} geoms) {S}x{S} batch {B} ...", flush=True)
         best = _time_interleaved(_cases(mods, m, d, cam_name, S, B), repeats)
+        _progress(_rows(best, scene, S, B, list(mods)))
         g = Geoms.from_mujoco(m, d)
         cam = Camera.from_mujoco(m, d, cam_name, S, S)
         culled = Renderer.create(m)
@@ -410,6 +418,11 @@ def main(argv=None):
                     help="directory of render.json")
     ap.add_argument("--scenes", nargs="*", default=SPEED_SCENES,
                     help="scenes of the speed table (bundled names or arm tasks)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128],
+                    help="image sizes of the speed table")
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 16],
+                    help="batch sizes (cameras per call) of the speed table; the floor and the "
+                         "sweep are at batch 16")
     ap.add_argument("--sweep", type=int, nargs="*", default=[10, 20, 40],
                     help="link counts of the geom-count sweep (none: skip it)")
     ap.add_argument("--baseline", default=None, metavar="REF",
@@ -446,7 +459,8 @@ def main(argv=None):
 
     if not args.no_speed:
         t0 = time.perf_counter()
-        out["speed"] = speed(mods, args.scenes, repeats=args.repeats)
+        out["speed"] = speed(mods, args.scenes, sizes=args.sizes, batches=args.batches,
+                             repeats=args.repeats)
         report.print_table(f"renderer speed (hard image; soft image, tau {TAU})",
                            ["scene", "geoms", "size", "batch", "mode", *cols],
                            [[r["scene"], r["geoms"], r["size"], r["batch"], r["mode"], *cells(r)]
