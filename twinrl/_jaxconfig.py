@@ -31,6 +31,7 @@ a version twinrl was not measured on gets XLA's defaults rather than that risk.
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import os
 import sys
@@ -83,6 +84,28 @@ def set_cpu_flags() -> bool:
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {CPU_FLAGS}".strip()
     return True
+
+
+def exact_matmuls(fn):
+    """``fn`` with the matrix products it traces at float32's full precision
+    (``jax.default_matmul_precision("highest")``), whatever the caller's default.
+
+    On GPUs with TensorFloat-32 (NVIDIA Ampere and later) JAX's default lets a float32 product
+    round its inputs to 10 bits of mantissa: a camera rotation applied to points a metre away
+    then moves them by about a millimetre, and a Levenberg-Marquardt step's ``J.T @ J`` loses
+    most of its digits. Measured on an H200 (jax 0.11.2, ``bench/render.py --visual --seeds
+    0``): the camera fitted to 3.8 mm / 0.21 deg with JAX's default precision, 1.46 mm / 0.105
+    deg with ``JAX_DEFAULT_MATMUL_PRECISION=highest`` for the whole process. The renderer, the
+    point-cloud losses and the visual fits trace under this instead (their products are 3x3
+    rotations and small normal equations: nothing measurable to pay); on a CPU it changes
+    nothing, since XLA's CPU code computes float32 products in float32 whatever it is asked."""
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+
+    return wrapped
 
 
 def set_verbose() -> None:

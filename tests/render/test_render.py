@@ -147,6 +147,29 @@ def test_a_large_vmapped_batch_is_drawn_in_chunks_alike(push, monkeypatch):
     np.testing.assert_allclose(grad, jac, rtol=1e-3, atol=1e-4)
 
 
+def test_products_are_traced_at_full_float32_precision_whatever_the_callers_default(push):
+    # A GPU's TensorFloat-32 products (JAX's default there) round float32 inputs to 10 bits:
+    # the renderer, its gradient and the point-cloud losses trace every product at HIGHEST even
+    # under a caller's bfloat16 default (on the CPU jaxprs show the precision asked all the same)
+    from twinrl.render.pointcloud import depth_to_points, sinkhorn_emd
+
+    m, d = push
+    R, g = Renderer.create(m), Geoms.from_mujoco(m, d)
+    cam = Camera.from_mujoco(m, d, "top", 8, 8)
+
+    def loss(c, g):
+        im = R.render(c, g, tau=0.5)
+        pts, w = depth_to_points(c, im.depth)
+        return jnp.sum(im.rgb) + sinkhorn_emd(pts[:8], pts[8:16], w[:8], w[8:16])
+
+    with jax.default_matmul_precision("bfloat16"):
+        jaxprs = [str(jax.make_jaxpr(loss)(cam, g)),
+                  str(jax.make_jaxpr(jax.grad(loss, argnums=(0, 1)))(cam, g))]
+    for j in jaxprs:
+        dots = j.count("dot_general[")
+        assert dots >= 10 and j.count("precision=(Precision.HIGHEST, Precision.HIGHEST)") == dots
+
+
 def test_mesh_renders_like_the_same_box():
     xml = """<mujoco><asset><mesh name="cube" vertex="-.05 -.05 -.05 .05 -.05 -.05 -.05 .05 -.05
       .05 .05 -.05 -.05 -.05 .05 .05 -.05 .05 -.05 .05 .05 .05 .05 .05"/></asset>

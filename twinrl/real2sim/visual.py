@@ -39,6 +39,7 @@ import mujoco
 import numpy as np
 import optax
 
+from twinrl._jaxconfig import exact_matmuls
 from twinrl.real2sim.lm import Linearisation, minimise
 from twinrl.render import Camera, Geoms, Renderer, rotvec_to_quat
 from twinrl.render.camera import quat_mul, quat_to_mat
@@ -443,6 +444,7 @@ def _apply_camera(cam0: Camera, p) -> Camera:
     return dataclasses.replace(cam, quat=quat_mul(cam0.quat, rotvec_to_quat(p["cam_drot"])))
 
 
+@exact_matmuls
 def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = VisualConfig(),
                seed: int = 0, renderer: Renderer | None = None):
     """(a) Camera position and orientation (relative to ``cam0``, in its own frame as
@@ -571,6 +573,7 @@ def _object_residuals(R: Renderer, cfg: VisualConfig, cameras: Camera, geoms: Ge
     return residuals
 
 
+@exact_matmuls
 def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
                cfg: VisualConfig = VisualConfig(), seed: int = 0,
                renderer: Renderer | None = None):

@@ -16,11 +16,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from twinrl._jaxconfig import exact_matmuls
 from twinrl.render.camera import Camera
 
 __all__ = ["depth_to_points", "chamfer", "sinkhorn_emd", "subsample"]
 
 
+@exact_matmuls
 def depth_to_points(camera: Camera, depth: jax.Array, mask: jax.Array | None = None,
                     *, far: float | None = None) -> tuple[jax.Array, jax.Array]:
     """World-frame points (H*W, 3) of a depth image (H, W) (metres along the viewing axis, as
@@ -75,6 +77,7 @@ def chamfer(a: jax.Array, b: jax.Array, wa: jax.Array | None = None,
             + jnp.sum(wb * ba) / jnp.maximum(jnp.sum(wb), 1e-12))
 
 
+@exact_matmuls
 def sinkhorn_emd(a: jax.Array, b: jax.Array, wa: jax.Array | None = None,
                  wb: jax.Array | None = None, *, epsilon: float = 1e-4,
                  max_iterations: int = 200, debiased: bool = True) -> jax.Array:

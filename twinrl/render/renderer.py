@@ -48,6 +48,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from twinrl._jaxconfig import exact_matmuls
 from twinrl.render import primitives as prim
 from twinrl.render.camera import Camera
 
@@ -614,6 +615,7 @@ class Renderer:
         return 1.0 - blocked.astype(p.dtype)
 
     # ------------------------------------------------------------------ images
+    @exact_matmuls
     def render(self, camera: Camera, geoms: Geoms, *, tau: float = 0.0,
                gamma: float = 0.01) -> Images:
         """Render ``geoms`` seen from ``camera``. Called outside ``jit`` with Python-number
