@@ -444,6 +444,7 @@ def composed(task_xml: str) -> str:
 
 
 # ---------------------------------------------------------------------- the arm tasks' Env
+from twinrl._jaxconfig import exact_matmuls  # noqa: E402
 from twinrl.envs.base import Env, PerturbationSpec, TaskConfig  # noqa: E402
 
 ARM_PERTURBATIONS = PerturbationSpec(
@@ -666,6 +667,7 @@ class ArmTask(Env):
         return self.observe(*self.estimated_state(obs[:2 * N_JOINTS],
                                                   self._wrap_target_pose(pose)))
 
+    @exact_matmuls
     def fit_target_pose(self, joints, camera, depth, mask, iters: int = 8,
                         huber: float = 0.004, points: int = 256, with_residual: bool = False):
         """The target's pose (its joints' values, ``qpos[target_joints]``) from one depth image:
