@@ -96,9 +96,10 @@ def exact_matmuls(fn):
     most of its digits. Measured on an H200 (jax 0.11.2, ``bench/render.py --visual --seeds
     0``): the camera fitted to 3.8 mm / 0.21 deg with JAX's default precision, 1.46 mm / 0.105
     deg with ``JAX_DEFAULT_MATMUL_PRECISION=highest`` for the whole process. The renderer, the
-    point-cloud losses and the visual fits trace under this instead (their products are 3x3
-    rotations and small normal equations: nothing measurable to pay); on a CPU it changes
-    nothing, since XLA's CPU code computes float32 products in float32 whatever it is asked."""
+    point-cloud functions, the visual fits and ``ArmTask.fit_target_pose`` trace under this
+    (their products are 3x3 rotations and small normal equations: nothing measurable to pay);
+    on a CPU it changes nothing, since XLA's CPU code computes float32 products in float32
+    whatever it is asked."""
 
     @functools.wraps(fn)
     def wrapped(*args, **kwargs):
