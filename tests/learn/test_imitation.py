@@ -26,17 +26,31 @@ def pendulum_demos():
     return env, imitation.Demonstrations(np.asarray(keys), np.asarray(actions)), returns
 
 
-def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos):
+def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos, monkeypatch):
     env, demos, demo_returns = pendulum_demos
     cfg = imitation.ImitationConfig(hidden=(64, 64), fit_steps=600, batch_size=128,
                                     dagger_rounds=1, dagger_episodes=4, relabel_every=10,
-                                    relabel_iterations=5, eval_episodes=8)
+                                    relabel_iterations=5, eval_episodes=8, label_weight=3.0)
+    fits = []  # each fit's (rows, weights)
+
+    def recording_fit(*a, **kw):
+        fit = make_fit(*a, **kw)
+        return lambda p, o, obs, y, n, k, w: fits.append((n, np.asarray(w))) or fit(
+            p, o, obs, y, n, k, w)
+
+    make_fit = imitation.make_minibatch_fit
+    monkeypatch.setattr(imitation, "make_minibatch_fit", recording_fit)
     rounds = []
     _, params, m = imitation.train(env, cfg, 0, demos=demos,
                                    progress_fn=lambda r, row: rounds.append(r))
     assert rounds == [0, 1]
     # round 0: the demonstrations' pairs; DAgger labels one in 10 of 4 episodes' states
     assert m["pairs"] == [8 * T, 8 * T + 4 * T // 10] and m["labels"] == [4 * T // 10, 0]
+    # the second fit sees the labels, weighted label_weight against a demonstration's 1
+    (n0, w0), (n1, w1) = fits
+    assert (n0, n1) == (8 * T, 8 * T + 4 * T // 10)
+    np.testing.assert_array_equal(w1[:n0], 1.0)
+    np.testing.assert_array_equal(w1[n0:n1], 3.0)
     assert np.all(np.isfinite(m["loss"]))
     keys = jax.random.split(jax.random.PRNGKey(11), 8)
     rand = jax.vmap(lambda k: env.unroll(env.reset(k), jax.random.uniform(
@@ -90,6 +104,17 @@ def test_demonstration_files_are_checked(tmp_path):
     assert d.keys.tolist() == [[2, 3]] and d.actions.shape == (1, 3, 1)
     with pytest.raises(ValueError, match="observation must be one of 'state', 'pixels'"):
         imitation.ImitationConfig(observation="rgb")
+    with pytest.raises(ValueError, match="label_weight must be >= 0 or None, got -1"):
+        imitation.ImitationConfig(label_weight=-1)
+
+
+def test_a_dagger_label_counts_as_much_as_a_demonstrated_state():
+    # a demonstrated state is rendered from `views` poses, a visited one from one: its label is
+    # weighted by views unless told otherwise
+    w = lambda **kw: imitation.label_weight(imitation.ImitationConfig(**kw))  # noqa: E731
+    assert w() == 1.0 and w(views=8) == 1.0  # state observations: one pair per state
+    assert w(observation="target", views=8) == 8.0 and w(observation="pixels") == 1.0
+    assert w(observation="target", views=8, label_weight=2) == 2.0
 
 
 def test_only_views_with_a_right_pose_estimate_are_cloned():
