@@ -198,6 +198,21 @@ def test_shadows_off_changes_only_the_shading():
     off.close()
 
 
+def test_a_script_that_never_closes_its_twin_exits_quietly():
+    # the renderer is closed at exit before EGL's display is terminated: left to MuJoCo's own
+    # __del__, a user's script ended on "Exception ignored ... eglGetCurrentContext" tracebacks
+    import subprocess
+    import sys
+
+    code = ("from twinrl.real.twin import make_real\n"
+            "tw = make_real('pendulum_swingup', render_mode='rgb_array', width=16, height=16)\n"
+            "tw.reset(seed=0)\nprint(tw.render().shape)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "(16, 16, 3)", out.stderr[-2000:]
+    assert "Traceback" not in out.stderr and "Exception ignored" not in out.stderr, out.stderr
+
+
 def test_latency_delays_actions():
     base = Perturbation.none()
     late = Perturbation(latency_steps=2)

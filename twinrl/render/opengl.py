@@ -18,7 +18,9 @@ import os
 # before, and ``select_gl_backend`` covers the rest.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+import atexit  # noqa: E402
 import importlib  # noqa: E402
+import weakref  # noqa: E402
 from typing import Sequence  # noqa: E402
 
 import mujoco  # noqa: E402
@@ -93,6 +95,12 @@ class CameraRenderer:
             self._renderer = mujoco.Renderer(model, height, width)
         finally:
             model.vis.quality.shadowsize = own
+        # A renderer never closed is closed at exit, before EGL's display is terminated (MuJoCo
+        # registers that at its first context; exit functions run last-registered first). Left
+        # to MuJoCo's __del__ at shutdown, the context outlives the EGL module it needs and a
+        # script that never closed its twin ends on "Exception ignored" tracebacks.
+        self._at_exit = _closer(weakref.ref(self))
+        atexit.register(self._at_exit)
 
     def images(
         self, data: mujoco.MjData, camera: str | int, kinds: Sequence[str] = IMAGE_KINDS
@@ -132,9 +140,23 @@ class CameraRenderer:
         return out
 
     def close(self) -> None:
+        atexit.unregister(self._at_exit)
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+    def __del__(self):  # collected unclosed: MuJoCo's own __del__ frees the context
+        at_exit = getattr(self, "_at_exit", None)
+        if at_exit is not None:
+            atexit.unregister(at_exit)
+
+
+def _closer(ref):
+    def close():
+        r = ref()
+        if r is not None:
+            r.close()
+    return close
 
 
 def render_states(model: mujoco.MjModel, camera: str | int, qposes: Sequence[np.ndarray],
