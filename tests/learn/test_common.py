@@ -4,6 +4,7 @@ and ``held_episodes`` is the task's own rollout, open or closed loop, on a short
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from twinrl import envs
 from twinrl.learn.common import Episodes, held_episodes, vmap_scan
@@ -33,21 +34,24 @@ def test_held_episodes_are_the_tasks_own_rollouts_open_and_closed_loop():
     observe = lambda s, c: s.obs  # noqa: E731  (no camera: coords None)
     act = lambda o: jnp.tanh(o[:env.action_size])  # noqa: E731
 
-    def closed_loop(key):  # the reference: one episode, the policy acting on each observation
-        def body(s, _):
-            a = act(s.obs)
+    noise = 0.8 * actions  # DAgger's noisy visits: the policy's action plus this, clipped
+
+    def closed_loop(key, noise):  # the reference: one episode, the policy acting on each obs
+        def body(s, n):
+            a = jnp.clip(act(s.obs) + n, -1.0, 1.0)
             s = env.step(s, a)
             return s, (a, s.reward)
-        return jax.lax.scan(body, env.reset(key), None, length=5)[1]
+        return jax.lax.scan(body, env.reset(key), noise, length=5)[1]
 
     @jax.jit  # one compile for all of it
     def run(keys, actions):
         return (held_episodes(env, observe, None, keys, actions),
                 held_episodes(env, observe, act, keys),
+                held_episodes(env, observe, act, keys, noise=noise),
                 jax.vmap(lambda k, a: env.unroll(env.reset(k), a)[1])(keys, actions),
-                jax.vmap(closed_loop)(keys))
+                jax.vmap(closed_loop)(keys, 0.0 * noise), jax.vmap(closed_loop)(keys, noise))
 
-    open_loop, closed, rewards, (ref_actions, ref_rewards) = run(keys, actions)
+    open_loop, closed, noisy, rewards, (ref_actions, ref_rewards), ref_noisy = run(keys, actions)
     assert isinstance(open_loop, Episodes) and open_loop.rewards.shape == (3, 5)
     # open loop: the actions given, the rewards of env.unroll from the same resets
     np.testing.assert_allclose(open_loop.rewards, rewards, rtol=1e-5, atol=1e-6)
@@ -59,3 +63,9 @@ def test_held_episodes_are_the_tasks_own_rollouts_open_and_closed_loop():
     np.testing.assert_allclose(closed.actions, ref_actions, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(closed.rewards, ref_rewards, rtol=1e-5, atol=1e-6)
     assert not np.allclose(closed.rewards, open_loop.rewards)
+    # noisy closed loop: the policy's action of each observation plus the noise, clipped, sent
+    np.testing.assert_allclose(noisy.actions, ref_noisy[0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(noisy.rewards, ref_noisy[1], rtol=1e-5, atol=1e-6)
+    assert np.abs(noisy.actions - closed.actions).max() > 0.1
+    with pytest.raises(ValueError, match="actions or noise, not both"):
+        held_episodes(env, observe, act, keys, actions, noise=noise)

@@ -30,7 +30,8 @@ def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos, m
     env, demos, demo_returns = pendulum_demos
     cfg = imitation.ImitationConfig(hidden=(64, 64), fit_steps=600, batch_size=128,
                                     dagger_rounds=1, dagger_episodes=4, relabel_every=10,
-                                    relabel_iterations=5, eval_episodes=8, label_weight=3.0)
+                                    relabel_iterations=5, eval_episodes=8, label_weight=3.0,
+                                    visit_noise=0.2)
     fits = []  # each fit's (rows, weights)
 
     def recording_fit(*a, **kw):

@@ -169,23 +169,33 @@ class Episodes(NamedTuple):
 
 
 def held_episodes(env, observe: Callable, act: Callable | None, keys: jax.Array,
-                  actions: jax.Array | None = None, coords: jax.Array | None = None) -> Episodes:
+                  actions: jax.Array | None = None, coords: jax.Array | None = None,
+                  noise: jax.Array | None = None) -> Episodes:
     """Episodes from ``env.reset(keys[i])``, observed by ``observe(state, coords[i])`` -- an image
     actor's camera held at ``coords[i]`` (B, 3) the whole episode, or ``None`` -- and acted by
-    ``actions`` (B, T, m) if given, else by ``act(observation)``: the image actor's episodes of
-    imitation (demonstrations re-rendered, evaluation, DAgger's visits), of the sensing Q's data
-    and of a camera choice's outcomes (``twinrl.learn.camera_choice.view_outcomes``). One scan of
-    the vmapped step (``vmap_scan``). Pure and jit-able; what the caller does not use of it,
-    XLA drops."""
+    ``actions`` (B, T, m) if given, else by ``act(observation)`` plus ``noise`` (B, T, m) if
+    given, clipped to [-1, 1] (DAgger's noisy visits): the image actor's episodes of imitation
+    (demonstrations re-rendered, evaluation, DAgger's visits), of the sensing Q's data and of a
+    camera choice's outcomes (``twinrl.learn.camera_choice.view_outcomes``). One scan of the
+    vmapped step (``vmap_scan``). Pure and jit-able; what the caller does not use of it, XLA
+    drops. ``Episodes.actions`` are the actions sent (noise included)."""
+    if actions is not None and noise is not None:
+        raise ValueError("held_episodes takes actions or noise, not both")
 
-    def body(s, a, c):
+    def body(s, x, c):
         obs = observe(s, c)
-        a = act(obs) if a is None else a
+        if actions is not None:
+            a = x
+        else:
+            a = act(obs)
+            if noise is not None:
+                a = jnp.clip(a + x, -1.0, 1.0)
         s2 = env.step(s, a)
         return s2, (obs, s, a, s2.reward)
 
-    final, (obs, states, sent, rewards) = vmap_scan(body, jax.vmap(env.reset)(keys), coords,
-                                                    actions, length=env.episode_length)
+    final, (obs, states, sent, rewards) = vmap_scan(
+        body, jax.vmap(env.reset)(keys), coords, actions if actions is not None else noise,
+        length=env.episode_length)
     q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
     success = (jax.vmap(env.success)(q, v).astype(jnp.float32) if hasattr(env, "success")
                else jnp.zeros(rewards.shape[:1], jnp.float32))

@@ -51,7 +51,7 @@ from twinrl.learn.common import (JSONConfig, MetricLog, held_episodes, make_mini
                                  make_optimizer, raw_key, rgb_jitter)
 from twinrl.learn.networks import NetworkConfig, make_network
 from twinrl.learn.plans import (DemonstrationError, Demonstrations, load_demonstrations,
-                                relabel)
+                                relabel, smooth_noise)
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
            "demonstration_data", "accurate", "label_weight", "make_observer", "relabel", "train"]
@@ -110,6 +110,11 @@ class ImitationConfig(JSONConfig):
     a visited state counts as much as a demonstrated one. Unweighted, spatula's 120 labels a
     round were 0.5 % of 22,560 pairs (48 plans x 8 views): its target-cloud actor went 10 -> 45
     -> 40 % success over two rounds, weighted x 8 10 -> 20 -> 80 % (one seed, 20 starts)."""
+    visit_noise: float = 0.0
+    """DAgger's visits act with the actor's action plus smooth noise of this standard deviation
+    (``plans.smooth_noise``: 6 knots over the episode, so its drift accumulates), so the labels
+    also cover the states a disturbance leads to, as the real arm's (DART: Laskey et al., "Robust
+    imitation learning from noisy demonstrations", CoRL 2017). 0: the actor's own actions."""
     step_size: float = 0.5
     """Trajopt's largest first-order step when labelling (``TrajoptConfig.step_size``)."""
     eval_episodes: int = 50
@@ -118,7 +123,7 @@ class ImitationConfig(JSONConfig):
         self.check_fields(
             at_least_one=("fit_steps", "batch_size", "relabel_every", "relabel_iterations",
                           "eval_episodes", "image_size", "dagger_episodes", "views"),
-            non_negative=("dagger_rounds", "rgb_jitter", "label_weight"),
+            non_negative=("dagger_rounds", "rgb_jitter", "label_weight", "visit_noise"),
             widths=("hidden", "conv_strides"),
             choices={"observation": ("state", "pixels", "target", "pose"),
                      "camera": ("random", "default"), "image_head": ("dense", "keypoints"),
@@ -243,10 +248,13 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     jitter = rgb_jitter(c.rgb_jitter) if c.observation == "pixels" and c.rgb_jitter else None
     fit = make_minibatch_fit(net.apply, tx, int(c.fit_steps), int(c.batch_size), jitter)
 
-    def actor_episodes(p, k, n):
+    def actor_episodes(p, k, n, noise=0.0):
         ks = jax.vmap(jax.random.split)(jax.random.split(k, n))  # (n, 2): camera, reset
+        shake = (smooth_noise(jax.random.fold_in(k, 1), (n, T, env.action_size), scale=noise)
+                 if noise else None)
         return held_episodes(env, observe, lambda o: net.apply(p, o), ks[:, 1],
-                             coords=jax.vmap(lambda k: _coords(env, c, k))(ks[:, 0]))
+                             coords=jax.vmap(lambda k: _coords(env, c, k))(ks[:, 0]),
+                             noise=shake)
 
     @jax.jit
     def evaluate(p, k):
@@ -255,7 +263,7 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
 
     @jax.jit
     def visit_and_label(p, k):
-        o, s, sent = actor_episodes(p, k, c.dagger_episodes)[:3]
+        o, s, sent = actor_episodes(p, k, c.dagger_episodes, float(c.visit_noise))[:3]
         sel = lambda x: x[:, picks].reshape((x.shape[0] * picks.size,) + x.shape[2:])  # noqa
         steps = jnp.arange(T)
         # warm start at step t: the actor's own actions from t on, zeros past the episode

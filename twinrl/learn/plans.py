@@ -26,7 +26,7 @@ import numpy as np
 from twinrl.learn import trajopt
 
 __all__ = ["Demonstrations", "DemonstrationError", "load_demonstrations", "initial_guesses",
-           "plan", "relabel", "save", "solves"]
+           "plan", "relabel", "save", "smooth_noise", "solves"]
 
 
 class DemonstrationError(ValueError):
@@ -58,7 +58,7 @@ def load_demonstrations(path: str | Path, successful_only: bool = True) -> Demon
     return Demonstrations(keys[keep], actions[keep])
 
 
-def _smooth_noise(key, shape, knots: int = 6, scale: float = 0.15):
+def smooth_noise(key, shape, knots: int = 6, scale: float = 0.15):
     """Smooth random actions: ``scale``-sd values at ``knots`` evenly spread steps, linearly
     interpolated over the horizon."""
     T = shape[-2]
@@ -116,7 +116,7 @@ def plan(env, starts: int, iterations: int = 20, batch: int = 10, seed: int = 0,
         if kind == "random":
             return jnp.clip(0.3 * jax.random.normal(noise_key, zeros.shape), -1.0, 1.0)
         if kind == "smooth":
-            return _smooth_noise(noise_key, zeros.shape)
+            return smooth_noise(noise_key, zeros.shape)
         return env.approach_plan(env.reset(key), 0.02 if kind == "approach-2cm" else 0.0)
 
     kinds = initial_guesses(env, restarts)
