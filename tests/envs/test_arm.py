@@ -8,6 +8,8 @@ check_env, determinism and zero-perturbation agreement -- live in tests/envs/tes
 tests/envs/test_ppo.py and tests/real/test_twin.py and take these tasks by registration.)
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -175,13 +177,17 @@ def test_image_actor_sees_proprioception_and_the_mount_image_with_its_target_mas
     net = make_network(spec, env.action_size, NetworkConfig(hidden=(16,), output="tanh"))
     a = net.apply(net.init(jax.random.PRNGKey(1)), obs)
     assert a.shape == (env.action_size,) and np.all(np.abs(np.asarray(a)) <= 1)
-    # the "target" actor reads the image's target cloud and the tool point of its joints instead
+    # the "target" actor reads the image's target cloud, the tool point of its joints and the
+    # cloud's mean from the tool instead; by default, not the joints
     cfg = imitation.ImitationConfig(observation="target", image_size=32)
     observe, spec = imitation.make_observer(env, cfg)
     obs = jax.jit(observe)(state, jnp.asarray(env.mount.default, jnp.float32))
-    assert spec == {"state": (14,), "tool": (3,), "target": (7,), "camera": (3,)}
-    assert set(obs) == set(spec)
+    assert spec == {"tool": (3,), "target": (7,), "reach": (3,), "camera": (3,)}
+    assert set(obs) == set(spec) and obs["target"][6] > 0  # the target is seen
     np.testing.assert_allclose(obs["tool"], env.tool_point(state.pipeline_state.qpos), atol=1e-6)
+    np.testing.assert_allclose(obs["reach"], obs["target"][:3] - obs["tool"], atol=1e-6)
+    assert "state" in imitation.make_observer(env, dataclasses.replace(cfg,
+                                                                       proprioception=True))[1]
 
 
 def test_hand_eye_offset_moves_the_real_camera_and_camera_moves_are_counted():

@@ -26,8 +26,9 @@ Observations (``ImitationConfig.observation``):
   ``twinrl.render`` (arm tasks: ``ArmTask.render``);
 - ``"target"``: the same image reduced to what its depth and target mask say of the target (the
   mean and spread of its back-projected points and its pixel count, ``arm.base.target_cloud``),
-  with the tool point its kinematics give the measured joints: an MLP, not a CNN (on 2 CPU cores
-  a CNN cloned 49 demonstrations to 10-20 % success in 7-25 minutes);
+  with the tool point its kinematics give the measured joints and the cloud's mean minus it:
+  an MLP, not a CNN (on 2 CPU cores a CNN cloned 49 demonstrations to 10-20 % success in 7-25
+  minutes);
 - ``"pose"``: the privileged observation's layout of the joints and the target's pose fitted to
   that cloud (``ArmTask.fit_target_pose``: to 1 mm where the cloud's mean is 2-3 cm off); only
   the views whose estimate is right (``accurate``) are cloned.
@@ -79,6 +80,15 @@ class ImitationConfig(JSONConfig):
     in the world's, where the pose only lets the actor tell views apart and learn each one's
     fit error: needle, 48 demonstrations x 8 views, the actor with it fed the *true* state
     succeeded on 18 % of 50 starts, without it on 94 % (60 % on its estimates either way)."""
+    proprioception: bool | None = None
+    """Image observations but ``"pose"``: the actor also reads the measured joint angles and
+    velocities (14). Default (None): yes for ``"pixels"`` (the CNN's only word of the arm), no for
+    ``"target"``, whose tool point says where the tool is: spatula, the loop's identified twin,
+    48 plans x 8 views, 2 DAgger rounds, one seed, 20 starts in sim and 10 per real twin -- with
+    the joints 10 -> 20 -> 80 % in sim, 0 / 0 / 0 % on real twins 0-2 (the actor's sideways
+    action leant on the wrist's velocities: twin 0's joint damping, 20 % off, drove the blade
+    10 cm sideways and it pushed on that way); without them 65 -> 80 -> 70 % in sim, 0 / 20 /
+    30 % on the real twins."""
     image_head: str = "keypoints"
     """The CNN's head (``NetworkConfig.image_head``): ``"keypoints"`` (spatial softmax) or
     ``"dense"``."""
@@ -127,7 +137,8 @@ class ImitationConfig(JSONConfig):
             widths=("hidden", "conv_strides"),
             choices={"observation": ("state", "pixels", "target", "pose"),
                      "camera": ("random", "default"), "image_head": ("dense", "keypoints"),
-                     "camera_input": (None, True, False)}, optional=("label_weight",))
+                     "camera_input": (None, True, False),
+                     "proprioception": (None, True, False)}, optional=("label_weight",))
         if len(self.conv_strides) != 3:
             raise ValueError(f"conv_strides must name 3 strides, got {self.conv_strides}")
 
@@ -143,7 +154,10 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
     if config.observation == "pose" and not getattr(env, "target_joints", ()):
         raise ValueError(f"observation='pose' needs ArmTask.target_joints; {env.name} has none")
     spec = {"pixels": {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}, "pose": {"estimate": o},
-            "target": {"state": (PROPRIO,), "tool": (3,), "target": (7,)}}[config.observation]
+            "target": {"state": (PROPRIO,), "tool": (3,), "target": (7,), "reach": (3,)}
+            }[config.observation]
+    if not _proprioception(config):
+        spec.pop("state", None)
     if _uses_camera(config):
         spec["camera"] = (3,)
 
@@ -158,6 +172,13 @@ def label_weight(config: ImitationConfig) -> float:
     if config.label_weight is not None:
         return float(config.label_weight)
     return float(config.views) if config.observation != "state" else 1.0
+
+
+def _proprioception(config: ImitationConfig) -> bool:
+    """Whether the actor reads the joints (``ImitationConfig.proprioception``)."""
+    if config.proprioception is None:
+        return config.observation != "target"
+    return bool(config.proprioception)
 
 
 def _uses_camera(config: ImitationConfig) -> bool:

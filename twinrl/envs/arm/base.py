@@ -602,6 +602,8 @@ class ArmTask(Env):
         was trained on), "pixels/mount": (n, n, 5) RGB, depth (m) and the target's mask, "tool":
         the tool point by the nominal kinematics of the measured joints (3,), "target":
         ``target_cloud`` of the depth and mask, back-projected from the commanded pose (7,),
+        "reach": the target cloud's mean minus the tool point (3,; 0 where the target is not
+        seen),
         "pose": the target's joints fitted to that cloud (``fit_target_pose``) and "estimate":
         the privileged observation of the state they and the joints give (``estimated_state``)
         and "support": how much the fit stands on (2,): log(1 + target pixels) and the fit's RMS
@@ -612,9 +614,10 @@ class ArmTask(Env):
         n = depth.shape[0]
         pixels = jnp.concatenate([rgb, depth[..., None], mask[..., None]], axis=-1)
         cam = self.mount.camera(coords, n, n)
+        tool, cloud = self.tool_point(joints[:N_JOINTS]), target_cloud(cam, depth, mask)
         out = {"state": joints, "camera": jax.nn.sigmoid(coords), "pixels/mount": pixels,
-               "tool": self.tool_point(joints[:N_JOINTS]),
-               "target": target_cloud(cam, depth, mask)}
+               "tool": tool, "target": cloud,
+               "reach": jnp.where(cloud[6] > 0, cloud[:3] - tool, 0.0)}
         fitted = ("pose", "estimate", "support")
         if self.target_joints and (keys is None or any(k in keys for k in fitted)):
             pose, rms = self.fit_target_pose(joints, cam, depth, mask, with_residual=True)
