@@ -96,6 +96,10 @@ class SpatulaFlippingConfig(ArmConfig):
     """Range (m) of how far short of the pancake's centre (along x) the blade's edge starts."""
     start_height: tuple[float, float] = (0.02, 0.05)
     """Range (m) of the blade edge's start height above the table."""
+    start_side: tuple[float, float] = (0.0, 0.0)
+    """Range (m) of the blade edge's start offset sideways (y) from the pancake's centre. In
+    line by default; an offset makes demonstrations that correct sideways, which an actor cloned
+    from in-line starts never saw (README: the spatula's image actor on the real twins)."""
     reach_margin: float = 0.12
     """Distance (m) from the blade's edge to the point under the pancake at which ``reach`` has
     fallen to 0.1."""
@@ -181,7 +185,7 @@ class SpatulaFlipping(ArmTask):
             stopper[0] - STOPPER_HALF_DEPTH - PANCAKE_RADIUS - u(k[2], c.gap),
             stopper[1] + u(k[3], (-c.pancake_y_noise, c.pancake_y_noise)),
             jnp.asarray(PANCAKE_HALF_THICKNESS)])
-        tip = jnp.stack([centre[0] - u(k[4], c.start_back), centre[1] + 0.0 * centre[1],
+        tip = jnp.stack([centre[0] - u(k[4], c.start_back), centre[1] + u(k[6], c.start_side),
                          u(k[5], c.start_height)])
         q = ik(tip, self._q_start, TCP, SPATULA, iters=40)
         qpos = jnp.concatenate([q, stopper - jnp.asarray(STOPPER_ORIGIN, stopper.dtype), centre,
