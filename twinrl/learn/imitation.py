@@ -82,13 +82,8 @@ class ImitationConfig(JSONConfig):
     succeeded on 18 % of 50 starts, without it on 94 % (60 % on its estimates either way)."""
     proprioception: bool | None = None
     """Image observations but ``"pose"``: the actor also reads the measured joint angles and
-    velocities (14). Default (None): yes for ``"pixels"`` (the CNN's only word of the arm), no for
-    ``"target"``, whose tool point says where the tool is: spatula, the loop's identified twin,
-    48 plans x 8 views, 2 DAgger rounds, one seed, 20 starts in sim and 10 per real twin -- with
-    the joints 10 -> 20 -> 80 % in sim, 0 / 0 / 0 % on real twins 0-2 (the actor's sideways
-    action leant on the wrist's velocities: twin 0's joint damping, 20 % off, drove the blade
-    10 cm sideways and it pushed on that way); without them 65 -> 80 -> 70 % in sim, 0 / 20 /
-    30 % on the real twins."""
+    velocities (14). Default (None): yes for ``"pixels"``, no for ``"target"``, whose tool point
+    says where the tool is (spatula, README: with them 0 % on three real twins, without 0-30 %)."""
     image_head: str = "keypoints"
     """The CNN's head (``NetworkConfig.image_head``): ``"keypoints"`` (spatial softmax) or
     ``"dense"``."""
@@ -115,16 +110,13 @@ class ImitationConfig(JSONConfig):
     """DAgger keeps only the labels whose improved plan solves the task from that state (tasks
     with ``success``): the first action of a plan that fails is not an expert's."""
     label_weight: float | None = None
-    """A DAgger label's weight in the fit, against 1 for a demonstration's pair. Default (None):
-    the number of views a demonstrated state is rendered from (``views``; 1 for ``"state"``), so
-    a visited state counts as much as a demonstrated one. Unweighted, spatula's 120 labels a
-    round were 0.5 % of 22,560 pairs (48 plans x 8 views): its target-cloud actor went 10 -> 45
-    -> 40 % success over two rounds, weighted x 8 10 -> 20 -> 80 % (one seed, 20 starts)."""
+    """A DAgger label's weight in the fit, against a demonstration pair's 1. Default (None):
+    ``views`` (1 for ``"state"``), so a visited state counts as much as a demonstrated one
+    (spatula, README: 40 % unweighted, 80 % weighted)."""
     visit_noise: float = 0.0
-    """DAgger's visits act with the actor's action plus smooth noise of this standard deviation
-    (``plans.smooth_noise``: 6 knots over the episode, so its drift accumulates), so the labels
-    also cover the states a disturbance leads to, as the real arm's (DART: Laskey et al., "Robust
-    imitation learning from noisy demonstrations", CoRL 2017). 0: the actor's own actions."""
+    """DAgger's visits act with the actor's action plus smooth noise of this sd (6 knots over the
+    episode, ``plans.smooth_noise``), so labels cover where a disturbance leads (DART: Laskey et
+    al., CoRL 2017). 0: the actor's own actions."""
     step_size: float = 0.5
     """Trajopt's largest first-order step when labelling (``TrajoptConfig.step_size``)."""
     eval_episodes: int = 50
@@ -156,9 +148,9 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
     spec = {"pixels": {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}, "pose": {"estimate": o},
             "target": {"state": (PROPRIO,), "tool": (3,), "target": (7,), "reach": (3,)}
             }[config.observation]
-    if not _proprioception(config):
+    if not _either(config.proprioception, config.observation != "target"):
         spec.pop("state", None)
-    if _uses_camera(config):
+    if _either(config.camera_input, config.observation in ("pixels", "target")):
         spec["camera"] = (3,)
 
     def observe(s, coords):  # only the keys the actor reads: the data set stores no others
@@ -169,23 +161,13 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
 
 def label_weight(config: ImitationConfig) -> float:
     """A DAgger label's weight in the fit (``ImitationConfig.label_weight``)."""
-    if config.label_weight is not None:
-        return float(config.label_weight)
-    return float(config.views) if config.observation != "state" else 1.0
+    views = float(config.views) if config.observation != "state" else 1.0
+    return views if config.label_weight is None else float(config.label_weight)
 
 
-def _proprioception(config: ImitationConfig) -> bool:
-    """Whether the actor reads the joints (``ImitationConfig.proprioception``)."""
-    if config.proprioception is None:
-        return config.observation != "target"
-    return bool(config.proprioception)
-
-
-def _uses_camera(config: ImitationConfig) -> bool:
-    """Whether the actor reads the commanded camera pose (``ImitationConfig.camera_input``)."""
-    if config.camera_input is None:
-        return config.observation in ("pixels", "target")
-    return bool(config.camera_input)
+def _either(setting: bool | None, default: bool) -> bool:
+    """A ``bool | None`` setting (``camera_input``, ``proprioception``): None is ``default``."""
+    return default if setting is None else bool(setting)
 
 
 def _coords(env, config: ImitationConfig, key):

@@ -683,8 +683,9 @@ class ArmTask(Env):
         the derivative is the converged fit's (implicit function theorem on its optimality
         condition), not the unrolled iterations'; zeros where no target pixel shows.
         ``points``: target pixels used (a spread subset); ``joints``: the arm's measured angles
-        and velocities (14,). The target geoms must be primitives (not meshes). ``with_residual``: return ``(pose, rms)``,
-        the fit's weighted RMS signed distance (m; 0 where no target pixel shows)."""
+        and velocities (14,). The target geoms must be primitives (not meshes).
+        ``with_residual``: return ``(pose, rms)``, the fit's weighted RMS signed distance (m; 0
+        where no target pixel shows)."""
         from twinrl.render import Geoms, primitives
         from twinrl.render.pointcloud import depth_to_points, huber_residual
 
