@@ -26,9 +26,8 @@ Observations (``ImitationConfig.observation``):
   ``twinrl.render`` (arm tasks: ``ArmTask.render``);
 - ``"target"``: the same image reduced to what its depth and target mask say of the target (the
   mean and spread of its back-projected points and its pixel count, ``arm.base.target_cloud``),
-  with the tool point its kinematics give the measured joints and the cloud's mean minus it:
-  an MLP, not a CNN (on 2 CPU cores a CNN cloned 49 demonstrations to 10-20 % success in 7-25
-  minutes);
+  with the tool point of the measured joints and the cloud's mean minus it: an MLP, not a CNN
+  (on 2 CPU cores a CNN cloned 49 demonstrations to 10-20 % success in 7-25 minutes);
 - ``"pose"``: the privileged observation's layout of the joints and the target's pose fitted to
   that cloud (``ArmTask.fit_target_pose``: to 1 mm where the cloud's mean is 2-3 cm off); only
   the views whose estimate is right (``accurate``) are cloned.
@@ -161,8 +160,11 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
 
 def label_weight(config: ImitationConfig) -> float:
     """A DAgger label's weight in the fit (``ImitationConfig.label_weight``)."""
-    views = float(config.views) if config.observation != "state" else 1.0
-    return views if config.label_weight is None else float(config.label_weight)
+    return float(_views(config) if config.label_weight is None else config.label_weight)
+
+
+def _views(config: ImitationConfig) -> int:  # mount poses per demonstrated state
+    return int(config.views) if config.observation != "state" else 1
 
 
 def _either(setting: bool | None, default: bool) -> bool:
@@ -183,8 +185,7 @@ def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng)
     """The demonstrations' (observation, action) pairs, re-simulated (and rendered, from
     ``config.views`` mount poses each), and each pair's weight in the fit (``accurate``)."""
     observe, _ = make_observer(env, config)
-    v = int(config.views) if config.observation != "state" else 1
-    keys, actions = (np.repeat(np.asarray(x), v, axis=0) for x in demos)
+    keys, actions = (np.repeat(np.asarray(x), _views(config), axis=0) for x in demos)
     cams = jax.vmap(lambda k: _coords(env, config, k))(jax.random.split(rng, len(keys)))
     run = jax.jit(lambda k, a, c: held_episodes(env, observe, None, k, a, c)[:3])
     obs, states, acts = run(jnp.asarray(keys), jnp.asarray(actions), cams)
