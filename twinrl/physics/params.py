@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-__all__ = ["PhysParams", "PhysParamsError", "POSITIVE", "NONNEGATIVE", "REAL"]
+__all__ = ["PhysParams", "PhysParamsError", "POSITIVE", "NONNEGATIVE", "REAL", "position_servos"]
 
 POSITIVE = ("mass", "friction", "gain")
 NONNEGATIVE = ("damping", "armature", "frictionloss")
@@ -160,6 +160,17 @@ class PhysParams:
         for name in REAL:
             fields[name] = raw[name]
         return cls(**fields)
+
+
+def position_servos(model) -> np.ndarray:
+    """(nu,) bool: the actuators of ``model`` (a ``mujoco.MjModel``) that are position servos,
+    force = kp * ctrl - kp * q (- kv * qdot): an affine bias whose length term is minus the gain.
+    Such a servo's stiffness is its gain *and* its bias' length term: a stiffness error scales
+    both (the real twins' gain perturbation, sysid's ``gain/NAME``); the gain alone would move
+    its set point."""
+    gain = np.asarray(model.actuator_gainprm[:, 0])
+    return ((np.asarray(model.actuator_biastype) == int(mujoco.mjtBias.mjBIAS_AFFINE))
+            & np.isclose(np.asarray(model.actuator_biasprm[:, 1]), -gain) & (gain != 0))
 
 
 _FIELDS = tuple(f.name for f in dataclasses.fields(PhysParams))

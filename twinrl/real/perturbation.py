@@ -21,6 +21,7 @@ import mujoco
 import numpy as np
 
 from twinrl.envs.base import Env, PerturbationSpec
+from twinrl.physics.params import position_servos
 
 __all__ = ["Perturbation", "rotvec_quat"]
 
@@ -206,9 +207,7 @@ class Perturbation:
         # A position servo (force = kp ctrl - kp q - kv qdot) has its stiffness in the gain and in
         # the bias; a "gain" error of such a controller scales both, else it would also move the
         # servo's set point.
-        servo = ((model.actuator_biastype == int(mujoco.mjtBias.mjBIAS_AFFINE))
-                 & np.isclose(model.actuator_biasprm[:, 1], -model.actuator_gainprm[:, 0])
-                 & (model.actuator_gainprm[:, 0] != 0))
+        servo = position_servos(model)
         model.actuator_gainprm[:, 0] *= gs
         model.actuator_biasprm[servo, 1] *= gs[servo]
         offset = vec("actuator_offset", model.nu, 0.0)

@@ -17,7 +17,7 @@ import numpy as np
 
 from twinrl.envs.base import Env
 from twinrl.physics import PhysParams, Sim
-from twinrl.physics.params import NONNEGATIVE, POSITIVE
+from twinrl.physics.params import NONNEGATIVE, POSITIVE, position_servos
 from twinrl.real2sim.sysid.config import SysidConfig, default_param_names, parse_param
 from twinrl.real2sim.sysid.data import Windows, windows_from_dataset
 
@@ -207,10 +207,14 @@ def _functions(env: Env, sim: Sim, spec: tuple, W: int, L: int, kind: str, cs: f
     if key in _FUNCTIONS:
         return _FUNCTIONS[key]
 
+    servo = position_servos(sim.mj_model)
+
     def to_params(theta, base_u):
         u = dict(base_u)
         for j, (f, i) in enumerate(spec):
             u[f] = u[f].at[i].set(theta[j])
+            if f == "gain" and servo[i]:  # a position servo's stiffness: gain and bias together
+                u["bias"] = u["bias"].at[i, 1].set(-jnp.exp(theta[j]))
         return PhysParams.constrain(u)
 
     def window(theta, latency, base_u, inv_scale, q, v, a, y0, y):
