@@ -51,7 +51,8 @@ def tool_gaps(name: str, twin, systems: dict, starts: int) -> dict[str, list[flo
     gaps = {k: [] for k in sims}
     for e in range(starts):
         obs, _ = exact.reset(seed=100 + e)
-        q0, v0 = exact._data.qpos.copy(), exact._data.qvel.copy()
+        start = exact.oracle()  # the true state (evaluation only)
+        q0, v0 = start.qpos, start.qvel
         acts = []
         for _ in range(max(STEPS)):
             acts.append(env.scripted_action(obs))
@@ -60,7 +61,7 @@ def tool_gaps(name: str, twin, systems: dict, starts: int) -> dict[str, list[flo
         real = []
         for a in acts:
             twin.step(a)
-            real.append(tool(twin._data.qpos))  # the true joints (evaluation only)
+            real.append(tool(twin.oracle().qpos))  # the true joints (evaluation only)
         real = np.array(real)
         for k, sim in sims.items():
             s = sim.reset(jax.random.PRNGKey(0))
