@@ -306,10 +306,10 @@ def _sysid_config():
     exciting motions show; ``panda.xml`` names joints and servos ``joint1``..``joint7``);
     15 Levenberg-Marquardt steps per latency (it had converged by 10 on needle twin 2), no
     bound tests (damping is far from 0). Windows start from the recorded states: the joints
-    are measured to 2 mrad, and estimating every window's start with the parameters (31
-    numbers a window on the spatula) let the starts absorb what the servos do: on spatula twin 0
-    the fit then stopped after 4 steps with the 14 parameters moved by 1e-5; from the recorded
-    starts they come within 0.7-18 % (README: the arm's sysid)."""
+    are measured to 2 mrad, and on spatula twin 0 the parameters come within 0.7-18 % of the
+    truth in 166 s. Estimating every window's start as well (31 numbers a window there) stalled
+    until stop 53 (the pancake's unseen spin took absurd LM steps; now held by the starts'
+    prior); fixed, it gives 0.3-17 %, far slower (README: the arm's sysid)."""
     from twinrl.envs.arm.base import N_JOINTS
     from twinrl.real2sim import sysid
 

@@ -6,6 +6,7 @@ import pytest
 
 from twinrl.physics import SCENES, Sim
 from twinrl.physics.gradcheck import classify, gradcheck
+from twinrl.physics.integrator import tangent_delta, tangent_qpos
 
 # Shorter than `twinrl gradcheck`'s defaults (100; 50 for peg_in_hole) to keep the suite fast, but
 # long enough that each constrained scene has both free and constrained steps (asserted below).
@@ -40,6 +41,31 @@ def test_classify_catches_wrong_gradients_and_kinks():
     status, ok, rel, _ = classify(g, fd, fd4, fwd, bwd, rounding, rtol=1e-4)
     assert list(status) == ["resolved", "resolved", "noise", "resolved", "kink"]
     assert list(ok) == [True, False, True, False, True]
+
+
+def test_tangent_delta_inverts_tangent_qpos_with_a_finite_jacobian_at_zero(x64):
+    """sysid estimates window starts in these coordinates and weighs their offset from the
+    recorded state: the offset must be the step that was taken, and differentiable at 0."""
+    from mujoco.mjx._src.types import JointType
+
+    jt = tuple(int(t) for t in (JointType.HINGE, JointType.FREE, JointType.BALL,
+                                JointType.SLIDE))
+    rng = np.random.default_rng(0)
+    with jax.enable_x64(True):
+        for scale in (1e-9, 0.5, 1.2):
+            q0 = np.concatenate([[0.3], rng.normal(size=3), rng.normal(size=4),
+                                 rng.normal(size=4), [0.1]])
+            q0[4:8] /= np.linalg.norm(q0[4:8])
+            q0[8:12] /= np.linalg.norm(q0[8:12])
+            dq = scale * rng.normal(size=11)
+            q1 = tangent_qpos(jt, q0, dq)
+            np.testing.assert_allclose(np.linalg.norm(q1[4:8]), 1.0, rtol=1e-12)
+            np.testing.assert_allclose(tangent_delta(jt, q0, q1), dq, atol=1e-12)
+            # -q is the same rotation: the offset does not jump by a turn
+            q1n = q1.at[8:12].multiply(-1.0)
+            np.testing.assert_allclose(tangent_delta(jt, q0, q1n), dq, atol=1e-12)
+        J = jax.jacfwd(lambda d: tangent_delta(jt, q0, tangent_qpos(jt, q0, d)))(np.zeros(11))
+        np.testing.assert_allclose(J, np.eye(11), atol=1e-9)
 
 
 def test_user_mjcf_gets_tangent_space_orientations_and_coverage_per_group(x64, tmp_path):

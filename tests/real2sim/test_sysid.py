@@ -5,6 +5,8 @@ functions compile once for the module (``sysid.problem._FUNCTIONS``); the compil
 Jacobian through MJX dominates the module's time.
 """
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,8 @@ from twinrl.real import make_real
 from twinrl.real.dataset import DatasetWriter, read
 from twinrl.real.perturbation import Perturbation
 from twinrl.real2sim import baselines, sysid
+from twinrl.real2sim.sysid import optimise
+from twinrl.real2sim.sysid.problem import rho
 
 TASK = "cartpole_swingup"
 # The hinge's friction loss is 0 in both twins: a parameter at its bound.
@@ -355,3 +359,68 @@ def test_a_position_servos_gain_is_its_stiffness_in_the_fit_as_in_the_real_twin(
     Perturbation(gain_scale=scale).apply(m)  # what the twin does to its servos
     np.testing.assert_allclose(fitted.gain, m.actuator_gainprm[:, 0], rtol=1e-6)
     np.testing.assert_allclose(fitted.bias, m.actuator_biasprm[:, :3], rtol=1e-6)
+
+
+class _SpinningDisc:
+    """A stand-in for ``Problem`` (the interface ``levenberg_marquardt`` uses): windows of a
+    system with one parameter (the gain k of a pushed slider, log-coordinates) whose state also
+    holds a disc's spin (angle, rate) that no residual sees except through a 1e-6 ripple, and
+    whose rollouts blow up (NaN) when the spin rate is absurd, as a simulator's do."""
+
+    def __init__(self, config, k=1.5, n=8, T=6, seed=0):
+        rng = np.random.default_rng(seed)
+        self.config, self.sim = config, SimpleNamespace(nq=2, nv=2)
+        self.t, self.u = np.arange(T), rng.uniform(0.5, 1.5, n)
+        self.theta0, self.free = np.zeros(1), np.ones(1, bool)
+        p0 = rng.normal(size=n)
+        self.y = p0[:, None] + k * self.u[:, None] * self.t + 0.01 * rng.normal(size=(n, T))
+        self.qpos0 = np.stack([self.y[:, 0], np.zeros(n)], -1)  # as recorded
+        self.qvel0 = np.zeros((n, 2))
+        self.rec = (self.qpos0.copy(), self.qvel0.copy())
+
+    def _pred(self, theta, q, v):
+        ripple = 1e-6 * np.sin(q[:, 1:] + v[:, 1:] * self.t)
+        return q[:, :1] + (np.exp(theta[0]) * self.u[:, None] + v[:, :1]) * self.t + ripple
+
+    def residuals(self, theta, latency, qpos0=None, qvel0=None):
+        q = self.qpos0 if qpos0 is None else qpos0
+        v = self.qvel0 if qvel0 is None else qvel0
+        if np.max(np.abs(v[:, 1])) > 1e3:  # the rollout blows up
+            return np.full(self.y.shape + (1,), np.nan)
+        return ((self._pred(theta, q, v) - self.y) / 0.01)[..., None]
+
+    def jacobian(self, theta, latency, start=False):
+        q, v, t = self.qpos0, self.qvel0, self.t
+        r = self.residuals(theta, latency)
+        J = (np.exp(theta[0]) * self.u[:, None] * t / 0.01)[..., None, None]
+        c = 1e-6 * np.cos(q[:, 1:] + v[:, 1:] * t)
+        Jx = np.stack([np.ones_like(c), c, np.broadcast_to(t, c.shape), c * t], -1) / 0.01
+        return (r, J, Jx[:, :, None, :]) if start else (r, J)
+
+    def data_loss(self, r):
+        return float(np.sum(rho(r, self.config.loss, self.config.loss_scale)[0]))
+
+    def prior(self, theta):
+        return 0.5 * float(np.sum(((theta - self.theta0) / self.config.prior_sd) ** 2))
+
+    def retract(self, qpos0, dq):
+        return qpos0 + dq
+
+    def start_offset(self, qpos0=None, qvel0=None):
+        q = self.qpos0 if qpos0 is None else qpos0
+        v = self.qvel0 if qvel0 is None else qvel0
+        return np.concatenate([q - self.rec[0], v - self.rec[1]], -1)
+
+
+def test_estimated_starts_do_not_stall_on_a_direction_no_residual_sees():
+    """With every window's start estimated, a state direction the data do not see (a flat disc's
+    spin: Hessian ~1e-10, gradient ~1e-6) had no damping (Marquardt's is relative to the
+    diagonal): LM stepped it to absurd rates, the rollouts blew up, and the damping rose until
+    the parameters barely moved (the spatula's servos stayed at nominal). The starts' prior
+    around the recorded state holds such directions; the parameter is found."""
+    cfg = sysid.SysidConfig(loss="l2", lm_steps=10)
+    prob = _SpinningDisc(cfg)
+    theta = optimise.levenberg_marquardt(prob, prob.theta0.copy(), 0, prob.free,
+                                         lambda *a: None, True)
+    assert abs(np.exp(theta[0]) / 1.5 - 1.0) < 0.01, np.exp(theta[0])
+    assert np.max(np.abs(prob.qvel0[:, 1])) < 1e-3  # the spin stays where it was recorded

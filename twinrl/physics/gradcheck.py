@@ -80,7 +80,7 @@ from jax.flatten_util import ravel_pytree
 
 from mujoco.mjx._src.types import JointType
 
-from twinrl.physics.integrator import quat_integrate
+from twinrl.physics.integrator import tangent_qpos
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, Scenario, scenario as make_scenario
 from twinrl.physics.sim import Sim
@@ -172,24 +172,6 @@ def _dof_names(mj_model) -> list[str]:
         else:
             names.append(jn)
     return names
-
-
-def tangent_qpos(jnt_types, qpos0: jax.Array, dq: jax.Array) -> jax.Array:
-    """``qpos0 (+) dq``: ``dq`` (nv,) moves slides/hinges/translations additively and rotates
-    each quaternion by the body-frame rotation vector ``dq`` (``q0 * exp(dq / 2)``)."""
-    out, qi, vi = [], 0, 0
-    for jt in jnt_types:
-        if jt == JointType.FREE:
-            out += [qpos0[qi:qi + 3] + dq[vi:vi + 3],
-                    quat_integrate(qpos0[qi + 3:qi + 7], dq[vi + 3:vi + 6], 1.0)]
-            qi, vi = qi + 7, vi + 6
-        elif jt == JointType.BALL:
-            out.append(quat_integrate(qpos0[qi:qi + 4], dq[vi:vi + 3], 1.0))
-            qi, vi = qi + 4, vi + 3
-        else:
-            out.append(qpos0[qi:qi + 1] + dq[vi:vi + 1])
-            qi, vi = qi + 1, vi + 1
-    return jnp.concatenate(out) if out else qpos0
 
 
 def classify(g, fd1, fd4, fwd, bwd, rounding, rtol):

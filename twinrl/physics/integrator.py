@@ -31,7 +31,7 @@ from mujoco.mjx._src.types import DisableBit, IntegratorType, JointType
 
 from twinrl.physics.solver import forward
 
-__all__ = ["step", "quat_integrate"]
+__all__ = ["step", "quat_integrate", "tangent_qpos", "tangent_delta"]
 
 # Below this |w dt / 2|^2, sin(n)/n and cos(n) use their Taylor series (error < 1e-20).
 _SMALL = 1e-8
@@ -47,6 +47,56 @@ def quat_integrate(q: jax.Array, w: jax.Array, dt) -> jax.Array:
     cos = jnp.where(small, 1.0 - n2 / 2.0, jnp.cos(n))
     dq = jnp.concatenate([cos[None], sinc * half])
     return _math.normalize(_math.quat_mul(q, dq))
+
+
+def tangent_qpos(jnt_types, qpos0: jax.Array, dq: jax.Array) -> jax.Array:
+    """``qpos0 (+) dq``: ``dq`` (nv,) moves slides/hinges/translations additively and rotates
+    each quaternion by the body-frame rotation vector ``dq`` (``q0 * exp(dq / 2)``). The
+    coordinates in which a state is perturbed (``twinrl.physics.gradcheck``) or estimated
+    (sysid's window starts): no direction that changes only a quaternion's norm."""
+    out, qi, vi = [], 0, 0
+    for jt in jnt_types:
+        if jt == JointType.FREE:
+            out += [qpos0[qi:qi + 3] + dq[vi:vi + 3],
+                    quat_integrate(qpos0[qi + 3:qi + 7], dq[vi + 3:vi + 6], 1.0)]
+            qi, vi = qi + 7, vi + 6
+        elif jt == JointType.BALL:
+            out.append(quat_integrate(qpos0[qi:qi + 4], dq[vi:vi + 3], 1.0))
+            qi, vi = qi + 4, vi + 3
+        else:
+            out.append(qpos0[qi:qi + 1] + dq[vi:vi + 1])
+            qi, vi = qi + 1, vi + 1
+    return jnp.concatenate(out) if out else qpos0
+
+
+def _rotation_vector(q0: jax.Array, q1: jax.Array) -> jax.Array:
+    """The body-frame rotation vector ``w`` with ``q1 = q0 * exp(w / 2)`` (the shorter way)."""
+    r = _math.quat_mul(_math.quat_inv(q0), q1)
+    r = jnp.where(r[0] < 0, -r, r) / jnp.linalg.norm(r)
+    s2 = jnp.sum(r[1:] * r[1:])
+    small = s2 < 1e-16
+    s = jnp.sqrt(jnp.where(small, 1.0, s2))
+    # angle / sin(angle / 2), with its Taylor series near 0 (finite derivative at the identity)
+    scale = jnp.where(small, 2.0 + s2 / 3.0, 2.0 * jnp.arctan2(s, r[0]) / s)
+    return scale * r[1:]
+
+
+def tangent_delta(jnt_types, qpos0: jax.Array, qpos1: jax.Array) -> jax.Array:
+    """The inverse of ``tangent_qpos``: ``dq`` (nv,) with ``qpos1 = qpos0 (+) dq`` (rotations
+    below half a turn)."""
+    out, qi = [], 0
+    for jt in jnt_types:
+        if jt == JointType.FREE:
+            out += [qpos1[qi:qi + 3] - qpos0[qi:qi + 3],
+                    _rotation_vector(qpos0[qi + 3:qi + 7], qpos1[qi + 3:qi + 7])]
+            qi += 7
+        elif jt == JointType.BALL:
+            out.append(_rotation_vector(qpos0[qi:qi + 4], qpos1[qi:qi + 4]))
+            qi += 4
+        else:
+            out.append(qpos1[qi:qi + 1] - qpos0[qi:qi + 1])
+            qi += 1
+    return jnp.concatenate(out) if out else qpos1 - qpos0
 
 
 def _integrate_pos(jnt_types, qpos, qvel, dt):

@@ -14,6 +14,16 @@ Method
   rolled out open loop with its recorded actions, and is compared with the recorded next
   observations. Windows are independent, so they are vmapped, in fixed-size batches (one compile
   for any dataset size).
+* **Estimated start states** (``estimate_start``, on by default: full multiple shooting): every
+  window's start state is fitted with the parameters, so noise on the recorded start does not
+  bias them (errors in variables). A start moves in tangent coordinates
+  (``twinrl.physics.integrator.tangent_qpos``: a quaternion by a rotation vector, never along
+  its norm), under a weak Gaussian prior around the recorded state (``start_prior_sd``, weighed
+  like the parameters' prior), and is eliminated per window by the Schur complement (as in
+  bundle adjustment). The prior decides only what no residual sees: without it, a flat disc's
+  spin rate (Hessian 1e-8, gradient 5e-6; Marquardt's damping is relative to that diagonal)
+  took LM steps of 1e5 rad/s, the rollouts blew up, and the damping rose until the parameters
+  could not move.
 * **Robust loss** on residuals normalised per observation dimension (by the data's spread):
   Huber or Cauchy, so a few bad windows (a glitch, an unmodelled knock) cannot drag the fit.
 * **Bounds by reparameterisation**: the optimiser works on ``PhysParams.unconstrain()``

@@ -67,6 +67,11 @@ class SysidConfig:
     """Estimate each window's start state with the parameters (full multiple shooting) instead
     of taking it from the noisy recorded observation: removes the errors-in-variables bias that
     observation noise on the start state puts on the parameters."""
+    start_prior_sd: float = 1.0
+    """With ``estimate_start``: sd of the Gaussian prior of each estimated start state around
+    the recorded one, per tangent coordinate in SI units (m, rad, m/s, rad/s), weighed like the
+    parameters' prior. Negligible where the data pin the state (a recorded joint: to the mm);
+    it holds what no residual sees (a flat disc's spin about its axis) where it was recorded."""
     optimizer: str = "lm"
     """``lm`` (Levenberg-Marquardt), ``adam`` (optax, reverse-mode gradients), ``adam+lm``."""
     lm_steps: int = 40
@@ -127,8 +132,8 @@ class SysidConfig:
              f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         need(self.uncertainty in UNCERTAINTIES,
              f"uncertainty must be one of {UNCERTAINTIES}, got {self.uncertainty!r}")
-        for name in ("loss_scale", "prior_sd", "flat_sd", "nonneg_init", "frictionloss_floor",
-                     "max_rel_sd", "adam_lr", "lm_damping"):
+        for name in ("loss_scale", "prior_sd", "start_prior_sd", "flat_sd", "nonneg_init",
+                     "frictionloss_floor", "max_rel_sd", "adam_lr", "lm_damping"):
             v = getattr(self, name)
             need(math.isfinite(v) and v > 0, f"{name} must be finite and > 0, got {v}")
         need(math.isfinite(self.bound_lr) and self.bound_lr >= 0,

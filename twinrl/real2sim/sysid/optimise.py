@@ -17,8 +17,11 @@ from twinrl.real2sim.sysid.problem import Problem, rho
 __all__ = ["normal_terms", "levenberg_marquardt", "adam_fit"]
 
 
-def _objective(prob: Problem, r: np.ndarray, theta, kappa: float) -> float:
-    return prob.data_loss(r) + kappa * prob.prior(theta)
+def _objective(prob: Problem, r: np.ndarray, theta, kappa: float, offset=None) -> float:
+    out = prob.data_loss(r) + kappa * prob.prior(theta)
+    if offset is not None:  # the estimated start states' prior around the recorded ones
+        out += 0.5 * kappa * float(np.sum(offset * offset)) / prob.config.start_prior_sd ** 2
+    return out
 
 
 def normal_terms(r, J, Jx, w, fi):
@@ -40,12 +43,13 @@ def normal_terms(r, J, Jx, w, fi):
 def levenberg_marquardt(prob: Problem, theta, latency: int, free: np.ndarray, log,
                         start: bool) -> np.ndarray:
     """Levenberg-Marquardt with IRLS weights for the robust loss and the Gaussian prior; with
-    ``start``, every window's start state is estimated too (eliminated per window by the Schur
-    complement, as in bundle adjustment), and ``prob.qpos0/qvel0`` are updated. The damping
+    ``start``, every window's start state is estimated too (in tangent coordinates, with a weak
+    prior around the recorded state; eliminated per window by the Schur complement, as in bundle
+    adjustment), and ``prob.qpos0/qvel0`` are updated. The damping
     schedule and stopping rule are ``twinrl.real2sim.lm.minimise``'s; this builds and solves the
     damped normal equations. ``log(theta, mean data loss)`` is called after every iteration."""
     c = prob.config
-    nq = prob.sim.nq
+    nv = prob.sim.nv
     fi = np.flatnonzero(free)
     kept = {}  # residuals at the current point and at the last candidate (for ``log``)
 
@@ -54,6 +58,7 @@ def levenberg_marquardt(prob: Problem, theta, latency: int, free: np.ndarray, lo
         prob.qpos0, prob.qvel0 = q, v
         r, J, Jx = prob.jacobian(theta, latency, start=True) if start else (
             *prob.jacobian(theta, latency), None)
+        offset = prob.start_offset(q, v) if start else None
         kept["r"] = r
         # The prior is worth one residual's mean loss per parameter at the current fit (about one
         # unit of -2 log-likelihood per prior sd^2): negligible against thousands of residuals,
@@ -65,6 +70,15 @@ def levenberg_marquardt(prob: Problem, theta, latency: int, free: np.ndarray, lo
         Htt, gt, Htx, Hxx, gx, _ = normal_terms(r, J, Jx, w, fi)
         Htt = Htt + prior_prec * np.eye(len(fi))
         gt = gt + prior_prec * (theta[fi] - prob.theta0[fi])
+        if start:
+            # The same prior on each start state, around its recorded value, in tangent
+            # coordinates: decisive only where the data say nothing (a disc's spin about its
+            # axis). Without it Marquardt's damping, relative to a zero diagonal, left such
+            # directions free: steps of 1e5 rad/s, a blown-up rollout, the damping raised until
+            # the parameters barely moved (spatula: 14 servo parameters stuck at nominal).
+            x_prec = kappa / c.start_prior_sd ** 2
+            Hxx = Hxx + x_prec * np.eye(Hxx.shape[-1])
+            gx = gx + x_prec * offset
 
         def solve(lam):
             A = Htt + lam * np.diag(np.maximum(np.diag(Htt), 1e-12))
@@ -82,12 +96,13 @@ def levenberg_marquardt(prob: Problem, theta, latency: int, free: np.ndarray, lo
             dt, dx = step
             cand = theta.copy()
             cand[fi] += dt
-            qc, vc = (q, v) if dx is None else (q + dx[:, :nq], v + dx[:, nq:])
+            qc, vc = (q, v) if dx is None else (prob.retract(q, dx[:, :nv]), v + dx[:, nv:])
             rc = kept["cand"] = prob.residuals(cand, latency, qc, vc)
-            oc = _objective(prob, rc, cand, kappa) if np.all(np.isfinite(rc)) else np.inf
+            oc = (_objective(prob, rc, cand, kappa, None if dx is None else
+                             prob.start_offset(qc, vc)) if np.all(np.isfinite(rc)) else np.inf)
             return (cand, qc, vc), oc
 
-        return Linearisation(_objective(prob, r, theta, kappa), solve, evaluate)
+        return Linearisation(_objective(prob, r, theta, kappa, offset), solve, evaluate)
 
     def on_iteration(x, record):
         if record["accepted"]:

@@ -17,6 +17,7 @@ import numpy as np
 
 from twinrl.envs.base import Env
 from twinrl.physics import PhysParams, Sim
+from twinrl.physics.integrator import tangent_delta, tangent_qpos
 from twinrl.physics.params import NONNEGATIVE, POSITIVE, position_servos
 from twinrl.real2sim.sysid.config import SysidConfig, default_param_names, parse_param
 from twinrl.real2sim.sysid.data import Windows, windows_from_dataset
@@ -144,7 +145,7 @@ class Problem:
 
     def jacobian(self, theta, latency: int, start: bool = False):
         """Residuals and Jacobians w.r.t. ``theta`` (n, W+1, o, P) and, with ``start``, w.r.t.
-        each window's own start state (n, W+1, o, nq + nv)."""
+        each window's own start state in tangent coordinates (n, W+1, o, 2 nv: ``retract``)."""
         th = jnp.asarray(theta)
         rs, js, jx = [], [], []
         fn = self._fns["jac_x" if start else "jac"]  # jitted lazily: only what is used compiles
@@ -155,9 +156,22 @@ class Problem:
             if start:
                 jx.append(np.concatenate([np.asarray(out[2]), np.asarray(out[3])], -1))
         n = self.n_windows
-        self.rollouts += n * (1 + self.n_free + (self.sim.nq + self.sim.nv if start else 0))
+        self.rollouts += n * (1 + self.n_free + (2 * self.sim.nv if start else 0))
         r, J = np.concatenate(rs)[:n], np.concatenate(js)[:n]
         return (r, J, np.concatenate(jx)[:n]) if start else (r, J)
+
+    def retract(self, qpos0: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """Window start positions ``qpos0`` (n, nq) moved by tangent steps ``dq`` (n, nv)."""
+        return np.asarray(self._fns["retract"](jnp.asarray(qpos0), jnp.asarray(dq)), np.float64)
+
+    def start_offset(self, qpos0=None, qvel0=None) -> np.ndarray:
+        """Each window's start state (default: the current estimate) less its recorded one, in
+        tangent coordinates (n, 2 nv): what the start states' prior weighs."""
+        q = self.qpos0 if qpos0 is None else qpos0
+        v = self.qvel0 if qvel0 is None else qvel0
+        dq = np.asarray(self._fns["delta"](jnp.asarray(self.windows.qpos0, jnp.float64),
+                                           jnp.asarray(q, jnp.float64)), np.float64)
+        return np.concatenate([dq, v - np.asarray(self.windows.qvel0, np.float64)], -1)
 
     def loss_and_grad(self, theta, latency: int) -> tuple[float, np.ndarray]:
         """Sum of the robust loss over all residuals, and its gradient (reverse mode)."""
@@ -241,10 +255,15 @@ def _functions(env: Env, sim: Sim, spec: tuple, W: int, L: int, kind: str, cs: f
         f = lambda th: window(th, latency, base_u, inv_scale, *rest)
         return f(theta), jax.jacfwd(f)(theta)
 
+    jnt_types = tuple(int(t) for t in sim.mj_model.jnt_type)
+
     def jac_all(theta, latency, base_u, inv_scale, q, v, *rest):
-        f = lambda th, qq, vv: window(th, latency, base_u, inv_scale, qq, vv, *rest)
-        Jt, Jq, Jv = jax.jacfwd(f, argnums=(0, 1, 2))(theta, q, v)
-        return f(theta, q, v), Jt, Jq, Jv
+        # the start state's Jacobian in tangent coordinates (``tangent_qpos``): a quaternion's
+        # norm is no direction to estimate (its Hessian is zero there, and so was LM's damping)
+        f = lambda th, dq, vv: window(th, latency, base_u, inv_scale,
+                                      tangent_qpos(jnt_types, q, dq), vv, *rest)
+        Jt, Jq, Jv = jax.jacfwd(f, argnums=(0, 1, 2))(theta, jnp.zeros_like(v), v)
+        return f(theta, jnp.zeros_like(v), v), Jt, Jq, Jv
 
     ax = (None, None, None, None, 0, 0, 0, 0, 0)
 
@@ -258,6 +277,8 @@ def _functions(env: Env, sim: Sim, spec: tuple, W: int, L: int, kind: str, cs: f
         jac=jax.jit(jax.vmap(jac_theta, in_axes=ax)),
         jac_x=jax.jit(jax.vmap(jac_all, in_axes=ax)),
         grad=jax.jit(jax.value_and_grad(batch_loss)),
+        retract=jax.jit(jax.vmap(lambda q, dq: tangent_qpos(jnt_types, q, dq))),
+        delta=jax.jit(jax.vmap(lambda q0, q1: tangent_delta(jnt_types, q0, q1))),
     )
     _FUNCTIONS[key] = fns
     return fns
