@@ -14,9 +14,11 @@ stiffness and damping), then
    gap after 5, 10 and 25 control steps (cm, mean over starts).
 
 Prints the tables and writes ``OUT/arm_sysid.json``. 3-7 minutes per twin on 2 cores (the fit).
+``--estimate-start`` fits every window's start state too (sysid's default; far slower).
 
     python bench/arm_sysid.py --out B
     python bench/arm_sysid.py --tasks spatula_flipping --seeds 0 1 2 --out B
+    python bench/arm_sysid.py --tasks spatula_flipping --seeds 0 --estimate-start --out B
 """
 
 from __future__ import annotations
@@ -77,14 +79,17 @@ def tool_gaps(name: str, twin, systems: dict, starts: int) -> dict[str, list[flo
     return {k: np.mean(v, axis=0).tolist() for k, v in gaps.items()}
 
 
-def one(name: str, seed: int, episodes: int, starts: int) -> dict:
+def one(name: str, seed: int, episodes: int, starts: int, estimate_start: bool = False) -> dict:
+    import dataclasses
+
     from twinrl.envs.system import System
 
     twin = make_real(name, seed=seed)
     truth = twin.oracle()  # evaluation only
     data = sysid.collect(twin, episodes, seed=3, policy="open_loop")
     t0 = time.perf_counter()
-    res = sysid.fit(envs.make(name), data, _sysid_config())
+    config = dataclasses.replace(_sysid_config(), estimate_start=estimate_start)
+    res = sysid.fit(envs.make(name), data, config)
     seconds = time.perf_counter() - t0
     rows = sysid.compare_to_truth(res, truth.params, truth.perturbation.latency_steps)
     nominal = {r["parameter"]: float(r["initial"]) for r in res.table}
@@ -98,7 +103,8 @@ def one(name: str, seed: int, episodes: int, starts: int) -> dict:
                "truth": System(params=truth.params, latency=lat, task=name)}
     gaps = tool_gaps(name, twin, systems, starts)
     twin.close()
-    return {"task": name, "seed": seed, "fit_seconds": seconds, "latency": res.latency,
+    return {"task": name, "seed": seed, "estimate_start": estimate_start,
+            "fit_seconds": seconds, "latency": res.latency,
             "true_latency": lat, "params": params, "tool_gap_m": gaps, "steps": list(STEPS)}
 
 
@@ -108,12 +114,15 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
     ap.add_argument("--episodes", type=int, default=5, help="real excitation episodes (the loop's K)")
     ap.add_argument("--starts", type=int, default=6, help="expert starts replayed open loop")
+    ap.add_argument("--estimate-start", action="store_true",
+                    help="estimate every window's start state with the parameters (sysid's "
+                         "default; the loop starts windows from the recorded joints)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     runs = []
     for name in args.tasks:
         for seed in args.seeds:
-            r = one(name, seed, args.episodes, args.starts)
+            r = one(name, seed, args.episodes, args.starts, args.estimate_start)
             runs.append(r)
             errs = np.array([[p["nominal_rel_err"], p["rel_err"]] for p in r["params"].values()])
             print(f"{name} twin {seed}: fit {r['fit_seconds']:.0f} s, latency {r['latency']} "
