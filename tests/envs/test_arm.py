@@ -498,3 +498,22 @@ def test_target_pose_fit_has_the_converged_fits_derivative(made):
     fd = np.stack([(np.asarray(pose(coords + h * e)) - np.asarray(pose(coords - h * e))) / (2 * h)
                    for e in jnp.eye(3)], axis=1)
     np.testing.assert_allclose(rev, fd, atol=0.1 * np.abs(fd).max())
+
+
+def test_calibration_poses_start_at_the_default_and_spread_over_the_workspace():
+    """``CameraMount.calibration_poses``: the loop's round-0 mount poses (its hand-eye
+    calibration needs the scene from several of them) -- the default pose first, distinct
+    poses inside the workspace, the same every call."""
+    mount = envs.make("needle_threading").mount
+    poses = mount.calibration_poses(5)
+    assert poses.shape == (5, 3)
+    np.testing.assert_array_equal(poses[0], mount.default)
+    np.testing.assert_array_equal(poses, mount.calibration_poses(5))
+    np.testing.assert_array_equal(poses[:3], mount.calibration_poses(3))
+    sph = np.array([np.asarray(mount.spherical(jnp.asarray(c, jnp.float32))) for c in poses])
+    lo, hi = mount._ranges().T
+    assert np.all(sph > lo) and np.all(sph < hi)
+    gaps = np.linalg.norm((sph[:, None] - sph[None]) / (hi - lo), axis=-1)
+    assert gaps[~np.eye(5, dtype=bool)].min() > 0.1, gaps
+    with pytest.raises(ValueError, match="n must be >= 1"):
+        mount.calibration_poses(0)

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from twinrl.physics import load_mjcf
-from twinrl.real.perturbation import Perturbation
+from twinrl.real.perturbation import Perturbation, rotvec_quat
 from twinrl.render.opengl import render_states
 from twinrl.real2sim import visual as V
 from twinrl.render import Camera
+from twinrl.render.camera import look_at, quat_to_mat
 
 S = 48
 
@@ -77,6 +78,48 @@ def test_fit_camera_offset(push):
     assert np.linalg.norm(np.asarray(cam.pos - true_cam.pos)) < 5e-3
     dot = abs(float(np.dot(np.asarray(cam.quat), np.asarray(true_cam.quat))))
     assert np.rad2deg(2 * np.arccos(min(dot, 1.0))) < 0.5
+
+
+def test_fit_camera_hand_eye_offset_from_several_commanded_poses(push):
+    # A camera on a hand: three commanded poses looking at the scene from different sides, each
+    # real frame taken from its commanded pose composed with one hidden offset (in the commanded
+    # camera's own frame, as RealTwin.move_camera puts it). One stacked fit recovers that offset.
+    # The real box sits 15 mm from where the recorded state says (a tool whose grasp is not
+    # known): ignored, it does not pull the camera.
+    m, top = push
+    fovy = float(top.fovy)
+    commanded = [look_at(e, (0.0, 0.0, 0.0), fovy=fovy, width=S, height=S)
+                 for e in ((0.05, -0.1, 0.9), (0.5, -0.3, 0.7), (-0.45, 0.35, 0.75))]
+    dp, dr = np.array([0.012, -0.008, 0.006]), np.array([0.02, -0.015, 0.03])
+    real = load_mjcf("push")
+    cid = real.camera("top").id
+    off = np.empty(9)
+    mujoco.mju_quat2Mat(off, rotvec_quat(dr))
+    q = m.qpos0.copy()
+    q[:4] = [0.1, -0.1, 0.1, 0.08]
+    q_real = q.copy()
+    q_real[2:4] += [0.0, 0.015]
+    frames = []
+    for cam in commanded:
+        R = quat_to_mat(np.asarray(cam.quat, np.float64))
+        real.cam_pos[cid] = np.asarray(cam.pos) + np.asarray(R) @ dp
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, (np.asarray(R) @ off.reshape(3, 3)).ravel())
+        real.cam_quat[cid] = quat
+        frames += [{**f, "qpos": q} for f in render_states(real, "top", [q_real], S, S)]
+    stack = Camera(*(np.stack([np.asarray(getattr(c, k), np.float64) for c in commanded])
+                     for k in ("pos", "quat", "fovy")), S, S)
+    cfg = V.VisualConfig(steps=60, restarts=1, w_emd=0.0, tau=(1.0, 0.3), lr=2e-3)
+    cams, info = V.fit_camera(m, V.check_frames(frames, m.nq), stack, cfg,
+                              ignore=[m.geom("box").id])
+    assert np.asarray(cams.pos).shape == (3, 3)
+    assert np.linalg.norm(info["pos_offset"] - dp) < 2e-3, info["pos_offset"]
+    assert np.rad2deg(np.linalg.norm(info["rot_offset"] - dr)) < 0.3, info["rot_offset"]
+    with pytest.raises(ValueError, match="ignore holds geom ids"):
+        V.fit_camera(m, V.check_frames(frames, m.nq), stack, cfg, ignore=[m.ngeom])
+    with pytest.raises(ValueError, match="2 cameras for 3 frames"):
+        V.fit_camera(m, V.check_frames(frames, m.nq),
+                     Camera(stack.pos[:2], stack.quat[:2], stack.fovy[:2], S, S), cfg)
 
 
 def test_bad_frames(push):

@@ -161,8 +161,8 @@ def _state_map(env_name: str):
 def frames_from_dataset(env_name: str, dataset, n: int = 12, seed: int = 0,
                         episodes: Sequence[int] | None = None) -> list[dict]:
     """``n`` frames evenly spread over a dataset recorded with ``twinrl collect --images`` (over
-    the rows of ``episodes`` only, when given: e.g. the loop's round-0 episodes, recorded with
-    the mount at its default pose)."""
+    the rows of ``episodes`` only, when given: e.g. the loop's round-0 episodes), each with the
+    ``episode`` it comes from."""
     from twinrl.real.dataset import Dataset, read
 
     ds = dataset if isinstance(dataset, Dataset) else read(dataset)
@@ -184,7 +184,8 @@ def frames_from_dataset(env_name: str, dataset, n: int = 12, seed: int = 0,
     # images are rendered after the step: they show next_obs's state
     return [{"rgb": ds.images["rgb"][i], "depth": ds.images["depth"][i],
              "segmentation": ds.images["segmentation"][i],
-             "qpos": to_qpos(np.asarray(ds.next_obs[i], np.float64))} for i in idx]
+             "qpos": to_qpos(np.asarray(ds.next_obs[i], np.float64)),
+             "episode": int(ds.episode_id[i])} for i in idx]
 
 
 def check_frames(frames: Sequence[Mapping[str, Any]], nq: int) -> list[dict]:
@@ -244,19 +245,23 @@ def _frame_loss(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms, real:
     point cloud are compared (None: every geom)."""
     im = R.render(cam, geoms, tau=tau, gamma=cfg.gamma)
     rgb_real = real["rgb"].astype(im.rgb.dtype) / 255.0
-    terms = {"rgb": jnp.mean((im.rgb - rgb_real) ** 2)}
+    care = real["care"].astype(im.rgb.dtype)  # 0 on pixels of ignored geoms
+    terms = {"rgb": jnp.sum(care[..., None] * (im.rgb - rgb_real) ** 2)
+             / jnp.maximum(3.0 * jnp.sum(care), 1.0)}
     onehot = (real["segmentation"][..., None] == jnp.asarray(R.geom_ids)).astype(im.rgb.dtype)
+    onehot = onehot * care[..., None]
+    weights = im.weights * care[..., None]
     if focus is None:
-        present = jnp.sum(onehot, (0, 1)) + jnp.sum(im.weights, (0, 1)) > 0
-        ious = jax.vmap(_soft_iou, in_axes=(-1, -1))(im.weights, onehot)
+        present = jnp.sum(onehot, (0, 1)) + jnp.sum(weights, (0, 1)) > 0
+        ious = jax.vmap(_soft_iou, in_axes=(-1, -1))(weights, onehot)
         terms["iou"] = 1.0 - jnp.sum(ious * present) / jnp.maximum(jnp.sum(present), 1)
-        real_w = (real["segmentation"] >= 0).astype(im.rgb.dtype)
-        sim_w = 1.0 - im.background
+        real_w = (real["segmentation"] >= 0).astype(im.rgb.dtype) * care
+        sim_w = (1.0 - im.background) * care
     else:
-        terms["iou"] = 1.0 - _soft_iou(im.weights[..., focus], onehot[..., focus])
+        terms["iou"] = 1.0 - _soft_iou(weights[..., focus], onehot[..., focus])
         real_w = onehot[..., focus]
-        sim_w = im.weights[..., focus]
-    seen = (real["segmentation"] >= 0).astype(im.rgb.dtype)
+        sim_w = weights[..., focus]
+    seen = (real["segmentation"] >= 0).astype(im.rgb.dtype) * care
     terms["depth"] = jnp.sum(seen * jnp.abs(im.depth - real["depth"])) / jnp.maximum(
         jnp.sum(seen), 1.0)
     pts, _ = depth_to_points(cam, real["depth"])
@@ -339,6 +344,7 @@ def _surface_residuals(R: Renderer, cfg: VisualConfig, cam: Camera, geoms: Geoms
     pts, _ = depth_to_points(cam, real["depth"])
     sd = R.sdf(pts, geoms)
     oh = (real["segmentation"].reshape(-1, 1) == jnp.asarray(R.geom_ids)).astype(sd.dtype)
+    oh = oh * real["care"].reshape(-1, 1).astype(sd.dtype)
     if focus is not None:
         oh, sd = oh[:, focus:focus + 1], sd[:, focus:focus + 1]
     n = jnp.sum(oh, 0)
@@ -439,28 +445,58 @@ def _levenberg_marquardt(res_fn, params: dict, keys: Sequence[str], iters: int,
 
 
 # ---------------------------------------------------------------------- camera (a)
-def _apply_camera(cam0: Camera, p) -> Camera:
-    cam = cam0.translated(p["cam_dpos"])
+def _apply_camera(cam0: Camera, p, local: bool = False) -> Camera:
+    """``cam0`` turned by ``p["cam_drot"]`` (in its own frame) and moved by ``p["cam_dpos"]``: in
+    the world frame, or with ``local`` in ``cam0``'s own frame (a hand-eye offset)."""
+    d = p["cam_dpos"]
+    if local:
+        d = quat_to_mat(cam0.quat) @ d
+    cam = cam0.translated(d)
     return dataclasses.replace(cam, quat=quat_mul(cam0.quat, rotvec_to_quat(p["cam_drot"])))
 
 
 @exact_matmuls
 def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = VisualConfig(),
-               seed: int = 0, renderer: Renderer | None = None):
+               seed: int = 0, renderer: Renderer | None = None, ignore: Sequence[int] = ()):
     """(a) Camera position and orientation (relative to ``cam0``, in its own frame as
     ``Perturbation.camera_rot_offset``) from frames of a known scene. Returns ``(camera,
-    info)``."""
+    info)``; ``info["pos_offset"]`` / ``["rot_offset"]`` is the fitted offset (the position's in
+    the world frame for one camera, in each camera's own frame for a stack).
+
+    ``cam0`` is one camera, the same for every frame, or a stack of them (a leading axis, one per
+    frame: ``Camera`` arrays stacked), each frame's *commanded* pose -- a camera on a robot's
+    hand seen from several hand poses. One offset, in each commanded camera's own frame (a
+    hand-eye offset), is then fitted to all frames and ``camera`` is the stack of fitted
+    cameras. From one pose a sideways shift of the camera and a turn of it look alike (the
+    scene is far compared with the shift), so only several poses pin the offset itself.
+
+    ``ignore``: ids of geoms whose pose the recorded state does not give well (a tool in a hand
+    whose grasp is uncertain): left out of the render, and their real pixels out of every term
+    (else the fit turns the camera to bring a misplaced geom's render onto its image)."""
     R = renderer or Renderer.create(model)
+    n = len(frames)
+    batched = jnp.ndim(cam0.pos) == 2
+    if batched and cam0.pos.shape[0] != n:
+        raise ValueError(f"fit_camera: {cam0.pos.shape[0]} cameras for {n} frames")
+    cams0 = cam0 if batched else jax.tree_util.tree_map(
+        lambda a: jnp.broadcast_to(a, (n,) + jnp.shape(a)), cam0)
     geoms = _geoms_of(model, [f["qpos"] for f in frames])
-    frames_c, cam0_c, _ = _coarse(frames, cam0, cfg.coarse_size)
-    reals_c = _stack_real(frames_c)
+    ignore = [int(g) for g in ignore]
+    if ignore:
+        if min(ignore) < 0 or max(ignore) >= model.ngeom:
+            raise ValueError(f"fit_camera: ignore holds geom ids outside 0..{model.ngeom - 1}: "
+                             f"{ignore}")
+        geoms = geoms.replace(xpos=geoms.xpos.at[:, jnp.asarray(ignore), :].add(1e3))  # away
+    frames_c, cams0_c, _ = _coarse(frames, cams0, cfg.coarse_size)
+    reals_c = _stack_real(frames_c, ignore)
     rng = np.random.default_rng(seed)
     pix = _pixel_subset(frames_c, cfg.emd_points, None, rng)
 
     def loss_fn(p, tau):
-        cam = _apply_camera(cam0_c, p)
-        tot, terms = jax.vmap(lambda g, r: _frame_loss(R, cfg, cam, g, r, tau, None, pix))(
-            geoms, reals_c)
+        def one(g, r, c):
+            return _frame_loss(R, cfg, _apply_camera(c, p, batched), g, r, tau, None, pix)
+
+        tot, terms = jax.vmap(one)(geoms, reals_c, cams0_c)
         return jnp.mean(tot), jax.tree_util.tree_map(jnp.mean, terms)
 
     p0 = {"cam_dpos": jnp.zeros(3), "cam_drot": jnp.zeros(3)}
@@ -472,23 +508,30 @@ def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = 
     p, runs = _optimise(loss_fn, p0, cfg, rng, perturb)
     refine = None
     if cfg.refine_iters:
-        reals = _stack_real(frames)
+        reals = _stack_real(frames, ignore)
 
         def residuals(p):
-            cam = _apply_camera(cam0, p)
-            return jax.vmap(lambda g, r: _surface_residuals(R, cfg, cam, g, r, None))(
-                geoms, reals).ravel()
+            def one(g, r, c):
+                return _surface_residuals(R, cfg, _apply_camera(c, p, batched), g, r, None)
+
+            return jax.vmap(one)(geoms, reals, cams0).ravel()
 
         p, refine = _levenberg_marquardt(residuals, p, ("cam_dpos", "cam_drot"),
                                          cfg.refine_iters)
-    return _apply_camera(cam0, p), {"runs": runs, "pos_offset": np.asarray(p["cam_dpos"]),
-                                    "rot_offset": np.asarray(p["cam_drot"]), "refine": refine}
+    cams = jax.vmap(lambda c: _apply_camera(c, p, batched))(cams0)
+    camera = cams if batched else jax.tree_util.tree_map(lambda a: a[0], cams)
+    return camera, {"runs": runs, "pos_offset": np.asarray(p["cam_dpos"]),
+                    "rot_offset": np.asarray(p["cam_drot"]), "refine": refine}
 
 
-def _stack_real(frames):
+def _stack_real(frames, ignore: Sequence[int] = ()):
+    """The frames' images stacked, with ``care``: 0 on the pixels the real segmentation gives to
+    a geom in ``ignore``, else 1."""
+    segs = np.stack([f["segmentation"] for f in frames])
     return {"rgb": jnp.asarray(np.stack([f["rgb"] for f in frames])),
             "depth": jnp.asarray(np.stack([f["depth"] for f in frames])),
-            "segmentation": jnp.asarray(np.stack([f["segmentation"] for f in frames]))}
+            "segmentation": jnp.asarray(segs),
+            "care": jnp.asarray(~np.isin(segs, np.asarray(list(ignore), np.int64)))}
 
 
 def _crop(frame: Mapping[str, Any], row0: int, col0: int, h: int, w: int, step: int) -> dict:

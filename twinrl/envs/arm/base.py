@@ -414,6 +414,21 @@ class CameraMount:
         return dataclasses.replace(self, pos_offset=tuple(float(x) for x in dp),
                                    rot_offset=tuple(float(x) for x in rv))
 
+    def calibration_poses(self, n: int) -> np.ndarray:
+        """``n`` mount poses (unconstrained coordinates, ``(n, 3)``) to calibrate the hand-eye
+        offset from: the default pose first, then poses spread over the middle 70 % of each
+        range (a Halton sequence: deterministic, every prefix well spread). Several are needed:
+        from one pose a sideways shift of the camera and a turn of it give nearly the same
+        image."""
+        if int(n) < 1:
+            raise ValueError(f"calibration_poses: n must be >= 1, got {n}")
+        out = [np.asarray(self.default, np.float64)]
+        for k in range(1, int(n)):
+            u = np.array([_radical_inverse(k, b) for b in (2, 3, 5)])
+            out.append(self.coords_of(self._ranges()[:, 0] + (0.15 + 0.7 * u)
+                                      * np.diff(self._ranges(), axis=1)[:, 0]))
+        return np.stack(out)
+
     def steps_to_move(self, coords_from, coords_to) -> int:
         """Control steps the mount needs between two poses at its speed limit."""
         a = np.asarray(self.spherical(jnp.asarray(coords_from, jnp.float32)))
@@ -850,3 +865,13 @@ class ArmTask(Env):
         start = int(np.clip(first - lead, 0, self.episode_length))
         return Scenario(qpos=qs[start], qvel=vs[start], actions=ctrls[start:start + int(horizon)],
                         horizon=int(horizon))
+
+
+def _radical_inverse(k: int, base: int) -> float:
+    """The ``k``-th element of van der Corput's sequence in ``base`` (Halton's coordinates)."""
+    out, f = 0.0, 1.0 / base
+    while k:
+        k, d = divmod(k, base)
+        out += d * f
+        f /= base
+    return out
