@@ -473,7 +473,17 @@ def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = 
     ``ignore``: ids of geoms whose pose the recorded state does not give well (a tool in a hand
     whose grasp is uncertain): left out of the render, and their real pixels out of every term
     (else the fit turns the camera to bring a misplaced geom's render onto its image)."""
-    R = renderer or Renderer.create(model)
+    ignore = sorted({int(g) for g in ignore})
+    if ignore and (ignore[0] < 0 or ignore[-1] >= model.ngeom):
+        raise ValueError(f"fit_camera: ignore holds geom ids outside 0..{model.ngeom - 1}: "
+                         f"{ignore}")
+    if renderer is None:
+        drawn = Renderer.create(model).geom_ids
+        renderer = Renderer.create(model, geom_ids=[g for g in drawn if g not in ignore])
+    elif set(renderer.geom_ids) & set(ignore):
+        raise ValueError(f"fit_camera: the renderer draws ignored geoms "
+                         f"{sorted(set(renderer.geom_ids) & set(ignore))}")
+    R = renderer
     n = len(frames)
     batched = jnp.ndim(cam0.pos) == 2
     if batched and cam0.pos.shape[0] != n:
@@ -481,12 +491,6 @@ def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = 
     cams0 = cam0 if batched else jax.tree_util.tree_map(
         lambda a: jnp.broadcast_to(a, (n,) + jnp.shape(a)), cam0)
     geoms = _geoms_of(model, [f["qpos"] for f in frames])
-    ignore = [int(g) for g in ignore]
-    if ignore:
-        if min(ignore) < 0 or max(ignore) >= model.ngeom:
-            raise ValueError(f"fit_camera: ignore holds geom ids outside 0..{model.ngeom - 1}: "
-                             f"{ignore}")
-        geoms = geoms.replace(xpos=geoms.xpos.at[:, jnp.asarray(ignore), :].add(1e3))  # away
     frames_c, cams0_c, _ = _coarse(frames, cams0, cfg.coarse_size)
     reals_c = _stack_real(frames_c, ignore)
     rng = np.random.default_rng(seed)
