@@ -270,19 +270,20 @@ def _round0_poses(run: RunContext) -> np.ndarray:
     return poses[np.arange(run.K) % len(poses)]
 
 
-def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
-    """Hand-eye calibration from round 0's frames, each seen from its episode's mount pose ->
-    ``calibration.json`` (the fitted offset, and the camera it gives at the default pose)."""
+def calibrate_mount(env, frames, poses, config, seed: int = 0, *, ignore_tool: bool = True):
+    """Hand-eye calibration of ``env``'s camera mount (``twinrl.real2sim.visual.fit_camera``)
+    from real ``frames`` (checked, ``visual.check_frames``), frame ``i`` taken with the mount
+    commanded to ``poses[i]`` (unconstrained coordinates): frames from one pose fit the camera
+    there, turned into the offset (``CameraMount.with_hand_eye``); frames from several fit one
+    offset, in each commanded camera's frame, to all of them. ``ignore_tool`` leaves the tool
+    (``tool_geoms``) out: its grasp in the hand is not known, and on needle twin 0 its 7 mm /
+    2 deg grasp error pulled the camera 3.8 mm / 0.24 deg off (0.33 mm / 0.015 deg without
+    it). ``config``: a ``visual.VisualConfig``. Returns ``(mount, info)``."""
     from twinrl.real2sim import visual
     from twinrl.render import Camera
 
-    env = run.nominal_env
-    mount = env.mount
-    frames = visual.frames_from_dataset(run.env_name, data, run.config.calibration_frames,
-                                        episodes=range(run.K))
-    poses = _round0_poses(run)[[f["episode"] for f in frames]]
-    model = env.sim.mj_model
-    frames = visual.check_frames(frames, model.nq)
+    mount, model = env.mount, env.sim.mj_model
+    poses = np.asarray(poses, np.float64)
     H, W = frames[0]["depth"].shape
 
     def commanded(c):
@@ -290,23 +291,36 @@ def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
         return Camera(np.asarray(cam.pos, np.float64), np.asarray(cam.quat, np.float64),
                       np.asarray(cam.fovy, np.float64), W, H)
 
+    ignore = tool_geoms(model) if ignore_tool else ()
+    if np.all(poses == poses[0]):  # the camera's pose there, turned into the offset
+        cam, info = visual.fit_camera(model, frames, commanded(poses[0]), config, seed,
+                                      ignore=ignore)
+        return mount.with_hand_eye(cam, poses[0]), info
     cams0 = [commanded(c) for c in poses]
-    one_pose = bool(np.all(poses == poses[0]))
+    stack = Camera(*(np.stack([getattr(c, k) for c in cams0]) for k in ("pos", "quat", "fovy")),
+                   W, H)
+    _, info = visual.fit_camera(model, frames, stack, config, seed, ignore=ignore)
+    return dataclasses.replace(mount, pos_offset=tuple(float(x) for x in info["pos_offset"]),
+                               rot_offset=tuple(float(x) for x in info["rot_offset"])), info
+
+
+def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
+    """Hand-eye calibration from round 0's frames, each seen from its episode's mount pose ->
+    ``calibration.json`` (the fitted offset, and the camera it gives at the default pose)."""
+    from twinrl.real2sim import visual
+
+    env = run.nominal_env
+    frames = visual.frames_from_dataset(run.env_name, data, run.config.calibration_frames,
+                                        episodes=range(run.K))
+    poses = _round0_poses(run)[[f["episode"] for f in frames]]
+    frames = visual.check_frames(frames, env.sim.mj_model.nq)
+    H, W = frames[0]["depth"].shape
     run.say(f"  hand-eye calibration on {len(frames)} real frames from "
-            f"{len(np.unique(poses, axis=0))} mount poses ...")
+            f"{len(np.unique(poses, axis=0))} mount pose(s) ...")
     t0 = time.perf_counter()
     cfg = visual.VisualConfig(steps=run.config.calibration_steps,
                               restarts=run.config.calibration_restarts)
-    tool = tool_geoms(model)  # its grasp in the hand is not known: left out
-    if one_pose:  # the camera's pose there, turned into the offset
-        cam, info = visual.fit_camera(model, frames, cams0[0], cfg, run.seed + r, ignore=tool)
-        mount = mount.with_hand_eye(cam, poses[0])
-    else:  # one offset, in each commanded camera's frame, fitted to every pose's frames
-        stack = Camera(*(np.stack([getattr(c, k) for c in cams0]) for k in ("pos", "quat",
-                                                                             "fovy")), W, H)
-        _, info = visual.fit_camera(model, frames, stack, cfg, run.seed + r, ignore=tool)
-        mount = dataclasses.replace(mount, pos_offset=tuple(float(x) for x in info["pos_offset"]),
-                                    rot_offset=tuple(float(x) for x in info["rot_offset"]))
+    mount, info = calibrate_mount(env, frames, poses, cfg, run.seed + r)
     cam = mount.camera(np.asarray(mount.default, np.float32), W, H)
     report.write_json(rdir / "calibration.json", {
         "camera": {"pos": np.asarray(cam.pos), "quat": np.asarray(cam.quat),

@@ -1,0 +1,132 @@
+"""Hand-eye calibration of the arm tasks' camera mount, as the SAM-RL loop does it, against the
+hidden truth: with the tool in the fit and left out, from one mount pose or several.
+
+Per task and twin seed: records ``--episodes`` round-0 episodes of the loop's exciting motions
+on the real twin the loop would face (``twinrl run --seed S``: the seed's default salt; the
+dataset is kept in ``OUT/TASK-S-P/`` and reused), seen from ``P`` mount poses
+(``CameraMount.calibration_poses``; ``--poses 1 5``), then fits the mount's offset
+(``loop_arm.calibrate_mount``, the loop's settings: ``--frames`` frames, 150 Adam steps, one
+start) with the tool in the fit and without it (``--variants``), and scores each against the
+twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only).
+
+Prints a table and writes ``OUT/hand_eye.json``. About 3-6 minutes per fit on 2 cores.
+
+    python bench/hand_eye.py --tasks needle_threading --seeds 0 --out B
+    python bench/hand_eye.py --tasks peg_insertion spatula_flipping --seeds 0 1 2 --out B
+    python bench/hand_eye.py --tasks needle_threading --seeds 0 --poses 1 5 --out B
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import twinrl  # noqa: F401  (compilation cache)
+from twinrl import envs
+from twinrl import eval as evaluation
+from twinrl.report import print_table, run_meta, write_json
+
+TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
+VARIANTS = ("tool-out", "tool-in")
+
+
+def record(task: str, seed: int, poses: np.ndarray, episodes: int, out: Path):
+    """Round 0 of the loop (its excitation, reset seeds and images) on the twin ``twinrl run
+    --seed seed`` faces, episode ``e`` seen from ``poses[e % len(poses)]``; kept in ``out``."""
+    from twinrl.real.dataset import DatasetWriter, read
+    from twinrl.real.remote import TwinClient
+    from twinrl.real.twin import record_episode
+    from twinrl.real2sim import sysid
+
+    env = envs.make(task)
+    if (out / "dataset" / "meta.json").exists():
+        data = read(out / "dataset")
+        if len(set(np.asarray(data.episode_id).tolist())) >= episodes:
+            return data
+    n = int(env.config.image_size)
+    twin = TwinClient(task, seed=seed, secret=out / "eval" / "twin.json", width=n, height=n)
+    try:
+        obs0, _ = twin.reset(seed=seed)
+        shapes = {"rgb": (n, n, 3), "depth": (n, n), "segmentation": (n, n)}
+        with DatasetWriter(out / "dataset", env=task, obs_shape=obs0.shape,
+                           action_shape=twin.action_space.shape, obs_dtype=np.float32,
+                           action_dtype=np.float32, image_shapes=shapes) as w:
+            for e in range(w.episode_id, episodes):
+                acts = sysid.excitation_actions(np.random.default_rng([seed, e]),
+                                                env.episode_length, env.action_size)
+                obs, _ = twin.reset(seed=seed + e)
+                twin.move_camera(poses[e % len(poses)])
+                record_episode(twin, w, lambda o, t, a=acts: a[min(t, len(a) - 1)], obs,
+                               images=True)
+    finally:
+        twin.close()
+    return read(out / "dataset")
+
+
+def run(args) -> list[dict]:
+    from twinrl.loop_arm import calibrate_mount
+    from twinrl.real2sim import visual
+
+    rows = []
+    for task in args.tasks:
+        env = envs.make(task)
+        for seed in args.seeds:
+            for n_poses in args.poses:
+                poses = env.mount.calibration_poses(n_poses)
+                d = args.out / f"{task}-{seed}-{n_poses}"
+                data = record(task, seed, poses, args.episodes, d)
+                frames = visual.frames_from_dataset(task, data, args.frames,
+                                                    episodes=range(args.episodes))
+                at = poses[[f["episode"] % len(poses) for f in frames]]
+                frames = visual.check_frames(frames, env.sim.mj_model.nq)
+                for variant in args.variants:
+                    t0 = time.perf_counter()
+                    mount, _ = calibrate_mount(env, frames, at,
+                                               visual.VisualConfig(steps=150, restarts=1),
+                                               seed + 1, ignore_tool=variant == "tool-out")
+                    err = evaluation.hand_eye_errors(task, seed, mount,
+                                                     secret=d / "eval" / "twin.json")
+                    rows.append({"task": task, "seed": seed, "poses": n_poses,
+                                 "variant": variant, "frames": len(frames),
+                                 "seconds": time.perf_counter() - t0, **err})
+                    print(f"  {task} seed {seed}, {n_poses} pose(s), {variant}: "
+                          f"{err['hand_eye_pos_err_mm']:.2f} mm / "
+                          f"{err['hand_eye_rot_err_deg']:.3f} deg", flush=True)
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--tasks", nargs="+", choices=TASKS, default=["needle_threading"])
+    p.add_argument("--seeds", nargs="+", type=int, default=[0])
+    p.add_argument("--poses", nargs="+", type=int, default=[1],
+                   help="mount poses round 0 is spread over (one value per case)")
+    p.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
+    p.add_argument("--episodes", type=int, default=5)
+    p.add_argument("--frames", type=int, default=10)
+    p.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = p.parse_args(argv)
+    if min(args.poses) < 1 or args.episodes < 1 or args.frames < 1:
+        p.error("--poses, --episodes and --frames must be >= 1")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = run(args)
+    write_json(args.out / "hand_eye.json", {"meta": run_meta(args), "rows": rows})
+    print_table("hand-eye calibration against the hidden offset",
+                ["task", "seed", "poses", "tool", "frames", "position (mm)", "rotation (deg)",
+                 "uncalibrated", "seconds"],
+                [[r["task"], r["seed"], r["poses"], r["variant"].removeprefix("tool-"),
+                  r["frames"], f"{r['hand_eye_pos_err_mm']:.2f}",
+                  f"{r['hand_eye_rot_err_deg']:.3f}",
+                  f"{r['uncalibrated_pos_err_mm']:.1f} mm / "
+                  f"{r['uncalibrated_rot_err_deg']:.2f} deg", f"{r['seconds']:.0f}"]
+                 for r in rows])
+    print(f"wrote {args.out / 'hand_eye.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
