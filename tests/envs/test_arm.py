@@ -517,3 +517,15 @@ def test_calibration_poses_start_at_the_default_and_spread_over_the_workspace():
     assert gaps[~np.eye(5, dtype=bool)].min() > 0.1, gaps
     with pytest.raises(ValueError, match="n must be >= 1"):
         mount.calibration_poses(0)
+
+
+def test_tool_geoms_are_the_tools_and_nothing_else():
+    """``loop_arm.tool_geoms``: what the hand-eye calibration leaves out (the tool, whose grasp
+    in the hand is not known) -- every geom of body ``tool`` and below it, no arm or scene
+    geom."""
+    from twinrl.loop_arm import tool_geoms
+
+    for task, names in (("needle_threading", {"thread"}), ("peg_insertion", {"peg"}),
+                        ("spatula_flipping", {"handle", "blade", "blade0", "blade1", "blade2"})):
+        m = envs.make(task).sim.mj_model
+        assert {m.geom(g).name for g in tool_geoms(m)} == names, task
