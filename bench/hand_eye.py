@@ -37,10 +37,9 @@ VARIANTS = ("tool-out", "tool-in")
 def record(task: str, seed: int, poses: np.ndarray, episodes: int, out: Path):
     """Round 0 of the loop (its excitation, reset seeds and images) on the twin ``twinrl run
     --seed seed`` faces, episode ``e`` seen from ``poses[e % len(poses)]``; kept in ``out``."""
+    from twinrl.loop_arm import record_round0
     from twinrl.real.dataset import DatasetWriter, read
     from twinrl.real.remote import TwinClient
-    from twinrl.real.twin import record_episode
-    from twinrl.real2sim import sysid
 
     env = envs.make(task)
     if (out / "dataset" / "meta.json").exists():
@@ -55,13 +54,8 @@ def record(task: str, seed: int, poses: np.ndarray, episodes: int, out: Path):
         with DatasetWriter(out / "dataset", env=task, obs_shape=obs0.shape,
                            action_shape=twin.action_space.shape, obs_dtype=np.float32,
                            action_dtype=np.float32, image_shapes=shapes) as w:
-            for e in range(w.episode_id, episodes):
-                acts = sysid.excitation_actions(np.random.default_rng([seed, e]),
-                                                env.episode_length, env.action_size)
-                obs, _ = twin.reset(seed=seed + e)
-                twin.move_camera(poses[e % len(poses)])
-                record_episode(twin, w, lambda o, t, a=acts: a[min(t, len(a) - 1)], obs,
-                               images=True)
+            at = poses[np.arange(episodes) % len(poses)]
+            record_round0(twin, w, env, seed, at, range(w.episode_id, episodes))
     finally:
         twin.close()
     return read(out / "dataset")

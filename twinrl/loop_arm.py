@@ -226,30 +226,34 @@ def is_arm_task(env_name: str) -> bool:
 
 # ------------------------------------------------------------------------------ the stages
 def _collect(run: RunContext, r: int, rdir: Path) -> None:
-    """Round 0: ``K`` episodes of exciting motions, episode ``e`` seen from the mount at
-    ``_round0_poses(...)[e]`` (the moves' steps counted), recorded with every step's frame
-    (those the dataset already holds are not recorded again); the mount goes back to its
-    default pose at the end."""
-    from twinrl.real.twin import record_episode
-    from twinrl.real2sim import sysid
-
-    K, T = run.K, run.nominal_env.episode_length
+    """Round 0: ``K`` episodes of exciting motions (``record_round0``), recorded with every
+    step's frame (those the dataset already holds are not recorded again)."""
+    K = run.K
     have = episodes_in(run.out / "dataset")
-    poses = _round0_poses(run)
     run.say(f"[bold]round 0[/]: recording {K - have} exciting episodes with images"
             f"{f' ({have} already recorded)' if have else ''}")
     t0 = time.perf_counter()
-    camera_steps = 0
-    for e in range(have, K):
-        acts = sysid.excitation_actions(np.random.default_rng([run.seed, e]), T,
-                                        run.nominal_env.action_size)
-        obs, _ = run.twin.reset(seed=run.seed + e)
-        camera_steps += int(run.twin.move_camera(poses[e]))
-        record_episode(run.twin, run.writer, lambda o, t, a=acts: a[min(t, T - 1)], obs,
-                       images=True)
-    camera_steps += int(run.twin.move_camera(run.nominal_env.mount.default))
+    camera_steps = record_round0(run.twin, run.writer, run.nominal_env, run.seed,
+                                 _round0_poses(run), range(have, K))
     run.prog.mark("round0/collect", real_steps=int(len(read_dataset(run.out / "dataset"))),
                   camera_steps=camera_steps, seconds={"collect": time.perf_counter() - t0})
+
+
+def record_round0(twin, writer, env, seed: int, poses, episodes) -> int:
+    """The loop's round-0 episodes ``episodes`` on ``twin`` (reset with seed ``seed + e``, the
+    exciting motions ``sysid.excitation_actions`` draws for ``[seed, e]``), episode ``e`` seen
+    from the mount at ``poses[e]``, recorded with every step's frame by ``writer``; the mount
+    goes back to its default pose at the end. Returns the camera moves' steps."""
+    from twinrl.real.twin import record_episode
+    from twinrl.real2sim import sysid
+
+    T, steps = env.episode_length, 0
+    for e in episodes:
+        acts = sysid.excitation_actions(np.random.default_rng([seed, e]), T, env.action_size)
+        obs, _ = twin.reset(seed=seed + e)
+        steps += int(twin.move_camera(poses[e]))
+        record_episode(twin, writer, lambda o, t, a=acts: a[min(t, T - 1)], obs, images=True)
+    return steps + int(twin.move_camera(env.mount.default))
 
 
 def tool_geoms(model) -> list[int]:
@@ -279,6 +283,8 @@ def calibrate_mount(env, frames, poses, config, seed: int = 0, *, ignore_tool: b
     (``tool_geoms``) out: its grasp in the hand is not known, and on needle twin 0 its 7 mm /
     2 deg grasp error pulled the camera 3.8 mm / 0.24 deg off (0.33 mm / 0.015 deg without
     it). ``config``: a ``visual.VisualConfig``. Returns ``(mount, info)``."""
+    import jax
+
     from twinrl.real2sim import visual
     from twinrl.render import Camera
 
@@ -296,9 +302,7 @@ def calibrate_mount(env, frames, poses, config, seed: int = 0, *, ignore_tool: b
         cam, info = visual.fit_camera(model, frames, commanded(poses[0]), config, seed,
                                       ignore=ignore)
         return mount.with_hand_eye(cam, poses[0]), info
-    cams0 = [commanded(c) for c in poses]
-    stack = Camera(*(np.stack([getattr(c, k) for c in cams0]) for k in ("pos", "quat", "fovy")),
-                   W, H)
+    stack = jax.tree_util.tree_map(lambda *a: np.stack(a), *[commanded(c) for c in poses])
     _, info = visual.fit_camera(model, frames, stack, config, seed, ignore=ignore)
     return dataclasses.replace(mount, pos_offset=tuple(float(x) for x in info["pos_offset"]),
                                rot_offset=tuple(float(x) for x in info["rot_offset"])), info

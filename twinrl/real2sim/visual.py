@@ -478,8 +478,10 @@ def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = 
         raise ValueError(f"fit_camera: ignore holds geom ids outside 0..{model.ngeom - 1}: "
                          f"{ignore}")
     if renderer is None:
-        drawn = Renderer.create(model).geom_ids
-        renderer = Renderer.create(model, geom_ids=[g for g in drawn if g not in ignore])
+        renderer = Renderer.create(model)
+        if ignore:
+            renderer = Renderer.create(model, geom_ids=[g for g in renderer.geom_ids
+                                                        if g not in ignore])
     elif set(renderer.geom_ids) & set(ignore):
         raise ValueError(f"fit_camera: the renderer draws ignored geoms "
                          f"{sorted(set(renderer.geom_ids) & set(ignore))}")
