@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 __all__ = ["param_errors", "real_return", "policy_real_return", "oracle_return",
-           "visual_errors", "hand_eye_errors", "deployed_success"]
+           "visual_errors", "hand_eye_errors", "grasp_errors", "deployed_success"]
 
 
 def _twin(env_name, seed, perturbation=None, secret=None, **kwargs):
@@ -164,6 +164,45 @@ def hand_eye_errors(env_name, seed, mount, perturbation=None, secret=None) -> di
             "hand_eye_rot_err_deg": rot_err(mount.rot_offset, p.camera_rot_offset),
             "uncalibrated_pos_err_mm": float(np.linalg.norm(true_pos) * 1e3),
             "uncalibrated_rot_err_deg": rot_err(np.zeros(3), p.camera_rot_offset)}
+
+
+def grasp_errors(env_name, seed, pos_offset, rot_offset, perturbation=None,
+                 secret=None) -> dict[str, float]:
+    """An identified grasp of the tool (``ArmTask.set_grasp``'s offsets) against the real twin's
+    hidden one: the error (mm) of the controller's tool centre point it puts in the hand (what
+    the task's success is judged at), of the tool frame's origin, and its rotation error (deg;
+    a turn about a round tool's own axis included, though no image shows it), with the same
+    for the nominal grasp (none identified)."""
+    import mujoco
+
+    from twinrl import envs
+    from twinrl.real.perturbation import rotvec_quat
+
+    twin = _twin(env_name, seed, perturbation, secret)
+    try:
+        p = twin.oracle().perturbation
+    finally:
+        twin.close()
+    tcp = np.asarray(envs.make(env_name).controller.tcp, np.float64)
+
+    def mat(rotvec):
+        m = np.empty(9)
+        mujoco.mju_quat2Mat(m, rotvec_quat(np.asarray(rotvec, np.float64)))
+        return m.reshape(3, 3)
+
+    def errs(pos, rot):
+        Rt, Rf = mat(p.tool_rot_offset), mat(rot)
+        tip_t = np.asarray(p.tool_pos_offset, np.float64) + Rt @ tcp
+        tip_f = np.asarray(pos, np.float64) + Rf @ tcp
+        cos = np.clip((np.trace(Rt.T @ Rf) - 1) / 2, -1.0, 1.0)
+        return (float(np.linalg.norm(tip_f - tip_t) * 1e3),
+                float(np.linalg.norm(np.asarray(pos) - np.asarray(p.tool_pos_offset)) * 1e3),
+                float(np.rad2deg(np.arccos(cos))))
+
+    fit, nominal = errs(pos_offset, rot_offset), errs(np.zeros(3), np.zeros(3))
+    return {"grasp_tcp_err_mm": fit[0], "grasp_pos_err_mm": fit[1], "grasp_rot_err_deg": fit[2],
+            "nominal_tcp_err_mm": nominal[0], "nominal_pos_err_mm": nominal[1],
+            "nominal_rot_err_deg": nominal[2]}
 
 
 def deployed_success(env_name, seed, deployer, config, perturbation=None, secret=None,

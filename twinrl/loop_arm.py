@@ -14,7 +14,9 @@ a killed run resumes at the stage it was in):
    the recorded states, from each frame's commanded mount pose, match round 0's real frames
    (``twinrl.real2sim.visual.fit_camera`` with a stack of cameras; the tool, whose grasp is
    not known, left out), kept as the identified ``System``'s ``"mount"`` camera, so every later
-   render and back-projection of the target uses it;
+   render and back-projection of the target uses it; then, with that camera, the tool's grasp
+   in the hand (``visual.fit_body_offset``; ``ArmLoopConfig.grasp``), kept as the ``System``'s
+   ``objects["tool"]``, so the twin's tool, reward and success sit where the real tool does;
 2. **sysid** (``ArmLoopConfig.sysid``): the action latency and the joints' servo gains and
    damping from round 0's transitions (``twinrl.real2sim.sysid``), else the nominal ones;
 3. **plan**: trajectory-optimised demonstrations in the identified twin (``twinrl.learn.plans``);
@@ -120,6 +122,13 @@ class ArmLoopConfig:
     """Random restarts of the calibration (``VisualConfig.restarts``). One, from the nominal
     pose: a hand-eye offset is small (peg twin 3: 3.4 cm, 1.1 deg), and the nominal start alone
     finds it to 0.6 mm / 0.04 deg, where 3 restarts took 273 s on 2 cores."""
+    grasp: bool = True
+    """After the calibration, identify the tool's grasp in the hand from the same frames
+    (``visual.fit_body_offset`` on body ``tool``, the calibrated camera held), kept as the
+    ``System``'s ``objects["tool"]`` (``ArmTask.set_grasp``): the twin's tool, its reward and
+    its success then sit where the real tool does. Needs ``calibrate``. On needle twin 0's
+    round-0 frames (hidden grasp: the thread's tip 8.6 mm from nominal) the fitted tip is
+    0.75 mm from the truth."""
     sysid: bool = True
     """Identify the action latency and the arm's servo dynamics (joint gains and damping) from
     round 0's transitions (``_sysid_config``; 4 min on 2 cores). On needle twin 2 the twin's
@@ -326,16 +335,47 @@ def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
                               restarts=run.config.calibration_restarts)
     mount, info = calibrate_mount(env, frames, poses, cfg, run.seed + r)
     cam = mount.camera(np.asarray(mount.default, np.float32), W, H)
+    grasp, errors = None, {}
+    if run.config.grasp:
+        run.say("  the tool's grasp in the hand, from the same frames ...")
+        g = fit_grasp(env, mount, frames, poses, cfg, run.seed + r)
+        grasp = {"pos_offset": g["pos_offset"], "rot_offset": g["rot_offset"],
+                 "loss": min(x["final_loss"] for x in g["runs"])}
+        errors = evaluation.grasp_errors(run.env_name, run.seed, g["pos_offset"],
+                                         g["rot_offset"], run.perturbation, run.secret)
     report.write_json(rdir / "calibration.json", {
         "camera": {"pos": np.asarray(cam.pos), "quat": np.asarray(cam.quat),
                    "fovy": np.asarray(cam.fovy), "width": W, "height": H},
         "pos_offset": mount.pos_offset, "rot_offset": mount.rot_offset, "frames": len(frames),
         "poses": len(np.unique(poses, axis=0)),
-        "loss": min(x["final_loss"] for x in info["runs"])})
+        "loss": min(x["final_loss"] for x in info["runs"]), "grasp": grasp})
     run.ev.mark(f"round{r}/calibrate", **evaluation.hand_eye_errors(
-        run.env_name, run.seed, mount, run.perturbation, run.secret))
+        run.env_name, run.seed, mount, run.perturbation, run.secret), **errors)
     run.prog.mark(f"round{r}/calibrate",
                   seconds=seconds_so_far(run.prog, r, calibrate=time.perf_counter() - t0))
+
+
+def fit_grasp(env, mount, frames, poses, config, seed: int = 0) -> dict:
+    """The tool's grasp in the hand (``visual.fit_body_offset`` of body ``tool``) from real
+    ``frames``, frame ``i`` taken with the calibrated ``mount`` (``calibrate_mount``'s)
+    commanded to ``poses[i]``. ``config``: a ``visual.VisualConfig``. Returns the fit's dict
+    (``pos_offset``, ``rot_offset``: ``ArmTask.set_grasp``'s arguments)."""
+    import jax
+
+    from twinrl.real2sim import visual
+    from twinrl.render import Camera
+
+    H, W = frames[0]["depth"].shape
+
+    def camera(c):
+        cam = mount.camera(np.asarray(c, np.float32), W, H)
+        return Camera(np.asarray(cam.pos, np.float64), np.asarray(cam.quat, np.float64),
+                      np.asarray(cam.fovy, np.float64), W, H)
+
+    poses = np.asarray(poses, np.float64)
+    cams = (camera(poses[0]) if np.all(poses == poses[0]) else
+            jax.tree_util.tree_map(lambda *a: np.stack(a), *[camera(c) for c in poses]))
+    return visual.fit_body_offset(env.sim.mj_model, frames, cams, "tool", config, seed)
 
 
 def _load_camera(run: RunContext, rdir: Path, data) -> dict[str, Any]:
@@ -343,15 +383,17 @@ def _load_camera(run: RunContext, rdir: Path, data) -> dict[str, Any]:
 
     f = rdir / "calibration.json"
     if not run.config.calibrate or not f.exists():
-        return {"camera": None}
-    c = json.loads(f.read_text())["camera"]
+        return {"camera": None, "grasp": None}
+    doc = json.loads(f.read_text())
+    c = doc["camera"]
     return {"camera": Camera(np.asarray(c["pos"]), np.asarray(c["quat"]),
-                             np.asarray(c["fovy"]), int(c["width"]), int(c["height"]))}
+                             np.asarray(c["fovy"]), int(c["width"]), int(c["height"])),
+            "grasp": doc.get("grasp")}
 
 
-def _system(run: RunContext, r: int, rdir: Path, data, camera) -> None:
+def _system(run: RunContext, r: int, rdir: Path, data, camera, grasp=None) -> None:
     """The identified ``System`` -> ``system.json``: sysid's parameters and latency (or the
-    nominal ones) with the calibrated mount camera."""
+    nominal ones) with the calibrated mount camera and the tool's identified grasp."""
     from twinrl.envs.system import System
 
     t0 = time.perf_counter()
@@ -366,6 +408,9 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera) -> None:
             run.env_name, run.seed, res, run.perturbation, run.secret))
     if camera is not None:
         system = system.replace(cameras={"mount": camera})
+    if grasp is not None:
+        system = system.replace(objects={"tool": {
+            k: np.asarray(grasp[k], np.float64) for k in ("pos_offset", "rot_offset")}})
     system.save(rdir / "system.json")
     run.prog.mark(f"round{r}/sysid", latency=system.latency,
                   seconds=seconds_so_far(run.prog, r, sysid=time.perf_counter() - t0))
@@ -557,9 +602,9 @@ ARM_COLLECT = Stage("collect", needs=(), gives=(), make=_collect)
 """Round 0's stage."""
 
 ARM_ROUND = (
-    Stage("calibrate", needs=("data",), gives=("camera",), make=_calibrate, load=_load_camera,
-          enabled=lambda c: c.calibrate),
-    Stage("sysid", needs=("data", "camera"), gives=("system", "env"), make=_system,
+    Stage("calibrate", needs=("data",), gives=("camera", "grasp"), make=_calibrate,
+          load=_load_camera, enabled=lambda c: c.calibrate),
+    Stage("sysid", needs=("data", "camera", "grasp"), gives=("system", "env"), make=_system,
           load=_load_system),
     Stage("plan", needs=("env",), gives=(), make=_plan),
     Stage("imitation", needs=("env",), gives=(), make=_imitate),

@@ -529,3 +529,40 @@ def test_tool_geoms_are_the_tools_and_nothing_else():
                         ("spatula_flipping", {"handle", "blade", "blade0", "blade1", "blade2"})):
         m = envs.make(task).sim.mj_model
         assert {m.geom(g).name for g in tool_geoms(m)} == names, task
+
+
+def test_set_grasp_moves_the_tool_as_the_real_twins_perturbation_does():
+    # The identified grasp (System.objects["tool"]) moves the simulator's tool body exactly as
+    # the real twin's hidden Perturbation moves its own, and tool_pose (reward, success, the
+    # image observation's "tool") is the controller's tool centre point carried by that body.
+    import copy
+
+    from twinrl.envs.system import System
+
+    pos, rot = np.array([0.004, -0.003, 0.006]), np.array([0.03, -0.02, 0.05])
+    system = System.nominal("needle_threading").replace(
+        objects={"tool": {"pos_offset": pos, "rot_offset": rot}})
+    env = envs.make("needle_threading", system=System.from_json(system.to_json()))
+    nominal = envs.make("needle_threading")
+    real = copy.deepcopy(nominal.sim.mj_model)
+    Perturbation(tool_pos_offset=tuple(pos), tool_rot_offset=tuple(rot)).apply(real)
+    m = env.sim.mj_model
+    t = m.body("tool").id
+    np.testing.assert_allclose(m.body_pos[t], real.body_pos[t], atol=1e-12)
+    np.testing.assert_allclose(m.body_quat[t], real.body_quat[t], atol=1e-9)
+    q = np.zeros(m.nq)
+    q[:7] = np.asarray(nominal._q_start)
+    d = mujoco.MjData(m)
+    d.qpos[:] = q
+    mujoco.mj_kinematics(m, d)
+    tip, R = env.tool_pose(jnp.asarray(q))
+    Rt = d.xmat[t].reshape(3, 3)
+    np.testing.assert_allclose(np.asarray(tip), d.xpos[t] + Rt @ np.asarray(env.controller.tcp),
+                               atol=1e-6)
+    np.testing.assert_allclose(np.asarray(R), Rt, atol=1e-6)
+    # the nominal task's tip is 7 mm away, and its thread is where the grasp puts it
+    far = np.linalg.norm(np.asarray(nominal.tool_point(jnp.asarray(q))) - np.asarray(tip))
+    assert far > 5e-3
+    np.testing.assert_allclose(np.asarray(env.thread(jnp.asarray(q))[0]), np.asarray(tip))
+    with pytest.raises(ValueError, match="non-finite grasp"):
+        env.set_grasp((np.nan, 0, 0), (0, 0, 0))

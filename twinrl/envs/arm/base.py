@@ -25,6 +25,7 @@ while a second arm moves an RGB-D camera).
 from __future__ import annotations
 
 import dataclasses
+import copy
 import functools
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -528,6 +529,49 @@ class ArmTask(Env):
         cam = (getattr(value, "cameras", None) or {}).get("mount")
         if cam is not None and not isinstance(cam.pos, jax.core.Tracer):
             self.mount = type(self).mount.with_hand_eye(cam)
+        tool = (getattr(value, "objects", None) or {}).get("tool")
+        if tool is not None and not isinstance(tool["pos_offset"], jax.core.Tracer):
+            self.set_grasp(tool["pos_offset"], tool["rot_offset"])
+
+    grasp: tuple[np.ndarray, np.ndarray] | None = None
+    """The tool's grasp in the hand as identified (``set_grasp``): ``(position offset (3,) in
+    the hand's frame, rotation (3, 3) of the tool from its nominal orientation)``; None: the
+    nominal grasp the MJCF writes."""
+
+    def set_grasp(self, pos_offset, rot_offset) -> None:
+        """Hold the tool ``pos_offset`` (m, the hand's frame) from where the MJCF puts it, turned
+        by ``rot_offset`` (axis-angle, rad, in the tool's frame) -- ``Perturbation``'s
+        ``tool_pos_offset`` / ``tool_rot_offset``, as ``visual.fit_body_offset`` identifies them
+        from images (``System.objects["tool"]``). The simulator's ``tool`` body moves (its
+        contacts, its renders) and so does every tool point the task judges (``tool_pose``: the
+        reward, success, the image observation's "tool"); the controller still servos the
+        *nominal* tool centre point, as the robot's Cartesian interface does."""
+        import mujoco
+
+        from twinrl.render import rotvec_to_quat
+        from twinrl.render.camera import quat_to_mat
+
+        pos = np.asarray(pos_offset, np.float64).reshape(3)
+        rot = np.asarray(rot_offset, np.float64).reshape(3)
+        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(rot))):
+            raise ValueError(f"set_grasp: non-finite grasp offset {pos}, {rot}")
+        nominal = self.__dict__.setdefault("_nominal_sim", self.sim)
+        model = copy.deepcopy(nominal.mj_model)
+        tool = model.body("tool").id
+        model.body_pos[tool] = nominal.mj_model.body_pos[tool] + pos
+        q = np.zeros(4)
+        mujoco.mju_mulQuat(q, nominal.mj_model.body_quat[tool].copy(),
+                           np.asarray(rotvec_to_quat(jnp.asarray(rot)), np.float64))
+        model.body_quat[tool] = q
+        # the constants compiled from the bodies' poses, as the real twin's Perturbation does
+        # (the contact regulariser's invweight0 kept: MJX takes it from the nominal model)
+        keep = {k: getattr(model, k).copy() for k in ("body_invweight0", "dof_invweight0")}
+        mujoco.mj_setConst(model, mujoco.MjData(model))
+        for k, v in keep.items():
+            getattr(model, k)[:] = v
+        self.sim = nominal.recompiled(model)
+        self.grasp = (pos, np.asarray(quat_to_mat(rotvec_to_quat(jnp.asarray(rot))), np.float64))
+        self.__dict__.pop("renderer", None)
 
     def set_posture(self, q_start) -> None:
         """Hold the controller's null space at ``q_start`` (the task's start posture)."""
@@ -540,9 +584,20 @@ class ArmTask(Env):
         # any actuators after the arm's 7 servos (none in the bundled tasks) hold 0
         return jnp.concatenate([target, jnp.zeros(self.sim.nu - N_JOINTS, target.dtype)])
 
+    def tool_pose(self, qpos) -> tuple[jax.Array, jax.Array]:
+        """World ``(position, rotation)`` of the controller's tool centre point, carried by the
+        tool at its identified grasp (``set_grasp``; the nominal kinematics' without one)."""
+        if self.grasp is None:
+            return forward_kinematics(qpos[:N_JOINTS], self.controller.tcp)
+        _, _, p, R = joint_frames(qpos[:N_JOINTS])
+        dt = p.dtype
+        pos, Rg = (jnp.asarray(x, dt) for x in self.grasp)
+        mount = jnp.array([0.0, 0.0, TOOL_MOUNT], dt)
+        return p + R @ (mount + pos + Rg @ jnp.asarray(self.controller.tcp, dt)), R @ Rg
+
     def tool_point(self, qpos) -> jax.Array:
-        """World position of the controller's tool centre point (from the nominal kinematics)."""
-        return forward_kinematics(qpos[:N_JOINTS], self.controller.tcp)[0]
+        """World position of the controller's tool centre point (``tool_pose``'s)."""
+        return self.tool_pose(qpos)[0]
 
     # ------------------------------------------------------------------ initial guesses
     def approach_point(self, qpos) -> jax.Array | None:
@@ -615,7 +670,7 @@ class ArmTask(Env):
         "camera": the commanded pose as fractions (3,) of the mount's azimuth, elevation and
         distance ranges (bounded, so an ascent of Q cannot push a network's input outside what it
         was trained on), "pixels/mount": (n, n, 5) RGB, depth (m) and the target's mask, "tool":
-        the tool point by the nominal kinematics of the measured joints (3,), "target":
+        the tool point (``tool_pose``) of the measured joints (3,), "target":
         ``target_cloud`` of the depth and mask, back-projected from the commanded pose (7,),
         "reach": the target cloud's mean minus the tool point (3,; 0 where the target is not
         seen),

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.envs.arm.base import (ARM_PERTURBATIONS, ArmConfig, ArmTask, CameraMount,
-                                  CartesianController, forward_kinematics, ik, solve_ik)
+                                  CartesianController, ik, solve_ik)
 from twinrl.envs.base import small_control, tolerance
 
 __all__ = ["NeedleThreading", "NeedleThreadingConfig", "THROUGH"]
@@ -117,8 +117,9 @@ class NeedleThreading(ArmTask):
         return centre, R
 
     def thread(self, qpos) -> tuple[jax.Array, jax.Array]:
-        """The thread's tip and base (where it leaves the hand), world."""
-        tip, R = forward_kinematics(qpos[:7], TCP)
+        """The thread's tip and base (where it leaves the hand), world (at the identified grasp,
+        ``ArmTask.tool_pose``)."""
+        tip, R = self.tool_pose(qpos)
         return tip, tip - THREAD_LENGTH * R[:, 2]
 
     def _in_eye_frame(self, qpos, tool=None):
@@ -203,7 +204,7 @@ class NeedleThreading(ArmTask):
     def success(self, qpos, qvel, tool=None) -> jax.Array:
         """1.0 when the tip is ``THROUGH`` past the eye's plane and the thread crosses the plane
         inside the slot, else 0.0. ``tool``: the true tip's ``(position, rotation)`` (default:
-        the nominal kinematics')."""
+        ``tool_pose``'s, at the identified grasp)."""
         tip_e, base_e = self._in_eye_frame(qpos, tool)
         span = tip_e[0] - base_e[0]
         lam = jnp.clip(-base_e[0] / jnp.where(span > 0, span, 1.0), 0.0, 1.0)

@@ -151,7 +151,7 @@ class PegInsertion(ArmTask):
 
     def success(self, qpos, qvel, tool=None) -> jax.Array:
         """1.0 when the peg's tip is in the hole, ``INSERTED_DEPTH`` below its top, else 0.0.
-        ``tool``: the true tip's ``(position, rotation)`` (default: the nominal kinematics')."""
+        ``tool``: the true tip's ``(position, rotation)`` (default: ``tool_pose``'s)."""
         tip, hole = self.tip_and_hole(qpos)
         tip = tip if tool is None else tool[0]
         inside = jnp.sum(jnp.square(tip[:2] - hole[:2])) < HOLE_HALF_WIDTH ** 2
