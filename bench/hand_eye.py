@@ -7,13 +7,18 @@ dataset is kept in ``OUT/TASK-S-P/`` and reused), seen from ``P`` mount poses
 (``CameraMount.calibration_poses``; ``--poses 1 5``), then fits the mount's offset
 (``loop_arm.calibrate_mount``, the loop's settings: ``--frames`` frames, 150 Adam steps, one
 start) with the tool in the fit and without it (``--variants``), and scores each against the
-twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only).
+twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only). With ``--grasp`` each
+calibration is followed by the loop's identification of the tool's grasp in the hand with that
+camera (``loop_arm.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre
+point's error, mm, against the nominal grasp's).
 
 Prints a table and writes ``OUT/hand_eye.json``. About 3-6 minutes per fit on 2 cores.
 
     python bench/hand_eye.py --tasks needle_threading --seeds 0 --out B
     python bench/hand_eye.py --tasks peg_insertion spatula_flipping --seeds 0 1 2 --out B
     python bench/hand_eye.py --tasks needle_threading --seeds 0 --poses 1 5 --out B
+    python bench/hand_eye.py --tasks needle_threading --seeds 0 1 2 --variants tool-out \
+        --grasp --out B
 """
 
 from __future__ import annotations
@@ -62,7 +67,7 @@ def record(task: str, seed: int, poses: np.ndarray, episodes: int, out: Path):
 
 
 def run(args) -> list[dict]:
-    from twinrl.loop_arm import calibrate_mount
+    from twinrl.loop_arm import calibrate_mount, fit_grasp
     from twinrl.real2sim import visual
 
     rows = []
@@ -84,12 +89,23 @@ def run(args) -> list[dict]:
                                                seed + 1, ignore_tool=variant == "tool-out")
                     err = evaluation.hand_eye_errors(task, seed, mount,
                                                      secret=d / "eval" / "twin.json")
+                    if args.grasp:
+                        t1 = time.perf_counter()
+                        g = fit_grasp(env, mount, frames, at,
+                                      visual.VisualConfig(steps=150, restarts=1), seed + 1)
+                        err.update(evaluation.grasp_errors(
+                            task, seed, g["pos_offset"], g["rot_offset"],
+                            secret=d / "eval" / "twin.json"),
+                                   grasp_seconds=time.perf_counter() - t1)
                     rows.append({"task": task, "seed": seed, "poses": n_poses,
                                  "variant": variant, "frames": len(frames),
                                  "seconds": time.perf_counter() - t0, **err})
                     print(f"  {task} seed {seed}, {n_poses} pose(s), {variant}: "
                           f"{err['hand_eye_pos_err_mm']:.2f} mm / "
-                          f"{err['hand_eye_rot_err_deg']:.3f} deg", flush=True)
+                          f"{err['hand_eye_rot_err_deg']:.3f} deg" + (
+                              f"; grasp: tool point {err['grasp_tcp_err_mm']:.2f} mm "
+                              f"(nominal {err['nominal_tcp_err_mm']:.2f})" if args.grasp
+                              else ""), flush=True)
     return rows
 
 
@@ -100,6 +116,8 @@ def main(argv=None) -> int:
     p.add_argument("--poses", nargs="+", type=int, default=[1],
                    help="mount poses round 0 is spread over (one value per case)")
     p.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
+    p.add_argument("--grasp", action="store_true",
+                   help="also identify the tool's grasp with each calibrated camera")
     p.add_argument("--episodes", type=int, default=5)
     p.add_argument("--frames", type=int, default=10)
     p.add_argument("--out", type=Path, default=Path("bench/results"))
@@ -118,6 +136,14 @@ def main(argv=None) -> int:
                   f"{r['uncalibrated_pos_err_mm']:.1f} mm / "
                   f"{r['uncalibrated_rot_err_deg']:.2f} deg", f"{r['seconds']:.0f}"]
                  for r in rows])
+    if args.grasp:
+        print_table("the tool's grasp in the hand against the hidden one (tool centre point)",
+                    ["task", "seed", "poses", "tool", "fitted (mm)", "nominal (mm)",
+                     "origin (mm)", "rotation (deg)", "seconds"],
+                    [[r["task"], r["seed"], r["poses"], r["variant"].removeprefix("tool-"),
+                      f"{r['grasp_tcp_err_mm']:.2f}", f"{r['nominal_tcp_err_mm']:.2f}",
+                      f"{r['grasp_pos_err_mm']:.2f}", f"{r['grasp_rot_err_deg']:.2f}",
+                      f"{r['grasp_seconds']:.0f}"] for r in rows])
     print(f"wrote {args.out / 'hand_eye.json'}")
     return 0
 

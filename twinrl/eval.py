@@ -194,10 +194,12 @@ def grasp_errors(env_name, seed, pos_offset, rot_offset, perturbation=None,
         Rt, Rf = mat(p.tool_rot_offset), mat(rot)
         tip_t = np.asarray(p.tool_pos_offset, np.float64) + Rt @ tcp
         tip_f = np.asarray(pos, np.float64) + Rf @ tcp
-        cos = np.clip((np.trace(Rt.T @ Rf) - 1) / 2, -1.0, 1.0)
+        qt, qf = rotvec_quat(p.tool_rot_offset), rotvec_quat(np.asarray(rot, np.float64))
+        d = np.empty(4)
+        mujoco.mju_mulQuat(d, np.array([qt[0], -qt[1], -qt[2], -qt[3]]), qf)
         return (float(np.linalg.norm(tip_f - tip_t) * 1e3),
                 float(np.linalg.norm(np.asarray(pos) - np.asarray(p.tool_pos_offset)) * 1e3),
-                float(np.rad2deg(np.arccos(cos))))
+                float(np.rad2deg(2 * np.arctan2(np.linalg.norm(d[1:]), abs(d[0])))))
 
     fit, nominal = errs(pos_offset, rot_offset), errs(np.zeros(3), np.zeros(3))
     return {"grasp_tcp_err_mm": fit[0], "grasp_pos_err_mm": fit[1], "grasp_rot_err_deg": fit[2],

@@ -566,3 +566,23 @@ def test_set_grasp_moves_the_tool_as_the_real_twins_perturbation_does():
     np.testing.assert_allclose(np.asarray(env.thread(jnp.asarray(q))[0]), np.asarray(tip))
     with pytest.raises(ValueError, match="non-finite grasp"):
         env.set_grasp((np.nan, 0, 0), (0, 0, 0))
+
+
+def test_grasp_errors_score_the_hidden_grasp_zero_and_the_nominal_at_its_size():
+    # evaluation only: the twin's own hidden grasp scores 0; the nominal one scores the tool
+    # centre point's displacement by that grasp; a grasp 2 mm off along x scores 2 mm
+    from twinrl.eval import grasp_errors
+
+    p = Perturbation(tool_pos_offset=(0.003, -0.002, 0.004), tool_rot_offset=(0.02, 0.0, 0.1))
+    exact = grasp_errors("needle_threading", 0, p.tool_pos_offset, p.tool_rot_offset,
+                         perturbation=p)
+    assert exact["grasp_tcp_err_mm"] < 1e-9 and exact["grasp_rot_err_deg"] < 1e-6
+    tcp = np.array([0.0, 0.0, 0.12])
+    R = np.empty(9)
+    mujoco.mju_quat2Mat(R, np.array([np.cos(0.051), 0.02 * np.sin(0.051) / 0.102, 0.0,
+                                     0.1 * np.sin(0.051) / 0.102]))
+    moved = np.asarray(p.tool_pos_offset) + R.reshape(3, 3) @ tcp - tcp
+    assert exact["nominal_tcp_err_mm"] == pytest.approx(np.linalg.norm(moved) * 1e3, rel=1e-3)
+    off = grasp_errors("needle_threading", 0, np.asarray(p.tool_pos_offset) + [0.002, 0, 0],
+                       p.tool_rot_offset, perturbation=p)
+    assert off["grasp_tcp_err_mm"] == pytest.approx(2.0, abs=1e-6)

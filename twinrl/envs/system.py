@@ -7,7 +7,9 @@ A ``System`` holds what Real2Sim identifies about the real robot and scene:
 - ``latency``: the action latency in control steps (static: it sets the shape of the action
   queue), applied by ``twinrl.envs.wrappers.LatencyWrapper``;
 - ``cameras``: named ``twinrl.render.Camera`` poses and intrinsics (optional; visual Real2Sim);
-- ``objects``: per object name, its pose/size/colour arrays (optional; visual Real2Sim).
+- ``objects``: per object name, its pose/size/colour arrays (optional; visual Real2Sim); the arm
+  tasks read ``objects["tool"]`` (``pos_offset``, ``rot_offset``: the tool's grasp in the hand,
+  ``visual.fit_body_offset``'s) and move their tool there (``ArmTask.set_grasp``).
 
 ``envs.make(name, system=...)`` builds the simulated task from it, ``to_json``/``from_json`` write
 and read it exactly (float64 values survive the round trip bit for bit), and every policy
