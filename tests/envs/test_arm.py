@@ -564,6 +564,10 @@ def test_set_grasp_moves_the_tool_as_the_real_twins_perturbation_does():
     far = np.linalg.norm(np.asarray(nominal.tool_point(jnp.asarray(q))) - np.asarray(tip))
     assert far > 5e-3
     np.testing.assert_allclose(np.asarray(env.thread(jnp.asarray(q))[0]), np.asarray(tip))
+    # what the robot reports (the real twin's observation) stays its nominal kinematics'
+    qj, vj = jnp.asarray(q), jnp.zeros(m.nv)
+    np.testing.assert_array_equal(np.asarray(env.observe(qj, vj)),
+                                  np.asarray(nominal.observe(qj, vj)))
     with pytest.raises(ValueError, match="non-finite grasp"):
         env.set_grasp((np.nan, 0, 0), (0, 0, 0))
 

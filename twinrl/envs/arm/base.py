@@ -545,7 +545,8 @@ class ArmTask(Env):
         from images (``System.objects["tool"]``). The simulator's ``tool`` body moves (its
         contacts, its renders) and so does every tool point the task judges (``tool_pose``: the
         reward, success, the image observation's "tool"); the controller still servos the
-        *nominal* tool centre point, as the robot's Cartesian interface does."""
+        *nominal* tool centre point, as the robot's Cartesian interface does, and ``observe``
+        (what the real twin reports) stays at the nominal kinematics."""
         import mujoco
 
         from twinrl.render import rotvec_to_quat
@@ -584,10 +585,12 @@ class ArmTask(Env):
         # any actuators after the arm's 7 servos (none in the bundled tasks) hold 0
         return jnp.concatenate([target, jnp.zeros(self.sim.nu - N_JOINTS, target.dtype)])
 
-    def tool_pose(self, qpos) -> tuple[jax.Array, jax.Array]:
+    def tool_pose(self, qpos, nominal: bool = False) -> tuple[jax.Array, jax.Array]:
         """World ``(position, rotation)`` of the controller's tool centre point, carried by the
-        tool at its identified grasp (``set_grasp``; the nominal kinematics' without one)."""
-        if self.grasp is None:
+        tool at its identified grasp (``set_grasp``; the nominal kinematics' without one, or
+        with ``nominal``: what a robot's own software reports, as the real twin's observation
+        does)."""
+        if self.grasp is None or nominal:
             return forward_kinematics(qpos[:N_JOINTS], self.controller.tcp)
         _, _, p, R = joint_frames(qpos[:N_JOINTS])
         dt = p.dtype
@@ -595,9 +598,9 @@ class ArmTask(Env):
         mount = jnp.array([0.0, 0.0, TOOL_MOUNT], dt)
         return p + R @ (mount + pos + Rg @ jnp.asarray(self.controller.tcp, dt)), R @ Rg
 
-    def tool_point(self, qpos) -> jax.Array:
+    def tool_point(self, qpos, nominal: bool = False) -> jax.Array:
         """World position of the controller's tool centre point (``tool_pose``'s)."""
-        return self.tool_pose(qpos)[0]
+        return self.tool_pose(qpos, nominal)[0]
 
     # ------------------------------------------------------------------ initial guesses
     def approach_point(self, qpos) -> jax.Array | None:

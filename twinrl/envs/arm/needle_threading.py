@@ -116,10 +116,10 @@ class NeedleThreading(ArmTask):
         R = jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
         return centre, R
 
-    def thread(self, qpos) -> tuple[jax.Array, jax.Array]:
+    def thread(self, qpos, nominal: bool = False) -> tuple[jax.Array, jax.Array]:
         """The thread's tip and base (where it leaves the hand), world (at the identified grasp,
-        ``ArmTask.tool_pose``)."""
-        tip, R = self.tool_pose(qpos)
+        ``ArmTask.tool_pose``; with ``nominal`` at the nominal one)."""
+        tip, R = self.tool_pose(qpos, nominal)
         return tip, tip - THREAD_LENGTH * R[:, 2]
 
     def _in_eye_frame(self, qpos, tool=None):
@@ -142,7 +142,8 @@ class NeedleThreading(ArmTask):
         return qpos, jnp.zeros(self.sim.nv)
 
     def observe(self, qpos, qvel):
-        tip, base = self.thread(qpos)
+        # the robot reports its thread by its nominal kinematics, as the real twin does
+        tip, base = self.thread(qpos, nominal=True)
         centre, R = self.eye(qpos)
         tip_e = R.T @ (tip - centre)
         dir_e = R.T @ (tip - base) / THREAD_LENGTH

@@ -105,13 +105,14 @@ class PegInsertion(ArmTask):
         qpos = jnp.concatenate([q, hole - jnp.array([0.5, 0.0])])
         return qpos, jnp.zeros(self.sim.nv)
 
-    def tip_and_hole(self, qpos):
-        tip = self.tool_point(qpos)
+    def tip_and_hole(self, qpos, nominal: bool = False):
+        tip = self.tool_point(qpos, nominal)
         hole = self.hole(qpos) + jnp.array([0.5, 0.0, 0.0], qpos.dtype)
         return tip, hole
 
     def observe(self, qpos, qvel):
-        tip, hole = self.tip_and_hole(qpos)
+        # the robot reports its peg by its nominal kinematics, as the real twin does
+        tip, hole = self.tip_and_hole(qpos, nominal=True)
         depth = hole[2] - (tip[2] - PEG_RADIUS)
         return jnp.concatenate([qpos[:7], qvel[:7], tip, hole, tip - hole,
                                 depth[None]]).astype(jnp.float32)

@@ -153,8 +153,8 @@ class SpatulaFlipping(ArmTask):
         up = jnp.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
         return qpos[9:12], up
 
-    def edge(self, qpos) -> jax.Array:
-        return self.tool_point(qpos)
+    def edge(self, qpos, nominal: bool = False) -> jax.Array:
+        return self.tool_point(qpos, nominal)
 
     @staticmethod
     def under(centre) -> jax.Array:
@@ -193,7 +193,8 @@ class SpatulaFlipping(ArmTask):
         return qpos, jnp.zeros(self.sim.nv)
 
     def observe(self, qpos, qvel):
-        edge = self.edge(qpos)
+        # the robot reports its blade by its nominal kinematics, as the real twin does
+        edge = self.edge(qpos, nominal=True)
         centre, up = self.pancake(qpos)
         stopper = jnp.asarray(STOPPER_ORIGIN, qpos.dtype) + qpos[7:9]
         return jnp.concatenate([qpos[:7], qvel[:7], edge, centre, up, qvel[9:12], stopper,
