@@ -268,12 +268,9 @@ def record_round0(twin, writer, env, seed: int, poses, episodes) -> int:
 def tool_geoms(model) -> list[int]:
     """Ids of the geoms of body ``tool`` and the bodies under it (the arm tasks' tool, held in
     the hand with a grasp the robot does not know exactly)."""
-    tool = model.body("tool").id
-    below = {tool}
-    for b in range(model.nbody):  # a body's parent has a smaller id
-        if model.body_parentid[b] in below and b != 0:
-            below.add(b)
-    return [g for g in range(model.ngeom) if int(model.geom_bodyid[g]) in below]
+    from twinrl.real2sim.visual import body_geoms
+
+    return body_geoms(model, "tool")
 
 
 def _round0_poses(run: RunContext) -> np.ndarray:
