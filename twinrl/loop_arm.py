@@ -289,27 +289,16 @@ def calibrate_mount(env, frames, poses, config, seed: int = 0, *, ignore_tool: b
     (``tool_geoms``) out: its grasp in the hand is not known, and on needle twin 0 its 7 mm /
     2 deg grasp error pulled the camera 3.8 mm / 0.24 deg off (0.33 mm / 0.015 deg without
     it). ``config``: a ``visual.VisualConfig``. Returns ``(mount, info)``."""
-    import jax
-
     from twinrl.real2sim import visual
-    from twinrl.render import Camera
 
     mount, model = env.mount, env.sim.mj_model
     poses = np.asarray(poses, np.float64)
-    H, W = frames[0]["depth"].shape
-
-    def commanded(c):
-        cam = mount.camera(np.asarray(c, np.float32), W, H)
-        return Camera(np.asarray(cam.pos, np.float64), np.asarray(cam.quat, np.float64),
-                      np.asarray(cam.fovy, np.float64), W, H)
-
     ignore = tool_geoms(model) if ignore_tool else ()
+    cams = _frame_cameras(mount, poses, frames)
     if np.all(poses == poses[0]):  # the camera's pose there, turned into the offset
-        cam, info = visual.fit_camera(model, frames, commanded(poses[0]), config, seed,
-                                      ignore=ignore)
+        cam, info = visual.fit_camera(model, frames, cams, config, seed, ignore=ignore)
         return mount.with_hand_eye(cam, poses[0]), info
-    stack = jax.tree_util.tree_map(lambda *a: np.stack(a), *[commanded(c) for c in poses])
-    _, info = visual.fit_camera(model, frames, stack, config, seed, ignore=ignore)
+    _, info = visual.fit_camera(model, frames, cams, config, seed, ignore=ignore)
     return dataclasses.replace(mount, pos_offset=tuple(float(x) for x in info["pos_offset"]),
                                rot_offset=tuple(float(x) for x in info["rot_offset"])), info
 
@@ -357,9 +346,17 @@ def fit_grasp(env, mount, frames, poses, config, seed: int = 0) -> dict:
     ``frames``, frame ``i`` taken with the calibrated ``mount`` (``calibrate_mount``'s)
     commanded to ``poses[i]``. ``config``: a ``visual.VisualConfig``. Returns the fit's dict
     (``pos_offset``, ``rot_offset``: ``ArmTask.set_grasp``'s arguments)."""
+    from twinrl.real2sim import visual
+
+    cams = _frame_cameras(mount, np.asarray(poses, np.float64), frames)
+    return visual.fit_body_offset(env.sim.mj_model, frames, cams, "tool", config, seed)
+
+
+def _frame_cameras(mount, poses, frames):
+    """``mount``'s camera (float64, the frames' size) at ``poses[i]`` for frame ``i``: one
+    camera when every pose is the same, else a stack (one per frame)."""
     import jax
 
-    from twinrl.real2sim import visual
     from twinrl.render import Camera
 
     H, W = frames[0]["depth"].shape
@@ -369,10 +366,9 @@ def fit_grasp(env, mount, frames, poses, config, seed: int = 0) -> dict:
         return Camera(np.asarray(cam.pos, np.float64), np.asarray(cam.quat, np.float64),
                       np.asarray(cam.fovy, np.float64), W, H)
 
-    poses = np.asarray(poses, np.float64)
-    cams = (camera(poses[0]) if np.all(poses == poses[0]) else
-            jax.tree_util.tree_map(lambda *a: np.stack(a), *[camera(c) for c in poses]))
-    return visual.fit_body_offset(env.sim.mj_model, frames, cams, "tool", config, seed)
+    if np.all(poses == poses[0]):
+        return camera(poses[0])
+    return jax.tree_util.tree_map(lambda *a: np.stack(a), *[camera(c) for c in poses])
 
 
 def _load_camera(run: RunContext, rdir: Path, data) -> dict[str, Any]:

@@ -24,8 +24,8 @@ while a second arm moves an RGB-D camera).
 
 from __future__ import annotations
 
-import dataclasses
 import copy
+import dataclasses
 import functools
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -560,9 +560,10 @@ class ArmTask(Env):
         model = copy.deepcopy(nominal.mj_model)
         tool = model.body("tool").id
         model.body_pos[tool] = nominal.mj_model.body_pos[tool] + pos
+        turn = rotvec_to_quat(jnp.asarray(rot))
         q = np.zeros(4)
         mujoco.mju_mulQuat(q, nominal.mj_model.body_quat[tool].copy(),
-                           np.asarray(rotvec_to_quat(jnp.asarray(rot)), np.float64))
+                           np.asarray(turn, np.float64))
         model.body_quat[tool] = q
         # the constants compiled from the bodies' poses, as the real twin's Perturbation does
         # (the contact regulariser's invweight0 kept: MJX takes it from the nominal model)
@@ -571,7 +572,7 @@ class ArmTask(Env):
         for k, v in keep.items():
             getattr(model, k)[:] = v
         self.sim = nominal.recompiled(model)
-        self.grasp = (pos, np.asarray(quat_to_mat(rotvec_to_quat(jnp.asarray(rot))), np.float64))
+        self.grasp = (pos, np.asarray(quat_to_mat(turn), np.float64))
         self.__dict__.pop("renderer", None)
 
     def set_posture(self, q_start) -> None:
