@@ -568,6 +568,12 @@ def test_set_grasp_moves_the_tool_as_the_real_twins_perturbation_does():
     qj, vj = jnp.asarray(q), jnp.zeros(m.nv)
     np.testing.assert_array_equal(np.asarray(env.observe(qj, vj)),
                                   np.asarray(nominal.observe(qj, vj)))
+    # ... while the image actor's pose estimate reads the thread where the twin believes it is:
+    # from that report, the tip at the identified grasp (an actor trained on one and deployed on
+    # the other reads the thread 7 mm off)
+    est = np.asarray(env.estimate_from_obs(env.observe(qj, vj)))
+    np.testing.assert_allclose(est[14:17], np.asarray(tip), atol=1e-5)
+    np.testing.assert_allclose(est, np.asarray(env.observe(qj, vj, nominal=False)), atol=1e-5)
     with pytest.raises(ValueError, match="non-finite grasp"):
         env.set_grasp((np.nan, 0, 0), (0, 0, 0))
 

@@ -546,7 +546,10 @@ class ArmTask(Env):
         contacts, its renders) and so does every tool point the task judges (``tool_pose``: the
         reward, success, the image observation's "tool"); the controller still servos the
         *nominal* tool centre point, as the robot's Cartesian interface does, and ``observe``
-        (what the real twin reports) stays at the nominal kinematics."""
+        (what the real twin reports: the state actor's and the residual's inputs) stays at the
+        nominal kinematics. The image observation's pose estimate (``"estimate"``,
+        ``estimate_from_obs``) is ``observe(..., nominal=False)``: the tool where the twin
+        believes it is, at the identified grasp, as the image actor was taught to read it."""
         import mujoco
 
         from twinrl.render import rotvec_to_quat
@@ -679,7 +682,8 @@ class ArmTask(Env):
         "reach": the target cloud's mean minus the tool point (3,; 0 where the target is not
         seen),
         "pose": the target's joints fitted to that cloud (``fit_target_pose``) and "estimate":
-        the privileged observation of the state they and the joints give (``estimated_state``)
+        the privileged observation of the state they and the joints give (``estimated_state``;
+        the tool at the identified grasp: ``observe(..., nominal=False)``)
         and "support": how much the fit stands on (2,): log(1 + target pixels) and the fit's RMS
         distance (mm) of those pixels' points from the fitted surfaces (the last three for tasks
         with ``target_joints`` only)}``. The camera is the mount's, hand-eye
@@ -696,7 +700,7 @@ class ArmTask(Env):
         if self.target_joints and (keys is None or any(k in keys for k in fitted)):
             pose, rms = self.fit_target_pose(joints, cam, depth, mask, with_residual=True)
             out["pose"] = pose
-            out["estimate"] = self.observe(*self.estimated_state(joints, pose))
+            out["estimate"] = self.observe(*self.estimated_state(joints, pose), nominal=False)
             out["support"] = jnp.stack([out["target"][6], 1e3 * rms])  # the cloud's count
         if keys is None:
             return out
@@ -742,7 +746,7 @@ class ArmTask(Env):
         obs = jnp.asarray(obs, jnp.float32)
         pose = self.state_from_obs(obs)[0][np.asarray(self.target_joints)]
         return self.observe(*self.estimated_state(obs[:2 * N_JOINTS],
-                                                  self._wrap_target_pose(pose)))
+                                                  self._wrap_target_pose(pose)), nominal=False)
 
     @exact_matmuls
     def fit_target_pose(self, joints, camera, depth, mask, iters: int = 8,

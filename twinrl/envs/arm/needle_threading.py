@@ -141,9 +141,10 @@ class NeedleThreading(ArmTask):
         qpos = jnp.concatenate([q, eye - jnp.asarray(NEEDLE_ORIGIN, eye.dtype), eye_yaw[None]])
         return qpos, jnp.zeros(self.sim.nv)
 
-    def observe(self, qpos, qvel):
-        # the robot reports its thread by its nominal kinematics, as the real twin does
-        tip, base = self.thread(qpos, nominal=True)
+    def observe(self, qpos, qvel, nominal: bool = True):
+        # the robot reports its thread by its nominal kinematics, as the real twin does; a pose
+        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.observe``)
+        tip, base = self.thread(qpos, nominal=nominal)
         centre, R = self.eye(qpos)
         tip_e = R.T @ (tip - centre)
         dir_e = R.T @ (tip - base) / THREAD_LENGTH

@@ -110,9 +110,10 @@ class PegInsertion(ArmTask):
         hole = self.hole(qpos) + jnp.array([0.5, 0.0, 0.0], qpos.dtype)
         return tip, hole
 
-    def observe(self, qpos, qvel):
-        # the robot reports its peg by its nominal kinematics, as the real twin does
-        tip, hole = self.tip_and_hole(qpos, nominal=True)
+    def observe(self, qpos, qvel, nominal: bool = True):
+        # the robot reports its peg by its nominal kinematics, as the real twin does; a pose
+        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.observe``)
+        tip, hole = self.tip_and_hole(qpos, nominal=nominal)
         depth = hole[2] - (tip[2] - PEG_RADIUS)
         return jnp.concatenate([qpos[:7], qvel[:7], tip, hole, tip - hole,
                                 depth[None]]).astype(jnp.float32)

@@ -192,9 +192,10 @@ class SpatulaFlipping(ArmTask):
                                 jnp.array([1.0, 0.0, 0.0, 0.0], centre.dtype)])
         return qpos, jnp.zeros(self.sim.nv)
 
-    def observe(self, qpos, qvel):
-        # the robot reports its blade by its nominal kinematics, as the real twin does
-        edge = self.edge(qpos, nominal=True)
+    def observe(self, qpos, qvel, nominal: bool = True):
+        # the robot reports its blade by its nominal kinematics, as the real twin does; a pose
+        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.observe``)
+        edge = self.edge(qpos, nominal=nominal)
         centre, up = self.pancake(qpos)
         stopper = jnp.asarray(STOPPER_ORIGIN, qpos.dtype) + qpos[7:9]
         return jnp.concatenate([qpos[:7], qvel[:7], edge, centre, up, qvel[9:12], stopper,
