@@ -189,3 +189,17 @@ def test_bad_settings_fail_with_one_line(tmp_path):
     c = make_config({"imitation.fit_steps": 10, "demonstrations": 3})
     assert c.imitation["fit_steps"] == 10 and "observation" not in c.imitation  # the task's
     assert c.demonstrations == 3
+    with pytest.raises(LoopError, match="grasp must be"):
+        make_config({"grasp": "yes"})
+
+
+def test_the_grasp_is_identified_by_default_only_where_it_was_measured_to_help():
+    # needle: the fit lands within 0.8-3.1 mm of the hidden grasp; peg twins 1-2: 19-20 mm off
+    # (nominal: 11-12 mm), so the peg loop keeps the nominal grasp unless asked
+    from twinrl.loop_arm import grasp_on, make_config
+
+    c = make_config()
+    assert grasp_on(c, "needle_threading") and not grasp_on(c, "peg_insertion")
+    assert not grasp_on(c, "spatula_flipping")
+    assert grasp_on(make_config({"grasp": True}), "peg_insertion")
+    assert not grasp_on(make_config({"grasp": False}), "needle_threading")

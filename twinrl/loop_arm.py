@@ -15,7 +15,8 @@ a killed run resumes at the stage it was in):
    (``twinrl.real2sim.visual.fit_camera`` with a stack of cameras; the tool, whose grasp is
    not known, left out), kept as the identified ``System``'s ``"mount"`` camera, so every later
    render and back-projection of the target uses it; then, with that camera, the tool's grasp
-   in the hand (``visual.fit_body_offset``; ``ArmLoopConfig.grasp``), kept as the ``System``'s
+   in the hand (``visual.fit_body_offset``; ``ArmLoopConfig.grasp``: by default on the needle
+   only, where it was measured to help), kept as the ``System``'s
    ``objects["tool"]``, so the twin's tool, reward and success sit where the real tool does;
 2. **sysid** (``ArmLoopConfig.sysid``): the action latency and the joints' servo gains and
    damping from round 0's transitions (``twinrl.real2sim.sysid``), else the nominal ones;
@@ -122,13 +123,16 @@ class ArmLoopConfig:
     """Random restarts of the calibration (``VisualConfig.restarts``). One, from the nominal
     pose: a hand-eye offset is small (peg twin 3: 3.4 cm, 1.1 deg), and the nominal start alone
     finds it to 0.6 mm / 0.04 deg, where 3 restarts took 273 s on 2 cores."""
-    grasp: bool = True
+    grasp: bool | None = None
     """After the calibration, identify the tool's grasp in the hand from the same frames
     (``visual.fit_body_offset`` on body ``tool``, the calibrated camera held), kept as the
     ``System``'s ``objects["tool"]`` (``ArmTask.set_grasp``): the twin's tool, its reward and
-    its success then sit where the real tool does. Needs ``calibrate``. On needle twin 0's
-    round-0 frames (hidden grasp: the thread's tip 8.6 mm from nominal) the fitted tip is
-    0.75 mm from the truth."""
+    its success then sit where the real tool does. Needs ``calibrate``. ``None`` (the
+    default): on for the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere.
+    Needle twins 0-2: the thread's tip 0.81 / 3.10 / 1.15 mm from the truth (nominal: 8.70 /
+    4.36 / 2.10 mm). Peg twins 1 and 2: the peg's tip 20.1 and 18.8 mm from the truth, where
+    the nominal grasp is 12.2 and 10.6 mm off, and those loops' actors then solved 0 % in
+    their twins and 0 of 5 real episodes."""
     sysid: bool = True
     """Identify the action latency and the arm's servo dynamics (joint gains and damping) from
     round 0's transitions (``_sysid_config``; 4 min on 2 cores). On needle twin 2 the twin's
@@ -179,6 +183,9 @@ class ArmLoopConfig:
         for name in ("trajopt_restarts", "eval_episodes"):
             if int(getattr(self, name)) < 0:
                 raise LoopError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.grasp is not None and not isinstance(self.grasp, bool):
+            raise LoopError(f"grasp must be true, false or null (the task's default), got "
+                            f"{self.grasp!r}")
         if self.camera not in ("selected", "default", "random"):
             raise LoopError(f"camera must be 'selected', 'default' or 'random', got "
                             f"{self.camera!r}")
@@ -195,6 +202,16 @@ class ArmLoopConfig:
         if dict(self.imitation).get("observation") == "state":
             raise LoopError("imitation: the loop deploys an image actor; observation must be "
                             "'pose', 'target' or 'pixels'")
+
+
+GRASP_TASKS = ("needle_threading",)
+"""The tasks whose loop identifies the tool's grasp by default (``ArmLoopConfig.grasp``)."""
+
+
+def grasp_on(config: ArmLoopConfig, env_name: str) -> bool:
+    """Whether the loop identifies the tool's grasp on ``env_name`` (``ArmLoopConfig.grasp``:
+    ``None`` means on for ``GRASP_TASKS`` only)."""
+    return env_name in GRASP_TASKS if config.grasp is None else bool(config.grasp)
 
 
 def make_config(overrides: Mapping[str, Any] | None = None) -> ArmLoopConfig:
@@ -322,7 +339,7 @@ def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
     mount, info = calibrate_mount(env, frames, poses, cfg, run.seed + r)
     cam = mount.camera(np.asarray(mount.default, np.float32), W, H)
     grasp, errors = None, {}
-    if run.config.grasp:
+    if grasp_on(run.config, run.env_name):
         run.say("  the tool's grasp in the hand, from the same frames ...")
         g = fit_grasp(env, mount, frames, poses, cfg, run.seed + r)
         grasp = {"pos_offset": g["pos_offset"], "rot_offset": g["rot_offset"],
