@@ -311,11 +311,10 @@ def calibrate_mount(env, frames, poses, config, seed: int = 0, *, ignore_tool: b
     mount, model = env.mount, env.sim.mj_model
     poses = np.asarray(poses, np.float64)
     ignore = tool_geoms(model) if ignore_tool else ()
-    cams = _frame_cameras(mount, poses, frames)
+    cam, info = visual.fit_camera(model, frames, _frame_cameras(mount, poses, frames), config,
+                                  seed, ignore=ignore)
     if np.all(poses == poses[0]):  # the camera's pose there, turned into the offset
-        cam, info = visual.fit_camera(model, frames, cams, config, seed, ignore=ignore)
         return mount.with_hand_eye(cam, poses[0]), info
-    _, info = visual.fit_camera(model, frames, cams, config, seed, ignore=ignore)
     return dataclasses.replace(mount, pos_offset=tuple(float(x) for x in info["pos_offset"]),
                                rot_offset=tuple(float(x) for x in info["rot_offset"])), info
 

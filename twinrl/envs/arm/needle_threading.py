@@ -143,7 +143,7 @@ class NeedleThreading(ArmTask):
 
     def observe(self, qpos, qvel, nominal: bool = True):
         # the robot reports its thread by its nominal kinematics, as the real twin does; a pose
-        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.observe``)
+        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.set_grasp``)
         tip, base = self.thread(qpos, nominal=nominal)
         centre, R = self.eye(qpos)
         tip_e = R.T @ (tip - centre)

@@ -112,7 +112,7 @@ class PegInsertion(ArmTask):
 
     def observe(self, qpos, qvel, nominal: bool = True):
         # the robot reports its peg by its nominal kinematics, as the real twin does; a pose
-        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.observe``)
+        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.set_grasp``)
         tip, hole = self.tip_and_hole(qpos, nominal=nominal)
         depth = hole[2] - (tip[2] - PEG_RADIUS)
         return jnp.concatenate([qpos[:7], qvel[:7], tip, hole, tip - hole,

@@ -194,7 +194,7 @@ class SpatulaFlipping(ArmTask):
 
     def observe(self, qpos, qvel, nominal: bool = True):
         # the robot reports its blade by its nominal kinematics, as the real twin does; a pose
-        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.observe``)
+        # estimate (``nominal=False``) puts it at the identified grasp (``ArmTask.set_grasp``)
         edge = self.edge(qpos, nominal=nominal)
         centre, up = self.pancake(qpos)
         stopper = jnp.asarray(STOPPER_ORIGIN, qpos.dtype) + qpos[7:9]
