@@ -254,3 +254,24 @@ def test_fit_body_offset_recovers_a_tools_grasp_in_a_hand():
     assert np.linalg.norm(dp) > 5e-3 and np.rad2deg(np.linalg.norm(dr)) > 3.5
     with pytest.raises(ValueError, match="no body 'no_such_body'"):
         V.fit_body_offset(m, frames, cam, "no_such_body", cfg)
+
+
+def test_refinement_from_several_starts_keeps_the_lowest_cost():
+    # 0.5 |r|^2 with r = (x^2 - 1, 0.3 (x - 1)): a local minimum near x = -1 (cost ~0.18) and
+    # the global one at x = 1 (cost 0). From -1.2 alone LM stays in the local basin; given 0.8
+    # as a second start it returns the global minimum and says it came from start 1. A start
+    # where the residuals are not finite (x > 5) is skipped, not fatal.
+    import jax.numpy as jnp
+
+    def res(p):
+        x = p["x"][0]
+        return jnp.stack([x * x - 1.0, 0.3 * (x - 1.0), jnp.where(x > 5.0, jnp.nan, 0.0)])
+
+    p0 = {"x": jnp.array([-1.2])}
+    local, info = V._levenberg_marquardt(res, p0, ("x",), 30)
+    assert float(local["x"][0]) < -0.9 and info["cost_after"] > 0.1 and "start" not in info
+    best, info = V._levenberg_marquardt(res, p0, ("x",), 30,
+                                        starts=[{"x": jnp.array([0.8])},
+                                                {"x": jnp.array([6.0])}])
+    assert abs(float(best["x"][0]) - 1.0) < 1e-6 and info["cost_after"] < 1e-12
+    assert info["start"] == 1 and info["costs"][0] > 0.1 and info["costs"][2] is None
