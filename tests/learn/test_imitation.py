@@ -143,3 +143,28 @@ def test_the_commanded_camera_pose_is_an_input_where_the_observation_is_in_its_f
     assert "camera" not in spec(observation="pixels", camera_input=False)
     with pytest.raises(ValueError, match="camera_input must be one of None, True, False"):
         imitation.ImitationConfig(camera_input="yes")
+
+
+def test_a_right_estimate_is_cloned_when_the_twin_holds_an_identified_grasp():
+    # The pose estimate puts the peg where the twin believes it is (the identified grasp); the
+    # observation the twin steps with is the robot's nominal report. A perfect estimate must
+    # count as right: judged against the nominal report, the peg's tip is 12 mm off here and
+    # every row of every demonstration was dropped (peg twin 1's actor learned nothing: 0 %).
+    from brax.envs.base import State
+
+    from twinrl.envs.system import System
+
+    system = System.nominal("peg_insertion").replace(objects={"tool": {
+        "pos_offset": np.array([0.004, -0.003, 0.003]),
+        "rot_offset": np.array([-0.05, 0.06, 0.0])}})
+    env = envs.make("peg_insertion", system=system)
+    qpos, qvel = env.initial_state(jax.random.PRNGKey(0))
+    report = env.observe(qpos, qvel)
+    est = env.observe(qpos, qvel, nominal=False)
+    assert float(jnp.max(jnp.abs(est - report))) > 0.005  # the grasp moves the tip
+    states = State(pipeline_state=None, obs=report[None, None], reward=jnp.zeros((1, 1)),
+                   done=None)
+    assert imitation.accurate({"estimate": est[None, None]}, states, env).tolist() == [[1.0]]
+    assert imitation.accurate({"estimate": est[None, None]}, states).tolist() == [[0.0]]
+    off = est.at[17].add(0.01)  # the hole fitted 1 cm off
+    assert imitation.accurate({"estimate": off[None, None]}, states, env).tolist() == [[0.0]]
