@@ -10,7 +10,8 @@ start) with the tool in the fit and without it (``--variants``), and scores each
 twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only). With ``--grasp`` each
 calibration is followed by the loop's identification of the tool's grasp in the hand with that
 camera (``loop_arm.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre
-point's error, mm, against the nominal grasp's).
+point's error, mm, against the nominal grasp's); "LM kept" says which refinement won (from Adam's
+result or from the zero offset: ``visual.fit_body_offset``).
 
 Prints a table and writes ``OUT/hand_eye.json``. About 3-6 minutes per fit on 2 cores.
 
@@ -96,7 +97,8 @@ def run(args) -> list[dict]:
                         err.update(evaluation.grasp_errors(
                             task, seed, g["pos_offset"], g["rot_offset"],
                             secret=d / "eval" / "twin.json"),
-                                   grasp_seconds=time.perf_counter() - t1)
+                                   grasp_seconds=time.perf_counter() - t1,
+                                   grasp_refine=g["refine"])
                     rows.append({"task": task, "seed": seed, "poses": n_poses,
                                  "variant": variant, "frames": len(frames),
                                  "seconds": time.perf_counter() - t0, **err})
@@ -139,10 +141,11 @@ def main(argv=None) -> int:
     if args.grasp:
         print_table("the tool's grasp in the hand against the hidden one (tool centre point)",
                     ["task", "seed", "poses", "tool", "fitted (mm)", "nominal (mm)",
-                     "origin (mm)", "rotation (deg)", "seconds"],
+                     "origin (mm)", "rotation (deg)", "LM kept", "seconds"],
                     [[r["task"], r["seed"], r["poses"], r["variant"].removeprefix("tool-"),
                       f"{r['grasp_tcp_err_mm']:.2f}", f"{r['nominal_tcp_err_mm']:.2f}",
                       f"{r['grasp_pos_err_mm']:.2f}", f"{r['grasp_rot_err_deg']:.2f}",
+                      {0: "Adam's", 1: "zero"}.get((r["grasp_refine"] or {}).get("start"), "-"),
                       f"{r['grasp_seconds']:.0f}"] for r in rows])
     print(f"wrote {args.out / 'hand_eye.json'}")
     return 0

@@ -128,11 +128,12 @@ class ArmLoopConfig:
     (``visual.fit_body_offset`` on body ``tool``, the calibrated camera held), kept as the
     ``System``'s ``objects["tool"]`` (``ArmTask.set_grasp``): the twin's tool, its reward and
     its success then sit where the real tool does. Needs ``calibrate``. ``None`` (the
-    default): on for the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere.
-    Needle twins 0-2: the thread's tip 0.81 / 3.10 / 1.15 mm from the truth (nominal: 8.70 /
-    4.36 / 2.10 mm). Peg twins 1 and 2: the peg's tip 20.1 and 18.8 mm from the truth, where
-    the nominal grasp is 12.2 and 10.6 mm off, and those loops' actors then solved 0 % in
-    their twins and 0 of 5 real episodes."""
+    default): on for the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere
+    (the spatula: not measured). The tool point against the truth (``bench/hand_eye.py
+    --grasp``, stop 57): needle twins 0-2 2.68 / 3.42 / 1.94 mm (nominal: 8.70 / 4.36 / 2.10;
+    stop 55's run of the same fit: 0.81 / 3.10 / 1.15), peg twins 0-2 0.66 / 1.13 / 0.77 mm
+    (nominal: 5.78 / 12.21 / 10.61). Peg twin 1's loop: 3/5 real with the chosen camera and
+    10/10 with the default, against 2/5 and 5/10 with the nominal grasp."""
     sysid: bool = True
     """Identify the action latency and the arm's servo dynamics (joint gains and damping) from
     round 0's transitions (``_sysid_config``; 4 min on 2 cores). On needle twin 2 the twin's
@@ -204,7 +205,7 @@ class ArmLoopConfig:
                             "'pose', 'target' or 'pixels'")
 
 
-GRASP_TASKS = ("needle_threading",)
+GRASP_TASKS = ("peg_insertion", "needle_threading")
 """The tasks whose loop identifies the tool's grasp by default (``ArmLoopConfig.grasp``)."""
 
 
@@ -342,7 +343,7 @@ def _calibrate(run: RunContext, r: int, rdir: Path, data) -> None:
         run.say("  the tool's grasp in the hand, from the same frames ...")
         g = fit_grasp(env, mount, frames, poses, cfg, run.seed + r)
         grasp = {"pos_offset": g["pos_offset"], "rot_offset": g["rot_offset"],
-                 "loss": min(x["final_loss"] for x in g["runs"])}
+                 "loss": min(x["final_loss"] for x in g["runs"]), "refine": g["refine"]}
         errors = evaluation.grasp_errors(run.env_name, run.seed, g["pos_offset"],
                                          g["rot_offset"], run.perturbation, run.secret)
     report.write_json(rdir / "calibration.json", {
