@@ -12,9 +12,8 @@ the actor's plan improved by the simulator's gradient); the labels join the data
 is refitted on all of it. With ``solved_labels`` only the labels whose improved plan solves the
 task are kept (spatula: 66-96 % of them per round; the filtered run reached 90 %).
 
-Demonstrations are ``(keys, actions)``: start states' reset keys and optimised action sequences
-(``twinrl.learn.plans`` writes them with a ``success`` flag per plan to ``<task>_plans.npz``;
-``load_demonstrations`` keeps the successful ones), re-simulated here.
+Demonstrations are ``(keys, actions)``: reset keys and optimised actions (``twinrl.learn.plans``'
+``<task>_plans.npz``; ``load_demonstrations`` keeps the successful plans), re-simulated here.
 
 Observations (``ImitationConfig.observation``):
 
@@ -84,11 +83,9 @@ class ImitationConfig(JSONConfig):
     velocities (14). Default (None): yes for ``"pixels"``, no for ``"target"``, whose tool point
     says where the tool is (spatula, README: with them 0 % on three real twins, without 0-30 %)."""
     image_head: str = "keypoints"
-    """The CNN's head (``NetworkConfig.image_head``): ``"keypoints"`` (spatial softmax) or
-    ``"dense"``."""
+    """The CNN's head (``NetworkConfig.image_head``): ``"keypoints"`` or ``"dense"``."""
     conv_strides: tuple[int, ...] = (2, 2, 1)
-    """Strides of the CNN's three convolutions: (2, 2, 1) leaves 16 x 16 maps of a 64 x 64 image
-    for the keypoints."""
+    """The CNN's three strides: (2, 2, 1) leaves 16 x 16 keypoint maps of a 64 x 64 image."""
     rgb_jitter: float = 0.1
     """Pixels: RGB gain/offset jitter of each training image (``common.rgb_jitter``; 0: none)."""
     hidden: tuple[int, ...] = (256, 256)
@@ -194,23 +191,18 @@ def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng)
 
 
 def accurate(obs, states, env=None, tol: float = 0.005) -> jax.Array:
-    """1 where a pose observation's ``"estimate"`` is within ``tol`` of the true state's
-    observation in every entry, else 0; all 1 for other observations. Only those rows are
-    cloned: the expert's action from a view whose fit went wrong (the needle's heading seen
-    edge-on) teaches the actor to answer a wrong estimate with the true state's action; which
-    views give a right estimate is the sensing Q's to learn. ``env`` (an arm task): the true
-    state's observation is taken as the estimate is, at the identified grasp
-    (``observe(..., nominal=False)``); ``states.obs`` is the robot's nominal report, which an
-    identified grasp moves the tool in (peg twin 1: 12 mm, every row rejected, nothing cloned)."""
+    """1 where a pose observation's ``"estimate"`` is within ``tol`` of the true state's in every
+    entry, else 0; all 1 for other observations. Only those rows are cloned: the expert's action
+    from a view whose fit went wrong (the needle's heading seen edge-on) teaches the wrong
+    answer; which views give a right estimate is the sensing Q's to learn. ``env``: the truth is
+    taken as the estimate is, at the identified grasp (``observe(..., nominal=False)``), not as
+    the robot's nominal report ``states.obs`` (peg twin 1: 12 mm apart, nothing was cloned)."""
     if not isinstance(obs, dict) or "estimate" not in obs:
         return jnp.ones(states.reward.shape, jnp.float32)
-    truth = states.obs
-    if env is not None:
-        flat = truth.reshape((-1, truth.shape[-1]))
-        truth = jax.vmap(lambda o: env.observe(*env.state_from_obs(o), nominal=False))(
-            flat).reshape(truth.shape)
-    err = jnp.max(jnp.abs(obs["estimate"] - truth), axis=-1)
-    return (err < tol).astype(jnp.float32)
+    truth = states.obs if env is None else jax.vmap(
+        lambda o: env.observe(*env.state_from_obs(o), nominal=False))(
+        states.obs.reshape((-1, states.obs.shape[-1]))).reshape(states.obs.shape)
+    return (jnp.max(jnp.abs(obs["estimate"] - truth), axis=-1) < tol).astype(jnp.float32)
 
 
 def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int = 0, *,
