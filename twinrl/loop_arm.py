@@ -132,8 +132,8 @@ class ArmLoopConfig:
     (the spatula: not measured). The tool point against the truth (``bench/hand_eye.py
     --grasp``, stop 57): needle twins 0-2 2.68 / 3.42 / 1.94 mm (nominal: 8.70 / 4.36 / 2.10;
     stop 55's run of the same fit: 0.81 / 3.10 / 1.15), peg twins 0-2 0.66 / 1.13 / 0.77 mm
-    (nominal: 5.78 / 12.21 / 10.61). Peg twin 1's loop: 3/5 real with the chosen camera and
-    10/10 with the default, against 2/5 and 5/10 with the nominal grasp."""
+    (nominal: 5.78 / 12.21 / 10.61). Peg twins 1 and 2, 50 real starts: 88 and 80 % with the
+    chosen camera (twin 1's loop with the nominal grasp: 2/5 chosen, 5/10 default)."""
     sysid: bool = True
     """Identify the action latency and the arm's servo dynamics (joint gains and damping) from
     round 0's transitions (``_sysid_config``; 4 min on 2 cores). On needle twin 2 the twin's
