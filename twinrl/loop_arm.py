@@ -15,8 +15,8 @@ a killed run resumes at the stage it was in):
    (``twinrl.real2sim.visual.fit_camera`` with a stack of cameras; the tool, whose grasp is
    not known, left out), kept as the identified ``System``'s ``"mount"`` camera, so every later
    render and back-projection of the target uses it; then, with that camera, the tool's grasp
-   in the hand (``visual.fit_body_offset``; ``ArmLoopConfig.grasp``: by default on the needle
-   only, where it was measured to help), kept as the ``System``'s
+   in the hand (``visual.fit_body_offset``; ``ArmLoopConfig.grasp``: by default on the peg and
+   the needle, where it was measured to help), kept as the ``System``'s
    ``objects["tool"]``, so the twin's tool, reward and success sit where the real tool does;
 2. **sysid** (``ArmLoopConfig.sysid``): the action latency and the joints' servo gains and
    damping from round 0's transitions (``twinrl.real2sim.sysid``), else the nominal ones;

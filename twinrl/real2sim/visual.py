@@ -769,8 +769,8 @@ def fit_body_offset(model: mujoco.MjModel, frames, camera: Camera, body: str | i
     of a round peg or a thread about its own axis, which LM's flat direction otherwise sends
     anywhere) and costs a fraction of a millimetre's misfit elsewhere. The refinement starts
     from Adam's result and from the zero offset; the lower final cost is kept (``refine["start"]``
-    says which: 0 Adam's, 1 zero). Returns ``{"body",
-    "geoms", "pos_offset", "rot_offset", "runs", "refine"}``."""
+    says which: 0 Adam's, 1 zero). Returns ``{"body", "geoms", "pos_offset", "rot_offset",
+    "runs", "refine"}``."""
     try:
         bid = model.body(body).id
     except (KeyError, IndexError):
