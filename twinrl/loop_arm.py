@@ -126,15 +126,15 @@ class ArmLoopConfig:
     grasp: bool | None = None
     """After the calibration, identify the tool's grasp in the hand from the same frames
     (``visual.fit_body_offset`` on body ``tool``, the calibrated camera held), kept as the
-    ``System``'s ``objects["tool"]`` (``ArmTask.set_grasp``): the twin's tool, its reward and
-    its success then sit where the real tool does. Needs ``calibrate``. ``None`` (the
-    default): on for the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere
-    (the spatula: the fit measured, 2.40 / 2.05 / 2.09 mm on twins 0-2 against 4.56 / 13.14 /
-    10.95 nominal, stop 58; no loop with it yet). The tool point against the truth
-    (``bench/hand_eye.py --grasp``, stop 57): needle twins 0-2 2.68 / 3.42 / 1.94 mm (nominal: 8.70 / 4.36 / 2.10;
-    stop 55's run of the same fit: 0.81 / 3.10 / 1.15), peg twins 0-2 0.66 / 1.13 / 0.77 mm
-    (nominal: 5.78 / 12.21 / 10.61). Peg twins 1 and 2, 50 real starts: 88 and 80 % with the
-    chosen camera (twin 1's loop with the nominal grasp: 2/5 chosen, 5/10 default)."""
+    ``System``'s ``objects["tool"]`` (``ArmTask.set_grasp``): the twin's tool, its reward and its
+    success then sit where the real tool does. Needs ``calibrate``. ``None`` (the default): on for
+    the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere (the spatula: the fit
+    measured, 2.40 / 2.05 / 2.09 mm on twins 0-2 against 4.56 / 13.14 / 10.95 nominal, stop 58; no
+    loop with it yet). The tool point against the truth (``bench/hand_eye.py --grasp``, stop 57):
+    needle twins 0-2 2.68 / 3.42 / 1.94 mm (nominal: 8.70 / 4.36 / 2.10; stop 55's run of the same
+    fit: 0.81 / 3.10 / 1.15), peg twins 0-2 0.66 / 1.13 / 0.77 mm (nominal: 5.78 / 12.21 / 10.61).
+    Peg twins 1 and 2, 50 real starts: 88 and 80 % with the chosen camera (twin 1's loop with the
+    nominal grasp: 2/5 chosen, 5/10 default)."""
     sysid: bool = True
     """Identify the action latency and the arm's servo dynamics (joint gains and damping) from
     round 0's transitions (``_sysid_config``; 4 min on 2 cores). On needle twin 2 the twin's
