@@ -14,6 +14,7 @@ from twinrl.learn.networks import make_policy
 class ToyConfig:
     epochs: int = 3
     lr: float = 1e-2
+    kept: int = -1  # >= 0: the metrics mark that epoch ``kept`` (as imitation marks its best)
 
 
 def train(env, config, rng, *, progress_fn=None, checkpoint_fn=None, restore=None):
@@ -40,4 +41,7 @@ def train(env, config, rng, *, progress_fn=None, checkpoint_fn=None, restore=Non
             progress_fn(e, row)
         if checkpoint_fn:
             checkpoint_fn(e, state, log.as_dict())
-    return pol, state["params"], log.as_dict()
+    metrics = log.as_dict()
+    if config.kept >= 0:
+        metrics["kept"] = [float(e == config.kept) for e in range(config.epochs)]
+    return pol, state["params"], metrics

@@ -32,12 +32,17 @@ def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos, m
                                     dagger_rounds=1, dagger_episodes=4, relabel_every=10,
                                     relabel_iterations=5, eval_episodes=8, label_weight=3.0,
                                     visit_noise=0.2)
-    fits = []  # each fit's (rows, weights)
+    fits, fitted = [], []  # each fit's (rows, weights); the parameters it returns
 
     def recording_fit(*a, **kw):
         fit = make_fit(*a, **kw)
-        return lambda p, o, obs, y, n, k, w: fits.append((n, np.asarray(w))) or fit(
-            p, o, obs, y, n, k, w)
+
+        def recorded(p, o, obs, y, n, k, w):
+            fits.append((n, np.asarray(w)))
+            out = fit(p, o, obs, y, n, k, w)
+            fitted.append(out[0])
+            return out
+        return recorded
 
     make_fit = imitation.make_minibatch_fit
     monkeypatch.setattr(imitation, "make_minibatch_fit", recording_fit)
@@ -58,7 +63,12 @@ def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos, m
         k, (T, 1), minval=-1, maxval=1))[1].sum())(keys)
     margin = 0.5 * (float(np.mean(demo_returns)) - float(np.mean(rand)))
     assert margin > 0
-    assert m["return"][-1] >= float(np.mean(rand)) + margin, (m, float(np.mean(rand)))
+    # keep="best": the round with the highest (success, return) is returned and marked kept
+    best = max(range(2), key=lambda r: (m["success"][r], m["return"][r], r))
+    assert m["kept"] == [float(r == best) for r in range(2)]
+    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(fitted[best])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert max(m["return"]) >= float(np.mean(rand)) + margin, (m, float(np.mean(rand)))
 
 
 def test_a_plan_is_judged_where_its_episode_ends(pendulum_demos):
@@ -107,6 +117,8 @@ def test_demonstration_files_are_checked(tmp_path):
         imitation.ImitationConfig(observation="rgb")
     with pytest.raises(ValueError, match="label_weight must be >= 0 or None, got -1"):
         imitation.ImitationConfig(label_weight=-1)
+    with pytest.raises(ValueError, match="keep must be one of 'best', 'last'"):
+        imitation.ImitationConfig(keep="first")
 
 
 def test_a_dagger_label_counts_as_much_as_a_demonstrated_state():

@@ -39,6 +39,18 @@ def test_run_directory_has_every_output(full_run):
     assert summary["epochs"] == 4 and summary["final"]["epoch"] == 3
 
 
+def test_final_figures_are_the_kept_epochs(tmp_path):
+    # a trainer that returns an earlier epoch's policy (imitation's best round) marks it ``kept``:
+    # the summary's final row and the checkpoint's metrics are that epoch's, not the last one's
+    s = runner.train_run(ENV, "toy", tmp_path, epochs=3, seed=3, progress=False,
+                         overrides={"kept": 1})
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert [float(r["kept"]) for r in rows] == [0.0, 1.0, 0.0]
+    assert s["final"]["epoch"] == 1 and s["final"]["return"] == float(rows[1]["return"])
+    _, _, meta = checkpoint.load_policy(tmp_path)
+    assert meta["metrics"]["epoch"] == 1 and meta["metrics"]["kept"] == 1.0
+
+
 def test_policy_checkpoint_loads_without_the_trainer(full_run):
     out, _ = full_run
     net, params, meta = checkpoint.load_policy(out)        # the run dir resolves to policy/

@@ -49,8 +49,8 @@ import numpy as np
 from twinrl.learn.common import (JSONConfig, MetricLog, held_episodes, make_minibatch_fit,
                                  make_optimizer, raw_key, rgb_jitter)
 from twinrl.learn.networks import NetworkConfig, make_network
-from twinrl.learn.plans import (DemonstrationError, Demonstrations, load_demonstrations,
-                                relabel, smooth_noise)
+from twinrl.learn.plans import (DemonstrationError, Demonstrations, accurate,
+                                load_demonstrations, relabel, smooth_noise)
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
            "demonstration_data", "accurate", "label_weight", "make_observer", "relabel", "train"]
@@ -116,6 +116,11 @@ class ImitationConfig(JSONConfig):
     step_size: float = 0.5
     """Trajopt's largest first-order step when labelling (``TrajoptConfig.step_size``)."""
     eval_episodes: int = 50
+    keep: str = "best"
+    """Which round's actor ``train`` returns: ``"best"``, the round with the highest success on
+    the ``eval_episodes`` starts (then return; the latest on a tie), or ``"last"``. A refit on
+    the grown data set can lose what the last one had (spatula twin 1's loop, 20 views: 10, 45,
+    then 20 %); the simulator is ours, so the choice costs no real episode."""
 
     def __post_init__(self):
         self.check_fields(
@@ -125,6 +130,7 @@ class ImitationConfig(JSONConfig):
             widths=("hidden", "conv_strides"),
             choices={"observation": ("state", "pixels", "target", "pose"),
                      "camera": ("random", "default"), "image_head": ("dense", "keypoints"),
+                     "keep": ("best", "last"),
                      "camera_input": (None, True, False),
                      "proprioception": (None, True, False)}, optional=("label_weight",))
         if len(self.conv_strides) != 3:
@@ -190,21 +196,6 @@ def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng)
     return jax.tree_util.tree_map(flat, obs), flat(acts), flat(accurate(obs, states, env))
 
 
-def accurate(obs, states, env=None, tol: float = 0.005) -> jax.Array:
-    """1 where a pose observation's ``"estimate"`` is within ``tol`` of the true state's in every
-    entry, else 0; all 1 for other observations. Only those rows are cloned: the expert's action
-    from a view whose fit went wrong (the needle's heading seen edge-on) teaches the wrong
-    answer; which views give a right estimate is the sensing Q's to learn. ``env``: the truth is
-    taken as the estimate is, at the identified grasp (``observe(..., nominal=False)``), not as
-    the robot's nominal report ``states.obs`` (peg twin 1: 12 mm apart, nothing was cloned)."""
-    if not isinstance(obs, dict) or "estimate" not in obs:
-        return jnp.ones(states.reward.shape, jnp.float32)
-    truth = states.obs if env is None else jax.vmap(
-        lambda o: env.observe(*env.state_from_obs(o), nominal=False))(
-        states.obs.reshape((-1, states.obs.shape[-1]))).reshape(states.obs.shape)
-    return (jnp.max(jnp.abs(obs["estimate"] - truth), axis=-1) < tol).astype(jnp.float32)
-
-
 def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int = 0, *,
           demos: Demonstrations | None = None,
           progress_fn: Callable[[int, dict], None] | None = None, checkpoint_fn=None,
@@ -217,7 +208,8 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     (the fit's mean squared action error), ``success`` and ``return`` of the actor on
     ``eval_episodes`` fresh start states, ``labels`` (expert labels added that round),
     ``labels_solved`` (the fraction of them whose improved plan solves the task; NaN in the
-    last round, which labels nothing), ``wall_s``.
+    last round, which labels nothing), ``wall_s``, ``kept`` (1 at the round whose actor is
+    returned: ``ImitationConfig.keep``; ``runner.train_run`` reports that row as final).
     """
     c = config
     if restore is not None:
@@ -280,7 +272,7 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
         w = sel(accurate(o, s, env)) * (solved if c.solved_labels else 1.0) * label_weight(c)
         return jax.tree_util.tree_map(sel, o), labels, w, jnp.mean(solved)
 
-    log = MetricLog()
+    log, rounds = MetricLog(), []  # rounds: (success, return, round, params) of each round
     for r in range(int(c.dagger_rounds) + 1):
         key, k_fit, k_visit = jax.random.split(key, 3)
         params, opt, losses = fit(params, opt, obs, acts, n, k_fit, weights)
@@ -295,6 +287,10 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
             acts, n, added = put(acts, labels), n + per_round, per_round
         row = log.record(epoch=r, pairs=n - added, loss=loss, success=ok, **{"return": ret},
                          labels=added, labels_solved=solved)
+        rounds.append((float(ok), float(ret), r, params))
         if progress_fn is not None:
             progress_fn(r, row)
-    return net, params, log.as_dict()
+    kept = max(rounds, key=lambda x: x[:3]) if c.keep == "best" else rounds[-1]
+    metrics = log.as_dict()
+    metrics["kept"] = [float(r == kept[2]) for r in range(len(rounds))]
+    return net, kept[3], metrics

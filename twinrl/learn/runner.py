@@ -5,9 +5,10 @@ A **training run** directory holds::
     run.json          algo, env, seed and the full trainer config (what --resume must match)
     metrics.csv       one row per epoch (flushed as it goes); tb/ TensorBoard events
     train_state/      orbax steps of the whole trainer state (resumable trainers only)
-    policy/           the final policy checkpoint (``twinrl.learn.checkpoint``)
+    policy/           the returned policy's checkpoint (``twinrl.learn.checkpoint``)
     curve.png         return vs epoch, env steps and wall clock
-    summary.json      final figures
+    summary.json      final figures: the returned policy's epoch (the last, or the one the
+                      trainer's metrics mark ``kept``: imitation keeps its best round)
 
 ``train_run`` resumes a killed run (``resume=True``) from the last complete ``train_state`` step;
 because trainers draw every random number from the key in their state, the resumed run ends
@@ -221,11 +222,14 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
             ckpt.close()
     wall = time.perf_counter() - t0
     writer.rewrite(metrics)
+    # the returned policy's row: the last, or the one a trainer marks ``kept`` (imitation's best)
+    kept = metrics.get("kept") or []
+    at = kept.index(1.0) if 1.0 in kept else -1
+    final = {k: (v[at] if v else None) for k, v in metrics.items()}
     save_policy(out / "policy", policy, params, system=system_of(env), algo=algo, env=env_name,
                 env_config=_env_config(env), config=config, seed=int(seed),
-                metrics={k: v[-1] for k, v in metrics.items() if v})
+                metrics={k: v for k, v in final.items() if v is not None})
     curve = _plot_training(out / "curve.png", metrics, f"{algo} on {env_name}")
-    final = {k: (v[-1] if v else None) for k, v in metrics.items()}
     summary = {"algo": algo, "env": env_name, "seed": int(seed), "final": final,
                "best_return": float(np.nanmax(metrics["return"])) if metrics.get("return") else None,
                "epochs": len(metrics.get("epoch", [])), "wall_s_this_process": wall,
