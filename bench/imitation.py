@@ -10,15 +10,28 @@ pose drawn per episode). Prints a table and writes ``DIR/imitation.json`` (``--o
 
     python bench/manipulation.py --skip throughput render visibility --out bench/results
     python bench/imitation.py --plans bench/results --out bench/results
+
+``--run TASK=DIR`` instead repeats a ``twinrl run`` loop's imitation stage (DIR: its output
+directory; its last round's identified twin, plans and imitation settings) with each of
+``--seeds``, and scores every round's actor on ``--episodes`` starts other than the
+``eval_episodes`` ones the stage chooses its round on (``ImitationConfig.keep``): how much the
+rounds swing, and what keeping the best one is worth against keeping the last. Writes
+``DIR/imitation_rounds.json`` (``--out DIR``).
+
+    python bench/imitation.py --run spatula_flipping=runs/spatula --seeds 0 1 2 --out bench/results
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 from twinrl import envs
 from twinrl.learn import imitation
@@ -44,7 +57,13 @@ def main(argv=None) -> int:
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("bench/results"))
+    p.add_argument("--run", metavar="TASK=DIR", help="repeat a loop run's imitation stage")
+    p.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2], help="with --run")
+    p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="with --run: ImitationConfig fields over the stage's (JSON values)")
     args = p.parse_args(argv)
+    if args.run:
+        return rounds_of_run(args)
     rows = []
     for name in args.tasks:
         demos = imitation.load_demonstrations(args.plans / f"{name}_plans.npz")
@@ -77,6 +96,63 @@ def main(argv=None) -> int:
     print(f"wrote {path}")
     return 0
 
+
+def rounds_of_run(args) -> int:
+    """``--run``: the loop's imitation stage again per seed, every round scored on other starts."""
+    from twinrl.envs.system import System
+    from twinrl.learn.common import held_episodes
+
+    task, _, run = args.run.partition("=")
+    if task not in TASKS or not run:
+        raise SystemExit(f"--run takes TASK=DIR with TASK one of {', '.join(TASKS)}: {args.run!r}")
+    summary = json.loads((Path(run) / "summary.json").read_text())
+    rdir = Path(run) / f"round{summary['final']['round']}"
+    env = envs.make(task, system=System.load(rdir / "system.json"))
+    stage = json.loads((rdir / "actor" / "run.json").read_text())["config"]
+    sets = dict(kv.partition("=")[::2] for kv in args.set)
+    cfg = imitation.ImitationConfig.from_dict(
+        {**stage, "demonstrations": "", **{k: json.loads(v) for k, v in sets.items()}})
+    demos = imitation.load_demonstrations(rdir / "plans.npz")
+    observe, _ = imitation.make_observer(env, cfg)
+    n = int(args.episodes)
+
+    def scorer(net):
+        @jax.jit
+        def score(params, key):  # starts and mount poses of their own (not the stage's)
+            ks = jax.vmap(jax.random.split)(jax.random.split(key, n))
+            coords = jax.vmap(lambda k: imitation._coords(env, cfg, k))(ks[:, 0])
+            ep = held_episodes(env, observe, lambda o: net.apply(params, o), ks[:, 1],
+                               coords=coords)
+            return jnp.mean(ep.success), jnp.mean(ep.rewards.sum(1))
+        return score
+
+    rows = []
+    for seed in args.seeds:
+        t0, each = time.perf_counter(), []
+        net, _, m = imitation.train(env, cfg, seed, demos=demos,
+                                    round_fn=lambda r, p: each.append(p))
+        score = scorer(net)
+        other = [float(score(p, jax.random.PRNGKey(10_000))[0]) for p in each]
+        kept = int(np.argmax(m["kept"]))
+        rows.append({"seed": seed, "stage_success": m["success"], "other_success": other,
+                     "kept_round": kept, "kept": other[kept], "last": other[-1],
+                     "labels_solved": m["labels_solved"], "wall_s": time.perf_counter() - t0})
+        print(f"[bench] {task} seed {seed}: stage's starts {np.round(m['success'], 2).tolist()}, "
+              f"other starts {np.round(other, 2).tolist()}, kept round {kept} "
+              f"({time.perf_counter() - t0:.0f} s)", flush=True)
+        write_json(args.out / "imitation_rounds.json", {"meta": run_meta(args), "rows": rows})
+    print_table(f"{task}: the loop's imitation stage ({cfg.eval_episodes} starts choose the round; "
+                f"{n} other starts score it)", ["seed", "stage's starts per round",
+                "other starts per round", "kept round", "kept", "last"],
+                [[r["seed"], " / ".join(f"{x:.2f}" for x in r["stage_success"]),
+                  " / ".join(f"{x:.2f}" for x in r["other_success"]), r["kept_round"],
+                  r["kept"], r["last"]] for r in rows])
+    kept, last = (float(np.mean([r[k] for r in rows])) for k in ("kept", "last"))
+    print(f"mean over {len(rows)} seeds, other starts: kept {kept:.3f}, last {last:.3f}")
+    path = write_json(args.out / "imitation_rounds.json", {"meta": run_meta(args), "rows": rows,
+                                                           "mean_kept": kept, "mean_last": last})
+    print(f"wrote {path}")
+    return 0
 
 
 if __name__ == "__main__":

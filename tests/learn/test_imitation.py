@@ -46,9 +46,10 @@ def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos, m
 
     make_fit = imitation.make_minibatch_fit
     monkeypatch.setattr(imitation, "make_minibatch_fit", recording_fit)
-    rounds = []
+    rounds, seen = [], []
     _, params, m = imitation.train(env, cfg, 0, demos=demos,
-                                   progress_fn=lambda r, row: rounds.append(r))
+                                   progress_fn=lambda r, row: rounds.append(r),
+                                   round_fn=lambda r, p: seen.append((r, p)))
     assert rounds == [0, 1]
     # round 0: the demonstrations' pairs; DAgger labels one in 10 of 4 episodes' states
     assert m["pairs"] == [8 * T, 8 * T + 4 * T // 10] and m["labels"] == [4 * T // 10, 0]
@@ -66,7 +67,10 @@ def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos, m
     # keep="best": the round with the highest (success, return) is returned and marked kept
     best = max(range(2), key=lambda r: (m["success"][r], m["return"][r], r))
     assert m["kept"] == [float(r == best) for r in range(2)]
+    assert [r for r, _ in seen] == [0, 1]  # round_fn sees each round's fitted actor
     for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(fitted[best])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for a, b in zip(jax.tree_util.tree_leaves(seen[1][1]), jax.tree_util.tree_leaves(fitted[1])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert max(m["return"]) >= float(np.mean(rand)) + margin, (m, float(np.mean(rand)))
 

@@ -199,7 +199,7 @@ def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng)
 def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int = 0, *,
           demos: Demonstrations | None = None,
           progress_fn: Callable[[int, dict], None] | None = None, checkpoint_fn=None,
-          restore=None):
+          restore=None, round_fn: Callable[[int, object], None] | None = None):
     """Behaviour cloning on ``demos`` (default: ``config.demonstrations``), then
     ``dagger_rounds`` DAgger rounds (module docstring). Not resumable: a round is minutes.
 
@@ -210,6 +210,7 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     ``labels_solved`` (the fraction of them whose improved plan solves the task; NaN in the
     last round, which labels nothing), ``wall_s``, ``kept`` (1 at the round whose actor is
     returned: ``ImitationConfig.keep``; ``runner.train_run`` reports that row as final).
+    ``round_fn(round, params)``, if given, sees each round's actor (``bench/imitation.py``).
     """
     c = config
     if restore is not None:
@@ -288,6 +289,8 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
         row = log.record(epoch=r, pairs=n - added, loss=loss, success=ok, **{"return": ret},
                          labels=added, labels_solved=solved)
         rounds.append((float(ok), float(ret), r, params))
+        if round_fn is not None:
+            round_fn(r, params)
         if progress_fn is not None:
             progress_fn(r, row)
     kept = max(rounds, key=lambda x: x[:3]) if c.keep == "best" else rounds[-1]
