@@ -41,10 +41,10 @@ import time
 import traceback
 from pathlib import Path
 
+import twinrl  # noqa: F401  (before jax: XLA's cache-load log lines stay hidden, _jaxconfig)
 import jax
 import numpy as np
 
-import twinrl
 from twinrl import envs
 from twinrl.learn import runner
 from twinrl.report import print_table, write_json

@@ -31,12 +31,12 @@ import sys
 import time
 from pathlib import Path
 
+import twinrl  # noqa: F401  (before jax: XLA's cache-load log lines stay hidden, _jaxconfig)
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-import twinrl
 from twinrl.physics import SCENES, Sim
 from twinrl.physics.collision import CONTACTS
 from twinrl.physics.scenes import scenario

@@ -29,6 +29,7 @@ import time
 import types
 from pathlib import Path
 
+import twinrl  # noqa: F401  (before jax: XLA's cache-load log lines stay hidden, _jaxconfig)
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -37,7 +38,6 @@ from mujoco import mjx
 from mujoco.mjx._src import forward as stock_forward
 from mujoco.mjx._src import smooth as stock
 
-import twinrl
 from twinrl import envs
 from twinrl.physics import collision, smooth, solver
 from twinrl.report import print_table, write_json
