@@ -98,6 +98,11 @@ def main(argv=None) -> int:
     return 0
 
 
+def _bad(message: str):
+    print(f"bench/imitation.py: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def rounds_of_run(args) -> int:
     """``--run``: the loop's imitation stage again per seed, every round scored on other starts."""
     from twinrl.envs.system import System
@@ -105,7 +110,9 @@ def rounds_of_run(args) -> int:
 
     task, _, run = args.run.partition("=")
     if task not in TASKS or not run:
-        raise SystemExit(f"--run takes TASK=DIR with TASK one of {', '.join(TASKS)}: {args.run!r}")
+        _bad(f"--run takes TASK=DIR with TASK one of {', '.join(TASKS)}: {args.run!r}")
+    if not (Path(run) / "summary.json").is_file():
+        _bad(f"--run {args.run}: no summary.json there (a twinrl run's output)")
     summary = json.loads((Path(run) / "summary.json").read_text())
     rdir = Path(run) / f"round{summary['final']['round']}"
     env = envs.make(task, system=System.load(rdir / "system.json"))
