@@ -194,12 +194,27 @@ def test_bad_settings_fail_with_one_line(tmp_path):
 
 
 def test_the_grasp_is_identified_by_default_only_where_it_was_measured_to_help():
-    # needle and peg: the fit lands 0.7-3.4 mm from the hidden grasp (nominal: 2-12 mm); the
-    # spatula's was never measured, so its loop keeps the nominal grasp unless asked
-    from twinrl.loop_arm import grasp_on, make_config
+    # needle, peg and spatula: the fit lands 0.7-3.4 mm from the hidden grasp (nominal: 2-13 mm);
+    # a task not measured keeps the nominal grasp unless asked
+    from twinrl.loop_arm import GRASP_TASKS, grasp_on, make_config
 
     c = make_config()
-    assert grasp_on(c, "needle_threading") and grasp_on(c, "peg_insertion")
-    assert not grasp_on(c, "spatula_flipping")
-    assert grasp_on(make_config({"grasp": True}), "spatula_flipping")
+    assert all(grasp_on(c, t) for t in ("needle_threading", "peg_insertion", "spatula_flipping"))
+    assert not grasp_on(c, "my_task") and "my_task" not in GRASP_TASKS
+    assert grasp_on(make_config({"grasp": True}), "my_task")
     assert not grasp_on(make_config({"grasp": False}), "needle_threading")
+
+
+def test_the_spatula_stage_runs_dagger_unless_told_otherwise():
+    # the spatula's target-cloud actor needs four DAgger rounds on solved labels (README); the
+    # other tasks clone alone; a --set imitation.FIELD wins over the task's setting
+    from twinrl import envs
+    from twinrl.loop_arm import imitation_settings, make_config
+
+    spatula, needle = envs.make("spatula_flipping"), envs.make("needle_threading")
+    s = imitation_settings(make_config(), spatula)
+    assert (s["dagger_rounds"], s["solved_labels"], s["observation"]) == (4, True, "target")
+    s = imitation_settings(make_config(), needle)
+    assert (s["dagger_rounds"], s["observation"], "solved_labels" in s) == (0, "pose", False)
+    s = imitation_settings(make_config({"imitation.dagger_rounds": 1}), spatula)
+    assert s["dagger_rounds"] == 1 and s["solved_labels"] and s["views"] == 8
