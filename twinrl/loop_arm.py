@@ -15,8 +15,8 @@ a killed run resumes at the stage it was in):
    (``twinrl.real2sim.visual.fit_camera`` with a stack of cameras; the tool, whose grasp is
    not known, left out), kept as the identified ``System``'s ``"mount"`` camera, so every later
    render and back-projection of the target uses it; then, with that camera, the tool's grasp
-   in the hand (``visual.fit_body_offset``; ``ArmLoopConfig.grasp``: by default on each task,
-   where it was measured to help), kept as the ``System``'s
+   in the hand (``visual.fit_body_offset``; ``ArmLoopConfig.grasp``: by default on the peg and
+   the needle, where it was measured to help), kept as the ``System``'s
    ``objects["tool"]``, so the twin's tool, reward and success sit where the real tool does;
 2. **sysid** (``ArmLoopConfig.sysid``): the action latency and the joints' servo gains and
    damping from round 0's transitions (``twinrl.real2sim.sysid``), else the nominal ones;
@@ -83,8 +83,8 @@ TASK_IMITATION: dict[str, dict[str, Any]] = {
 (other tasks: cloning alone, ``dagger_rounds=0``). The spatula's target-cloud actor needs DAgger:
 on twin 1's identified twin (``bench/imitation.py --run``, H200, 50 starts the stage did not
 choose on) 41 % after two rounds (three seeds), 74 % after four (two seeds); its loop with four
-rounds and the grasp fit, 64 % on 50 real starts with the chosen camera, 66 % with the default
-(two rounds, the nominal grasp: 0/5 and 0/10 in the loop).
+rounds and the grasp fit (``--set grasp=true``), 64 % on 50 real starts with the chosen camera,
+66 % with the default (two rounds, the nominal grasp: 0/5 and 0/10 in the loop).
 The needle's pose actor gains nothing lasting from DAgger (twin 1: 52 / 62 / 52 %)."""
 
 
@@ -148,10 +148,12 @@ class ArmLoopConfig:
     (``visual.fit_body_offset`` on body ``tool``, the calibrated camera held), kept as the
     ``System``'s ``objects["tool"]`` (``ArmTask.set_grasp``): the twin's tool, its reward and its
     success then sit where the real tool does. Needs ``calibrate``. ``None`` (the default): on for
-    the tasks where it was measured to help (``GRASP_TASKS``: all three), off elsewhere. Spatula:
-    the tool point 2.40 / 2.05 / 2.09 mm off on twins 0-2 against 4.56 / 13.14 / 10.95 nominal
-    (stop 58); twin 1's loop with it (and four DAgger rounds) 64 / 66 % on 50 real starts with
-    the chosen / default camera, where with the nominal grasp 0/5 and 0/10 (stop 59). The tool point
+    the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere. Spatula (not in
+    it): the tool point 2.40 / 2.05 / 2.09 mm off on twins 0-2 against 4.56 / 13.14 / 10.95
+    nominal (stop 58); twin 1's loop with it (and four DAgger rounds) 64 / 66 % on 50 real
+    starts with the chosen / default camera, where with the nominal grasp 0/5 and 0/10; but
+    twin 2's loop with it solved 0 of 48 plans in its identified twin (servo gains 17-44 % off
+    on joints 1, 3, 5, 7; cause not established) and stopped (stop 59). The tool point
     against the truth (``bench/hand_eye.py --grasp``, stop 57):
     needle twins 0-2 2.68 / 3.42 / 1.94 mm (nominal: 8.70 / 4.36 / 2.10; stop 55's run of the same
     fit: 0.81 / 3.10 / 1.15), peg twins 0-2 0.66 / 1.13 / 0.77 mm (nominal: 5.78 / 12.21 / 10.61).
@@ -228,7 +230,7 @@ class ArmLoopConfig:
                             "'pose', 'target' or 'pixels'")
 
 
-GRASP_TASKS = ("peg_insertion", "needle_threading", "spatula_flipping")
+GRASP_TASKS = ("peg_insertion", "needle_threading")
 """The tasks whose loop identifies the tool's grasp by default (``ArmLoopConfig.grasp``)."""
 
 
