@@ -33,10 +33,12 @@ def _twin(env_name, seed, perturbation=None, secret=None, **kwargs):
     return make_real(env_name, seed=seed, perturbation=perturbation, **kwargs)
 
 
-def param_errors(env_name, seed, result, perturbation=None, secret=None) -> dict[str, float]:
+def param_errors(env_name, seed, result, perturbation=None, secret=None, *,
+                 every: bool = False) -> dict[str, float]:
     """Relative error of every fitted parameter against the twin's hidden truth (parameters the
     data fix only up to a common scale are compared after that scale: ``aligned_rel_err``;
-    parameters left at nominal as not identifiable are left out)."""
+    parameters left at nominal as not identifiable are left out, unless ``every``: then every
+    fitted parameter is, whatever its status)."""
     from twinrl.real2sim.sysid import compare_to_truth
 
     twin = _twin(env_name, seed, perturbation, secret)
@@ -46,7 +48,8 @@ def param_errors(env_name, seed, result, perturbation=None, secret=None) -> dict
         twin.close()
     rows = compare_to_truth(result, truth.params, truth.perturbation.latency_steps)
     return {row["parameter"]: float(row.get("aligned_rel_err", row["rel_err"]))
-            for row in rows if not str(row.get("status", "")).startswith(("known", "not ident"))}
+            for row in rows if not str(row.get("status", "")).startswith(
+                ("known",) if every else ("known", "not ident"))}
 
 
 def visual_errors(env_name: str, twin_seed: int, summary: dict, secret=None) -> dict[str, float]:
