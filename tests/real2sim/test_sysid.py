@@ -30,11 +30,15 @@ def config(cart_mass, **kw):
                              max_latency=1, batch_windows=32, **kw)
 
 
+def _exact_perturbation():
+    return Perturbation(mass_scale=(1.0, 1.1), damping_scale=(1.0, 1.0), extra_damping=(0.2, 0.0),
+                        extra_frictionloss=(0.5, 0.0), gain_scale=(0.95,), latency_steps=1)
+
+
 def _exact_twin():
     """A real twin of our own model (Euler, 4 solver iterations, no noise), one step of latency."""
-    pert = Perturbation(mass_scale=(1.0, 1.1), damping_scale=(1.0, 1.0), extra_damping=(0.2, 0.0),
-                        extra_frictionloss=(0.5, 0.0), gain_scale=(0.95,), latency_steps=1)
-    return make_real(TASK, seed=0, perturbation=pert, integrator="euler", iterations=4)
+    return make_real(TASK, seed=0, perturbation=_exact_perturbation(), integrator="euler",
+                     iterations=4)
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +90,21 @@ def test_flat_direction_is_flagged_and_left_at_nominal(exact):
     assert result.values[j] == pytest.approx(result.nominal[j])
     assert any("friction/pole" in d["loadings"] for d in result.flat_directions)
     assert result.status[result.names.index("mass/cart")] == "known"
+
+
+def test_param_errors_leave_out_what_was_left_at_nominal_unless_asked_for_every_one(exact):
+    # twinrl.eval (evaluation only): the loop's summary scores the identified parameters;
+    # every=True scores each fitted one whatever its status, the known cart mass never.
+    from twinrl.eval import param_errors
+
+    _, result, rows = exact
+    pert = _exact_perturbation()
+    identified = param_errors(TASK, 0, result, pert)
+    every = param_errors(TASK, 0, result, pert, every=True)
+    assert "friction/pole" not in identified and "mass/cart" not in every
+    assert every["friction/pole"] == pytest.approx(0.0, abs=1e-9)  # nominal: the truth here
+    assert set(identified) < set(every)
+    assert every["gain/push"] == pytest.approx(by_name(rows)["gain/push"]["rel_err"])
 
 
 def test_zero_friction_loss_is_held_at_its_bound_with_a_one_sided_sd(exact, real):
