@@ -494,6 +494,11 @@ def _plan(run: RunContext, r: int, rdir: Path, env) -> None:
     res = plans.plan(env, c.demonstrations, c.trajopt_iterations, min(10, c.demonstrations),
                      run.seed + r, restarts=c.trajopt_restarts)
     plans.save(rdir / "plans.npz", res)
+    solved = int(np.sum(np.asarray(res["success"])))
+    if solved < 0.25 * c.demonstrations:  # the actor learns from these alone
+        run.say(f"  [yellow]only {solved} of {c.demonstrations} plans solved the task in the "
+                f"identified twin[/] (trajopt_iterations={c.trajopt_iterations}, "
+                f"trajopt_restarts={c.trajopt_restarts})")
     run.prog.mark(f"round{r}/plan", plan_success=res["success_rate"],
                   seconds=seconds_so_far(run.prog, r, plan=time.perf_counter() - t0))
 
