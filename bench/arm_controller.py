@@ -122,7 +122,7 @@ def main(argv=None) -> int:
     if args.steps < 1:
         _bad(f"--steps must be >= 1, got {args.steps}")
     nominal, rows, table = {}, [], []
-    for label, task, seed, pert in twins(args):
+    for label, task, seed, pert in list(twins(args)):  # bad --run paths fail before any work
         if task not in nominal:
             nominal[task] = displacements(envs.make(task), args.steps)
         twin = make_real(task, seed=seed, perturbation=pert)
