@@ -463,9 +463,10 @@ def _sysid_config():
     prior); fixed, it gives 0.3-17 %, far slower (README: the arm's sysid).
 
     The parameters' prior stays sysid's weak default (3). The data pin the gains loosely: on
-    spatula twin 2 their sd from 300 transitions is 20-35 % (likely because a stiff servo's
-    gain shows mostly in gravity's sag, which the roll joints 1, 3, 5, 7 hardly have; not
-    measured) and the fit lands 17-44 % off there. A datasheet prior (``prior_sd=0.2``) bounds that (18 % there,
+    spatula twin 2 their sd from 300 transitions is 13-39 % and the fit lands 17-44 % off
+    there, gain and damping of a joint off by about one factor (joint 1: 0.75 and 0.76): the
+    controller's targets are the measured joints plus a step, so a joint's speed shows its
+    gain over its damping, their common scale only through gravity and inertia. A datasheet prior (``prior_sd=0.2``) bounds that (18 % there,
     21 % on twin 1 against 29 %) but costs where the data do speak (needle twin 2: largest error
     9.4 -> 13.4 %, median 3.2 -> 5.8 %), and twin 2's plans fail with the true parameters as
     well (README, stop 60); ``bench/arm_sysid.py --prior-sd`` measures it."""
