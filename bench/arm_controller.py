@@ -7,7 +7,9 @@ the servo then closes only part of ``dq`` within the 0.04 s step, and how much d
 gain over its damping (and the link's inertia), joint by joint, so a twin's ±15 % gains and
 damping bend the commanded direction. The integrating variant (evaluated here only; not in
 ``twinrl``) adds ``dq`` to the previous step's targets instead, as a robot's Cartesian position
-interface does, so the servos settle on the commanded pose whatever their gains.
+interface does, so the servos settle on the commanded pose whatever their gains. (It is no
+drop-in: swapped into the spatula as is, the nominal twin's planner solves 1/8 starts, not 7/8;
+README, stop 60.)
 
 For each twin (``--seeds``: the public ``make_real(task, seed)``; ``--run DIR``: the hidden twin
 of a ``twinrl run`` output, ``DIR/eval/twin.json``; evaluation only) and each command (+x push,
