@@ -128,7 +128,7 @@ def rounds_of_run(args) -> int:
         @jax.jit
         def score(params, key):  # starts and mount poses of their own (not the stage's)
             ks = jax.vmap(jax.random.split)(jax.random.split(key, n))
-            coords = jax.vmap(lambda k: imitation._coords(env, cfg, k))(ks[:, 0])
+            coords = jax.vmap(lambda k: imitation.episode_coords(env, cfg, k))(ks[:, 0])
             ep = held_episodes(env, observe, lambda o: net.apply(params, o), ks[:, 1],
                                coords=coords)
             return jnp.mean(ep.success), jnp.mean(ep.rewards.sum(1))

@@ -53,7 +53,8 @@ from twinrl.learn.plans import (DemonstrationError, Demonstrations, accurate,
                                 load_demonstrations, relabel, smooth_noise)
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
-           "demonstration_data", "accurate", "label_weight", "make_observer", "relabel", "train"]
+           "demonstration_data", "accurate", "episode_coords", "label_weight", "make_observer",
+           "relabel", "train"]
 
 PROPRIO = 14
 """Entries of an arm task's observation a robot measures itself: 7 joint angles, 7 velocities."""
@@ -175,8 +176,8 @@ def _either(setting: bool | None, default: bool) -> bool:
     return default if setting is None else bool(setting)
 
 
-def _coords(env, config: ImitationConfig, key):
-    """The mount pose of an episode (pixels), or a dummy (state)."""
+def episode_coords(env, config: ImitationConfig, key):
+    """An episode's mount pose (pixels; ``config.camera``), a dummy (state): ``train``'s."""
     if config.observation == "state":
         return jnp.zeros(3)
     if config.camera == "default":
@@ -189,7 +190,7 @@ def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng)
     ``config.views`` mount poses each), and each pair's weight in the fit (``accurate``)."""
     observe, _ = make_observer(env, config)
     keys, actions = (np.repeat(np.asarray(x), _views(config), axis=0) for x in demos)
-    cams = jax.vmap(lambda k: _coords(env, config, k))(jax.random.split(rng, len(keys)))
+    cams = jax.vmap(lambda k: episode_coords(env, config, k))(jax.random.split(rng, len(keys)))
     run = jax.jit(lambda k, a, c: held_episodes(env, observe, None, k, a, c)[:3])
     obs, states, acts = run(jnp.asarray(keys), jnp.asarray(actions), cams)
     flat = lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:])  # noqa: E731
@@ -250,7 +251,7 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
         shake = (smooth_noise(jax.random.fold_in(k, 1), (n, T, env.action_size), scale=noise)
                  if noise else None)
         return held_episodes(env, observe, lambda o: net.apply(p, o), ks[:, 1],
-                             coords=jax.vmap(lambda k: _coords(env, c, k))(ks[:, 0]),
+                             coords=jax.vmap(lambda k: episode_coords(env, c, k))(ks[:, 0]),
                              noise=shake)
 
     @jax.jit
