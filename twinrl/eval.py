@@ -17,7 +17,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-__all__ = ["param_errors", "real_return", "policy_real_return", "oracle_return",
+__all__ = ["param_errors", "param_error_sets", "real_return", "policy_real_return", "oracle_return",
            "visual_errors", "hand_eye_errors", "grasp_errors", "deployed_success"]
 
 
@@ -39,6 +39,13 @@ def param_errors(env_name, seed, result, perturbation=None, secret=None, *,
     data fix only up to a common scale are compared after that scale: ``aligned_rel_err``;
     parameters left at nominal as not identifiable are left out, unless ``every``: then every
     fitted parameter is, whatever its status)."""
+    identified, everyone = param_error_sets(env_name, seed, result, perturbation, secret)
+    return everyone if every else identified
+
+
+def param_error_sets(env_name, seed, result, perturbation=None, secret=None
+                     ) -> tuple[dict[str, float], dict[str, float]]:
+    """``param_errors`` and ``param_errors(..., every=True)`` from one look at the truth."""
     from twinrl.real2sim.sysid import compare_to_truth
 
     twin = _twin(env_name, seed, perturbation, secret)
@@ -46,10 +53,11 @@ def param_errors(env_name, seed, result, perturbation=None, secret=None, *,
         truth = twin.oracle()
     finally:
         twin.close()
-    rows = compare_to_truth(result, truth.params, truth.perturbation.latency_steps)
-    return {row["parameter"]: float(row.get("aligned_rel_err", row["rel_err"]))
-            for row in rows if not str(row.get("status", "")).startswith(
-                ("known",) if every else ("known", "not ident"))}
+    rows = [row for row in compare_to_truth(result, truth.params, truth.perturbation.latency_steps)
+            if not str(row.get("status", "")).startswith("known")]
+    error = {row["parameter"]: float(row.get("aligned_rel_err", row["rel_err"])) for row in rows}
+    return ({row["parameter"]: error[row["parameter"]] for row in rows
+             if not str(row.get("status", "")).startswith("not ident")}, error)
 
 
 def visual_errors(env_name: str, twin_seed: int, summary: dict, secret=None) -> dict[str, float]:

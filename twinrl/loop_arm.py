@@ -439,9 +439,9 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera, grasp=None) -> No
         run.say(f"  sysid on {len(data)} real transitions ...")
         res = sysid.fit(run.nominal_env, data, _sysid_config())
         system = res.system
-        errors = [evaluation.param_errors(run.env_name, run.seed, res, run.perturbation,
-                                          run.secret, every=every) for every in (False, True)]
-        run.ev.mark(f"round{r}/sysid", param_rel_error=errors[0], param_rel_error_all=errors[1])
+        identified, everyone = evaluation.param_error_sets(run.env_name, run.seed, res,
+                                                           run.perturbation, run.secret)
+        run.ev.mark(f"round{r}/sysid", param_rel_error=identified, param_rel_error_all=everyone)
     if camera is not None:
         system = system.replace(cameras={"mount": camera})
     if grasp is not None:
@@ -466,10 +466,11 @@ def _sysid_config():
     spatula twin 2 their sd from 300 transitions is 13-39 % and the fit lands 17-44 % off
     there, gain and damping of a joint off by about one factor (joint 1: 0.75 and 0.76): the
     controller's targets are the measured joints plus a step, so a joint's speed shows its
-    gain over its damping, their common scale only through gravity and inertia. A datasheet prior (``prior_sd=0.2``) bounds that (18 % there,
-    21 % on twin 1 against 29 %) but costs where the data do speak (needle twin 2: largest error
-    9.4 -> 13.4 %, median 3.2 -> 5.8 %), and twin 2's plans fail with the true parameters as
-    well (README, stop 60); ``bench/arm_sysid.py --prior-sd`` measures it."""
+    gain over its damping, their common scale only through gravity and inertia. A datasheet
+    prior (``prior_sd=0.2``) bounds that (18 % there, 21 % on twin 1 against 29 %) but costs
+    where the data do speak (needle twin 2: largest error 9.4 -> 13.4 %, median 3.2 -> 5.8 %),
+    and twin 2's plans fail with the true parameters as well (README, stop 60);
+    ``bench/arm_sysid.py --prior-sd`` measures it."""
     from twinrl.envs.arm.base import N_JOINTS
     from twinrl.real2sim import sysid
 
