@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl import envs
+from twinrl.envs.arm.base import N_JOINTS
 from twinrl.report import print_table, run_meta, write_json
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
@@ -43,14 +44,13 @@ COMMANDS = {"+x": (1.0, 0.0, 0.0), "+z": (0.0, 0.0, 1.0), "+y": (0.0, 1.0, 0.0)}
 
 
 def _stepper(env, integrate: bool):
-    from twinrl.envs.arm.base import N_JOINTS
-
     def step(data, a):
-        q = data.qpos[:N_JOINTS]
-        target = env.controller(q, a)
-        if integrate:  # the previous targets (set to the start posture at reset) + dq
-            target = data.ctrl[:N_JOINTS] + (target - q)
-        ctrl = jnp.concatenate([target, jnp.zeros(env.sim.nu - N_JOINTS, target.dtype)])
+        if not integrate:  # the task's own step
+            return env.sim_step(data, a, env.params)
+        # the task's targets, moved from the measured joints onto the previous targets (set to
+        # the start posture at reset)
+        ctrl = env.control(data.qpos, data.qvel, a)
+        ctrl = ctrl.at[:N_JOINTS].add(data.ctrl[:N_JOINTS] - data.qpos[:N_JOINTS])
         return env.sim.step(data, ctrl, env.params)
     return jax.jit(step)
 
@@ -58,8 +58,6 @@ def _stepper(env, integrate: bool):
 def displacements(env, steps: int) -> dict:
     """Per controller and command: the tool point's displacement (m) after the commands and
     after as many still steps, from the task's start for key 0."""
-    from twinrl.envs.arm.base import N_JOINTS
-
     size = env.action_size
     out = {}
     for integrate in (False, True):
@@ -83,8 +81,8 @@ def compare(u: np.ndarray, v: np.ndarray) -> dict:
     cos = float(np.dot(u, v) / max(np.linalg.norm(u) * np.linalg.norm(v), 1e-12))
     return {"length_ratio": float(np.linalg.norm(v) / max(np.linalg.norm(u), 1e-12)),
             "angle_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
-            "gap_mm": float(1000 * np.linalg.norm(v - u)), "nominal_mm": float(1000 *
-                                                                            np.linalg.norm(u))}
+            "gap_mm": float(1000 * np.linalg.norm(v - u)),
+            "nominal_mm": float(1000 * np.linalg.norm(u))}
 
 
 def twins(args):
