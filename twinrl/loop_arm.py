@@ -166,6 +166,15 @@ class ArmLoopConfig:
     (94 -> 70 %); identified (latency right, gains within 0.5-16 %), 90 -> 84 %. The masses
     are left nominal: the servo-tracked motions barely show them (fitted, link 2's came out
     7x its truth there)."""
+    calibrate_controller: bool = True
+    """Calibrate the Cartesian controller to the identified servos (``ArmTask.servo_speed``,
+    kept as the ``System``'s ``objects["controller"]``) in the identified twin and on the real
+    arm (``RealTwin.calibrate_controller``, set by the deployment) from round 1 on; round 0
+    records with the nominal controller, and sysid and the hybrid model fit round 0's episodes
+    under it. The controller sets targets a step from the measured joints, so each joint moves
+    at its servo's gain over damping: a twin's +-15 % servos bend the commanded motion (spatula
+    twin 2: a lift 31 degrees off, 74 % as far) and its plans fail even with the true parameters
+    (0/8); calibrated with the true speeds 8/8, with the identified ones 6/8 (README, stop 61)."""
     demonstrations: int = 48
     """Random starts trajectory optimisation plans from (the solved ones are demonstrations)."""
     trajopt_iterations: int = 20
@@ -437,19 +446,33 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera, grasp=None) -> No
         from twinrl.real2sim import sysid
 
         run.say(f"  sysid on {len(data)} real transitions ...")
-        res = sysid.fit(run.nominal_env, data, _sysid_config())
+        res = sysid.fit(run.nominal_env, nominal_episodes(run, data), _sysid_config())
         system = res.system
         identified, everyone = evaluation.param_error_sets(run.env_name, run.seed, res,
                                                            run.perturbation, run.secret)
         run.ev.mark(f"round{r}/sysid", param_rel_error=identified, param_rel_error_all=everyone)
     if camera is not None:
         system = system.replace(cameras={"mount": camera})
+    objects = {}
     if grasp is not None:
-        system = system.replace(objects={"tool": {
-            k: np.asarray(grasp[k], np.float64) for k in ("pos_offset", "rot_offset")}})
+        objects["tool"] = {k: np.asarray(grasp[k], np.float64)
+                           for k in ("pos_offset", "rot_offset")}
+    if run.config.sysid and run.config.calibrate_controller:
+        objects["controller"] = {"joint_speed": run.nominal_env.servo_speed(system.params)}
+    if objects:
+        system = system.replace(objects=objects)
     system.save(rdir / "system.json")
     run.prog.mark(f"round{r}/sysid", latency=system.latency,
                   seconds=seconds_so_far(run.prog, r, sysid=time.perf_counter() - t0))
+
+
+def nominal_episodes(run: RunContext, data):
+    """The real episodes recorded with the nominal controller, which the fits of real
+    transitions (sysid, the hybrid model) simulate them with: all of them, or, with the
+    controller calibrated from round 1 on (``ArmLoopConfig.calibrate_controller``), round 0's."""
+    if run.config.sysid and run.config.calibrate_controller:
+        return data.first_episodes(run.K)
+    return data
 
 
 def _sysid_config():
@@ -537,6 +560,7 @@ def _residual(run: RunContext, r: int, rdir: Path, env, system, data) -> None:
     trained one if ``residual.accept`` keeps it, else all zeros, exactly the actor)."""
     import jax
 
+    from twinrl import envs
     from twinrl.learn.checkpoint import save_policy
     from twinrl.learn.sensing import load_actor
     from twinrl.sim2real import active, hybrid, residual
@@ -549,8 +573,13 @@ def _residual(run: RunContext, r: int, rdir: Path, env, system, data) -> None:
         run.prog.mark(f"round{r}/residual", residual_accepted=None)
         return
     seed = run.seed + r
-    run.say(f"  fitting the hybrid dynamics to {len(data)} real transitions ...")
-    fit = hybrid.fit(env, data, latency=system.latency, rng=jax.random.key(seed))
+    # the transitions under the controller that recorded them; the model's correction then
+    # rides on the calibrated twin (``make_dynamics``)
+    fitted = nominal_episodes(run, data)
+    recorded_with = {k: v for k, v in (system.objects or {}).items() if k != "controller"}
+    fit_env = envs.make(run.env_name, system=system.replace(objects=recorded_with or None))
+    run.say(f"  fitting the hybrid dynamics to {len(fitted)} real transitions ...")
+    fit = hybrid.fit(fit_env, fitted, latency=system.latency, rng=jax.random.key(seed))
     hybrid.save(rdir / "hybrid", fit)
     errors = {"hybrid_sim_rmse": float(np.mean(fit.metrics["sim_val_rmse"])),
               "hybrid_rmse": float(np.mean(fit.metrics["hybrid_val_rmse"]))}

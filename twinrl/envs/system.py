@@ -59,7 +59,9 @@ class System:
     cameras: Mapping[str, Camera] | None = None
     """Named cameras (pose + intrinsics), or None when not identified."""
     objects: Mapping[str, Mapping[str, jax.Array]] | None = None
-    """Per object name, named arrays (e.g. ``pos``, ``quat``, ``size``, ``rgba``), or None."""
+    """Per object name, named arrays (e.g. ``pos``, ``quat``, ``size``, ``rgba``), or None. The
+    arm tasks read ``"tool"`` (its grasp: ``pos_offset``, ``rot_offset``) and ``"controller"``
+    (``joint_speed``: the Cartesian controller's calibration, ``ArmTask.calibrate_controller``)."""
 
     def __post_init__(self):
         if not isinstance(self.params, PhysParams):

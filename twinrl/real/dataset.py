@@ -640,6 +640,10 @@ class Episode:
         return len(self.reward)
 
 
+_PER_TRANSITION = ("obs", "action", "reward", "next_obs", "terminated", "truncated",
+                   "episode_id", "step", "time", "info")
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Dataset:
     """Transitions read back from a dataset directory, in recording order, as numpy arrays.
@@ -709,6 +713,18 @@ class Dataset:
                 info=self.info[a:b],
                 images={k: v[a:b] for k, v in self.images.items()},
             )
+
+    def first_episodes(self, n: int) -> "Dataset":
+        """The dataset's first ``n`` episodes (in recording order; all of them if it has fewer)
+        as a ``Dataset`` of views: e.g. the episodes one phase of a run recorded."""
+        n = max(0, min(int(n), self.num_episodes))
+        end = int(self.episode_ends[n - 1]) if n else 0
+        cut = {f.name: getattr(self, f.name)[:end]
+               for f in dataclasses.fields(self) if f.name in _PER_TRANSITION}
+        return dataclasses.replace(
+            self, **cut, images={k: v[:end] for k, v in self.images.items()},
+            episode_starts=self.episode_starts[:n], episode_ends=self.episode_ends[:n],
+            episode_complete=self.episode_complete[:n])
 
 
 def read(path: str | os.PathLike[str], strict: bool = True) -> Dataset:

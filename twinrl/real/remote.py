@@ -149,9 +149,10 @@ def _serve(conn, parent: int) -> None:
         twin.close()
 
 
-_OPS = ("reset", "step", "render", "render_images", "move_camera", "success")
+_OPS = ("reset", "step", "render", "render_images", "move_camera", "success",
+        "calibrate_controller")
 """The requests the server answers (and ``close``); anything else is refused."""
-_ATTRS = ("camera_steps", "mount_coords")
+_ATTRS = ("camera_steps", "mount_coords", "joint_speed")
 """The twin's attributes a client may read (``op == "attr"``): the camera mount's odometry."""
 
 
@@ -237,6 +238,16 @@ class TwinClient(gym.Env):
     def move_camera(self, coords) -> int:
         """Move the camera mount (arm tasks), as ``RealTwin.move_camera``; returns the steps."""
         return self.__call("move_camera", np.asarray(coords, np.float64))
+
+    def calibrate_controller(self, joint_speed=None) -> None:
+        """Configure the arm's Cartesian controller, as ``RealTwin.calibrate_controller``."""
+        self.__call("calibrate_controller",
+                    None if joint_speed is None else np.asarray(joint_speed, np.float64))
+
+    @property
+    def joint_speed(self):
+        """The controller's calibration (None: nominal), as ``RealTwin.joint_speed``."""
+        return self.__call("attr", "joint_speed")
 
     def success(self) -> float:
         """The task's success of the episode's current state, as ``RealTwin.success`` (an

@@ -171,6 +171,9 @@ class RealTwin(gym.Env):
         # The task's own functions (JAX, jitted once per task and config in a process, shared by
         # its twins) so sim and real observe and reward alike.
         self._initial_state, self._observe, self._reward, self._control, self._success = fns
+        self._controls = {None: self._control}
+        self.joint_speed = None
+        """The Cartesian controller's calibration (``calibrate_controller``); None: nominal."""
 
         nu = self.task.action_size
         obs_size = self.task.observation_size
@@ -265,6 +268,25 @@ class RealTwin(gym.Env):
             self._renderer = CameraRenderer(self._model, self.width, self.height,
                                             shadows=self.shadows)
         return self._renderer.images(self._data, camera or self.camera, kinds)
+
+    def calibrate_controller(self, joint_speed=None) -> None:
+        """Configure the arm's Cartesian controller with each servo's speed relative to the
+        nominal arm's (``ArmTask.calibrate_controller``; None: uncalibrated), as a robot's
+        Cartesian interface is configured: from the next step on, the targets it sets are
+        divided joint by joint. The identified twin's value (``System.objects["controller"]``);
+        ``Deployer.run`` sets it from its task. The twin's true servos are untouched."""
+        from twinrl.envs.arm.base import check_joint_speed
+
+        if getattr(self.task, "controller", None) is None:
+            if joint_speed is None:
+                return
+            raise ValueError(f"task {self.task_name!r} has no Cartesian controller to calibrate")
+        js = check_joint_speed(joint_speed)
+        if js not in self._controls:
+            task = copy.copy(self.task)
+            task.calibrate_controller(js)
+            self._controls[js] = jax.jit(task.control)
+        self._control, self.joint_speed = self._controls[js], js
 
     def move_camera(self, coords) -> int:
         """Move the task's camera mount (arm tasks: ``task.mount``) to unconstrained mount

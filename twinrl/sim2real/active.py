@@ -158,6 +158,9 @@ class Deployer:
         when it ends."""
         self.check(config)
         env, c = self.env, config
+        if hasattr(twin, "calibrate_controller"):  # the robot's controller, as the twin's
+            twin.calibrate_controller(getattr(getattr(env, "controller", None), "joint_speed",
+                                              None))
         restarts = int(c.restarts or (self.sensing.restarts if self.sensing else 1))
         steps = int(c.ascent_steps or (self.sensing.ascent_steps if self.sensing else 1))
         rows = {k: [] for k in ("success", "return", "steps", "camera_steps", "choices")}

@@ -215,6 +215,13 @@ class CartesianController:
     """Null-space pull towards ``posture`` per step (fraction of the joint error)."""
     posture: tuple = tuple(HOME)
     """The joint posture the null space is pulled towards (the task's start posture)."""
+    joint_speed: tuple | None = None
+    """Per joint, how fast its servo closes a step of its target relative to the nominal arm's
+    (gain over damping, over the MJCF's: ``ArmTask.servo_speed``), as identified; each joint's step
+    is divided by it, so the tool moves as commanded whatever the servos (None: the nominal
+    arm's, all ones). The targets are set from the measured joints, so a servo 30 % faster
+    than nominal moves its joint 30 % further per step and bends the commanded direction
+    (``bench/arm_controller.py``)."""
 
     @property
     def action_size(self) -> int:
@@ -234,8 +241,22 @@ class CartesianController:
         pinv = J.T @ jnp.linalg.solve(JJt, jnp.eye(6, dtype=q.dtype))
         posture = jnp.asarray(self.posture, q.dtype)
         dq = pinv @ dx + _null_space(J) @ (self.posture_gain * (posture - q))
+        if self.joint_speed is not None:
+            dq = dq / jnp.asarray(self.joint_speed, q.dtype)
         lo, hi = (jnp.asarray(JOINT_RANGE[:, i], q.dtype) for i in (0, 1))
         return jnp.clip(q + dq, lo, hi)
+
+
+def check_joint_speed(joint_speed) -> tuple[float, ...] | None:
+    """``joint_speed`` (``CartesianController.joint_speed``) as 7 positive finite floats, or
+    None; anything else raises one line naming it."""
+    if joint_speed is None:
+        return None
+    js = np.asarray(joint_speed, np.float64).reshape(-1)
+    if js.shape != (N_JOINTS,) or not np.all(np.isfinite(js)) or np.any(js <= 0):
+        raise ValueError(f"joint_speed must be {N_JOINTS} positive finite numbers (each servo's "
+                         f"speed relative to the nominal arm's), got {np.asarray(joint_speed)!r}")
+    return tuple(float(x) for x in js)
 
 
 def _null_space(J: jax.Array) -> jax.Array:
@@ -529,9 +550,40 @@ class ArmTask(Env):
         cam = (getattr(value, "cameras", None) or {}).get("mount")
         if cam is not None and not isinstance(cam.pos, jax.core.Tracer):
             self.mount = type(self).mount.with_hand_eye(cam)
-        tool = (getattr(value, "objects", None) or {}).get("tool")
+        objects = getattr(value, "objects", None) or {}
+        tool = objects.get("tool")
         if tool is not None and not isinstance(tool["pos_offset"], jax.core.Tracer):
             self.set_grasp(tool["pos_offset"], tool["rot_offset"])
+        speed = (objects.get("controller") or {}).get("joint_speed")
+        if speed is not None and not isinstance(speed, jax.core.Tracer):
+            self.calibrate_controller(speed)
+
+    def servo_speed(self, params) -> np.ndarray:
+        """How fast each of the arm's 7 servos moves its joint towards a target step, relative
+        to the MJCF's: its gain over the joint's damping plus the servo's own (``kv``), in
+        ``params`` (``PhysParams``, e.g. sysid's) over the nominal values'. The arm's controller
+        sets targets a step from the *measured* joints, so in steady motion a joint covers that
+        step times ``gain / damping`` per second: the quantity the exciting motions pin down
+        (spatula twin 2: each joint's within 6 %, where gain and damping apart were 17-44 % off;
+        README, stop 61)."""
+        def speed(p):
+            gain = np.asarray(p.gain, np.float64)[:N_JOINTS]
+            kv = -np.asarray(p.bias, np.float64)[:N_JOINTS, 2]
+            return gain / (np.asarray(p.damping, np.float64)[:N_JOINTS] + kv)
+
+        from twinrl.physics.params import PhysParams
+
+        return speed(params) / speed(PhysParams.from_model(self.sim.mj_model))
+
+    def calibrate_controller(self, joint_speed) -> None:
+        """Calibrate the Cartesian controller to the servos' speeds (``servo_speed`` of the
+        identified parameters; None: the nominal arm's): each joint's target step is divided by
+        its speed (``CartesianController.joint_speed``), so the tool moves where it is commanded
+        on an arm whose servos differ from the MJCF's. The real twin's controller takes the same
+        calibration (``RealTwin.calibrate_controller``), as a robot's Cartesian interface is
+        configured; ``System.objects["controller"]["joint_speed"]`` carries it."""
+        self.controller = dataclasses.replace(self.controller,
+                                              joint_speed=check_joint_speed(joint_speed))
 
     grasp: tuple[np.ndarray, np.ndarray] | None = None
     """The tool's grasp in the hand as identified (``set_grasp``): ``(position offset (3,) in
