@@ -445,8 +445,9 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera, grasp=None) -> No
     if run.config.sysid:
         from twinrl.real2sim import sysid
 
-        run.say(f"  sysid on {len(data)} real transitions ...")
-        res = sysid.fit(run.nominal_env, nominal_episodes(run, data), _sysid_config())
+        fitted = nominal_episodes(run, data)
+        run.say(f"  sysid on {len(fitted)} real transitions ...")
+        res = sysid.fit(run.nominal_env, fitted, _sysid_config())
         system = res.system
         identified, everyone = evaluation.param_error_sets(run.env_name, run.seed, res,
                                                            run.perturbation, run.secret)
