@@ -1,15 +1,21 @@
 """How much a real twin's servos bend the arm's Cartesian commands: the tool point's motion for
-one command in a twin's hidden dynamics against the nominal twin's, for the arm's controller and
-for an integrating variant.
+one command in a twin's hidden dynamics against the nominal twin's, for the arm's controller as
+it is, calibrated to the servos, and for an integrating variant.
 
 ``CartesianController`` sets each step's joint targets from the *measured* joints (``q + dq``):
 the servo then closes only part of ``dq`` within the 0.04 s step, and how much depends on its
-gain over its damping (and the link's inertia), joint by joint, so a twin's ±15 % gains and
-damping bend the commanded direction. The integrating variant (evaluated here only; not in
-``twinrl``) adds ``dq`` to the previous step's targets instead, as a robot's Cartesian position
-interface does, so the servos settle on the commanded pose whatever their gains. (It is no
-drop-in: swapped into the spatula as is, the nominal twin's planner solves 1/8 starts, not 7/8;
-README, stop 60.)
+gain over its damping (and the link's inertia), joint by joint, so a twin's +-15 % gains and
+damping bend the commanded direction. Rows per controller:
+
+- ``measured``: the nominal controller (what round 0 records with);
+- ``calibrated (true)``: calibrated to the twin's true servo speeds (``ArmTask.servo_speed`` of
+  the hidden parameters; evaluation only: the best calibration can do);
+- ``calibrated (identified)``: with ``--run``, the speeds the run identified (its
+  ``round1/system.json``), as the loop deploys;
+- ``integrating``: ``dq`` added to the previous step's targets instead (evaluated here only;
+  not in ``twinrl``), as a robot's Cartesian position interface does, so the servos settle on
+  the commanded pose whatever their gains. (No drop-in: swapped into the spatula as is, the
+  nominal twin's planner solves 1/8 starts, not 7/8; README, stop 60.)
 
 For each twin (``--seeds``: the public ``make_real(task, seed)``; ``--run DIR``: the hidden twin
 of a ``twinrl run`` output, ``DIR/eval/twin.json``; evaluation only) and each command (+x push,
@@ -45,7 +51,7 @@ COMMANDS = {"+x": (1.0, 0.0, 0.0), "+z": (0.0, 0.0, 1.0), "+y": (0.0, 1.0, 0.0)}
 
 def _stepper(env, integrate: bool):
     def step(data, a):
-        if not integrate:  # the task's own step
+        if not integrate:  # the task's own step (its controller as calibrated)
             return env.sim_step(data, a, env.params)
         # the task's targets, moved from the measured joints onto the previous targets (set to
         # the start posture at reset)
@@ -55,12 +61,16 @@ def _stepper(env, integrate: bool):
     return jax.jit(step)
 
 
-def displacements(env, steps: int) -> dict:
+def displacements(env, steps: int, speeds: dict | None = None) -> dict:
     """Per controller and command: the tool point's displacement (m) after the commands and
-    after as many still steps, from the task's start for key 0."""
+    after as many still steps, from the task's start for key 0. ``speeds``: more rows, the
+    controller calibrated to each named set of servo speeds."""
     size = env.action_size
     out = {}
-    for integrate in (False, True):
+    kinds = [("measured", False, None), ("integrating", True, None)]
+    kinds += [(name, False, js) for name, js in (speeds or {}).items()]
+    for label, integrate, js in kinds:
+        env.calibrate_controller(js)
         step = _stepper(env, integrate)
         for name, cmd in COMMANDS.items():
             a = jnp.zeros(size, jnp.float32).at[:3].set(0.5 * jnp.asarray(cmd, jnp.float32))
@@ -73,7 +83,8 @@ def displacements(env, steps: int) -> dict:
             for _ in range(steps):
                 d = step(d, jnp.zeros(size, jnp.float32))
             still = np.asarray(env.tool_point(d.qpos), np.float64) - p0
-            out[("integrating" if integrate else "measured", name)] = (moved, still)
+            out[(label, name)] = (moved, still)
+    env.calibrate_controller(None)
     return out
 
 
@@ -91,7 +102,7 @@ def twins(args):
 
     for task in args.tasks:
         for s in args.seeds:
-            yield f"{task} twin {s}", task, s, None
+            yield f"{task} twin {s}", task, s, None, None
     for run in args.run:
         secret = Path(run) / "eval" / "twin.json"
         if not secret.is_file():
@@ -100,7 +111,8 @@ def twins(args):
         task, seed = doc.get("task"), doc.get("seed")
         if task not in TASKS:
             _bad(f"--run {run}: its twin is {task!r}, not a manipulation task")
-        yield f"{task} run {run}", task, int(seed), hidden_perturbation(task, seed, secret)
+        yield (f"{task} run {run}", task, int(seed), hidden_perturbation(task, seed, secret),
+               Path(run) / "round1" / "system.json")
 
 
 def _bad(message: str):
@@ -122,16 +134,20 @@ def main(argv=None) -> int:
     if args.steps < 1:
         _bad(f"--steps must be >= 1, got {args.steps}")
     nominal, rows, table = {}, [], []
-    for label, task, seed, pert in list(twins(args)):  # bad --run paths fail before any work
+    for label, task, seed, pert, identified in list(twins(args)):  # bad --run: before any work
         if task not in nominal:
             nominal[task] = displacements(envs.make(task), args.steps)
         twin = make_real(task, seed=seed, perturbation=pert)
         truth = twin.oracle()  # evaluation only
         twin.close()
         system = System(params=truth.params, latency=0, task=task)
-        moved = displacements(envs.make(task, system=system), args.steps)
+        env = envs.make(task, system=system)
+        speeds = {"calibrated (true)": env.servo_speed(truth.params)}
+        if identified is not None and identified.is_file():
+            speeds["calibrated (identified)"] = env.servo_speed(System.load(identified).params)
+        moved = displacements(env, args.steps, speeds)
         for (ctl, cmd), (m, s) in moved.items():
-            n_m, n_s = nominal[task][ctl, cmd]
+            n_m, n_s = nominal[task]["measured" if ctl.startswith("calibrated") else ctl, cmd]
             row = {"twin": label, "controller": ctl, "command": cmd,
                    "after_commands": compare(n_m, m), "after_still": compare(n_s, s)}
             rows.append(row)

@@ -32,7 +32,7 @@ def _run(tmp, **config):
     said = []
     cfg = loop_arm.ArmLoopConfig(
         residual_policy={"steps": 3, "horizon": 3, "batch_size": 4}, **config)
-    return SimpleNamespace(env_name="peg_insertion", seed=0, config=cfg,
+    return SimpleNamespace(env_name="peg_insertion", seed=0, config=cfg, K=4,
                            prog=Progress(tmp / "progress.json"),
                            say=lambda *a, **k: said.append(" ".join(map(str, a))), said=said)
 
@@ -63,6 +63,10 @@ def _jitted_step(env):
 class _Data(SimpleNamespace):
     def __len__(self):
         return len(self.obs)
+
+    def first_episodes(self, n):  # as the dataset's (episodes numbered from 0 here)
+        keep = self.episode_id < n
+        return _Data(**{k: v[keep] for k, v in vars(self).items()})
 
 
 @pytest.fixture(scope="module")
@@ -167,3 +171,20 @@ def test_an_actor_of_other_features_gets_no_residual(peg, tmp_path):
     assert "no residual policy" in run.said[0] and not (tmp_path / "round1" / "residual").exists()
     with pytest.raises(LoopError, match="residual_policy: ResidualConfig.steps"):
         loop_arm.make_config({"residual_policy.steps": 0})
+
+
+def test_fits_of_real_data_run_it_under_the_controller_that_recorded_it(tmp_path):
+    """Round 0 records with the nominal controller, later rounds with the calibrated one: sysid
+    and the hybrid model fit round 0's episodes (``nominal_episodes``) under the nominal
+    controller (``uncalibrated``), the twin itself left calibrated."""
+    from twinrl.envs.wrappers import LatencyWrapper
+
+    speed = (1.0, 0.9, 1.1, 1.2, 1.0, 1.0, 0.8)
+    env = envs.make("peg_insertion")
+    env.calibrate_controller(speed)
+    for e in (env, LatencyWrapper(env, 1)):
+        assert loop_arm.uncalibrated(e).controller.joint_speed is None
+        assert e.controller.joint_speed == speed
+    data = _Data(episode_id=np.repeat(np.arange(6), 3), obs=np.zeros((18, 2)))
+    assert len(loop_arm.nominal_episodes(_run(tmp_path), data)) == 4 * 3  # K = 4
+    assert len(loop_arm.nominal_episodes(_run(tmp_path, calibrate_controller=False), data)) == 18

@@ -55,6 +55,7 @@ resets with seed ``seed + i``, so the episodes are those an uninterrupted run wo
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import time
@@ -476,6 +477,21 @@ def nominal_episodes(run: RunContext, data):
     return data
 
 
+def uncalibrated(env):
+    """``env`` (an arm task, or a wrapper of one) with the nominal controller: a copy, ``env``
+    itself untouched."""
+    inner = getattr(env, "env", None)
+    if inner is not None:  # a wrapper (the latency's): the same around an uncalibrated task
+        out = copy.copy(env)
+        out.env = uncalibrated(inner)
+        return out
+    if getattr(getattr(env, "controller", None), "joint_speed", None) is None:
+        return env
+    out = copy.copy(env)
+    out.calibrate_controller(None)
+    return out
+
+
 def _sysid_config():
     """The arm's sysid: latency 0-1 and the 7 joints' servo gains and damping (what the
     exciting motions show; ``panda.xml`` names joints and servos ``joint1``..``joint7``);
@@ -561,7 +577,6 @@ def _residual(run: RunContext, r: int, rdir: Path, env, system, data) -> None:
     trained one if ``residual.accept`` keeps it, else all zeros, exactly the actor)."""
     import jax
 
-    from twinrl import envs
     from twinrl.learn.checkpoint import save_policy
     from twinrl.learn.sensing import load_actor
     from twinrl.sim2real import active, hybrid, residual
@@ -577,10 +592,9 @@ def _residual(run: RunContext, r: int, rdir: Path, env, system, data) -> None:
     # the transitions under the controller that recorded them; the model's correction then
     # rides on the calibrated twin (``make_dynamics``)
     fitted = nominal_episodes(run, data)
-    recorded_with = {k: v for k, v in (system.objects or {}).items() if k != "controller"}
-    fit_env = envs.make(run.env_name, system=system.replace(objects=recorded_with or None))
     run.say(f"  fitting the hybrid dynamics to {len(fitted)} real transitions ...")
-    fit = hybrid.fit(fit_env, fitted, latency=system.latency, rng=jax.random.key(seed))
+    fit = hybrid.fit(uncalibrated(env), fitted, latency=system.latency,
+                     rng=jax.random.key(seed))
     hybrid.save(rdir / "hybrid", fit)
     errors = {"hybrid_sim_rmse": float(np.mean(fit.metrics["sim_val_rmse"])),
               "hybrid_rmse": float(np.mean(fit.metrics["hybrid_val_rmse"]))}

@@ -596,3 +596,64 @@ def test_grasp_errors_score_the_hidden_grasp_zero_and_the_nominal_at_its_size():
     off = grasp_errors("needle_threading", 0, np.asarray(p.tool_pos_offset) + [0.002, 0, 0],
                        p.tool_rot_offset, perturbation=p)
     assert off["grasp_tcp_err_mm"] == pytest.approx(2.0, abs=1e-6)
+
+
+def _lift(twin, steps: int = 5) -> np.ndarray:
+    """The blade's displacement (m) after ``steps`` half-speed lift commands from reset key 0."""
+    env = twin.task
+    twin.reset(seed=0)
+    p0 = np.asarray(env.tool_point(jnp.asarray(twin.oracle().qpos), nominal=True))
+    for _ in range(steps):
+        twin.step(np.array([0.0, 0.0, 0.5], np.float32))
+    return np.asarray(env.tool_point(jnp.asarray(twin.oracle().qpos), nominal=True)) - p0
+
+
+def test_the_controller_calibrated_to_the_servos_moves_the_tool_as_commanded():
+    """Servos 20-30 % off their nominal speed (gain over damping) bend a commanded lift; the
+    controller calibrated with their speeds (``ArmTask.servo_speed``) lifts as the nominal arm
+    does. (Spatula, MuJoCo C; the real twin's controller is the task's, as configured.)"""
+    nominal = RealTwin("spatula_flipping", perturbation=Perturbation.none())
+    slow = Perturbation(gain_scale=(1.0, 0.85, 1.0, 1.2, 1.0, 1.0, 0.8),
+                        damping_scale=(1.0, 1.0, 1.2) + (1.0,) * 12)
+    twin = RealTwin("spatula_flipping", perturbation=slow)
+    want = _lift(nominal)
+
+    def angle(u):
+        return np.degrees(np.arccos(np.dot(u, want) / np.linalg.norm(u) / np.linalg.norm(want)))
+
+    bent = _lift(twin)
+    speed = twin.task.servo_speed(twin.oracle().params)  # the truth: evaluation only
+    np.testing.assert_allclose(speed, [1, 0.85, 1 / 1.2, 1.2, 1, 1, 0.8], rtol=1e-5)
+    twin.calibrate_controller(speed)
+    assert twin.joint_speed == tuple(speed)
+    fixed = _lift(twin)
+    print(f"\nlift {1e3 * np.linalg.norm(want):.1f} mm; servos off: {angle(bent):.1f} deg, "
+          f"{np.linalg.norm(bent) / np.linalg.norm(want):.2f} as far; calibrated: "
+          f"{angle(fixed):.1f} deg, {np.linalg.norm(fixed) / np.linalg.norm(want):.2f}")
+    assert angle(bent) > 10.0 and angle(fixed) < 0.4 * angle(bent), (angle(bent), angle(fixed))
+    assert abs(np.linalg.norm(fixed) / np.linalg.norm(want) - 1.0) < 0.15
+    twin.calibrate_controller(None)  # back to the nominal controller: bent again
+    np.testing.assert_allclose(_lift(twin), bent, atol=1e-9)
+    with pytest.raises(ValueError, match="joint_speed must be 7 positive"):
+        twin.calibrate_controller([1.0, 0.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="no Cartesian controller"):
+        RealTwin("pendulum_swingup").calibrate_controller(np.ones(7))
+    nominal.close()
+    twin.close()
+
+
+def test_a_systems_controller_calibration_configures_the_task(tmp_path):
+    from twinrl.envs.system import System
+
+    speed = np.array([1.0, 0.9, 1.1, 1.3, 1.0, 0.95, 0.8])
+    system = System.nominal("spatula_flipping").replace(
+        objects={"controller": {"joint_speed": speed}})
+    system.save(tmp_path / "system.json")
+    env = envs.make("spatula_flipping", system=System.load(tmp_path / "system.json"))
+    assert env.controller.joint_speed == tuple(speed)
+    assert envs.make("spatula_flipping").controller.joint_speed is None  # the class's untouched
+    q = jnp.asarray(env._q_start, jnp.float32)
+    a = jnp.array([0.3, -0.2, 0.5], jnp.float32)
+    step = env.controller(q, a) - q
+    plain = envs.make("spatula_flipping").controller(q, a) - q
+    np.testing.assert_allclose(step * speed, plain, rtol=1e-4, atol=1e-7)

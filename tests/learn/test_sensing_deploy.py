@@ -136,6 +136,14 @@ def test_oracle_deployment_of_a_state_expert_succeeds_on_the_real_twin():
 
     res = active.deploy(env, real, policy, {}, active.DeployConfig(camera="oracle", episodes=1),
                         residual=cancel)
+    assert real.joint_speed is None
+    # the deployment configures the real arm's controller as its task's is calibrated
+    calibrated = envs.make("peg_insertion")
+    calibrated.calibrate_controller([1.0, 0.9, 1.1, 1.2, 1.0, 1.0, 0.8])
+    active.deploy(calibrated, real, policy, {}, active.DeployConfig(camera="oracle", episodes=1))
+    assert real.joint_speed == (1.0, 0.9, 1.1, 1.2, 1.0, 1.0, 0.8)
+    active.deploy(env, real, policy, {}, active.DeployConfig(camera="oracle", episodes=1))
+    assert real.joint_speed is None
     real.close()
     assert res["success"] == [0.0] and len(seen) == env.episode_length
     for obs, a in seen[:3]:

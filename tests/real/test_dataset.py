@@ -165,6 +165,21 @@ def test_round_trip_with_images_across_chunk_rotation(tmp_path):
     )
 
 
+def test_first_episodes_is_the_datasets_prefix_episode_by_episode(tmp_path):
+    path = tmp_path / "ds"
+    with open_writer(path) as w:
+        for _ in range(N_EPISODES):
+            write_episode(w)
+    ds = read(path)
+    for n in (0, 1, 2, N_EPISODES, N_EPISODES + 3):
+        head = ds.first_episodes(n)
+        k = min(n, N_EPISODES)
+        assert head.num_episodes == k and len(head) == sum(LENGTHS[:k])
+        assert [e.id for e in head.episodes()] == list(range(k))
+        assert len(head.info) == len(head) and head.images["rgb"].shape[0] == len(head)
+        assert_matches_collector(head)
+
+
 def test_camera_suffixed_image_keys(tmp_path):
     path = tmp_path / "ds"
     rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)

@@ -74,6 +74,10 @@ def test_the_client_is_a_gymnasium_env_with_only_a_robots_interface(served):
     with pytest.raises(ValueError, match="finite numbers"):
         client.step(np.zeros(3))  # the server's own message; the server lives on
     assert client.step(np.zeros(1))[0].shape == traj.shape[1:]
+    client.calibrate_controller(None)  # a robot without a Cartesian controller: nothing to set
+    assert client.joint_speed is None
+    with pytest.raises(ValueError, match="no Cartesian controller"):
+        client.calibrate_controller(np.ones(7))
 
 
 def test_no_model_perturbation_or_renderer_is_reachable_from_the_client(served):
