@@ -60,6 +60,19 @@ def param_error_sets(env_name, seed, result, perturbation=None, secret=None
              if not str(row.get("status", "")).startswith("not ident")}, error)
 
 
+def servo_speed_errors(env, params, env_name, seed, perturbation=None, secret=None
+                       ) -> dict[str, float]:
+    """Relative error per joint (``"joint1"``..) of the servo speeds ``env.servo_speed(params)``
+    (an arm task's: what its controller is calibrated with) against the real twin's true ones."""
+    twin = _twin(env_name, seed, perturbation, secret)
+    try:
+        truth = twin.oracle().params
+    finally:
+        twin.close()
+    want, got = env.servo_speed(truth), env.servo_speed(params)
+    return {f"joint{i + 1}": float(abs(g / w - 1.0)) for i, (g, w) in enumerate(zip(got, want))}
+
+
 def visual_errors(env_name: str, twin_seed: int, summary: dict, secret=None) -> dict[str, float]:
     """Errors of a visual fit (``twinrl.real2sim.visual.visual_sysid``'s summary) against the
     hidden truth of the real twin ``make_real(env_name, seed=twin_seed)`` the frames came from:

@@ -154,7 +154,8 @@ class ArmLoopConfig:
     nominal (stop 58); twin 1's loop with it (and four DAgger rounds) 64 / 66 % on 50 real
     starts with the chosen / default camera, where with the nominal grasp 0/5 and 0/10; but
     twin 2's loop with it solved 0 of 48 plans in its identified twin (servo gains 17-44 % off
-    on joints 1, 3, 5, 7; cause not established) and stopped (stop 59). The tool point
+    on joints 1, 3, 5, 7) and stopped (stop 59): its servos bent the controller's commands
+    (``calibrate_controller``; calibrated, 45 of 48, stop 61). The tool point
     against the truth (``bench/hand_eye.py --grasp``, stop 57):
     needle twins 0-2 2.68 / 3.42 / 1.94 mm (nominal: 8.70 / 4.36 / 2.10; stop 55's run of the same
     fit: 0.81 / 3.10 / 1.15), peg twins 0-2 0.66 / 1.13 / 0.77 mm (nominal: 5.78 / 12.21 / 10.61).
@@ -452,7 +453,10 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera, grasp=None) -> No
         system = res.system
         identified, everyone = evaluation.param_error_sets(run.env_name, run.seed, res,
                                                            run.perturbation, run.secret)
-        run.ev.mark(f"round{r}/sysid", param_rel_error=identified, param_rel_error_all=everyone)
+        speed = evaluation.servo_speed_errors(run.nominal_env, system.params, run.env_name,
+                                              run.seed, run.perturbation, run.secret)
+        run.ev.mark(f"round{r}/sysid", param_rel_error=identified, param_rel_error_all=everyone,
+                    servo_speed_rel_error=speed)
     if camera is not None:
         system = system.replace(cameras={"mount": camera})
     objects = {}
@@ -509,7 +513,8 @@ def _sysid_config():
     gain over its damping, their common scale only through gravity and inertia. A datasheet
     prior (``prior_sd=0.2``) bounds that (18 % there, 21 % on twin 1 against 29 %) but costs
     where the data do speak (needle twin 2: largest error 9.4 -> 13.4 %, median 3.2 -> 5.8 %),
-    and twin 2's plans fail with the true parameters as well (README, stop 60);
+    and twin 2's plans failed with the true parameters as well (README, stop 60) until the
+    controller was calibrated to the servo speeds, which the data do pin (stop 61);
     ``bench/arm_sysid.py --prior-sd`` measures it."""
     from twinrl.envs.arm.base import N_JOINTS
     from twinrl.real2sim import sysid

@@ -642,6 +642,20 @@ def test_the_controller_calibrated_to_the_servos_moves_the_tool_as_commanded():
     twin.close()
 
 
+def test_servo_speed_errors_score_the_calibration_against_the_hidden_servos():
+    from twinrl import eval as evaluation
+    from twinrl.envs.system import System
+
+    env = envs.make("spatula_flipping")
+    slow = Perturbation(gain_scale=(1.0, 0.8) + (1.0,) * 5)
+    truth = RealTwin("spatula_flipping", perturbation=slow).oracle().params
+    exact = evaluation.servo_speed_errors(env, truth, "spatula_flipping", 0, slow)
+    assert sorted(exact) == [f"joint{i}" for i in range(1, 8)] and max(exact.values()) < 1e-9
+    nominal = evaluation.servo_speed_errors(env, System.nominal("spatula_flipping").params,
+                                            "spatula_flipping", 0, slow)
+    assert nominal["joint2"] == pytest.approx(0.25) and nominal["joint1"] < 1e-9
+
+
 def test_a_systems_controller_calibration_configures_the_task(tmp_path):
     from twinrl.envs.system import System
 
