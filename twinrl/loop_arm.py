@@ -149,13 +149,12 @@ class ArmLoopConfig:
     (``visual.fit_body_offset`` on body ``tool``, the calibrated camera held), kept as the
     ``System``'s ``objects["tool"]`` (``ArmTask.set_grasp``): the twin's tool, its reward and its
     success then sit where the real tool does. Needs ``calibrate``. ``None`` (the default): on for
-    the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere. Spatula (not in
-    it): the tool point 2.40 / 2.05 / 2.09 mm off on twins 0-2 against 4.56 / 13.14 / 10.95
-    nominal (stop 58); twin 1's loop with it (and four DAgger rounds) 64 / 66 % on 50 real
-    starts with the chosen / default camera, where with the nominal grasp 0/5 and 0/10; but
-    twin 2's loop with it solved 0 of 48 plans in its identified twin (servo gains 17-44 % off
-    on joints 1, 3, 5, 7) and stopped (stop 59): its servos bent the controller's commands
-    (``calibrate_controller``; calibrated, 45 of 48, stop 61). The tool point
+    the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere. Spatula: the
+    tool point 2.40 / 2.05 / 2.09 mm off on twins 0-2 against 4.56 / 13.14 / 10.95 nominal
+    (stop 58); twin 1's loop with it (and four DAgger rounds) 64 / 66 % on 50 real starts with
+    the chosen / default camera, where with the nominal grasp 0/5 and 0/10; twin 2's loop with
+    it solved 0 of 48 plans (stop 59) until the controller was calibrated
+    (``calibrate_controller``; stop 61: 45 of 48, and twin 1's loop 5/5 and 9/10). The tool point
     against the truth (``bench/hand_eye.py --grasp``, stop 57):
     needle twins 0-2 2.68 / 3.42 / 1.94 mm (nominal: 8.70 / 4.36 / 2.10; stop 55's run of the same
     fit: 0.81 / 3.10 / 1.15), peg twins 0-2 0.66 / 1.13 / 0.77 mm (nominal: 5.78 / 12.21 / 10.61).
@@ -241,7 +240,7 @@ class ArmLoopConfig:
                             "'pose', 'target' or 'pixels'")
 
 
-GRASP_TASKS = ("peg_insertion", "needle_threading")
+GRASP_TASKS = ("peg_insertion", "needle_threading", "spatula_flipping")
 """The tasks whose loop identifies the tool's grasp by default (``ArmLoopConfig.grasp``)."""
 
 
