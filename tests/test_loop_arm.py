@@ -206,6 +206,27 @@ def test_the_grasp_is_identified_by_default_where_it_was_measured_to_help():
     assert not grasp_on(make_config({"grasp": False}), "needle_threading")
 
 
+def test_qs_choice_is_deployed_only_where_q_ranks_its_held_out_states(tmp_path):
+    from types import SimpleNamespace
+
+    from twinrl.loop import LoopError, Progress
+    from twinrl.loop_arm import deployed_camera, make_config
+
+    def camera(rank, **settings):
+        prog = Progress(tmp_path / f"p{len(list(tmp_path.iterdir()))}.json")
+        if rank is not None:
+            prog.mark("round1/sensing", q_rank_corr=rank)
+        return deployed_camera(SimpleNamespace(config=make_config(settings), prog=prog), 1)
+
+    assert camera(0.38) == "selected" and camera(0.2) == "selected"
+    assert camera(-0.12) == "default" and camera(None) == "default"
+    assert camera(float("nan")) == "default"
+    assert camera(-0.12, camera_min_rank=-1.0) == "selected"
+    assert camera(0.9, camera="random") == "random"
+    with pytest.raises(LoopError, match="camera_min_rank must be in"):
+        make_config({"camera_min_rank": 2})
+
+
 def test_the_spatula_stage_runs_dagger_unless_told_otherwise():
     # the spatula's target-cloud actor needs four DAgger rounds on solved labels (README); the
     # other tasks clone alone; a --set imitation.FIELD wins over the task's setting
