@@ -719,8 +719,7 @@ class Dataset:
         as a ``Dataset`` of views: e.g. the episodes one phase of a run recorded."""
         n = max(0, min(int(n), self.num_episodes))
         end = int(self.episode_ends[n - 1]) if n else 0
-        cut = {f.name: getattr(self, f.name)[:end]
-               for f in dataclasses.fields(self) if f.name in _PER_TRANSITION}
+        cut = {name: getattr(self, name)[:end] for name in _PER_TRANSITION}
         return dataclasses.replace(
             self, **cut, images={k: v[:end] for k, v in self.images.items()},
             episode_starts=self.episode_starts[:n], episode_ends=self.episode_ends[:n],
