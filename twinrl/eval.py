@@ -17,7 +17,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-__all__ = ["param_errors", "param_error_sets", "real_return", "policy_real_return", "oracle_return",
+__all__ = ["param_errors", "param_error_sets", "sysid_errors", "real_return", "policy_real_return",
+           "oracle_return",
            "visual_errors", "hand_eye_errors", "grasp_errors", "deployed_success"]
 
 
@@ -33,6 +34,16 @@ def _twin(env_name, seed, perturbation=None, secret=None, **kwargs):
     return make_real(env_name, seed=seed, perturbation=perturbation, **kwargs)
 
 
+def _truth(env_name, seed, perturbation=None, secret=None):
+    """The hidden truth of the real twin ``(env_name, seed)`` (``RealTwin.oracle()``: its true
+    parameters, perturbation and model), for evaluation only."""
+    twin = _twin(env_name, seed, perturbation, secret)
+    try:
+        return twin.oracle()
+    finally:
+        twin.close()
+
+
 def param_errors(env_name, seed, result, perturbation=None, secret=None, *,
                  every: bool = False) -> dict[str, float]:
     """Relative error of every fitted parameter against the twin's hidden truth (parameters the
@@ -43,16 +54,13 @@ def param_errors(env_name, seed, result, perturbation=None, secret=None, *,
     return everyone if every else identified
 
 
-def param_error_sets(env_name, seed, result, perturbation=None, secret=None
+def param_error_sets(env_name, seed, result, perturbation=None, secret=None, *, truth=None
                      ) -> tuple[dict[str, float], dict[str, float]]:
-    """``param_errors`` and ``param_errors(..., every=True)`` from one look at the truth."""
+    """``param_errors`` and ``param_errors(..., every=True)`` from one look at the truth
+    (``truth``: a ``_truth(...)`` already taken)."""
     from twinrl.real2sim.sysid import compare_to_truth
 
-    twin = _twin(env_name, seed, perturbation, secret)
-    try:
-        truth = twin.oracle()
-    finally:
-        twin.close()
+    truth = truth or _truth(env_name, seed, perturbation, secret)
     rows = [row for row in compare_to_truth(result, truth.params, truth.perturbation.latency_steps)
             if not str(row.get("status", "")).startswith("known")]
     error = {row["parameter"]: float(row.get("aligned_rel_err", row["rel_err"])) for row in rows}
@@ -60,17 +68,26 @@ def param_error_sets(env_name, seed, result, perturbation=None, secret=None
              if not str(row.get("status", "")).startswith("not ident")}, error)
 
 
-def servo_speed_errors(env, params, env_name, seed, perturbation=None, secret=None
-                       ) -> dict[str, float]:
+def servo_speed_errors(env, params, env_name, seed, perturbation=None, secret=None, *,
+                       truth=None) -> dict[str, float]:
     """Relative error per joint (``"joint1"``..) of the servo speeds ``env.servo_speed(params)``
-    (an arm task's: what its controller is calibrated with) against the real twin's true ones."""
-    twin = _twin(env_name, seed, perturbation, secret)
-    try:
-        truth = twin.oracle().params
-    finally:
-        twin.close()
-    want, got = env.servo_speed(truth), env.servo_speed(params)
+    (an arm task's: what its controller is calibrated with) against the real twin's true ones
+    (``truth``: a ``_truth(...)`` already taken)."""
+    truth = truth or _truth(env_name, seed, perturbation, secret)
+    want, got = env.servo_speed(truth.params), env.servo_speed(params)
     return {f"joint{i + 1}": float(abs(g / w - 1.0)) for i, (g, w) in enumerate(zip(got, want))}
+
+
+def sysid_errors(env, result, env_name, seed, perturbation=None, secret=None
+                 ) -> dict[str, dict[str, float]]:
+    """An arm loop's sysid ``result`` against the hidden truth, from one look at it:
+    ``param_rel_error`` and ``param_rel_error_all`` (``param_error_sets``) and
+    ``servo_speed_rel_error`` (``servo_speed_errors`` of the identified parameters)."""
+    truth = _truth(env_name, seed, perturbation, secret)
+    identified, everyone = param_error_sets(env_name, seed, result, truth=truth)
+    return {"param_rel_error": identified, "param_rel_error_all": everyone,
+            "servo_speed_rel_error": servo_speed_errors(env, result.system.params, env_name, seed,
+                                                        truth=truth)}
 
 
 def visual_errors(env_name: str, twin_seed: int, summary: dict, secret=None) -> dict[str, float]:
@@ -85,11 +102,7 @@ def visual_errors(env_name: str, twin_seed: int, summary: dict, secret=None) -> 
     from twinrl import envs
     from twinrl.render import Camera
 
-    twin = _twin(env_name, twin_seed, secret=secret)
-    try:
-        model = twin.oracle().model
-    finally:
-        twin.close()
+    model = _truth(env_name, twin_seed, secret=secret).model
     out: dict[str, float] = {}
     if "camera" in summary:
         c = summary["camera"]
@@ -152,9 +165,7 @@ def oracle_return(env_name, seed, out, config, progress, perturbation=None, secr
     from twinrl import envs
     from twinrl.learn.runner import continue_run
 
-    twin = _twin(env_name, seed, perturbation, secret)
-    truth = twin.oracle().params
-    twin.close()
+    truth = _truth(env_name, seed, perturbation, secret).params
     env = envs.make(env_name, params=truth)
     if not (out / "policy" / "checkpoint.json").exists():
         continue_run(env_name, config.algo, out, seed=seed, epochs=config.epochs,
@@ -170,11 +181,7 @@ def hand_eye_errors(env_name, seed, mount, perturbation=None, secret=None) -> di
 
     from twinrl.real.perturbation import rotvec_quat
 
-    twin = _twin(env_name, seed, perturbation, secret)
-    try:
-        p = twin.oracle().perturbation
-    finally:
-        twin.close()
+    p = _truth(env_name, seed, perturbation, secret).perturbation
 
     def rot_err(a, b):
         qa, qb = rotvec_quat(np.asarray(a, np.float64)), rotvec_quat(np.asarray(b, np.float64))
@@ -202,11 +209,7 @@ def grasp_errors(env_name, seed, pos_offset, rot_offset, perturbation=None,
     from twinrl import envs
     from twinrl.real.perturbation import rotvec_quat
 
-    twin = _twin(env_name, seed, perturbation, secret)
-    try:
-        p = twin.oracle().perturbation
-    finally:
-        twin.close()
+    p = _truth(env_name, seed, perturbation, secret).perturbation
     tcp = np.asarray(envs.make(env_name).controller.tcp, np.float64)
 
     def mat(rotvec):

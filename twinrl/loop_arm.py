@@ -459,12 +459,8 @@ def _system(run: RunContext, r: int, rdir: Path, data, camera, grasp=None) -> No
         run.say(f"  sysid on {len(fitted)} real transitions ...")
         res = sysid.fit(run.nominal_env, fitted, _sysid_config())
         system = res.system
-        identified, everyone = evaluation.param_error_sets(run.env_name, run.seed, res,
-                                                           run.perturbation, run.secret)
-        speed = evaluation.servo_speed_errors(run.nominal_env, system.params, run.env_name,
-                                              run.seed, run.perturbation, run.secret)
-        run.ev.mark(f"round{r}/sysid", param_rel_error=identified, param_rel_error_all=everyone,
-                    servo_speed_rel_error=speed)
+        run.ev.mark(f"round{r}/sysid", **evaluation.sysid_errors(
+            run.nominal_env, res, run.env_name, run.seed, run.perturbation, run.secret))
     if camera is not None:
         system = system.replace(cameras={"mount": camera})
     objects = {}
@@ -683,9 +679,10 @@ def _deploy(run: RunContext, r: int, rdir: Path, env) -> None:
     have = len(rows)
     camera = deployed_camera(run, r)
     if camera != run.config.camera:
+        rank = prog.record(r).get("q_rank_corr")
+        rank = "not scored" if rank is None else f"{rank:.2f}"
         run.say(f"  [yellow]deploying the default camera[/]: Q's rank correlation on its "
-                f"held-out states {prog.record(r).get('q_rank_corr')} is below "
-                f"camera_min_rank {run.config.camera_min_rank:g}")
+                f"held-out states ({rank}) is below camera_min_rank {run.config.camera_min_rank:g}")
     run.say(f"  deploying on the real twin ({K - have} episodes, camera {camera}) ...")
     cfg = DeployConfig(camera=camera, episodes=K)
 
