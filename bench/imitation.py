@@ -106,7 +106,6 @@ def _bad(message: str):
 def rounds_of_run(args) -> int:
     """``--run``: the loop's imitation stage again per seed, every round scored on other starts."""
     from twinrl.envs.system import System
-    from twinrl.learn.common import held_episodes
 
     task, _, run = args.run.partition("=")
     if task not in TASKS or not run:
@@ -127,10 +126,8 @@ def rounds_of_run(args) -> int:
     def scorer(net):
         @jax.jit
         def score(params, key):  # starts and mount poses of their own (not the stage's)
-            ks = jax.vmap(jax.random.split)(jax.random.split(key, n))
-            coords = jax.vmap(lambda k: imitation.episode_coords(env, cfg, k))(ks[:, 0])
-            ep = held_episodes(env, observe, lambda o: net.apply(params, o), ks[:, 1],
-                               coords=coords)
+            ep = imitation.actor_episodes(env, observe, lambda o: net.apply(params, o), cfg,
+                                          key, n)
             return jnp.mean(ep.success), jnp.mean(ep.rewards.sum(1))
         return score
 

@@ -32,10 +32,9 @@ Observations (``ImitationConfig.observation``):
   the views whose estimate is right (``accurate``) are cloned.
 
 With ``views > 1`` every demonstration is rendered from that many mount poses (one pose per
-demonstration teaches nothing about the others).
-
-``train`` follows the trainers' contract, ``(policy, params, metrics)``; metrics per round: data
-size, fit loss, the actor's success and return on ``eval_episodes`` fresh starts."""
+demonstration teaches nothing about the others). ``train`` follows the trainers' contract,
+``(policy, params, metrics)``; metrics per round: data size, fit loss, the actor's success and
+return on ``eval_episodes`` fresh starts."""
 
 from __future__ import annotations
 
@@ -53,8 +52,8 @@ from twinrl.learn.plans import (DemonstrationError, Demonstrations, accurate,
                                 load_demonstrations, relabel, smooth_noise)
 
 __all__ = ["ImitationConfig", "Demonstrations", "DemonstrationError", "load_demonstrations",
-           "demonstration_data", "accurate", "episode_coords", "label_weight", "make_observer",
-           "relabel", "train"]
+           "demonstration_data", "accurate", "actor_episodes", "episode_coords", "label_weight",
+           "make_observer", "relabel", "train"]
 
 PROPRIO = 14
 """Entries of an arm task's observation a robot measures itself: 7 joint angles, 7 velocities."""
@@ -131,8 +130,7 @@ class ImitationConfig(JSONConfig):
             widths=("hidden", "conv_strides"),
             choices={"observation": ("state", "pixels", "target", "pose"),
                      "camera": ("random", "default"), "image_head": ("dense", "keypoints"),
-                     "keep": ("best", "last"),
-                     "camera_input": (None, True, False),
+                     "keep": ("best", "last"), "camera_input": (None, True, False),
                      "proprioception": (None, True, False)}, optional=("label_weight",))
         if len(self.conv_strides) != 3:
             raise ValueError(f"conv_strides must name 3 strides, got {self.conv_strides}")
@@ -171,8 +169,7 @@ def _views(config: ImitationConfig) -> int:  # mount poses per demonstrated stat
     return int(config.views) if config.observation != "state" else 1
 
 
-def _either(setting: bool | None, default: bool) -> bool:
-    """A ``bool | None`` setting (``camera_input``, ``proprioception``): None is ``default``."""
+def _either(setting: bool | None, default: bool) -> bool:  # camera_input, proprioception
     return default if setting is None else bool(setting)
 
 
@@ -183,6 +180,16 @@ def episode_coords(env, config: ImitationConfig, key):
     if config.camera == "default":
         return jnp.asarray(env.mount.default, jnp.float32)
     return jax.random.normal(key, (3,)) * 1.5  # unconstrained coords: spread over the workspace
+
+
+def actor_episodes(env, observe, act, config: ImitationConfig, key, n: int, noise: float = 0.0):
+    """``held_episodes`` of ``act`` (observation -> action) from ``n`` starts drawn from ``key``,
+    each from its own mount pose (``episode_coords``), with smooth action noise ``noise``."""
+    ks = jax.vmap(jax.random.split)(jax.random.split(key, n))  # (n, 2): camera, reset
+    shake = (smooth_noise(jax.random.fold_in(key, 1), (n, env.episode_length, env.action_size),
+                          scale=noise) if noise else None)
+    return held_episodes(env, observe, act, ks[:, 1], noise=shake,
+                         coords=jax.vmap(lambda k: episode_coords(env, config, k))(ks[:, 0]))
 
 
 def demonstration_data(env, demos: Demonstrations, config: ImitationConfig, rng):
@@ -245,23 +252,17 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     weights = grow(weights)
     jitter = rgb_jitter(c.rgb_jitter) if c.observation == "pixels" and c.rgb_jitter else None
     fit = make_minibatch_fit(net.apply, tx, int(c.fit_steps), int(c.batch_size), jitter)
-
-    def actor_episodes(p, k, n, noise=0.0):
-        ks = jax.vmap(jax.random.split)(jax.random.split(k, n))  # (n, 2): camera, reset
-        shake = (smooth_noise(jax.random.fold_in(k, 1), (n, T, env.action_size), scale=noise)
-                 if noise else None)
-        return held_episodes(env, observe, lambda o: net.apply(p, o), ks[:, 1],
-                             coords=jax.vmap(lambda k: episode_coords(env, c, k))(ks[:, 0]),
-                             noise=shake)
+    episodes = lambda p, k, n, noise=0.0: actor_episodes(  # noqa: E731
+        env, observe, lambda o: net.apply(p, o), c, k, n, noise)
 
     @jax.jit
     def evaluate(p, k):
-        ep = actor_episodes(p, k, c.eval_episodes)
+        ep = episodes(p, k, c.eval_episodes)
         return jnp.mean(ep.rewards.sum(1)), jnp.mean(ep.success)
 
     @jax.jit
     def visit_and_label(p, k):
-        o, s, sent = actor_episodes(p, k, c.dagger_episodes, float(c.visit_noise))[:3]
+        o, s, sent = episodes(p, k, c.dagger_episodes, float(c.visit_noise))[:3]
         sel = lambda x: x[:, picks].reshape((x.shape[0] * picks.size,) + x.shape[2:])  # noqa
         steps = jnp.arange(T)
         # warm start at step t: the actor's own actions from t on, zeros past the episode
@@ -269,8 +270,7 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
             (steps < T - t)[:, None], jnp.roll(a, -t, axis=0), 0.0))(jnp.asarray(picks)))(sent)
         states = jax.tree_util.tree_map(sel, s)
         left = jnp.tile(T - jnp.asarray(picks), sent.shape[0])
-        labels, solved = relabel(env, states, warm.reshape((left.size, T, sent.shape[-1])), c,
-                                 left)
+        labels, solved = relabel(env, states, warm.reshape((left.size, T, -1)), c, left)
         w = sel(accurate(o, s, env)) * (solved if c.solved_labels else 1.0) * label_weight(c)
         return jax.tree_util.tree_map(sel, o), labels, w, jnp.mean(solved)
 
