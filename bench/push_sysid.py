@@ -75,16 +75,16 @@ def floor_held(env, friction):
     return friction
 
 
-def staged(env, data, known, loss):
+def staged(env, data, known, common):
     """Two stages: (1) the pusher's gains and damping, and the latency, on the short windows
     where the pusher stays clear of the box (``Push.pusher_clear``), from its own states only;
     (2) box mass, box friction and pusher friction on all windows, the pusher's values known,
     from planar positions only (the box's velocities chatter with its rocking; positions
     integrate it away). Returns both results and the number of stage-1 windows."""
-    first, pusher, n_clear = pusher_first(env, data, known, loss)
+    first, pusher, n_clear = pusher_first(env, data, known, common)
     c2 = sysid.SysidConfig(params=("mass/box", "friction/box", "friction/pusher"),
                            known=known + pusher, observation_weights=POSITION_WEIGHTS,
-                           loss=loss, latency=first.latency)
+                           **common, latency=first.latency)
     return first, sysid.fit(env, data, c2), n_clear
 
 
@@ -99,12 +99,12 @@ def clear_throughout(env, w) -> np.ndarray:
     return env.pusher_clear(np.concatenate([w.obs0[:, None], w.targets], axis=1)).all(axis=1)
 
 
-def pusher_first(env, data, known, loss):
+def pusher_first(env, data, known, common):
     """``staged``'s stage 1: the pusher's gains and damping, and the latency, on the
     ``CLEAR_WINDOW``-step windows where it keeps clear of the box. Returns the fit, the pusher's
     values as ``known`` entries and the number of windows."""
     c1 = sysid.SysidConfig(params=PUSHER, known=known, observation_weights=PUSHER_WEIGHTS,
-                           loss=loss, window=CLEAR_WINDOW)
+                           **common, window=CLEAR_WINDOW)
     w = sysid.windows_from_dataset(env, data, c1.window, max_latency=c1.max_latency)
     clear = clear_throughout(env, w)
     first = sysid.fit(env, w.select(clear), c1)
@@ -112,7 +112,7 @@ def pusher_first(env, data, known, loss):
                         if n in PUSHER), int(clear.sum())
 
 
-def slide_first(env, data, known, loss):
+def slide_first(env, data, known, common):
     """Three stages, the box's friction apart from its mass: (1) the pusher (``pusher_first``);
     (2) the box's friction alone on the ``SLIDE_WINDOW``-step windows where the pusher keeps
     clear and the box starts faster than ``SLIDE_SPEED`` -- it slides on its own, decelerating
@@ -121,16 +121,16 @@ def slide_first(env, data, known, loss):
     on push (the pusher's damping caps the box near 0.3 m/s; it stops in ~5 steps, the first 2
     with the pusher still near): 11-37 such windows (overlapping, stride 1) in 5 episodes.
     Returns the three fits and the stage-1 and stage-2 window counts."""
-    first, pusher, n_clear = pusher_first(env, data, known, loss)
+    first, pusher, n_clear = pusher_first(env, data, known, common)
     c2 = sysid.SysidConfig(params=("friction/box",), known=known + pusher,
-                           observation_weights=BOX_POSITION_WEIGHTS, loss=loss,
+                           observation_weights=BOX_POSITION_WEIGHTS, **common,
                            window=SLIDE_WINDOW, latency=first.latency)
     w = sysid.windows_from_dataset(env, data, c2.window, stride=1, max_latency=c2.max_latency)
     slide = clear_throughout(env, w) & (np.linalg.norm(w.obs0[:, 11:13], axis=-1) > SLIDE_SPEED)
     second = sysid.fit(env, w.select(slide), c2)
     box = (("friction/box", float(second.values[0])),)
     c3 = sysid.SysidConfig(params=("mass/box", "friction/pusher"), known=known + pusher + box,
-                           observation_weights=POSITION_WEIGHTS, loss=loss,
+                           observation_weights=POSITION_WEIGHTS, **common,
                            latency=first.latency)
     return first, second, sysid.fit(env, data, c3), n_clear, int(slide.sum())
 
@@ -151,29 +151,31 @@ def run(args) -> dict:
         env = envs.make("push", params=contact_truth.replace(
             friction=floor_held(env, contact_truth.friction)), **sim_config)
     known = (("mass/pusher", true_of("mass/pusher")), ("friction/floor", FLOOR_FRICTION))
+    common = dict(loss=args.loss, start_prior_sd=args.start_prior_sd)
     t = time.perf_counter()
     n_slide = None
     if args.staged or args.slide_first:
         if args.slide_first:
-            first, second, res, n_clear, n_slide = slide_first(env, data, known, args.loss)
+            first, second, res, n_clear, n_slide = slide_first(env, data, known, common)
             box = [r for r in sysid.compare_to_truth(second, contact_truth, pert.latency_steps)
                    if r["parameter"] == "friction/box"]
         else:
-            (first, res, n_clear), box = staged(env, data, known, args.loss), []
+            (first, res, n_clear), box = staged(env, data, known, common), []
         rows = ([r for r in sysid.compare_to_truth(first, contact_truth, pert.latency_steps)
                  if r["parameter"] in PUSHER] + box)
         rows += [r for r in sysid.compare_to_truth(res, contact_truth, pert.latency_steps)
                  if r["parameter"] not in [x["parameter"] for x in rows] + ["friction/floor"]]
     else:
         cfg = sysid.SysidConfig(params=PARAMS, known=known, observation_weights=WEIGHTS,
-                                loss=args.loss)
+                                **common)
         res = sysid.fit(env, data, cfg)
         rows = [r for r in sysid.compare_to_truth(res, contact_truth, pert.latency_steps)
                 if r["parameter"] != "friction/floor"]
         n_clear = None
     return dict(twin_seed=args.twin_seed, only=args.only, episodes=args.episodes,
                 contacts=args.contacts, iterations=args.iterations, loss=args.loss,
-                start=args.start, staged=args.staged, slide_first=args.slide_first,
+                start=args.start, start_prior_sd=args.start_prior_sd, staged=args.staged,
+                slide_first=args.slide_first,
                 clear_windows=n_clear, slide_windows=n_slide,
                 latency=res.latency, true_latency=pert.latency_steps,
                 obs_noise_std=pert.obs_noise_std, loss_value=res.loss,
@@ -192,6 +194,9 @@ def main(argv=None) -> int:
                     help="solver iterations of the fitting simulator (default: push.xml's 6)")
     ap.add_argument("--loss", choices=LOSSES, default="huber")
     ap.add_argument("--start", choices=("nominal", "truth"), default="nominal")
+    ap.add_argument("--start-prior-sd", type=float,
+                    default=sysid.SysidConfig.start_prior_sd,
+                    help="SysidConfig.start_prior_sd: the estimated window starts' prior sd")
     stages = ap.add_mutually_exclusive_group()
     stages.add_argument("--staged", action="store_true",
                     help="pusher first on windows clear of the box, then the box from positions")
@@ -201,6 +206,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.episodes < 1 or (args.iterations is not None and args.iterations < 1):
         ap.error("--episodes and --iterations must be >= 1")
+    if not args.start_prior_sd > 0:
+        ap.error(f"--start-prior-sd must be > 0, got {args.start_prior_sd}")
     r = run(args)
     stages = (f", slide first ({r['clear_windows']} clear, {r['slide_windows']} slide windows)"
               if args.slide_first else f", staged ({r['clear_windows']} clear windows)"
