@@ -502,6 +502,14 @@ class ArmConfig(TaskConfig):
     is commanded at a fraction of its 1 kHz servo rate."""
     image_size: int = 64
     """Width and height (pixels) of the mount camera's images (``ArmTask.render``)."""
+    pose_hinge_grid: int = 0
+    """The image observation's pose fit's global search over the target's hinges
+    (``ArmTask.fit_target_pose``'s ``hinge_grid``; 0: the local restarts only)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if int(self.pose_hinge_grid) < 0:
+            raise ValueError(f"pose_hinge_grid must be >= 0, got {self.pose_hinge_grid}")
 
 
 class ArmTask(Env):
@@ -750,7 +758,8 @@ class ArmTask(Env):
                "reach": jnp.where(cloud[6] > 0, cloud[:3] - tool, 0.0)}
         fitted = ("pose", "estimate", "support")
         if self.target_joints and (keys is None or any(k in keys for k in fitted)):
-            pose, rms = self.fit_target_pose(joints, cam, depth, mask, with_residual=True)
+            pose, rms = self.fit_target_pose(joints, cam, depth, mask, with_residual=True,
+                                             hinge_grid=int(self.config.pose_hinge_grid))
             out["pose"] = pose
             out["estimate"] = self.observe(*self.estimated_state(joints, pose), nominal=False)
             out["support"] = jnp.stack([out["target"][6], 1e3 * rms])  # the cloud's count
@@ -802,7 +811,8 @@ class ArmTask(Env):
 
     @exact_matmuls
     def fit_target_pose(self, joints, camera, depth, mask, iters: int = 8,
-                        huber: float = 0.004, points: int = 256, with_residual: bool = False):
+                        huber: float = 0.004, points: int = 256, with_residual: bool = False,
+                        hinge_grid: int = 0):
         """The target's pose (its joints' values, ``qpos[target_joints]``) from one depth image:
         the values that put the target pixels' points, back-projected from ``camera``, on the
         surfaces of the target geoms (their union's signed distance, ``Renderer.sdf``) -- a
@@ -815,7 +825,9 @@ class ArmTask(Env):
         ``points``: target pixels used (a spread subset); ``joints``: the arm's measured angles
         and velocities (14,). The target geoms must be primitives (not meshes).
         ``with_residual``: return ``(pose, rms)``, the fit's weighted RMS signed distance (m; 0
-        where no target pixel shows)."""
+        where no target pixel shows). ``hinge_grid`` K > 1: also start from the hinges turned
+        together to K - 1 more angles spread over their period, each alone and with each slide
+        moved by +-2.5 cm (a global search; ``bench/pose_views.py`` measures what it buys)."""
         from twinrl.render import Geoms, primitives
         from twinrl.render.pointcloud import depth_to_points, huber_residual
 
@@ -879,7 +891,14 @@ class ArmTask(Env):
         # +-0.6 rad (hinges) along each joint; the fit with the smallest residual wins
         hinge = self._target_hinges
         delta = jnp.asarray(np.where(hinge, 0.3, 0.025), dt)
-        starts = jnp.concatenate([x[None]] + [x + m * delta * eye for m in (1, -1, 2, -2)])
+        starts = [x[None]] + [x + m * delta * eye for m in (1, -1, 2, -2)]
+        if hinge_grid > 1 and hinge.any():
+            h = jnp.asarray(hinge, dt)
+            slide = (delta * eye)[~hinge]
+            for k in range(1, hinge_grid):
+                turned = x + (k * self.target_hinge_period / hinge_grid) * h
+                starts += [turned[None], turned + slide, turned - slide]
+        starts = jnp.concatenate(starts)
         fits = jax.vmap(lambda x: jax.lax.fori_loop(0, iters, step, x))(starts)
         cost = jax.vmap(lambda x: jnp.sum(jnp.square(resid(x, *data))))(fits)
         x = fits[jnp.argmin(cost)]
