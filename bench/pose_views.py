@@ -176,12 +176,13 @@ def main(argv=None) -> int:
     for mode in args.modes if args.episodes else []:
         actors.append(actor_row(env, cfg, net, params, mode, args.episodes, args.episode_tol))
         print(f"[bench] actor, estimate {mode}: {actors[-1]['success']:.0%}", flush=True)
-    print_table(f"{task}: the pose fit from {args.views} random views (off: any joint > "
-                f"{args.tol:g})", ["hinge grid", "views off", "worst joint (counts)",
-                                   "RMS mm good / off", "obs/s"],
-                [[r["hinge_grid"], f"{r['bad']:.1%}", r["worst_joint_counts"],
-                  f"{r['rms_mm_good']:.4f} / {r['rms_mm_bad'] or float('nan'):.4f}",
-                  f"{r['obs_per_s']:.0f}"] for r in fits])
+    if fits:
+        print_table(f"{task}: the pose fit from {args.views} random views (off: any joint > "
+                    f"{args.tol:g})", ["hinge grid", "views off", "worst joint (counts)",
+                                       "RMS mm good / off", "obs/s"],
+                    [[r["hinge_grid"], f"{r['bad']:.1%}", r["worst_joint_counts"],
+                      f"{r['rms_mm_good']:.4f} / {r['rms_mm_bad'] or float('nan'):.4f}",
+                      f"{r['obs_per_s']:.0f}"] for r in fits])
     if actors:
         print_table(f"{task}: the run's image actor on {args.episodes} random views (hinge grid "
                     f"{args.actor_hinge_grid})",
