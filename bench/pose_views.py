@@ -181,7 +181,8 @@ def main(argv=None) -> int:
                     f"{args.tol:g})", ["hinge grid", "views off", "worst joint (counts)",
                                        "RMS mm good / off", "obs/s"],
                     [[r["hinge_grid"], f"{r['bad']:.1%}", r["worst_joint_counts"],
-                      f"{r['rms_mm_good']:.4f} / {r['rms_mm_bad'] or float('nan'):.4f}",
+                      " / ".join("-" if x is None else f"{x:.4f}"
+                                 for x in (r["rms_mm_good"], r["rms_mm_bad"])),
                       f"{r['obs_per_s']:.0f}"] for r in fits])
     if actors:
         print_table(f"{task}: the run's image actor on {args.episodes} random views (hinge grid "
