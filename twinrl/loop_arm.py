@@ -211,7 +211,7 @@ class ArmLoopConfig:
     +1.1 % through the hybrid model, -0.8 % through the twin) and cost the chosen camera 10
     real points (84 -> 74 %, 50 episodes: 5 solved only without it, 0 only with it)."""
     video: bool = True
-    """Write final.mp4: a deployment episode, the chosen view beside an overview of the scene."""
+    """Write final.mp4: a deployment episode, the deployed view beside an overview of the scene."""
 
     def __post_init__(self):
         for name in ("rounds", "episodes_per_round", "calibration_frames", "calibration_steps",
@@ -793,7 +793,8 @@ def _round_record(run: RunContext, r: int) -> dict[str, Any]:
     rec = run.prog.record(r)
     keys = ("real_steps", "real_success", "real_successes", "real_return", "camera_steps",
             "chosen_coords", "plan_success", "sim_success", "q_rank_corr", "q_rank_corr_pooled",
-            "latency", "residual_accepted", "hybrid_rmse", "hybrid_sim_rmse", "seconds")
+            "latency", "residual_accepted", "hybrid_rmse", "hybrid_sim_rmse", "deployed_camera",
+            "seconds")
     return {"round": r, **{k: rec.get(k) for k in keys}}
 
 
@@ -815,13 +816,14 @@ def _finish(run: RunContext, rounds: list[dict[str, Any]]) -> dict[str, Any]:
         summary["video_s"] = time.perf_counter() - t0
     rows = [[r["round"], r["real_steps"], r.get("plan_success"), r.get("sim_success"),
              r.get("q_rank_corr"), r.get("hand_eye_pos_err_mm"), r.get("real_success"),
-             r.get("default_camera_success"), r.get("camera_steps"),
+             r.get("deployed_camera") or "—", r.get("default_camera_success"),
+             r.get("camera_steps"),
              {True: "kept", False: "rejected"}.get(r.get("residual_accepted"), "—")]
             for r in rounds]
     report.print_table(f"twinrl run {run.env_name} (seed {run.seed})",
                        ["round", "real steps", "plans solved", "actor sim success", "Q rank",
-                        "hand-eye err mm", "real success", "default camera", "camera steps",
-                        "residual"],
+                        "hand-eye err mm", "real success", "camera", "default camera",
+                        "camera steps", "residual"],
                        rows)
     report.write_json(out / "summary.json", summary)
     _plot(out, summary)
@@ -843,9 +845,11 @@ def _plot(out: Path, summary: dict) -> None:
     fig, ax = plt.subplots(figsize=(6, 3.2))
     c = summary["config"]
     n_sim = (c.get("imitation") or {}).get("eval_episodes", 50)
+    cams = {r.get("deployed_camera") or c.get("camera") for r in rounds}  # the gate's choice
+    cam = cams.pop() if len(cams) == 1 else "deployed"
     for k, (key, label, n) in enumerate((
             ("sim_success", f"actor in the identified twin ({n_sim} episodes)", None),
-            ("real_success", f"real, {c.get('camera')} camera (recorded)", "real_successes"),
+            ("real_success", f"real, {cam} camera (recorded)", "real_successes"),
             ("default_camera_success", "real, default camera (evaluation)",
              "default_camera_successes"))):
         v = [np.nan if r.get(key) is None else r[key] for r in rounds]
@@ -867,7 +871,8 @@ def _plot(out: Path, summary: dict) -> None:
 
 def _final_video(run: RunContext) -> Path:
     """``final.mp4``: one more episode of the deployed actor on the real twin (not recorded), the
-    mount's view from the chosen pose (left) beside a fixed overview of the real scene (right)."""
+    mount's view from the deployed pose (left: Q's choice, or the default where the gate fell
+    back to it) beside a fixed overview of the real scene (right)."""
     from twinrl import envs
     from twinrl.envs.system import System
     from twinrl.real.remote import TwinClient
@@ -880,12 +885,13 @@ def _final_video(run: RunContext) -> Path:
     n = run.twin.width
     twin = _FilmedTwin(TwinClient(run.env_name, seed=run.seed, secret=run.secret,
                                   perturbation=run.perturbation, width=n, height=n))
+    camera = deployed_camera(run, r)
     try:
-        deployer.run(twin, DeployConfig(camera=deployed_camera(run, r), episodes=1),
-                     seed=90_000 + run.seed)
+        deployer.run(twin, DeployConfig(camera=camera, episodes=1), seed=90_000 + run.seed)
     finally:
         twin.close()
-    frames = report.label_frames(twin.frames, ["chosen view", "real scene"])
+    view = {"selected": "chosen view", "default": "default view"}.get(camera, f"{camera} view")
+    frames = report.label_frames(twin.frames, [view, "real scene"])
     return report.write_video(run.out / "final.mp4", frames, fps=1.0 / env.dt)
 
 
