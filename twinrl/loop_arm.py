@@ -191,7 +191,8 @@ class ArmLoopConfig:
     (the sensing stage's ``rank_corr``) reaches this; below it the round deploys the default
     camera and says so (``deployed_camera``). On 50 real starts per twin (stops 55-61): Q at
     0.38-0.62 chose as well as the default or better (spatula twin 1 +0, needle +8 .. +18),
-    peg at 0.33 -2; spatula twin 2's Q at -0.12 cost 20 points (76 against 96 %)."""
+    peg at 0.33 -2; spatula twin 2's Q at -0.12 cost 20 points (76 against 96 %), twin 0's at
+    0.02 cost 6 (84 against 90 %, stop 62)."""
     eval_episodes: int = 10
     """Evaluation-only real episodes (not recorded) of the deployed actor with the default
     camera; 0: none."""
