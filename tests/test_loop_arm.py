@@ -170,6 +170,7 @@ def test_finished_stages_are_not_redone_and_the_summary_counts_the_episodes(kill
     s = json.loads((out / "summary.json").read_text())
     r1 = s["rounds"][1]
     assert len(r1["real_successes"]) == K and r1["camera_steps"] == 0  # the fixed camera
+    assert r1["deployed_camera"] == "default"  # what the table, plot and video name
     assert r1["real_steps"] == len(ds.read(out / "dataset"))
     assert (out / "success.png").exists()
 
