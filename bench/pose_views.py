@@ -79,8 +79,7 @@ def true_pose(env, state):
 
 def pose_error(env, fitted, truth):
     """Per joint |fitted - truth|, hinges taken modulo the target's symmetry."""
-    d = fitted - truth
-    return jnp.abs(jnp.where(env._target_hinges, env._wrap_target_pose(d), d))
+    return jnp.abs(env._wrap_target_pose(fitted - truth))  # wraps the hinges only
 
 
 def fit_rows(env, cfg, views: int, tol: float) -> dict:
