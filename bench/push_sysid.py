@@ -104,7 +104,7 @@ def pusher_first(env, data, known, common):
     ``CLEAR_WINDOW``-step windows where it keeps clear of the box. Returns the fit, the pusher's
     values as ``known`` entries and the number of windows."""
     c1 = sysid.SysidConfig(params=PUSHER, known=known, observation_weights=PUSHER_WEIGHTS,
-                           **common, window=CLEAR_WINDOW)
+                           **{**common, "window": CLEAR_WINDOW})
     w = sysid.windows_from_dataset(env, data, c1.window, max_latency=c1.max_latency)
     clear = clear_throughout(env, w)
     first = sysid.fit(env, w.select(clear), c1)
@@ -123,8 +123,8 @@ def slide_first(env, data, known, common):
     Returns the three fits and the stage-1 and stage-2 window counts."""
     first, pusher, n_clear = pusher_first(env, data, known, common)
     c2 = sysid.SysidConfig(params=("friction/box",), known=known + pusher,
-                           observation_weights=BOX_POSITION_WEIGHTS, **common,
-                           window=SLIDE_WINDOW, latency=first.latency)
+                           observation_weights=BOX_POSITION_WEIGHTS,
+                           **{**common, "window": SLIDE_WINDOW}, latency=first.latency)
     w = sysid.windows_from_dataset(env, data, c2.window, stride=1, max_latency=c2.max_latency)
     slide = clear_throughout(env, w) & (np.linalg.norm(w.obs0[:, 11:13], axis=-1) > SLIDE_SPEED)
     second = sysid.fit(env, w.select(slide), c2)
@@ -152,6 +152,8 @@ def run(args) -> dict:
             friction=floor_held(env, contact_truth.friction)), **sim_config)
     known = (("mass/pusher", true_of("mass/pusher")), ("friction/floor", FLOOR_FRICTION))
     common = dict(loss=args.loss, start_prior_sd=args.start_prior_sd)
+    if args.window is not None:
+        common["window"] = args.window
     t = time.perf_counter()
     n_slide = None
     if args.staged or args.slide_first:
@@ -174,7 +176,7 @@ def run(args) -> dict:
         n_clear = None
     return dict(twin_seed=args.twin_seed, only=args.only, episodes=args.episodes,
                 contacts=args.contacts, iterations=args.iterations, loss=args.loss,
-                start=args.start, start_prior_sd=args.start_prior_sd, staged=args.staged,
+                start=args.start, start_prior_sd=args.start_prior_sd, window=args.window, staged=args.staged,
                 slide_first=args.slide_first,
                 clear_windows=n_clear, slide_windows=n_slide,
                 latency=res.latency, true_latency=pert.latency_steps,
@@ -202,10 +204,14 @@ def main(argv=None) -> int:
                     help="pusher first on windows clear of the box, then the box from positions")
     stages.add_argument("--slide-first", action="store_true",
                     help="pusher first, then box friction on free slides, then box mass")
+    ap.add_argument("--window", type=int, default=None,
+                    help="SysidConfig.window of the box's fits (default: its 20 steps)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     if args.episodes < 1 or (args.iterations is not None and args.iterations < 1):
         ap.error("--episodes and --iterations must be >= 1")
+    if args.window is not None and args.window < 1:
+        ap.error(f"--window must be >= 1, got {args.window}")
     if not args.start_prior_sd > 0:
         ap.error(f"--start-prior-sd must be > 0, got {args.start_prior_sd}")
     r = run(args)
