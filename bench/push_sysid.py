@@ -24,6 +24,11 @@ Prints a table (truth, identified, sd, relative error per parameter) and writes
     python bench/push_sysid.py --contacts mujoco --iterations 12 --start truth --out B
     python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --out B
     python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --slide-first --out B
+    python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --window 1 \
+        --recorded-starts --twin-seed 2 --only mass_scale friction_scale gain_scale \
+        damping_scale latency_steps --out B    # one-step windows from the recorded states
+
+Why the box's fits stop percents off even on noise-free data: ``bench/push_landscape.py``.
 """
 
 from __future__ import annotations
@@ -54,6 +59,8 @@ WEIGHTS = tuple(0.0 if i in (4, 5, 6, 7, 13, 14, 15, 16) else 1.0 for i in range
 PUSHER = ("gain/fx", "gain/fy", "damping/px", "damping/py")
 PUSHER_WEIGHTS = tuple(1.0 if i in (0, 1, 9, 10) else 0.0 for i in range(17))
 POSITION_WEIGHTS = tuple(1.0 if i in (0, 1, 2, 3, 8) else 0.0 for i in range(17))
+# ``--planar-velocities``: the same with the pusher's and the box's planar velocities
+PLANAR_WEIGHTS = tuple(1.0 if i in (0, 1, 2, 3, 8, 9, 10, 11, 12) else 0.0 for i in range(17))
 CLEAR_WINDOW = 5  # steps per stage-1 window: short, so that some keep clear of the box
 
 
@@ -75,7 +82,7 @@ def floor_held(env, friction):
     return friction
 
 
-def staged(env, data, known, common):
+def staged(env, data, known, common, weights=POSITION_WEIGHTS):
     """Two stages: (1) the pusher's gains and damping, and the latency, on the short windows
     where the pusher stays clear of the box (``Push.pusher_clear``), from its own states only;
     (2) box mass, box friction and pusher friction on all windows, the pusher's values known,
@@ -83,7 +90,7 @@ def staged(env, data, known, common):
     integrate it away). Returns both results and the number of stage-1 windows."""
     first, pusher, n_clear = pusher_first(env, data, known, common)
     c2 = sysid.SysidConfig(params=("mass/box", "friction/box", "friction/pusher"),
-                           known=known + pusher, observation_weights=POSITION_WEIGHTS,
+                           known=known + pusher, observation_weights=weights,
                            **common, latency=first.latency)
     return first, sysid.fit(env, data, c2), n_clear
 
@@ -154,6 +161,8 @@ def run(args) -> dict:
     common = dict(loss=args.loss, start_prior_sd=args.start_prior_sd)
     if args.window is not None:
         common["window"] = args.window
+    if args.recorded_starts:
+        common["estimate_start"] = False
     t = time.perf_counter()
     n_slide = None
     if args.staged or args.slide_first:
@@ -162,7 +171,9 @@ def run(args) -> dict:
             box = [r for r in sysid.compare_to_truth(second, contact_truth, pert.latency_steps)
                    if r["parameter"] == "friction/box"]
         else:
-            (first, res, n_clear), box = staged(env, data, known, common), []
+            (first, res, n_clear), box = staged(env, data, known, common, PLANAR_WEIGHTS
+                                                 if args.planar_velocities
+                                                 else POSITION_WEIGHTS), []
         rows = ([r for r in sysid.compare_to_truth(first, contact_truth, pert.latency_steps)
                  if r["parameter"] in PUSHER] + box)
         rows += [r for r in sysid.compare_to_truth(res, contact_truth, pert.latency_steps)
@@ -176,7 +187,9 @@ def run(args) -> dict:
         n_clear = None
     return dict(twin_seed=args.twin_seed, only=args.only, episodes=args.episodes,
                 contacts=args.contacts, iterations=args.iterations, loss=args.loss,
-                start=args.start, start_prior_sd=args.start_prior_sd, window=args.window, staged=args.staged,
+                start=args.start, start_prior_sd=args.start_prior_sd, window=args.window,
+                recorded_starts=args.recorded_starts, planar_velocities=args.planar_velocities,
+                staged=args.staged,
                 slide_first=args.slide_first,
                 clear_windows=n_clear, slide_windows=n_slide,
                 latency=res.latency, true_latency=pert.latency_steps,
@@ -206,12 +219,18 @@ def main(argv=None) -> int:
                     help="pusher first, then box friction on free slides, then box mass")
     ap.add_argument("--window", type=int, default=None,
                     help="SysidConfig.window of the box's fits (default: its 20 steps)")
+    ap.add_argument("--planar-velocities", action="store_true",
+                    help="with --staged: the box's fit also on the planar velocities")
+    ap.add_argument("--recorded-starts", action="store_true",
+                    help="windows start from the recorded states (SysidConfig.estimate_start off)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     if args.episodes < 1 or (args.iterations is not None and args.iterations < 1):
         ap.error("--episodes and --iterations must be >= 1")
     if args.window is not None and args.window < 1:
         ap.error(f"--window must be >= 1, got {args.window}")
+    if args.planar_velocities and not args.staged:
+        ap.error("--planar-velocities goes with --staged")
     if not args.start_prior_sd > 0:
         ap.error(f"--start-prior-sd must be > 0, got {args.start_prior_sd}")
     r = run(args)
