@@ -131,6 +131,9 @@ def main(argv=None) -> int:
     p.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
     p.add_argument("--restarts", type=int, default=None, help="ascents per choice (default: Q's)")
     p.add_argument("--ascent-steps", type=int, default=None)
+    p.add_argument("--pose-memory", choices=("none", "best"), default="none",
+                   help="a pose actor's target pose on the real twin: each frame's fit, or the "
+                        "best-seen one (DeployConfig.pose_memory)")
     p.add_argument("--model-free-steps", type=int, default=0)
     p.add_argument("--model-free-target", type=float, default=None,
                    help="success SAC/TD3 must reach (default: the selected camera's here)")
@@ -247,7 +250,8 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
                         height=size or 64)
         for mode, dep in deployers.items():
             cfg = active.DeployConfig(camera=mode, episodes=args.episodes,
-                                      restarts=args.restarts, ascent_steps=args.ascent_steps)
+                                      restarts=args.restarts, ascent_steps=args.ascent_steps,
+                                      pose_memory=args.pose_memory)
             twin.move_camera(env.mount.default)
             t0 = time.perf_counter()
             res = dep.run(twin, cfg, seed=1000 * seed)

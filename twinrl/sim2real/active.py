@@ -41,10 +41,11 @@ import numpy as np
 from twinrl.learn.camera_choice import image_size, select_camera
 from twinrl.learn.common import JSONConfig
 
-__all__ = ["CAMERAS", "DeployConfig", "real_image_observation", "sim_state", "Deployer",
-           "deploy", "pose_actor_on_state", "residual_correction"]
+__all__ = ["CAMERAS", "POSE_MEMORY", "DeployConfig", "PoseMemory", "real_image_observation",
+           "sim_state", "Deployer", "deploy", "pose_actor_on_state", "residual_correction"]
 
 CAMERAS = ("selected", "default", "random", "oracle")
+POSE_MEMORY = ("none", "best")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,10 +58,16 @@ class DeployConfig(JSONConfig):
     restarts: int | None = None
     """Ascents per choice; None: the Q checkpoint's ``SensingConfig.restarts``."""
     ascent_steps: int | None = None
+    pose_memory: str = "none"
+    """A ``"pose"`` actor's target pose (the target is at rest): ``"none"``, each frame's own
+    fit; ``"best"``, the fit of the frame with the most target pixels so far this episode (the
+    least occluded, nearest view), its estimate rebuilt with each step's joints. Other actors
+    ignore it."""
 
     def __post_init__(self):
         self.check_fields(at_least_one=("episodes", "restarts", "ascent_steps"),
-                          non_negative=("reselect_every",), choices={"camera": CAMERAS},
+                          non_negative=("reselect_every",),
+                          choices={"camera": CAMERAS, "pose_memory": POSE_MEMORY},
                           optional=("restarts", "ascent_steps"))
 
 
@@ -124,6 +131,9 @@ class Deployer:
         self.size = image_size(env, actor) if self.image else 0
         self._act = jax.jit(actor.apply)
         self._state = jax.jit(lambda o: sim_state(env, o))
+        self.pose = self.image and set(actor.obs_spec) == {"estimate"}  # a "pose" actor
+        self._estimate = jax.jit(lambda joints, pose: env.observe(
+            *env.estimated_state(joints, pose), nominal=False)) if self.pose else None
         self._choose = {}
 
     def _chooser(self, restarts: int, steps: int):
@@ -172,6 +182,7 @@ class Deployer:
             obs, _ = twin.reset(seed=int(seed) + i)
             before = twin.camera_steps
             choices, ret, first, img = 0, 0.0, None, None
+            memory = PoseMemory() if self.pose and c.pose_memory == "best" else None
             for t in range(env.episode_length):
                 if c.camera != "oracle" and (t == 0 or (c.reselect_every
                                                          and t % c.reselect_every == 0)):
@@ -182,9 +193,12 @@ class Deployer:
                     img = None
                 if self.image and img is None:
                     img = twin.render_images("mount", kinds)
-                o = (real_image_observation(twin, env, obs, self.size, img,
-                                            tuple(self.actor.obs_spec)) if self.image
+                keys = ("pose", "support") if memory else tuple(self.actor.obs_spec)
+                o = (real_image_observation(twin, env, obs, self.size, img, keys) if self.image
                      else np.asarray(obs, np.float32))
+                if memory is not None:
+                    o = {"estimate": self._estimate(np.asarray(obs[:14], np.float32),
+                                                    memory.update(o["pose"], o["support"][0]))}
                 a = np.asarray(self._act(self.actor_params, o), np.float32)
                 if self.residual is not None:
                     a = np.clip(a + np.asarray(self.residual(obs, a), np.float32), -1.0, 1.0)
@@ -229,6 +243,20 @@ class Deployer:
         state = self._state(jnp.asarray(obs, jnp.float32))
         key = jax.random.PRNGKey(int(rng.integers(0, 2**31 - 1)))
         return np.asarray(self._chooser(restarts, steps)(state, key).coords, np.float64)
+
+
+class PoseMemory:
+    """The target's pose fit kept over an episode (``DeployConfig.pose_memory="best"``): the
+    fit of the frame with the most target pixels so far, the latest on a tie."""
+
+    def __init__(self):
+        self.pose, self.pixels = None, -np.inf
+
+    def update(self, pose, pixels) -> np.ndarray:
+        """Offer this frame's fit and its target pixel count; returns the pose kept."""
+        if float(pixels) >= self.pixels:
+            self.pose, self.pixels = np.asarray(pose), float(pixels)
+        return self.pose
 
 
 def deploy(env, twin, actor, actor_params, config: DeployConfig = DeployConfig(), *, seed=0,
