@@ -148,3 +148,52 @@ def test_oracle_deployment_of_a_state_expert_succeeds_on_the_real_twin():
     assert res["success"] == [0.0] and len(seen) == env.episode_length
     for obs, a in seen[:3]:
         np.testing.assert_allclose(a, np.asarray(expert(None, jnp.asarray(obs))), atol=1e-6)
+
+
+def test_pose_memory_acts_on_the_best_supported_frames_fit(monkeypatch):
+    """``DeployConfig.pose_memory="best"``: a pose actor acts on the target fit of the frame with
+    the most target pixels so far (the latest on a tie), its estimate rebuilt from each step's
+    joints; ``"none"`` on each frame's own fit. The frames' fits are scripted here (the fit
+    itself is ``tests/envs``'), so what is checked is which one the deployer hands the actor."""
+    from twinrl.learn.networks import Network
+    from twinrl.real.perturbation import Perturbation
+    from twinrl.real.twin import RealTwin
+    from twinrl.sim2real import active
+
+    env = envs.make("peg_insertion", episode_length=T, image_size=PIX)
+    P = len(env.target_joints)
+    fits = [(np.full(P, 0.01 * k, np.float32), pix) for k, pix in
+            enumerate([3.0, 5.0, 4.0, 5.0, 2.0, 6.0])]  # (pose, target pixels) per frame
+    estimate = jax.jit(lambda j, p: env.observe(*env.estimated_state(j, p), nominal=False))
+    frame = iter(range(10 ** 6))
+
+    def observation(twin, env, obs, size, img=None, keys=None):
+        pose, pixels = fits[next(frame) % T]
+        return {"pose": pose, "support": np.array([pixels, 0.1], np.float32),
+                "estimate": np.asarray(estimate(jnp.asarray(obs[:14]), jnp.asarray(pose)))}
+
+    monkeypatch.setattr(active, "real_image_observation", observation)
+    seen = []
+    actor = Network(lambda k: {}, lambda p, o: jnp.zeros(env.action_size), env.observation_size,
+                    env.action_size, NetworkConfig(), {"estimate": (env.observation_size,)})
+    with RealTwin("peg_insertion", perturbation=Perturbation.none(), width=PIX, height=PIX,
+                  config={"episode_length": T}) as twin:
+        for memory, kept in (("best", [0, 1, 1, 3, 3, 5]), ("none", [0, 1, 2, 3, 4, 5])):
+            dep = active.Deployer(env, actor, {})
+            obs_log = []
+            dep._act = lambda p, o: (seen.append(np.asarray(o["estimate"])),
+                                     np.zeros(env.action_size, np.float32))[1]
+            step = twin.step
+            twin.step = lambda a, step=step: (lambda r: (obs_log.append(r[0]), r)[1])(step(a))
+            seen.clear()
+            frame = iter(range(10 ** 6))
+            dep.run(twin, active.DeployConfig(camera="default", episodes=1,
+                                              pose_memory=memory))
+            twin.step = step
+            obs0, _ = twin.reset(seed=0)  # the episode's first observation again
+            joints = [obs0[:14]] + [o[:14] for o in obs_log[:-1]]
+            assert len(seen) == T
+            for t, k in enumerate(kept):
+                np.testing.assert_allclose(seen[t], np.asarray(estimate(
+                    jnp.asarray(joints[t], jnp.float32), jnp.asarray(fits[k][0]))), atol=1e-6,
+                    err_msg=f"{memory}: step {t} should act on frame {k}'s fit")
