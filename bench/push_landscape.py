@@ -84,7 +84,8 @@ def run(args) -> dict:
     return dict(twin_seed=args.twin_seed, param=args.param, truth=value[args.param],
                 window=args.window, noise=bool(args.noise), obs_noise_std=pert.obs_noise_std,
                 episodes=args.episodes, windows=prob.n_windows, rows=rows,
-                away=sum(r["toward"] is False for r in rows))
+                away=sum(r["toward"] is False for r in rows),
+                truth_lowest=bool(min(rows, key=lambda r: r["loss"])["dlog"] == 0.0))
 
 
 def main(argv=None) -> int:
@@ -94,7 +95,7 @@ def main(argv=None) -> int:
     ap.add_argument("--episodes", type=int, default=5)
     ap.add_argument("--param", choices=BOX, default="friction/box")
     ap.add_argument("--span", type=float, default=0.04, help="half-width of the scan (log)")
-    ap.add_argument("--points", type=int, default=17)
+    ap.add_argument("--points", type=int, default=17, help="odd: the truth is the middle one")
     ap.add_argument("--window", type=int, default=5)
     ap.add_argument("--fd-step", type=float, default=1e-6,
                     help="log step of the loss's central difference beside the Jacobian's slope")
@@ -103,9 +104,10 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=12)
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
-    if (args.episodes < 1 or args.points < 3 or args.window < 1 or not args.span > 0
-            or not args.fd_step > 0):
-        ap.error("--episodes and --window must be >= 1, --points >= 3, --span and --fd-step > 0")
+    if (args.episodes < 1 or args.points < 3 or args.points % 2 == 0 or args.window < 1
+            or not args.span > 0 or not args.fd_step > 0):
+        ap.error("--episodes and --window must be >= 1, --points odd and >= 3 (the truth in "
+                 "the middle), --span and --fd-step > 0")
     t = time.perf_counter()
     r = run(args)
     r["seconds"] = time.perf_counter() - t
@@ -113,7 +115,8 @@ def main(argv=None) -> int:
         f"push twin {args.twin_seed}, {args.param} around its truth {r['truth']:.4g} "
         f"({'noisy' if args.noise else 'noise-free'}, window {args.window}, "
         f"{r['windows']} windows): descent heads away from the truth at {r['away']} of "
-        f"{len(r['rows']) - 1} points",
+        f"{len(r['rows']) - 1} points; the truth's loss is {'' if r['truth_lowest'] else 'not '}"
+        f"the scan's lowest",
         ["dlog", "value", "loss / residual", "J'r slope", "central diff.", "descent toward truth"],
         [[x["dlog"], x["value"], x["loss"], x["grad"], x["fd"], x["toward"]] for x in r["rows"]])
     print(f"wrote {report.write_json(args.out / 'push_landscape.json', r)}")
