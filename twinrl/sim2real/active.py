@@ -193,9 +193,9 @@ class Deployer:
                     img = None
                 if self.image and img is None:
                     img = twin.render_images("mount", kinds)
-                keys = ("pose", "support") if memory else tuple(self.actor.obs_spec)
-                o = (real_image_observation(twin, env, obs, self.size, img, keys) if self.image
-                     else np.asarray(obs, np.float32))
+                o = (real_image_observation(twin, env, obs, self.size, img, ("pose", "support")
+                                            if memory else tuple(self.actor.obs_spec))
+                     if self.image else np.asarray(obs, np.float32))
                 if memory is not None:
                     o = {"estimate": self._estimate(np.asarray(obs[:14], np.float32),
                                                     memory.update(o["pose"], o["support"][0]))}
