@@ -222,7 +222,8 @@ def main(argv=None) -> int:
     ap.add_argument("--planar-velocities", action="store_true",
                     help="with --staged: the box's fit also on the planar velocities")
     ap.add_argument("--recorded-starts", action="store_true",
-                    help="windows start from the recorded states (SysidConfig.estimate_start off)")
+                    help="every stage's windows start from the recorded states "
+                         "(SysidConfig.estimate_start off)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     if args.episodes < 1 or (args.iterations is not None and args.iterations < 1):
