@@ -178,20 +178,28 @@ def test_pose_memory_acts_on_the_best_supported_frames_fit(monkeypatch):
                     env.action_size, NetworkConfig(), {"estimate": (env.observation_size,)})
     with RealTwin("peg_insertion", perturbation=Perturbation.none(), width=PIX, height=PIX,
                   config={"episode_length": T}) as twin:
+        step, observed = twin.step, []
+
+        def recording_step(a):
+            out = step(a)
+            observed.append(out[0])
+            return out
+
+        def act(params, o):
+            seen.append(np.asarray(o["estimate"]))
+            return np.zeros(env.action_size, np.float32)
+
+        twin.step = recording_step
         for memory, kept in (("best", [0, 1, 1, 3, 3, 5]), ("none", [0, 1, 2, 3, 4, 5])):
             dep = active.Deployer(env, actor, {})
-            obs_log = []
-            dep._act = lambda p, o: (seen.append(np.asarray(o["estimate"])),
-                                     np.zeros(env.action_size, np.float32))[1]
-            step = twin.step
-            twin.step = lambda a, step=step: (lambda r: (obs_log.append(r[0]), r)[1])(step(a))
+            dep._act = act
             seen.clear()
+            observed.clear()
             frame = iter(range(10 ** 6))
             dep.run(twin, active.DeployConfig(camera="default", episodes=1,
                                               pose_memory=memory))
-            twin.step = step
             obs0, _ = twin.reset(seed=0)  # the episode's first observation again
-            joints = [obs0[:14]] + [o[:14] for o in obs_log[:-1]]
+            joints = [obs0[:14]] + [o[:14] for o in observed[:-1]]
             assert len(seen) == T
             for t, k in enumerate(kept):
                 np.testing.assert_allclose(seen[t], np.asarray(estimate(
