@@ -118,7 +118,7 @@ def actor_row(env, cfg, net, params, mode: str, episodes: int, tol: float) -> di
         better = pixels >= best[1]
         kept = (jnp.where(better, pose, best[0]), jnp.maximum(pixels, best[1]))
         used = {"fit": pose, "best": kept[0], "truth": truth}[mode]
-        est = env.observe(*env.estimated_state(s.obs[:14], used), nominal=False)
+        est = env.pose_estimate(s.obs[:14], used)
         return {"estimate": est}, kept, jnp.max(pose_error(env, used, truth))
 
     def episode(k_reset, c):

@@ -164,7 +164,7 @@ def test_pose_memory_acts_on_the_best_supported_frames_fit(monkeypatch):
     P = len(env.target_joints)
     fits = [(np.full(P, 0.01 * k, np.float32), pix) for k, pix in
             enumerate([3.0, 5.0, 4.0, 5.0, 2.0, 6.0])]  # (pose, target pixels) per frame
-    estimate = jax.jit(lambda j, p: env.observe(*env.estimated_state(j, p), nominal=False))
+    estimate = jax.jit(env.pose_estimate)
     frame = iter(range(10 ** 6))
 
     def observation(twin, env, obs, size, img=None, keys=None):

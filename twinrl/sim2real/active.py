@@ -132,8 +132,7 @@ class Deployer:
         self._act = jax.jit(actor.apply)
         self._state = jax.jit(lambda o: sim_state(env, o))
         self.pose = self.image and set(actor.obs_spec) == {"estimate"}  # a "pose" actor
-        self._estimate = jax.jit(lambda joints, pose: env.observe(
-            *env.estimated_state(joints, pose), nominal=False)) if self.pose else None
+        self._estimate = jax.jit(env.pose_estimate) if self.pose else None
         self._choose = {}
 
     def _chooser(self, restarts: int, steps: int):

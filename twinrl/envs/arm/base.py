@@ -761,7 +761,7 @@ class ArmTask(Env):
             pose, rms = self.fit_target_pose(joints, cam, depth, mask, with_residual=True,
                                              hinge_grid=int(self.config.pose_hinge_grid))
             out["pose"] = pose
-            out["estimate"] = self.observe(*self.estimated_state(joints, pose), nominal=False)
+            out["estimate"] = self.pose_estimate(joints, pose)
             out["support"] = jnp.stack([out["target"][6], 1e3 * rms])  # the cloud's count
         if keys is None:
             return out
@@ -806,8 +806,15 @@ class ArmTask(Env):
             raise ValueError(f"{self.name} has no target_joints: no pose estimate")
         obs = jnp.asarray(obs, jnp.float32)
         pose = self.state_from_obs(obs)[0][np.asarray(self.target_joints)]
-        return self.observe(*self.estimated_state(obs[:2 * N_JOINTS],
-                                                  self._wrap_target_pose(pose)), nominal=False)
+        return self.pose_estimate(obs[:2 * N_JOINTS], self._wrap_target_pose(pose))
+
+    def pose_estimate(self, joints, pose):
+        """The image observation's ``"estimate"`` of measured ``joints`` (7 angles, 7 velocities)
+        and a target ``pose``: the privileged observation (``observe``, the tool at the
+        identified grasp) of their ``estimated_state`` -- what a ``"pose"`` actor reads, from
+        each frame's fit, a fit kept over the episode (``twinrl.sim2real.active.PoseMemory``) or
+        the true pose (``estimate_from_obs``)."""
+        return self.observe(*self.estimated_state(joints, pose), nominal=False)
 
     @exact_matmuls
     def fit_target_pose(self, joints, camera, depth, mask, iters: int = 8,
