@@ -27,6 +27,8 @@ Prints a table (truth, identified, sd, relative error per parameter) and writes
     python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --window 1 \
         --recorded-starts --twin-seed 2 --only mass_scale friction_scale gain_scale \
         damping_scale latency_steps --out B    # one-step windows from the recorded states
+    python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --window 1 \
+        --recorded-starts --twin-seed 2 --noise 0.0003 --out B   # the same, a 0.3 mm sensor
 
 Why the box's fits stop percents off even on noise-free data: ``bench/push_landscape.py``.
 """
@@ -147,6 +149,8 @@ def run(args) -> dict:
     hidden = real.make_real("push", seed=args.twin_seed, config=config).oracle().perturbation
     pert = hidden if args.only is None else dataclasses.replace(
         Perturbation.none(), **{k: getattr(hidden, k) for k in args.only})
+    if args.noise is not None:  # the twin's sensor, made finer or coarser
+        pert = dataclasses.replace(pert, obs_noise_std=args.noise)
     twin = real.make_real("push", seed=args.twin_seed, perturbation=pert, config=config)
     truth = twin.oracle()  # evaluation only
     data = sysid.collect(twin, episodes=args.episodes, seed=args.seed)
@@ -192,7 +196,7 @@ def run(args) -> dict:
                 staged=args.staged, slide_first=args.slide_first,
                 clear_windows=n_clear, slide_windows=n_slide,
                 latency=res.latency, true_latency=pert.latency_steps,
-                obs_noise_std=pert.obs_noise_std, loss_value=res.loss,
+                noise=args.noise, obs_noise_std=pert.obs_noise_std, loss_value=res.loss,
                 seconds=time.perf_counter() - t, rows=rows)
 
 
@@ -203,6 +207,9 @@ def main(argv=None) -> int:
     ap.add_argument("--episodes", type=int, default=5)
     ap.add_argument("--only", nargs="+", choices=PARTS, default=None,
                     help="perturb only these parts of the twin's hidden perturbation")
+    ap.add_argument("--noise", type=float, default=None,
+                    help="the twin's observation noise sd (default: its hidden one; with "
+                         "--only, 0 unless obs_noise_std is named)")
     ap.add_argument("--contacts", choices=CONTACTS, default="mjx")
     ap.add_argument("--iterations", type=int, default=None,
                     help="solver iterations of the fitting simulator (default: push.xml's 6)")
@@ -229,6 +236,8 @@ def main(argv=None) -> int:
         ap.error("--episodes and --iterations must be >= 1")
     if args.window is not None and args.window < 1:
         ap.error(f"--window must be >= 1, got {args.window}")
+    if args.noise is not None and not args.noise >= 0:
+        ap.error(f"--noise must be >= 0, got {args.noise}")
     if args.planar_velocities and not args.staged:
         ap.error("--planar-velocities goes with --staged")
     if not args.start_prior_sd > 0:
@@ -238,8 +247,8 @@ def main(argv=None) -> int:
               if args.slide_first else f", staged ({r['clear_windows']} clear windows)"
               if args.staged else "")
     report.print_table(
-        f"push twin {args.twin_seed} ({'only ' + ', '.join(args.only) if args.only else 'all'}), "
-        f"{args.contacts} contacts, {args.loss}, from {args.start}"
+        f"push twin {args.twin_seed} ({'only ' + ', '.join(args.only) if args.only else 'all'}; "
+        f"noise {r['obs_noise_std']:.2g} m), {args.contacts} contacts, {args.loss}, from {args.start}"
         f"{stages}: "
         f"loss {r['loss_value']:.3g}",
         ["parameter", "truth", "identified", "sd", "rel err", "status"],
