@@ -18,6 +18,12 @@ as Q's training), and:
   choice among all restarts), and ``default_ascent_raises_q``: how often the one ascent that
   starts at the default pose passes it (its best hard-image score past the start).
 
+``--retest EPS`` runs the actor again from every pose moved by EPS of its ranges' widths (0.01:
+about half a degree, a few millimetres) and reports how well the outcome there ranks the outcome
+at the pose itself, per state (``retest_rank_corr``): the ranking Q could reach if it knew the
+exact outcome one small camera move away, i.e. how much of a state's ranking is a smooth
+function of the pose at all.
+
 ``--retrain FIELD=VALUE ...`` (``SensingConfig`` fields, e.g. ``states=64``) first trains a new Q
 for the run's actor in its identified twin with those settings over the loop's own (same seed as
 the loop's Q stage), and measures that one instead: what more data or another network would give,
@@ -39,6 +45,7 @@ from pathlib import Path
 
 import twinrl  # noqa: F401  (before jax: XLA's cache-load log lines stay hidden, _jaxconfig)
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from twinrl import envs
@@ -100,6 +107,7 @@ def evaluate(task: str, run: Path, args) -> dict:
     # the ascent that starts at the default pose, alone: its best scored iterate past the start
     from_default = np.asarray([float(np.max(np.asarray(sel.checked_values)[1:, 0]))
                                - float(sel.default_value) for sel in sels])
+    retest = retest_figures(env, actor, ap, cfg, keys, coords, data, pred, args.retest)
     out = {"task": task, "run": str(run), "twin_seed": summary.get("seed"),
            "states": args.states, "cameras": args.cameras, **figures,
            "rank_corr_ci95": np.percentile(boot, [2.5, 97.5]).tolist(),
@@ -109,12 +117,43 @@ def evaluate(task: str, run: Path, args) -> dict:
            "choice_raises_q": _share(gains > 0), "choices": len(gains),
            "default_ascent_raises_q": _share(from_default > 0),
            "choice_q_gain": float(np.mean(gains)) if len(gains) else None,
-           "wall_s": time.perf_counter() - t0}
+           **retest, "wall_s": time.perf_counter() - t0}
     print(f"[bench] {task} {run.name}: rank {out['rank_corr']:.2f} "
           f"({out['rank_corr_ci95'][0]:.2f} .. {out['rank_corr_ci95'][1]:.2f}), ascent raises Q "
           f"on {_pct(out['choice_raises_q'])} (from the default pose alone "
           f"{_pct(out['default_ascent_raises_q'])}) ({out['wall_s']:.0f} s)", flush=True)
     return out
+
+
+def jittered(coords, eps: float, key) -> jax.Array:
+    """``coords`` (unconstrained mount coordinates) moved by ``eps`` of each range's width
+    (azimuth, elevation, distance) in a random direction, kept inside the range."""
+    u = jax.nn.sigmoid(coords)
+    d = jax.random.normal(key, coords.shape)
+    u = jnp.clip(u + eps * d / jnp.linalg.norm(d, axis=-1, keepdims=True), 0.01, 0.99)
+    return jnp.log(u) - jnp.log1p(-u)
+
+
+def retest_figures(env, actor, ap, cfg, keys, coords, data, pred, eps: float) -> dict:
+    """``--retest``: the same states with every pose moved by ``eps`` of its ranges, the
+    actor's episodes again, and how well the outcome there ranks the outcome at the pose itself
+    (per state, across its poses: ``retest_rank_corr``) -- what Q could reach if it knew the
+    exact outcome one small camera move away; beside it Q's rank against the moved poses'
+    outcomes (``q_rank_corr_moved``). Empty when ``eps`` is 0."""
+    if not eps > 0:
+        return {}
+    from twinrl.learn import sensing
+
+    moved = jittered(coords, eps, jax.random.PRNGKey(1))
+    data2 = sensing.sensing_data(env, actor, ap, cfg, keys, moved)
+    t1, t2 = np.asarray(data.targets), np.asarray(data2.targets)
+    same = sensing.rank_corr_per_state(t2, t1)
+    spread = np.std(t1[:, :, 0], axis=1)
+    return {"retest_eps": eps, "retest_rank_corr": float(np.mean(same)),
+            "retest_rank_corr_per_state": same.tolist(),
+            "q_rank_corr_moved": float(np.mean(sensing.rank_corr_per_state(pred, t2))),
+            "target_sd_across_poses": float(np.mean(spread)),
+            "target_change_moved": float(np.mean(np.abs(t2 - t1)[:, :, 0]))}
 
 
 def _share(flags: np.ndarray) -> float | None:
@@ -153,11 +192,16 @@ def main(argv=None) -> int:
     p.add_argument("--key", type=int, default=777_000,
                    help="PRNG key of the states and poses (the loop's Q drew its own from the "
                         "run's seed)")
+    p.add_argument("--retest", type=float, default=0.0, metavar="EPS",
+                   help="also run every pose moved by EPS of its ranges (e.g. 0.01) and rank "
+                        "the outcomes there against those at the poses (retest reliability)")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     p.add_argument("--retrain", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="train a new Q with these SensingConfig settings and measure that one")
     args = p.parse_args(argv)
     args.retrain = _retrain_settings(args.retrain)
+    if not 0 <= args.retest < 0.5:
+        raise SystemExit(f"--retest must be in [0, 0.5), got {args.retest}")
     if args.states < 2 or args.cameras < 2 or args.choices < 0:
         raise SystemExit("--states and --cameras must be >= 2, --choices >= 0")
     rows = []
@@ -168,13 +212,15 @@ def main(argv=None) -> int:
                 f"poses (identified twin)",
                 ["task", "twin", "rank per state (95 %)", "loop's (held-out 1/5)", "pooled",
                  "success: Q's pose / mean pose", "ascent raises Q",
-                 "... from the default pose alone"],
+                 "... from the default pose alone", "outcome one move away ranks it"],
                 [[r["task"], r["twin_seed"], f"{r['rank_corr']:.2f} ({r['rank_corr_ci95'][0]:.2f}"
                   f" .. {r['rank_corr_ci95'][1]:.2f})", r["loop_rank_corr"],
                   f"{r['rank_corr_pooled']:.2f}",
                   f"{r['success_q_choice']:.2f} / {r['success_mean_pose']:.2f}",
                   f"{_pct(r['choice_raises_q'])} of {r['choices']}",
-                  _pct(r['default_ascent_raises_q'])] for r in rows])
+                  _pct(r['default_ascent_raises_q']),
+                  f"{r['retest_rank_corr']:.2f}" if "retest_rank_corr" in r else "-"]
+                 for r in rows])
     print(f"wrote {args.out / 'q_rank.json'}")
     return 0
 
