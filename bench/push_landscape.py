@@ -64,7 +64,8 @@ def run(args) -> dict:
     with jax.enable_x64(True):
         prob = build_problem(env, data, cfg)
         j = prob.names.index(args.param)
-        for d in np.linspace(-args.span, args.span, args.points):
+        k = args.points // 2  # the truth's row is exactly 0: linspace's middle can miss it
+        for d in args.span * np.arange(-k, k + 1) / k:
             theta = prob.theta0.copy()
             theta[j] = np.log(value[args.param]) + d
             r, J = prob.jacobian(theta, pert.latency_steps)
