@@ -131,6 +131,12 @@ def main(argv=None) -> int:
     p.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
     p.add_argument("--restarts", type=int, default=None, help="ascents per choice (default: Q's)")
     p.add_argument("--ascent-steps", type=int, default=None)
+    p.add_argument("--smooth-samples", type=int, default=None,
+                   help="poses around each leading candidate the choice averages Q over (0: "
+                        "the pose alone; default: the Q checkpoint's SensingConfig)")
+    p.add_argument("--reselect-every", type=int, default=0,
+                   help="choose the camera again every N steps (DeployConfig.reselect_every; "
+                        "0: once per episode)")
     p.add_argument("--pose-memory", choices=("none", "best"), default="none",
                    help="a pose actor's target pose on the real twin: each frame's fit, or the "
                         "best-seen one (DeployConfig.pose_memory)")
@@ -251,7 +257,9 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
         for mode, dep in deployers.items():
             cfg = active.DeployConfig(camera=mode, episodes=args.episodes,
                                       restarts=args.restarts, ascent_steps=args.ascent_steps,
-                                      pose_memory=args.pose_memory)
+                                      pose_memory=args.pose_memory,
+                                      reselect_every=args.reselect_every,
+                                      smooth_samples=args.smooth_samples)
             twin.move_camera(env.mount.default)
             t0 = time.perf_counter()
             res = dep.run(twin, cfg, seed=1000 * seed)
@@ -292,6 +300,8 @@ def run_sim(name, actor_dir, q_dir, args, system=None) -> list[dict]:
         cfg = SensingConfig.from_dict(meta.get("config") or {})
         cfg = dataclasses.replace(cfg, restarts=args.restarts or cfg.restarts,
                                   ascent_steps=args.ascent_steps or cfg.ascent_steps)
+        if args.smooth_samples is not None:
+            cfg = dataclasses.replace(cfg, smooth_samples=args.smooth_samples)
         choose = jax.jit(lambda k, kc: select_camera(env, q, qp, actor, ap, env.reset(k), kc,
                                                      cfg).coords)
     rows, n = [], int(args.episodes)

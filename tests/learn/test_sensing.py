@@ -114,7 +114,8 @@ def test_ascent_through_the_renderer_finds_where_the_target_shows():
         o["pixels/mount"][..., 4], axis=(-2, -1))[..., None], 0, 1, NetworkConfig(),
         {**spec, "action": (3,)})
     state = env.reset(jax.random.PRNGKey(2))
-    cfg = sensing.SensingConfig(restarts=4, ascent_steps=15, ascent_lr=0.3, tau=1.0)
+    cfg = sensing.SensingConfig(restarts=4, ascent_steps=15, ascent_lr=0.3, tau=1.0,
+                                smooth_samples=0)
     sel = jax.jit(lambda s, k: sensing.select_camera(env, q, {}, actor, {}, s, k, cfg))(
         state, jax.random.PRNGKey(3))
     assert np.all(np.isfinite(np.asarray(sel.trace)))
@@ -134,6 +135,41 @@ def test_ascent_through_the_renderer_finds_where_the_target_shows():
     assert float(values[0, 0]) == float(sel.default_value)
     assert float(sel.value) == values.max()
     np.testing.assert_array_equal(np.asarray(sel.coords), checked.reshape(-1, 3)[values.argmax()])
+
+
+def test_the_choice_prefers_a_broad_rise_of_q_to_a_spike_the_hand_eye_error_would_miss():
+    # A stand-in Q over the pose alone (the observation's "camera": the pose as fractions of the
+    # mount's ranges): a spike of 1.0 two thousandths wide at the default pose, a broad hill of
+    # 0.8 elsewhere. Scored at the pose alone the choice is the spike; scored over a
+    # neighbourhood (``smooth_samples``) it is on the hill.
+    env = envs.make("peg_insertion", episode_length=T)
+    spec = {"camera": (3,)}
+    actor = Network(lambda k: {}, lambda p, o: jnp.zeros(o["camera"].shape[:-1] + (3,)),
+                    0, 3, NetworkConfig(), spec)
+    u_default = jax.nn.sigmoid(jnp.asarray(env.mount.default, jnp.float32))
+    u_hill = jnp.where(u_default > 0.5, 0.2, 0.8)
+
+    def q_fn(p, o):
+        u = o["camera"]
+        spike = jnp.exp(-jnp.sum((u - u_default) ** 2, -1) / (2 * 0.002 ** 2))
+        hill = 0.8 * jnp.exp(-jnp.sum((u - u_hill) ** 2, -1) / (2 * 0.3 ** 2))
+        return jnp.maximum(spike, hill)[..., None]
+
+    q = Network(lambda k: {}, q_fn, 0, 1, NetworkConfig(), {**spec, "action": (3,)})
+    state = env.reset(jax.random.PRNGKey(2))
+    for samples in (0, 8):
+        cfg = sensing.SensingConfig(restarts=4, ascent_steps=6, smooth_samples=samples)
+        sel = jax.jit(lambda s, k: sensing.select_camera(env, q, {}, actor, {}, s, k, cfg))(
+            state, jax.random.PRNGKey(3))
+        u = np.asarray(jax.nn.sigmoid(sel.coords))
+        away = float(np.abs(u - np.asarray(u_default)).max())
+        assert float(sel.value) >= float(sel.default_value)
+        if samples == 0:
+            assert away < 1e-6 and float(sel.value) == pytest.approx(1.0)
+        else:  # off the spike, toward the hill, and scored by the neighbourhood's mean Q
+            assert away > 0.05, u
+            assert float(sel.value) > float(sel.default_value) + 0.1
+            assert float(sel.value) < float(np.asarray(sel.checked_values).max())
 
 
 def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoints(

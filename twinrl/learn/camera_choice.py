@@ -7,7 +7,11 @@ coordinates (``CameraMount``: a sigmoid keeps every pose in its workspace), the 
 soft (``tau``) so that the pose has a gradient through silhouettes, from the default pose and
 ``restarts - 1`` random ones; the winner is chosen by ``J`` on the *hard* image (the one the
 actor will see) among every ``check_every``-th iterate of every ascent, its start and end
-included, so the choice is never worse, by Q, than the default pose. (For an actor on the
+included. The ``smooth_top`` best of them and the default pose are then scored by the hard
+image's Q averaged over ``smooth_samples`` poses around each (Gaussian, ``smooth_sd`` in mount
+coordinates): the maximum of many noisy estimates is partly their noise (the winner's curse), and
+the real camera lands off the commanded pose by the hand-eye error. The choice is never worse, by
+its score, than the default pose. (For an actor on the
 target's fitted pose, ``J`` reaches the pose through ``ArmTask.fit_target_pose``, whose
 derivative is its converged fit's.) Q and its training live in ``twinrl.learn.sensing``.
 """
@@ -69,9 +73,10 @@ class Selection(NamedTuple):
     coords: jax.Array
     """(3,) the chosen pose (unconstrained mount coordinates)."""
     value: jax.Array
-    """Q at the chosen pose (hard image)."""
+    """The chosen pose's score: Q on the hard image, averaged over the pose's neighbourhood
+    (``config.smooth_samples``; without it Q at the pose)."""
     default_value: jax.Array
-    """Q at the mount's default pose (hard image)."""
+    """The mount's default pose's score, the same way."""
     starts: jax.Array
     """(R, 3) where the ascents started (the first: the default pose)."""
     ends: jax.Array
@@ -82,7 +87,7 @@ class Selection(NamedTuple):
     """(K, R, 3) the iterates of each ascent scored on the hard image: every ``check_every``-th
     from the start (``checked[0] == starts``), and the end (``checked[-1] == ends``)."""
     checked_values: jax.Array
-    """(K, R) Q at them (hard image); ``checked_values[0, 0] == default_value``."""
+    """(K, R) Q at them (hard image); ``checked_values[0, 0]`` is Q at the default pose."""
 
 
 def checked_steps(steps: int, every: int) -> np.ndarray:
@@ -133,9 +138,26 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
     K, R = path.shape[:2]
     values = jax.vmap(lambda c: objective(hard, c))(path.reshape(K * R, 3))
     values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
-    best = jnp.argmax(values)
-    return Selection(path.reshape(K * R, 3)[best], values[best], values[0], starts, path[-1],
-                     trace.T, path, values.reshape(K, R))
+    flat = path.reshape(K * R, 3)
+    M = int(getattr(config, "smooth_samples", 0))
+    if M == 0:
+        best = jnp.argmax(values)
+        return Selection(flat[best], values[best], values[0], starts, path[-1], trace.T, path,
+                         values.reshape(K, R))
+    # the best of K * R noisy estimates is picked partly for Q's error there (the winner's
+    # curse), and a pose whose outcome a millimetre of hand-eye error changes is a poor choice:
+    # the leading candidates, and the default, are scored by Q over a neighbourhood of poses
+    # (the same offsets for each, so that they are compared on the same draws)
+    T = min(int(config.smooth_top), K * R)
+    cand = jnp.concatenate([jnp.zeros(1, jnp.int32), jnp.argsort(-values)[:T].astype(jnp.int32)])
+    offsets = float(config.smooth_sd) * jax.random.normal(jax.random.fold_in(key, 1), (M, 3))
+    offsets = jnp.concatenate([jnp.zeros((1, 3)), offsets])
+    around = jnp.clip(flat[cand][:, None, :] + offsets[None], -EDGE, EDGE)
+    near = jax.vmap(lambda c: objective(hard, c))(around.reshape(-1, 3))
+    score = jnp.where(jnp.isfinite(near), near, -jnp.inf).reshape(T + 1, M + 1).mean(axis=1)
+    pick = jnp.argmax(score)
+    return Selection(flat[cand[pick]], score[pick], score[0], starts, path[-1], trace.T, path,
+                     values.reshape(K, R))
 
 
 def landscape(env, q: Network, q_params, actor: Network, actor_params, state, distance_coord,

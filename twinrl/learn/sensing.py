@@ -89,14 +89,23 @@ class SensingConfig(JSONConfig):
     check_every: int = 3
     """Every this many ascent steps (and at its start and end) the pose is scored on the hard
     image; the choice is the best scored pose (``camera_choice.checked_steps``)."""
+    smooth_samples: int = 8
+    """Score the ``smooth_top`` best scored poses (and the default) by Q averaged over the pose
+    and this many poses around it (``camera_choice.select_camera``); 0: by Q at the pose alone."""
+    smooth_top: int = 8
+    smooth_sd: float = 0.1
+    """The spread (sd, mount coordinates) of the poses around each candidate."""
 
     def __post_init__(self):
         if self.target not in ("return", "success"):
             raise ValueError(f"target must be 'return' or 'success', got {self.target!r}")
         for name in ("states", "cameras", "every", "fit_steps", "batch_size", "restarts",
-                     "ascent_steps", "check_every"):
+                     "ascent_steps", "check_every", "smooth_top"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if int(self.smooth_samples) < 0 or not self.smooth_sd > 0:
+            raise ValueError(f"smooth_samples must be >= 0 and smooth_sd > 0, got "
+                             f"{self.smooth_samples}, {self.smooth_sd}")
         if int(self.cameras) < 2:
             raise ValueError(f"cameras must be >= 2 (Q must compare poses), got {self.cameras}")
         if not self.rgb_jitter >= 0:

@@ -58,6 +58,9 @@ class DeployConfig(JSONConfig):
     restarts: int | None = None
     """Ascents per choice; None: the Q checkpoint's ``SensingConfig.restarts``."""
     ascent_steps: int | None = None
+    smooth_samples: int | None = None
+    """Poses around each leading candidate its Q is averaged over (0: the pose alone); None:
+    the Q checkpoint's ``SensingConfig.smooth_samples``."""
     pose_memory: str = "none"
     """A ``"pose"`` actor's target pose (the target is at rest): ``"none"``, each frame's own
     fit; ``"best"``, the fit of the frame with the most target pixels so far this episode (the
@@ -66,9 +69,9 @@ class DeployConfig(JSONConfig):
 
     def __post_init__(self):
         self.check_fields(at_least_one=("episodes", "restarts", "ascent_steps"),
-                          non_negative=("reselect_every",),
+                          non_negative=("reselect_every", "smooth_samples"),
                           choices={"camera": CAMERAS, "pose_memory": POSE_MEMORY},
-                          optional=("restarts", "ascent_steps"))
+                          optional=("restarts", "ascent_steps", "smooth_samples"))
 
 
 def real_image_observation(twin, env, obs: np.ndarray, size: int, img: dict | None = None,
@@ -135,10 +138,12 @@ class Deployer:
         self._estimate = jax.jit(env.pose_estimate) if self.pose else None
         self._choose = {}
 
-    def _chooser(self, restarts: int, steps: int):
-        key = (restarts, steps)
+    def _chooser(self, restarts: int, steps: int, smooth: int | None = None):
+        key = (restarts, steps, smooth)
         if key not in self._choose:
             cfg = dataclasses.replace(self.sensing, restarts=restarts, ascent_steps=steps)
+            if smooth is not None:
+                cfg = dataclasses.replace(cfg, smooth_samples=smooth)
             self._choose[key] = jax.jit(lambda s, k: select_camera(
                 self.env, self.q, self.q_params, self.actor, self.actor_params, s, k, cfg))
         return self._choose[key]
@@ -185,7 +190,7 @@ class Deployer:
             for t in range(env.episode_length):
                 if c.camera != "oracle" and (t == 0 or (c.reselect_every
                                                          and t % c.reselect_every == 0)):
-                    coords = self._camera(c.camera, obs, rng, restarts, steps)
+                    coords = self._camera(c.camera, obs, rng, restarts, steps, c.smooth_samples)
                     twin.move_camera(coords)
                     choices += 1
                     first = coords if first is None else first
@@ -232,7 +237,7 @@ class Deployer:
                    wall_s=time.perf_counter() - t0)
         return out
 
-    def _camera(self, mode, obs, rng, restarts, steps) -> np.ndarray:
+    def _camera(self, mode, obs, rng, restarts, steps, smooth=None) -> np.ndarray:
         mount = self.env.mount
         if mode == "default":
             return np.asarray(mount.default, np.float64)
@@ -241,7 +246,7 @@ class Deployer:
             return np.log(u) - np.log1p(-u)
         state = self._state(jnp.asarray(obs, jnp.float32))
         key = jax.random.PRNGKey(int(rng.integers(0, 2**31 - 1)))
-        return np.asarray(self._chooser(restarts, steps)(state, key).coords, np.float64)
+        return np.asarray(self._chooser(restarts, steps, smooth)(state, key).coords, np.float64)
 
 
 class PoseMemory:
