@@ -75,7 +75,8 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
         images[name] = (px[..., :3], px[..., 4] > 0.5)  # RGB, the target's (hard) mask
     pixels = {k: int(v[1].sum()) for k, v in images.items()}
     out.mkdir(parents=True, exist_ok=True)
-    _plot_sense(out / "sense.png", env, az, el, vals, sel, images, env_name)
+    _plot_sense(out / "sense.png", env, az, el, vals, sel, images, env_name,
+                around=int(cfg.smooth_samples) > 0)
     observe = jax.jit(observer(env, image_size(env, actor), keys=("pixels/mount",)))
     small = [np.asarray(observe(state, jnp.asarray(c, jnp.float32))["pixels/mount"][..., :3])
              for c in (default, chosen)]
@@ -95,7 +96,7 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
         "q_landscape_max": float(np.max(vals)), "q_landscape_min": float(np.min(vals)),
         "steps_to_move": mount.steps_to_move(default, chosen),
         "target_pixels_160": pixels, "restarts": int(cfg.restarts),
-        "ascent_steps": int(cfg.ascent_steps),
+        "ascent_steps": int(cfg.ascent_steps), "smooth_samples": int(cfg.smooth_samples),
         "files": {"plot": str(out / "sense.png"), "views": str(out / "views.png")},
     }
     report.write_json(out / "summary.json", summary)
@@ -107,7 +108,7 @@ def _spherical(mount, coords) -> np.ndarray:
     return np.asarray(mount.spherical(jnp.asarray(coords, jnp.float32)), float)
 
 
-def _plot_sense(path, env, az, el, vals, sel, images, title):
+def _plot_sense(path, env, az, el, vals, sel, images, title, around: bool = False):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -138,7 +139,9 @@ def _plot_sense(path, env, az, el, vals, sel, images, title):
         shown = rgb.copy()
         shown[mask] = 0.5 * shown[mask] + 0.5 * np.array([1.0, 0.0, 0.0])
         ax.imshow(np.clip(shown, 0, 1))
-        ax.set_title(f"{name} pose: Q {q:.3f}, target {int(mask.sum())} px (red)", fontsize=9)
+        score = "Q around it" if around else "Q"
+        ax.set_title(f"{name} pose: {score} {q:.3f}, target {int(mask.sum())} px (red)",
+                     fontsize=9)
         ax.axis("off")
     fig.suptitle(f"sensing-aware camera choice on {title}")
     fig.tight_layout()
