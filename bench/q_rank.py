@@ -15,7 +15,9 @@ as Q's training), and:
 - the target and success at Q's preferred pose among the sampled ones, against their mean;
 - ``choice_raises_q``: on the first ``--choices`` states, how often the gradient ascent through
   the renderer (``select_camera``, Q's own settings) ends above Q at the default pose (its
-  choice among all restarts), and ``default_ascent_raises_q``: how often the one ascent that
+  choice among all restarts, by its score: Q averaged around the pose where
+  ``SensingConfig.smooth_samples`` > 0; ``choice_raises_q_at_pose``: by Q at the pose itself),
+  and ``default_ascent_raises_q``: how often the one ascent that
   starts at the default pose passes it (its best hard-image score past the start).
 
 ``--retest EPS`` runs the actor again from every pose moved by EPS of its ranges' widths (0.01:
@@ -104,10 +106,16 @@ def evaluate(task: str, run: Path, args) -> dict:
     sels = [choose(reset(keys[i]), k) for i, k in enumerate(
         jax.random.split(k_choice, min(args.choices, args.states)))]
     gains = np.asarray([float(sel.value) - float(sel.default_value) for sel in sels])
+    # the choice's hard-image Q at the pose itself (not averaged around it) against the default's
+    raw = [np.asarray(sel.checked_values).reshape(-1)[np.argmin(np.abs(
+        np.asarray(sel.checked).reshape(-1, 3) - np.asarray(sel.coords)).sum(1))]
+        - np.asarray(sel.checked_values)[0, 0] for sel in sels]
+    raw_gains = np.asarray(raw, np.float64)
     # the ascent that starts at the default pose, alone: its best scored iterate past the start
     from_default = np.asarray([float(np.max(np.asarray(sel.checked_values)[1:, 0]))
-                               - float(sel.default_value) for sel in sels])
+                               - float(np.asarray(sel.checked_values)[0, 0]) for sel in sels])
     retest = retest_figures(env, actor, ap, cfg, keys, coords, data, pred, args.retest)
+    scored = score_figures(env, actor, ap, q, qp, cfg, keys, coords, data)
     out = {"task": task, "run": str(run), "twin_seed": summary.get("seed"),
            "states": args.states, "cameras": args.cameras, **figures,
            "rank_corr_ci95": np.percentile(boot, [2.5, 97.5]).tolist(),
@@ -115,9 +123,10 @@ def evaluate(task: str, run: Path, args) -> dict:
            "loop_rank_corr": summary["final"].get("q_rank_corr"),
            "retrain": dict(args.retrain), "train_s": train_s,
            "choice_raises_q": _share(gains > 0), "choices": len(gains),
+           "choice_raises_q_at_pose": _share(raw_gains > 0),
            "default_ascent_raises_q": _share(from_default > 0),
            "choice_q_gain": float(np.mean(gains)) if len(gains) else None,
-           **retest, "wall_s": time.perf_counter() - t0}
+           **retest, **scored, "wall_s": time.perf_counter() - t0}
     print(f"[bench] {task} {run.name}: rank {out['rank_corr']:.2f} "
           f"({out['rank_corr_ci95'][0]:.2f} .. {out['rank_corr_ci95'][1]:.2f}), ascent raises Q "
           f"on {_pct(out['choice_raises_q'])} (from the default pose alone "
@@ -154,6 +163,40 @@ def retest_figures(env, actor, ap, cfg, keys, coords, data, pred, eps: float) ->
             "q_rank_corr_moved": float(np.mean(sensing.rank_corr_per_state(pred, t2))),
             "target_sd_across_poses": float(np.mean(spread)),
             "target_change_moved": float(np.mean(np.abs(t2 - t1)[:, :, 0]))}
+
+
+def score_figures(env, actor, ap, q, qp, cfg, keys, coords, data) -> dict:
+    """The choice's own score (``SensingConfig.smooth_samples`` > 0: Q on the hard image averaged
+    over the pose and that many poses around it, as ``select_camera`` scores its candidates) at
+    every sampled (start state, pose), and its rank correlation with the outcome per state
+    (``score_rank_corr``) and pooled. Empty without smoothing."""
+    M = int(getattr(cfg, "smooth_samples", 0))
+    if M == 0:
+        return {}
+    from twinrl.learn import sensing
+    from twinrl.learn.camera_choice import EDGE, image_size, observed_keys, observer, q_value
+
+    hard = observer(env, image_size(env, actor), keys=observed_keys(actor, q))
+    offsets = float(cfg.smooth_sd) * jax.random.normal(jax.random.PRNGKey(2), (M, 3))
+    offsets = jnp.concatenate([jnp.zeros((1, 3)), offsets])
+
+    @jax.jit
+    def around(k, cs):  # (C, 3) poses of one start state -> (C,) scores
+        state = env.reset(k)
+
+        def one(c):
+            o = hard(state, c)
+            return q_value(q, qp, o, actor.apply(ap, o))
+
+        pts = jnp.clip(cs[:, None, :] + offsets[None], -EDGE, EDGE)
+        return jax.vmap(one)(pts.reshape(-1, 3)).reshape(cs.shape[0], M + 1).mean(axis=1)
+
+    score = np.stack([np.asarray(around(k, c)) for k, c in zip(keys, coords)])  # (S, C)
+    target = np.asarray(data.targets)[:, :, 0]
+    per_state = sensing.rank_corr_per_state(score[:, :, None], target[:, :, None])
+    return {"score_rank_corr": float(np.mean(per_state)),
+            "score_rank_corr_per_state": per_state.tolist(),
+            "score_rank_corr_pooled": float(sensing._rank_corr(score.ravel(), target.ravel()))}
 
 
 def _share(flags: np.ndarray) -> float | None:
@@ -211,15 +254,18 @@ def main(argv=None) -> int:
     print_table(f"Q's ranking of camera poses on {args.states} fresh states x {args.cameras} "
                 f"poses (identified twin)",
                 ["task", "twin", "rank per state (95 %)", "loop's (held-out 1/5)", "pooled",
-                 "success: Q's pose / mean pose", "ascent raises Q",
-                 "... from the default pose alone", "outcome one move away ranks it"],
+                 "success: Q's pose / mean pose", "ascent raises Q (score)",
+                 "... Q at the pose", "... from the default pose alone",
+                 "outcome one move away ranks it", "score around the pose: rank (pooled)"],
                 [[r["task"], r["twin_seed"], f"{r['rank_corr']:.2f} ({r['rank_corr_ci95'][0]:.2f}"
                   f" .. {r['rank_corr_ci95'][1]:.2f})", r["loop_rank_corr"],
                   f"{r['rank_corr_pooled']:.2f}",
                   f"{r['success_q_choice']:.2f} / {r['success_mean_pose']:.2f}",
                   f"{_pct(r['choice_raises_q'])} of {r['choices']}",
-                  _pct(r['default_ascent_raises_q']),
-                  f"{r['retest_rank_corr']:.2f}" if "retest_rank_corr" in r else "-"]
+                  _pct(r['choice_raises_q_at_pose']), _pct(r['default_ascent_raises_q']),
+                  f"{r['retest_rank_corr']:.2f}" if "retest_rank_corr" in r else "-",
+                  f"{r['score_rank_corr']:.2f} ({r['score_rank_corr_pooled']:.2f})"
+                  if "score_rank_corr" in r else "-"]
                  for r in rows])
     print(f"wrote {args.out / 'q_rank.json'}")
     return 0
