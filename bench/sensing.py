@@ -5,7 +5,7 @@ sensing-aware Q selects, (b) the default fixed camera, (c) a random reachable ca
 
 Per task and twin seed (``--seeds``: each a hidden perturbation, hand-eye offset included),
 ``--episodes`` real episodes per camera mode from the same start states (reset seeds
-``1000 * seed + i``). Checkpoints per task, ``TASK=DIR`` (``twinrl train`` run directories):
+``1000 * seed + i``, ``i`` from ``--first-start``, 0 by default: another set of starts). Checkpoints per task, ``TASK=DIR`` (``twinrl train`` run directories):
 ``--actor`` the image actor (``--algo imitation --set observation=pixels`` or ``=target``),
 ``--q`` its sensing-aware Q (``--algo sensing``), ``--state-actor`` the state actor
 (``--algo imitation``) for (d). Modes whose checkpoint is missing are left out. Real steps
@@ -128,6 +128,9 @@ def main(argv=None) -> int:
     p.add_argument("--where", nargs="+", default=["real"], choices=("real", "sim"),
                    help="deploy on the real twin, in the simulator (the identified twin), or both")
     p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--first-start", type=int, default=0,
+                   help="real episodes reset with seeds 1000 * seed + first-start + i (another "
+                        "set of starts than the default 0)")
     p.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
     p.add_argument("--restarts", type=int, default=None, help="ascents per choice (default: Q's)")
     p.add_argument("--ascent-steps", type=int, default=None)
@@ -149,6 +152,8 @@ def main(argv=None) -> int:
     _from_runs(_per_task(args.run, "--run"), args)
     if args.episodes < 1 or not args.seeds:
         raise SystemExit("--episodes must be >= 1 and --seeds must name at least one seed")
+    if args.first_start < 0:
+        raise SystemExit(f"--first-start must be >= 0, got {args.first_start}")
     actors, qs = _per_task(args.actor, "--actor"), _per_task(args.q, "--q")
     states = _per_task(args.state_actor, "--state-actor")
     residuals = _per_task(args.residual, "--residual")
@@ -262,7 +267,7 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
                                       smooth_samples=args.smooth_samples)
             twin.move_camera(env.mount.default)
             t0 = time.perf_counter()
-            res = dep.run(twin, cfg, seed=1000 * seed)
+            res = dep.run(twin, cfg, seed=1000 * seed + args.first_start)
             print(f"[bench] {name} seed {seed} {mode:>8}: success {res['success_rate']:.2f}, "
                   f"return {res['mean_return']:.1f}, camera steps {res['real_camera_steps']} "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
