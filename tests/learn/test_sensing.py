@@ -198,7 +198,7 @@ def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoint
         sense_cmd.sense("needle_threading", tmp_path / "q", tmp_path / "z")
     with pytest.raises(ValueError, match="target must be"):
         sensing.SensingConfig(target="value")
-    with pytest.raises(ValueError, match="check_every must be >= 1, got 0"):
+    with pytest.raises(ValueError, match="check_every must be an integer >= 1, got 0"):
         sensing.SensingConfig(check_every=0)
 
 

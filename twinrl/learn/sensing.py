@@ -97,21 +97,13 @@ class SensingConfig(JSONConfig):
     """The spread (sd, mount coordinates) of the poses around each candidate."""
 
     def __post_init__(self):
-        if self.target not in ("return", "success"):
-            raise ValueError(f"target must be 'return' or 'success', got {self.target!r}")
-        for name in ("states", "cameras", "every", "fit_steps", "batch_size", "restarts",
-                     "ascent_steps", "check_every", "smooth_top"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if int(self.smooth_samples) < 0 or not self.smooth_sd > 0:
-            raise ValueError(f"smooth_samples must be >= 0 and smooth_sd > 0, got "
-                             f"{self.smooth_samples}, {self.smooth_sd}")
+        self.check_fields(at_least_one=("states", "every", "fit_steps", "batch_size", "restarts",
+                                        "ascent_steps", "check_every", "smooth_top"),
+                          non_negative=("rgb_jitter", "smooth_samples"),
+                          positive=("ascent_lr", "tau", "smooth_sd"), widths=("hidden",),
+                          choices={"target": ("return", "success")})
         if int(self.cameras) < 2:
             raise ValueError(f"cameras must be >= 2 (Q must compare poses), got {self.cameras}")
-        if not self.rgb_jitter >= 0:
-            raise ValueError(f"rgb_jitter must be >= 0, got {self.rgb_jitter}")
-        if not self.ascent_lr > 0 or not self.tau > 0:
-            raise ValueError(f"ascent_lr and tau must be > 0, got {self.ascent_lr}, {self.tau}")
 
 
 class SensingError(ValueError):
