@@ -107,10 +107,8 @@ def evaluate(task: str, run: Path, args) -> dict:
         jax.random.split(k_choice, min(args.choices, args.states)))]
     gains = np.asarray([float(sel.value) - float(sel.default_value) for sel in sels])
     # the choice's hard-image Q at the pose itself (not averaged around it) against the default's
-    raw = [np.asarray(sel.checked_values).reshape(-1)[np.argmin(np.abs(
-        np.asarray(sel.checked).reshape(-1, 3) - np.asarray(sel.coords)).sum(1))]
-        - np.asarray(sel.checked_values)[0, 0] for sel in sels]
-    raw_gains = np.asarray(raw, np.float64)
+    raw_gains = np.asarray([float(np.asarray(sel.checked_values).reshape(-1)[int(sel.chosen)])
+                            - float(np.asarray(sel.checked_values)[0, 0]) for sel in sels])
     # the ascent that starts at the default pose, alone: its best scored iterate past the start
     from_default = np.asarray([float(np.max(np.asarray(sel.checked_values)[1:, 0]))
                                - float(np.asarray(sel.checked_values)[0, 0]) for sel in sels])
@@ -170,15 +168,14 @@ def score_figures(env, actor, ap, q, qp, cfg, keys, coords, data) -> dict:
     over the pose and that many poses around it, as ``select_camera`` scores its candidates) at
     every sampled (start state, pose), and its rank correlation with the outcome per state
     (``score_rank_corr``) and pooled. Empty without smoothing."""
-    M = int(getattr(cfg, "smooth_samples", 0))
-    if M == 0:
+    if int(cfg.smooth_samples) == 0:
         return {}
     from twinrl.learn import sensing
-    from twinrl.learn.camera_choice import EDGE, image_size, observed_keys, observer, q_value
+    from twinrl.learn.camera_choice import (image_size, neighbourhood_offsets, observed_keys,
+                                            observer, q_value, score_around)
 
     hard = observer(env, image_size(env, actor), keys=observed_keys(actor, q))
-    offsets = float(cfg.smooth_sd) * jax.random.normal(jax.random.PRNGKey(2), (M, 3))
-    offsets = jnp.concatenate([jnp.zeros((1, 3)), offsets])
+    offsets = neighbourhood_offsets(cfg, jax.random.PRNGKey(2))
 
     @jax.jit
     def around(k, cs):  # (C, 3) poses of one start state -> (C,) scores
@@ -188,8 +185,7 @@ def score_figures(env, actor, ap, q, qp, cfg, keys, coords, data) -> dict:
             o = hard(state, c)
             return q_value(q, qp, o, actor.apply(ap, o))
 
-        pts = jnp.clip(cs[:, None, :] + offsets[None], -EDGE, EDGE)
-        return jax.vmap(one)(pts.reshape(-1, 3)).reshape(cs.shape[0], M + 1).mean(axis=1)
+        return score_around(one, cs, offsets)
 
     score = np.stack([np.asarray(around(k, c)) for k, c in zip(keys, coords)])  # (S, C)
     target = np.asarray(data.targets)[:, :, 0]

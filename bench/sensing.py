@@ -5,7 +5,8 @@ sensing-aware Q selects, (b) the default fixed camera, (c) a random reachable ca
 
 Per task and twin seed (``--seeds``: each a hidden perturbation, hand-eye offset included),
 ``--episodes`` real episodes per camera mode from the same start states (reset seeds
-``1000 * seed + i``, ``i`` from ``--first-start``, 0 by default: another set of starts). Checkpoints per task, ``TASK=DIR`` (``twinrl train`` run directories):
+``1000 * seed + first + i``, ``first`` = ``--first-start``, 0 by default: another set of
+starts). Checkpoints per task, ``TASK=DIR`` (``twinrl train`` run directories):
 ``--actor`` the image actor (``--algo imitation --set observation=pixels`` or ``=target``),
 ``--q`` its sensing-aware Q (``--algo sensing``), ``--state-actor`` the state actor
 (``--algo imitation``) for (d). Modes whose checkpoint is missing are left out. Real steps

@@ -135,6 +135,7 @@ def test_ascent_through_the_renderer_finds_where_the_target_shows():
     assert float(values[0, 0]) == float(sel.default_value)
     assert float(sel.value) == values.max()
     np.testing.assert_array_equal(np.asarray(sel.coords), checked.reshape(-1, 3)[values.argmax()])
+    assert int(sel.chosen) == values.argmax()
 
 
 def test_the_choice_prefers_a_broad_rise_of_q_to_a_spike_the_hand_eye_error_would_miss():
@@ -170,6 +171,8 @@ def test_the_choice_prefers_a_broad_rise_of_q_to_a_spike_the_hand_eye_error_woul
             assert away > 0.05, u
             assert float(sel.value) > float(sel.default_value) + 0.1
             assert float(sel.value) < float(np.asarray(sel.checked_values).max())
+        np.testing.assert_array_equal(np.asarray(sel.checked).reshape(-1, 3)[int(sel.chosen)],
+                                      np.asarray(sel.coords))
 
 
 def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoints(

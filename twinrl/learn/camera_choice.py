@@ -29,7 +29,8 @@ from twinrl.learn.common import held_episodes
 from twinrl.learn.networks import Network
 
 __all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
-           "select_camera", "checked_steps", "landscape", "view_outcomes", "q_predictions"]
+           "neighbourhood_offsets", "score_around", "select_camera", "checked_steps",
+           "landscape", "view_outcomes", "q_predictions"]
 
 
 EDGE = float(np.log(0.98 / 0.02))
@@ -88,6 +89,27 @@ class Selection(NamedTuple):
     from the start (``checked[0] == starts``), and the end (``checked[-1] == ends``)."""
     checked_values: jax.Array
     """(K, R) Q at them (hard image); ``checked_values[0, 0]`` is Q at the default pose."""
+    chosen: jax.Array
+    """The chosen iterate's flat index into ``checked`` (``checked.reshape(-1, 3)[chosen] ==
+    coords``): its Q at the pose itself is ``checked_values.reshape(-1)[chosen]``."""
+
+
+def neighbourhood_offsets(config, key) -> jax.Array:
+    """(M + 1, 3) the offsets (mount coordinates) a pose's score averages Q over: zero (the pose
+    itself) and ``config.smooth_samples`` Gaussian ones of sd ``config.smooth_sd``."""
+    M = int(config.smooth_samples)
+    return jnp.concatenate([jnp.zeros((1, 3)),
+                            float(config.smooth_sd) * jax.random.normal(key, (M, 3))])
+
+
+def score_around(value_fn: Callable, coords: jax.Array, offsets: jax.Array) -> jax.Array:
+    """The score of each pose ``coords`` (N, 3): ``value_fn`` (one pose -> Q) averaged over the
+    pose moved by every one of ``offsets`` (kept within ``EDGE``; a non-finite Q counts as
+    -inf), (N,). The same offsets for every pose, so poses are compared on the same draws."""
+    around = jnp.clip(coords[:, None, :] + offsets[None], -EDGE, EDGE)
+    near = jax.vmap(value_fn)(around.reshape(-1, 3))
+    near = jnp.where(jnp.isfinite(near), near, -jnp.inf)
+    return near.reshape(coords.shape[0], offsets.shape[0]).mean(axis=1)
 
 
 def checked_steps(steps: int, every: int) -> np.ndarray:
@@ -139,25 +161,20 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
     values = jax.vmap(lambda c: objective(hard, c))(path.reshape(K * R, 3))
     values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
     flat = path.reshape(K * R, 3)
-    M = int(getattr(config, "smooth_samples", 0))
-    if M == 0:
+    if int(config.smooth_samples) == 0:
         best = jnp.argmax(values)
         return Selection(flat[best], values[best], values[0], starts, path[-1], trace.T, path,
-                         values.reshape(K, R))
+                         values.reshape(K, R), best)
     # the best of K * R noisy estimates is picked partly for Q's error there (the winner's
     # curse), and a pose whose outcome a millimetre of hand-eye error changes is a poor choice:
     # the leading candidates, and the default, are scored by Q over a neighbourhood of poses
-    # (the same offsets for each, so that they are compared on the same draws)
     T = min(int(config.smooth_top), K * R)
     cand = jnp.concatenate([jnp.zeros(1, jnp.int32), jnp.argsort(-values)[:T].astype(jnp.int32)])
-    offsets = float(config.smooth_sd) * jax.random.normal(jax.random.fold_in(key, 1), (M, 3))
-    offsets = jnp.concatenate([jnp.zeros((1, 3)), offsets])
-    around = jnp.clip(flat[cand][:, None, :] + offsets[None], -EDGE, EDGE)
-    near = jax.vmap(lambda c: objective(hard, c))(around.reshape(-1, 3))
-    score = jnp.where(jnp.isfinite(near), near, -jnp.inf).reshape(T + 1, M + 1).mean(axis=1)
+    score = score_around(lambda c: objective(hard, c), flat[cand],
+                         neighbourhood_offsets(config, jax.random.fold_in(key, 1)))
     pick = jnp.argmax(score)
     return Selection(flat[cand[pick]], score[pick], score[0], starts, path[-1], trace.T, path,
-                     values.reshape(K, R))
+                     values.reshape(K, R), cand[pick])
 
 
 def landscape(env, q: Network, q_params, actor: Network, actor_params, state, distance_coord,
