@@ -1,9 +1,11 @@
 """PhysParams: shapes, validation, reparameterisation, application to the MJX model."""
 
 import jax
+import mujoco
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from mujoco import mjx
 
 from twinrl.physics import PhysParams, Sim
 
@@ -104,3 +106,24 @@ def test_a_massless_body_is_named_in_one_line():
 def test_an_empty_mjcf_path_says_so():
     with pytest.raises(ValueError, match=r"the MJCF path is empty"):
         Sim.load("")
+
+
+def test_a_geom_pair_mjx_cannot_collide_is_one_line_naming_the_geoms():
+    """MJX 3.17 has no cylinder-box collision: its ``put_model`` raises NotImplementedError,
+    which a user's scene should meet as one MJCFError naming the geoms, not a traceback."""
+    from twinrl.physics import MJCFError
+
+    xml = """<mujoco><worldbody><geom name="floor" type="plane" size="1 1 0.1"/>
+        <body name="base" pos="0 0 0.03"><freejoint/><geom name="slab" type="box"
+          size="0.1 0.1 0.03"/></body>
+        <body name="can" pos="0 0 0.12"><freejoint/><geom type="cylinder" size="0.03 0.04"/>
+        </body></worldbody></mujoco>"""
+    with pytest.raises(NotImplementedError):  # the stock call's behaviour this wraps
+        mjx.put_model(mujoco.MjModel.from_xml_string(xml))
+    with pytest.raises(MJCFError, match=r"^mjcf: MJX \(mujoco [\d.]+\) has no collision function "
+                                        r"for cylinder #2 of body 'can' x box 'slab': ") as e:
+        Sim.load(xml)
+    assert "\n" not in str(e.value)
+    with pytest.raises(MJCFError, match=r"cannot simulate this model: .*not implemented"):
+        Sim.load(xml.replace("<mujoco>", "<mujoco><option solver='PGS'/>")
+                 .replace('type="cylinder"', 'type="capsule"'))

@@ -61,6 +61,45 @@ def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
         raise MJCFError(f"malformed MJCF {path}: {_first_line(e)}") from None
 
 
+def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
+    """``mjx.put_model``, with what MJX cannot simulate (a geom pair without a collision
+    function, an integrator, cone or solver it lacks, flex, some contact sensors) as one
+    ``MJCFError`` naming the model and, for a collision pair, its geoms."""
+    try:
+        return mjx.put_model(mj_model)
+    except NotImplementedError as e:
+        msg = _first_line(e)
+        if "collisions not implemented" in msg:
+            pairs = _unsupported_pairs(mj_model) or [msg.split(" collisions")[0]]
+            more = f" and {len(pairs) - 3} more" if len(pairs) > 3 else ""
+            raise MJCFError(f"{name}: MJX (mujoco {mujoco.__version__}) has no collision "
+                            f"function for {'; '.join(pairs[:3])}{more}: give one of the geoms "
+                            "a type it pairs with (e.g. a capsule or a convex mesh for a "
+                            "cylinder), or exclude the pair (contype/conaffinity, or "
+                            "<contact><exclude>)") from None
+        raise MJCFError(f"{name}: MJX (mujoco {mujoco.__version__}) cannot simulate this "
+                        f"model: {msg} not implemented there") from None
+
+
+def _unsupported_pairs(m: mujoco.MjModel) -> list[str]:
+    """``"cylinder 'a' x box 'b'"`` for each colliding geom pair MJX has no function for (its
+    own pair filter; empty if that internal API differs)."""
+    try:
+        from mujoco.mjx._src import collision_driver as cd
+        pairs = [(g1, g2) for g1, g2, _ in cd.geom_pairs(m)
+                 if not cd.has_collision_fn(*m.geom_type[[g1, g2]])]
+    except Exception:  # noqa: BLE001  (only the message's detail depends on it)
+        return []
+
+    def label(g):
+        kind = mujoco.mjtGeom(int(m.geom_type[g])).name.removeprefix("mjGEOM_").lower()
+        geom = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, int(g))
+        body = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.geom_bodyid[g]))
+        where = repr(geom) if geom else f"#{int(g)}" + (f" of body {body!r}" if body else "")
+        return f"{kind} {where}"
+    return [f"{label(a)} x {label(b)}" for a, b in pairs]
+
+
 def _first_line(e: Exception) -> str:
     lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
     return " ".join(lines[:3]) if lines else type(e).__name__
@@ -127,14 +166,14 @@ class Sim:
         if name is None:
             name = str(mjcf) if (isinstance(mjcf, str) and mjcf in SCENES) else (
                 Path(str(mjcf)).stem if not str(mjcf).lstrip().startswith("<") else "mjcf")
-        return cls(mj_model=mj_model, model=mjx.put_model(mj_model), frame_skip=frame_skip,
+        return cls(mj_model=mj_model, model=put_model(mj_model, name), frame_skip=frame_skip,
                    name=name, gradient=gradient,
                    bundled=isinstance(mjcf, str) and mjcf in SCENES, contacts=contacts)
 
     def recompiled(self, mj_model: mujoco.MjModel) -> "Sim":
         """The same simulator (frame skip, name, gradient mode, contacts) on an edited
         ``mj_model``."""
-        return dataclasses.replace(self, mj_model=mj_model, model=mjx.put_model(mj_model))
+        return dataclasses.replace(self, mj_model=mj_model, model=put_model(mj_model, self.name))
 
     # ------------------------------------------------------------------ shapes
     @property
