@@ -35,6 +35,13 @@ def _at_least_one(args, *flags: str) -> None:
             raise UsageError(f"--{flag} must be >= 1, got {v}")
 
 
+def _check_size(size) -> None:
+    """``--size W H``: both at least 1 (the renderer's own bound, its offscreen buffer, is
+    checked where the model is loaded)."""
+    if min(size) < 1:
+        raise UsageError(f"--size {size[0]} {size[1]}: width and height must be >= 1")
+
+
 def _common(p: argparse.ArgumentParser, out_default: str) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", type=Path, default=Path(out_default),
@@ -382,10 +389,17 @@ def _cmd_render(args) -> int:
     from twinrl.real.twin import render_episode
 
     _check_task(args.env)
+    _at_least_one(args, "steps")
+    _check_size(args.size)
     with report.console.status(f"rendering {args.env} ({'real twin' if args.real else 'sim'})..."):
-        paths = render_episode(args.env, real=args.real, seed=args.seed, out_dir=args.out,
-                               steps=args.steps, width=args.size[0], height=args.size[1],
-                               camera=args.camera)
+        try:
+            paths = render_episode(args.env, real=args.real, seed=args.seed, out_dir=args.out,
+                                   steps=args.steps, width=args.size[0], height=args.size[1],
+                                   camera=args.camera)
+        except ValueError as e:  # a size beyond the model's offscreen buffer, a camera name
+            if not str(e).startswith(("image size", "camera")):
+                raise
+            raise UsageError(str(e)) from None
     report.print_table(f"render {args.env}", ["kind", "file"], [[k, str(v)] for k, v in paths.items()])
     report.write_json(args.out / "summary.json", {"env": args.env, "real": args.real,
                                                   "seed": args.seed, "steps": args.steps,
@@ -459,6 +473,8 @@ def _cmd_eval(args) -> int:
 
     if not args.checkpoint.exists():
         raise UsageError(f"checkpoint {args.checkpoint} does not exist")
+    _at_least_one(args, "episodes")
+    _check_size(args.size)
     eval_run(args.checkpoint, args.out, real=args.real, episodes=args.episodes, seed=args.seed,
              video=not args.no_video, size=tuple(args.size))
     return 0
