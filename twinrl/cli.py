@@ -269,14 +269,20 @@ def _collect_parser(sub) -> None:
     p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
     p.add_argument("--episodes", type=int, required=True, help="episodes to record")
     p.add_argument("--policy", default="excite", choices=("excite", "random", "zero"),
-                   help="'excite' (default: random levels, each held 3-15 steps, as sysid's "
-                        "excitation: the system travels, so its trajectories and images show it "
-                        "in many states), 'random' (uniform in the action box every step: it "
+                   help="'excite' (default: the task's closed-loop excitation where it has "
+                        "one, as push's strokes; else random levels, each held 3-15 steps, as "
+                        "sysid's excitation: the system travels, so its trajectories and images "
+                        "show it in many states), 'random' (uniform in the action box every step: it "
                         "jitters in place) or 'zero'")
     p.add_argument("--images", action="store_true",
                    help="also record RGB, depth and segmentation of the default camera")
     p.add_argument("--size", type=int, nargs=2, default=(64, 64), metavar=("W", "H"),
                    help="image size with --images (default 64 64)")
+    p.add_argument("--observation", default="task", choices=("task", "state"),
+                   help="what each transition records: 'task' (default: the task's observation, "
+                        "what a policy sees) or 'state' (the full qpos and qvel, as a motion-"
+                        "capture rig gives them): what `twinrl sysid` needs where the task's "
+                        "observation does not determine the state (push)")
     _common(p, "runs/collect")
     p.set_defaults(func=_cmd_collect)
 
@@ -300,8 +306,9 @@ def _cmd_collect(args) -> int:
     from twinrl.real.remote import TwinClient, secret_file
 
     fresh_out = not args.out.exists()
+    full = args.observation == "state"
     twin = TwinClient(args.env, seed=args.seed, secret=secret_file(args.out, args.env, args.seed),
-                      width=w, height=h)
+                      width=w, height=h, **({"config": {"observation": "state"}} if full else {}))
     obs, _ = twin.reset(seed=args.seed)
     act_shape = twin.action_space.shape
     image_shapes = None
@@ -325,9 +332,13 @@ def _cmd_collect(args) -> int:
         writer = DatasetWriter(dataset_dir, env=args.env, obs_shape=obs.shape,
                                action_shape=act_shape, image_shapes=image_shapes,
                                obs_dtype=np.float32, action_dtype=np.float32,
-                               metadata=None)
+                               metadata={"observation": "state"} if full else None)
     except (ValueError, OSError, ds.DatasetError) as e:  # another env, a live writer, ...
         raise UsageError(f"--out {args.out}: {e}") from None
+    # a task's own closed-loop excitation where it has one (push: held random levels rarely
+    # touch the box), as sysid.collect's policy="auto"
+    sim_env = envs.make(args.env, **({"observation": "state"} if full else {}))
+    task_excitation = getattr(sim_env, "excitation_policy", None)
     returns, steps = [], 0
     first_episode = writer.episode_id
     columns = [TextColumn("[bold]collect"), BarColumn(), MofNCompleteColumn(),
@@ -341,7 +352,9 @@ def _cmd_collect(args) -> int:
                 seq = np.random.SeedSequence([args.seed, first_episode + ep])
                 obs, _ = twin.reset(seed=int(seq.generate_state(1)[0]))
                 rng = np.random.default_rng(seq.spawn(1)[0])
-                if args.policy == "excite":
+                if args.policy == "excite" and task_excitation is not None:
+                    policy = task_excitation(rng)
+                elif args.policy == "excite":
                     levels = excitation_actions(rng, twin.episode_length,
                                                 int(np.prod(act_shape)))
                     policy = lambda o, t: levels[min(t, len(levels) - 1)].reshape(act_shape)  # noqa: E731
@@ -511,6 +524,8 @@ def _sysid_parser(sub) -> None:
 
 
 def _cmd_sysid(args) -> int:
+    import numpy as np
+
     from twinrl import envs, report
     from twinrl.real import dataset as ds
 
@@ -563,7 +578,15 @@ def _cmd_sysid(args) -> int:
             known.append((name.strip(), float(value)))
         except ValueError:
             raise UsageError(f"--known {item!r} must look like PARAM=NUMBER") from None
-    env = envs.make(args.env)
+    recorded = (data.meta.get("metadata") or {}).get("observation", "task")
+    env = envs.make(args.env, **({"observation": "state"} if recorded == "state" else {}))
+    try:
+        env.state_from_obs(np.zeros(env.observation_size, np.float32))
+    except NotImplementedError:
+        raise UsageError(f"--from {source}: {args.env}'s observation does not determine its "
+                         f"state, so sysid cannot start a simulated window from it; record full "
+                         f"states: twinrl collect --env {args.env} --observation state "
+                         f"...") from None
     try:
         config = sysid.SysidConfig(known=tuple(known), **(
             {"window": args.window} if args.window is not None else {}))

@@ -57,6 +57,7 @@ def one_line_error(err, *fragments):
     (["run", "--env", "peg_insertion", "--set", "imitation.observation=state"],
      "the loop deploys an image actor"),
     (["run", "--env", "peg_insertion", "--algo", "shac"], "--algo is the state-based loop's"),
+    (["run", "--env", "push"], "push's observation does not determine its state"),
 ])
 def test_bad_input_gets_one_clear_line(args, message, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
@@ -119,6 +120,36 @@ def test_collect_of_another_env_into_a_dataset_is_refused(tmp_path, capsys):
     assert code == 2
     one_line_error(err, "env='cartpole_swingup' does not match 'pendulum_swingup'")
     assert read(tmp_path / "dataset").num_episodes == 1
+
+
+def test_push_collects_full_states_for_sysid_and_refuses_its_task_observation(tmp_path, capsys):
+    """push's observation (planar) does not determine its state: sysid on it is one line
+    naming the fix, before any work; ``collect --observation state`` records qpos and qvel with
+    the task's closed-loop excitation (its strokes move the box), and a dataset keeps one
+    layout."""
+    from twinrl import envs
+
+    code, _, err = run(capsys, "collect", "--env", "push", "--episodes", "1", "--out",
+                       tmp_path / "task")
+    assert code == 0, err
+    code, _, err = run(capsys, "sysid", "--env", "push", "--from", tmp_path / "task",
+                       "--out", tmp_path / "s")
+    assert code == 2
+    one_line_error(err, "push's observation does not determine its state",
+                   "twinrl collect --env push --observation state")
+    code, _, err = run(capsys, "collect", "--env", "push", "--episodes", "1", "--observation",
+                       "state", "--out", tmp_path / "full")
+    assert code == 0, err
+    ds = read(tmp_path / "full/dataset")
+    sim = envs.make("push").sim
+    assert ds.meta["metadata"] == {"observation": "state"}
+    assert ds.obs.shape[1:] == (sim.nq + sim.nv,)
+    box = ds.obs[:, 2:4]  # the box's planar position (qpos[2:4]): the strokes push it
+    assert np.ptp(box, axis=0).max() > 0.02, np.ptp(box, axis=0)
+    code, _, err = run(capsys, "collect", "--env", "push", "--episodes", "1", "--out",
+                       tmp_path / "full")
+    assert code == 2 and read(tmp_path / "full/dataset").num_episodes == 1
+    one_line_error(err, "twinrl collect: error:")
 
 
 def test_collect_with_an_image_size_the_renderer_refuses_writes_nothing(tmp_path, capsys):
