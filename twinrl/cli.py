@@ -269,10 +269,10 @@ def _collect_parser(sub) -> None:
     p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
     p.add_argument("--episodes", type=int, required=True, help="episodes to record")
     p.add_argument("--policy", default="excite", choices=("excite", "random", "zero"),
-                   help="'excite' (default: the task's closed-loop excitation where it has "
-                        "one, as push's strokes; else random levels, each held 3-15 steps, as "
-                        "sysid's excitation: the system travels, so its trajectories and images "
-                        "show it in many states), 'random' (uniform in the action box every step: it "
+                   help="'excite' (default: random levels, each held 3-15 steps, as sysid's "
+                        "excitation: the system travels, so its trajectories and images show it "
+                        "in many states; with --observation state the task's closed-loop "
+                        "excitation where it has one, as push's strokes), 'random' (uniform in the action box every step: it "
                         "jitters in place) or 'zero'")
     p.add_argument("--images", action="store_true",
                    help="also record RGB, depth and segmentation of the default camera")
@@ -335,10 +335,10 @@ def _cmd_collect(args) -> int:
                                metadata={"observation": "state"} if full else None)
     except (ValueError, OSError, ds.DatasetError) as e:  # another env, a live writer, ...
         raise UsageError(f"--out {args.out}: {e}") from None
-    # a task's own closed-loop excitation where it has one (push: held random levels rarely
-    # touch the box), as sysid.collect's policy="auto"
-    sim_env = envs.make(args.env, **({"observation": "state"} if full else {}))
-    task_excitation = getattr(sim_env, "excitation_policy", None)
+    # full states are for sysid: the task's own closed-loop excitation where it has one (push:
+    # held random levels rarely touch the box), as sysid.collect's policy="auto"
+    task_excitation = getattr(envs.make(args.env, observation="state"), "excitation_policy",
+                              None) if full else None
     returns, steps = [], 0
     first_episode = writer.episode_id
     columns = [TextColumn("[bold]collect"), BarColumn(), MofNCompleteColumn(),
