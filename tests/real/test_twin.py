@@ -310,3 +310,26 @@ def test_render_episode_writes_images_and_video(tmp_path):
             assert img.shape[:2] == (120, 160), kind
             assert img.std() > 0, kind
         assert paths["video"].stat().st_size > 0
+
+
+def test_every_task_s_twin_is_a_gymnasium_id():
+    """``gymnasium.make("twinrl/<task>-real-v0", ...)`` builds the task's real twin, with
+    ``RealTwin``'s keyword arguments; every registered task has one."""
+    import gymnasium
+
+    import twinrl
+
+    assert twinrl.TASK_NAMES == envs.names()
+    for name in NAMES:
+        assert f"twinrl/{name}-real-v0" in gymnasium.registry
+    env = gymnasium.make("twinrl/cartpole_swingup-real-v0", seed=3)
+    twin = env.unwrapped
+    assert isinstance(twin, RealTwin) and twin.task.name == "cartpole_swingup"
+    assert env.spec.id == "twinrl/cartpole_swingup-real-v0"
+    ref = RealTwin("cartpole_swingup", seed=3)
+    obs, _ = env.reset(seed=5)
+    assert np.array_equal(obs, ref.reset(seed=5)[0])  # the same hidden perturbation and start
+    a = np.full(env.action_space.shape, 0.5, np.float32)
+    assert np.array_equal(env.step(a)[0], ref.step(a)[0])
+    env.close()
+    ref.close()
