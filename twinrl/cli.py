@@ -225,10 +225,10 @@ def _has_contacts(mj_model) -> bool:
 
 
 def _perturbs(spec) -> str:
-    parts = [f"mass x{spec.mass_scale[0]:g}-{spec.mass_scale[1]:g}",
-             f"damping x{spec.damping_scale[0]:g}-{spec.damping_scale[1]:g}",
-             f"friction x{spec.friction_scale[0]:g}-{spec.friction_scale[1]:g}",
-             f"gain x{spec.gain_scale[0]:g}-{spec.gain_scale[1]:g}"]
+    scales = (("mass", spec.mass_scale), ("damping", spec.damping_scale),
+              ("friction", spec.friction_scale), ("gain", spec.gain_scale))
+    parts = [f"{what} x{lo:g}-{hi:g}" if lo != hi else f"{what} x{lo:g}"
+             for what, (lo, hi) in scales if (lo, hi) != (1, 1)]  # untouched: not listed
     parts += [f"+damping {j} {lo:g}-{hi:g}" for j, lo, hi in spec.extra_damping]
     parts += [f"+frictionloss {j} {lo:g}-{hi:g} (unmodeled)" for j, lo, hi in spec.extra_frictionloss]
     parts += [f"latency {set(spec.latency_steps)} steps",
