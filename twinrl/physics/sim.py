@@ -77,8 +77,9 @@ def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
                             "a type it pairs with (e.g. a capsule or a convex mesh for a "
                             "cylinder), or exclude the pair (contype/conaffinity, or "
                             "<contact><exclude>)") from None
+        said = "not implemented" in msg or "not supported" in msg
         raise MJCFError(f"{name}: MJX (mujoco {mujoco.__version__}) cannot simulate this "
-                        f"model: {msg} not implemented there") from None
+                        f"model: {msg if said else msg + ' is not implemented there'}") from None
 
 
 def _unsupported_pairs(m: mujoco.MjModel) -> list[str]:
