@@ -272,8 +272,8 @@ def _collect_parser(sub) -> None:
                    help="'excite' (default: random levels, each held 3-15 steps, as sysid's "
                         "excitation: the system travels, so its trajectories and images show it "
                         "in many states; with --observation state the task's closed-loop "
-                        "excitation where it has one, as push's strokes), 'random' (uniform in the action box every step: it "
-                        "jitters in place) or 'zero'")
+                        "excitation where it has one, as push's strokes), 'random' (uniform in "
+                        "the action box every step: it jitters in place) or 'zero'")
     p.add_argument("--images", action="store_true",
                    help="also record RGB, depth and segmentation of the default camera")
     p.add_argument("--size", type=int, nargs=2, default=(64, 64), metavar=("W", "H"),
@@ -501,9 +501,23 @@ def _sysid_parser(sub) -> None:
                     "latency by multiple shooting through the simulator (report table with "
                     "uncertainty and identifiability); with --visual, fit the camera and the "
                     "task's object to the recorded RGB-D + segmentation frames instead.")
-    p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
+    p.add_argument("--env", required=True,
+                   help="task name (see `twinrl envs`), or the path of your robot's MJCF "
+                        "(`twinrl.envs.from_mjcf`: its full state observed; --from then takes "
+                        "an .npz log)")
     p.add_argument("--from", dest="source", required=True, type=Path,
-                   help="dataset directory (`twinrl collect --out DIR` writes DIR/dataset)")
+                   help="dataset directory (`twinrl collect --out DIR` writes DIR/dataset); with "
+                        "an MJCF, an .npz with qpos (E, T+1, nq), qvel (E, T+1, nv) and the "
+                        "controls sent between them ctrl (E, T, nu), in the actuators' units, "
+                        "sampled every --frame-skip physics steps")
+    p.add_argument("--param", action="append", default=[], metavar="NAME",
+                   help="a parameter to fit, repeatable (default: every mass, damping, friction "
+                        "loss and gain), e.g. --param mass/upper; an unknown name lists them")
+    p.add_argument("--max-latency", type=int, default=None,
+                   help="largest action latency tried, in samples (default: SysidConfig's, 1)")
+    p.add_argument("--frame-skip", type=int, default=1,
+                   help="with an MJCF: physics steps of its timestep per logged sample "
+                        "(default 1)")
     p.add_argument("--visual", action="store_true",
                    help="visual Real2Sim from the dataset's images (needs `collect --images`)")
     p.add_argument("--known", action="append", default=[], metavar="PARAM=VALUE",
@@ -529,6 +543,8 @@ def _cmd_sysid(args) -> int:
     from twinrl import envs, report
     from twinrl.real import dataset as ds
 
+    if args.env.lower().endswith(".xml") or Path(args.env).is_file():
+        return _sysid_mjcf(args)
     _check_task(args.env)
     source = args.source
     if not (source / "meta.json").exists() and (source / "dataset" / "meta.json").exists():
@@ -569,15 +585,6 @@ def _cmd_sysid(args) -> int:
                                 if k != "twin_seed"])
             report.write_json(args.out / "summary.json", summary)
         return 0
-    from twinrl.real2sim import sysid
-
-    known = []
-    for item in args.known:
-        name, _, value = item.partition("=")
-        try:
-            known.append((name.strip(), float(value)))
-        except ValueError:
-            raise UsageError(f"--known {item!r} must look like PARAM=NUMBER") from None
     recorded = (data.meta.get("metadata") or {}).get("observation", "task")
     env = envs.make(args.env, **({"observation": "state"} if recorded == "state" else {}))
     try:
@@ -587,16 +594,72 @@ def _cmd_sysid(args) -> int:
                          f"state, so sysid cannot start a simulated window from it; record full "
                          f"states: twinrl collect --env {args.env} --observation state "
                          f"...") from None
+    return _fit_and_report(args, env, data, len(data), source)
+
+
+def _sysid_config(args):
+    from twinrl.real2sim import sysid
+
+    known = []
+    for item in args.known:
+        name, _, value = item.partition("=")
+        try:
+            known.append((name.strip(), float(value)))
+        except ValueError:
+            raise UsageError(f"--known {item!r} must look like PARAM=NUMBER") from None
+    _at_least_one(args, "window")
+    if args.max_latency is not None and args.max_latency < 0:
+        raise UsageError(f"--max-latency must be >= 0, got {args.max_latency}")
+    over = {k: v for k, v in (("window", args.window), ("max_latency", args.max_latency))
+            if v is not None}
+    if args.param:
+        over["params"] = tuple(args.param)
+    return sysid.SysidConfig(known=tuple(known), **over)
+
+
+def _sysid_mjcf(args) -> int:
+    """``twinrl sysid --env ROBOT.xml --from LOG.npz``: Real2Sim on a user's MJCF and logs."""
+    import numpy as np
+
+    from twinrl import envs
+
+    if args.visual or args.twin_seed is not None:
+        raise UsageError("--visual and --twin-seed fit a registered task's camera and object; "
+                         "an MJCF's sysid takes its qpos/qvel/ctrl log")
+    _at_least_one(args, "frame_skip")
+    env = envs.from_mjcf(args.env, frame_skip=args.frame_skip)
+    if not args.source.is_file():
+        raise UsageError(f"--from {args.source}: no such file (an MJCF's sysid takes an .npz "
+                         f"with qpos, qvel and ctrl)")
     try:
-        config = sysid.SysidConfig(known=tuple(known), **(
-            {"window": args.window} if args.window is not None else {}))
-        with report.console.status(f"sysid on {len(data)} transitions ..."):
+        with np.load(args.source) as z:
+            missing = [k for k in ("qpos", "qvel", "ctrl") if k not in z.files]
+            if missing:
+                raise UsageError(f"--from {args.source}: no {', '.join(missing)} array (it has "
+                                 f"{', '.join(z.files) or 'none'})")
+            qpos, qvel, ctrl = z["qpos"], z["qvel"], z["ctrl"]
+    except (OSError, ValueError) as e:  # not an .npz, a pickled object array, ...
+        raise UsageError(f"--from {args.source}: not a readable .npz ({e})") from None
+    try:
+        data = env.transitions(qpos, qvel, ctrl)
+    except ValueError as e:
+        raise UsageError(f"--from {args.source}: {e}") from None
+    return _fit_and_report(args, env, data, int(np.prod(data["action"].shape[:2])), args.source)
+
+
+def _fit_and_report(args, env, data, transitions: int, source) -> int:
+    from twinrl import report
+    from twinrl.real2sim import sysid
+
+    try:
+        config = _sysid_config(args)
+        with report.console.status(f"sysid on {transitions} transitions ..."):
             res = sysid.fit(env, data, config)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    sysid.print_result(res, title=f"sysid {args.env}")
+    sysid.print_result(res, title=f"sysid {env.name}")
     report.write_json(args.out / "summary.json", {
-        "env": args.env, "dataset": str(source), "transitions": len(data),
+        "env": args.env, "dataset": str(source), "transitions": transitions,
         "latency": res.latency, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
         "seconds": res.seconds, "table": res.table,
         "params": {k: v.tolist() for k, v in res.params.as_dict().items()}})

@@ -9,13 +9,17 @@ MuJoCo C engine with a hidden perturbation): ``real`` builds on ``envs``, not th
 trainers run our tasks unmodified.
 
 Registered tasks: ``pendulum_swingup``, ``cartpole_balance``, ``cartpole_swingup``, ``push``
-(each module's docstring says what it observes, rewards and how its real twin differs).
+(each module's docstring says what it observes, rewards and how its real twin differs), and the
+manipulation suite (``envs.arm``). ``from_mjcf(path)`` (``envs.mjcf``) makes your own robot's
+MJCF a task observing its full state, for Real2Sim on your logs.
 """
 
 from twinrl.envs.base import Env, PerturbationSpec, State, TaskConfig, tolerance
 from twinrl.envs.registry import TASKS, default_config, make, names
 from twinrl.envs.system import System, randomization_fn, system_of
 from twinrl.envs.wrappers import LatencyWrapper
+from twinrl.envs.mjcf import MJCFTask, from_mjcf
 
 __all__ = ["Env", "State", "TaskConfig", "PerturbationSpec", "tolerance", "make", "names",
-           "default_config", "TASKS", "System", "randomization_fn", "system_of", "LatencyWrapper"]
+           "default_config", "TASKS", "System", "randomization_fn", "system_of", "LatencyWrapper",
+           "MJCFTask", "from_mjcf"]

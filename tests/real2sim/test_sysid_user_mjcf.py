@@ -1,0 +1,107 @@
+"""Real2Sim on a user's own MJCF (``envs.from_mjcf``): an arm written for this test, logged by
+MuJoCo C with heavier and lighter links and other joint damping than its MJCF says, identified
+from (qpos, qvel, ctrl) logs through the Python API and ``twinrl sysid --env ARM.xml --from
+LOG.npz``."""
+
+import json
+
+import mujoco
+import numpy as np
+import pytest
+
+from twinrl import cli, envs
+from twinrl.real2sim import sysid
+
+ARM = """<mujoco model="my_arm">
+  <option timestep="0.01" integrator="Euler"/>
+  <worldbody>
+    <body name="upper" pos="0 0 1">
+      <joint name="shoulder" type="hinge" axis="0 1 0" damping="0.2"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1.0"/>
+      <body name="fore" pos="0.3 0 0">
+        <joint name="elbow" type="hinge" axis="0 1 0" damping="0.1"/>
+        <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.025" mass="0.6"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="m_shoulder" joint="shoulder" ctrlrange="-8 8"/>
+    <motor name="m_elbow" joint="elbow" ctrlrange="-4 4"/>
+  </actuator>
+</mujoco>"""
+FITTED = ("mass/upper", "mass/fore", "damping/shoulder", "damping/elbow")
+TRUTH = {"mass/upper": 1.15, "mass/fore": 0.54, "damping/shoulder": 0.3, "damping/elbow": 0.07}
+
+
+def robot_logs(episodes=4, steps=150, seed=0):
+    """The 'robot': MuJoCo C on the MJCF with TRUTH's masses (inertia scaled alike, as
+    PhysParams scales it) and damping; held random torques. Returns qpos, qvel, ctrl."""
+    m = mujoco.MjModel.from_xml_string(ARM)
+    for body, scale in ((1, 1.15), (2, 0.9)):
+        m.body_mass[body] *= scale
+        m.body_inertia[body] *= scale
+    m.dof_damping[:] = [0.3, 0.07]
+    d = mujoco.MjData(m)
+    mujoco.mj_setConst(m, d)
+    rng = np.random.default_rng(seed)
+    qp, qv, cs = [], [], []
+    for _ in range(episodes):
+        mujoco.mj_resetData(m, d)
+        d.qpos[:] = rng.uniform(-0.5, 0.5, 2)
+        ctrl = np.repeat(rng.uniform(-1, 1, (steps // 10, 2)) * [8, 4], 10, axis=0)
+        q, v = [d.qpos.copy()], [d.qvel.copy()]
+        for c in ctrl:
+            d.ctrl[:] = c
+            mujoco.mj_step(m, d)
+            q.append(d.qpos.copy())
+            v.append(d.qvel.copy())
+        qp.append(q)
+        qv.append(v)
+        cs.append(ctrl)
+    return np.array(qp), np.array(qv), np.array(cs)
+
+
+@pytest.fixture(scope="module")
+def logs():
+    return robot_logs()
+
+
+def test_a_user_mjcf_is_a_full_state_task_with_the_actuators_ranges():
+    env = envs.from_mjcf(ARM, name="my_arm")
+    assert env.name == "my_arm" and env.observation_size == 4 and env.action_size == 2
+    ctrl = np.array([[8.0, -4.0], [0.0, 1.0]])
+    np.testing.assert_allclose(env.ctrl_to_action(ctrl), [[1, -1], [0, 0.25]], atol=1e-7)
+    np.testing.assert_allclose(env.action_to_ctrl(env.ctrl_to_action(ctrl)), ctrl, atol=1e-5)
+    with pytest.raises(ValueError, match=r"ctrl\[1, 0\] = 9 is outside actuator 0's ctrlrange "
+                                         r"\[-8, 8\]"):
+        env.ctrl_to_action([[0.0, 0.0], [9.0, 0.0]])
+    with pytest.raises(ValueError, match="observation='task' is for the registered tasks"):
+        envs.from_mjcf(ARM, observation="task")
+
+
+def test_sysid_identifies_a_user_mjcf_from_its_logs(logs):
+    env = envs.from_mjcf(ARM, name="my_arm")
+    res = sysid.fit(env, env.transitions(*logs),
+                    sysid.SysidConfig(params=FITTED, max_latency=0))
+    got = {r["parameter"]: r["identified"] for r in res.table}
+    for name, truth in TRUTH.items():
+        assert got[name] == pytest.approx(truth, rel=1e-3), (name, got[name], truth)
+
+
+def test_sysid_command_on_a_user_mjcf_and_an_npz_log(logs, tmp_path, capsys):
+    xml = tmp_path / "my_arm.xml"
+    xml.write_text(ARM)
+    log = tmp_path / "log.npz"
+    qpos, qvel, ctrl = logs
+    np.savez(log, qpos=qpos, qvel=qvel, ctrl=ctrl)
+    args = ["sysid", "--env", str(xml), "--from", str(log), "--out", str(tmp_path / "s")]
+    code = cli.main(args + [a for p in FITTED for a in ("--param", p)] + ["--max-latency", "0"])
+    assert code == 0, capsys.readouterr().err
+    table = {r["parameter"]: r["identified"] for r in
+             json.loads((tmp_path / "s/summary.json").read_text())["table"]}
+    for name, truth in TRUTH.items():
+        assert table[name] == pytest.approx(truth, rel=1e-3), (name, table[name], truth)
+    np.savez(log, qpos=qpos, qvel=qvel[:, :-1], ctrl=ctrl)  # one state short
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "qvel" in err[0] and "(E, T + 1, 2)" in err[0], err
