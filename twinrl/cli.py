@@ -594,7 +594,8 @@ def _cmd_sysid(args) -> int:
                          f"state, so sysid cannot start a simulated window from it; record full "
                          f"states: twinrl collect --env {args.env} --observation state "
                          f"...") from None
-    return _fit_and_report(args, env, data, len(data), source)
+    _fit_and_report(args, env, data, len(data), source)
+    return 0
 
 
 def _sysid_config(args):
@@ -644,7 +645,15 @@ def _sysid_mjcf(args) -> int:
         data = env.transitions(qpos, qvel, ctrl)
     except ValueError as e:
         raise UsageError(f"--from {args.source}: {e}") from None
-    return _fit_and_report(args, env, data, int(np.prod(data["action"].shape[:2])), args.source)
+    summary = _fit_and_report(args, env, data, int(np.prod(data["action"].shape[:2])),
+                              args.source)
+    from twinrl import report
+    from twinrl.envs.mjcf import save_mjcf
+
+    summary["mjcf"] = str(save_mjcf(env, summary.pop("_params"), args.out / "identified.xml"))
+    report.write_json(args.out / "summary.json", summary)
+    report.console.print(f"identified MJCF: {summary['mjcf']}")
+    return 0
 
 
 def _fit_and_report(args, env, data, transitions: int, source) -> int:
@@ -658,12 +667,13 @@ def _fit_and_report(args, env, data, transitions: int, source) -> int:
     except ValueError as e:
         raise UsageError(str(e)) from None
     sysid.print_result(res, title=f"sysid {env.name}")
-    report.write_json(args.out / "summary.json", {
+    summary = {
         "env": args.env, "dataset": str(source), "transitions": transitions,
         "latency": res.latency, "loss": res.loss, "sim_rollouts": res.sim_rollouts,
         "seconds": res.seconds, "table": res.table,
-        "params": {k: v.tolist() for k, v in res.params.as_dict().items()}})
-    return 0
+        "params": {k: v.tolist() for k, v in res.params.as_dict().items()}}
+    report.write_json(args.out / "summary.json", summary)
+    return {**summary, "_params": res.params}
 
 
 # ---------------------------------------------------------------------------------- run

@@ -128,3 +128,21 @@ def test_a_geom_pair_mjx_cannot_collide_is_one_line_naming_the_geoms():
                        match=r"cannot simulate this model: .*PGS is not implemented there$"):
         Sim.load(xml.replace("<mujoco>", "<mujoco><option solver='PGS'/>")
                  .replace('type="cylinder"', 'type="capsule"'))
+
+
+def test_to_mjmodel_writes_what_apply_writes_into_mjx():
+    """``PhysParams.to_mjmodel`` (MuJoCo C, saved MJCF) and ``apply`` (MJX) write the same
+    values; a non-negative field at the reparameterisation's floor is written as 0."""
+    sim = Sim.load("push")
+    p = sim.default_params()
+    p = p.replace(mass=p.mass * 1.3, damping=p.damping * 0.5 + 0.1, friction=p.friction * 0.8,
+                  gain=p.gain * 1.1, frictionloss=jnp.full_like(p.frictionloss, 1e-9))
+    m = p.to_mjmodel(sim.mj_model)
+    stock = p.apply(sim.model)
+    for c, x in (("body_mass", "body_mass"), ("body_inertia", "body_inertia"),
+                 ("dof_damping", "dof_damping"), ("geom_friction", "geom_friction"),
+                 ("actuator_gainprm", "actuator_gainprm"), ("actuator_biasprm", "actuator_biasprm")):
+        np.testing.assert_allclose(getattr(m, c), np.asarray(getattr(stock, x)), rtol=1e-6,
+                                   err_msg=c)
+    assert np.all(m.dof_frictionloss == 0)
+    assert np.all(sim.mj_model.body_mass == Sim.load("push").mj_model.body_mass)  # a copy

@@ -101,6 +101,17 @@ def test_sysid_command_on_a_user_mjcf_and_an_npz_log(logs, tmp_path, capsys):
              json.loads((tmp_path / "s/summary.json").read_text())["table"]}
     for name, truth in TRUTH.items():
         assert table[name] == pytest.approx(truth, rel=1e-3), (name, table[name], truth)
+    # the identified MJCF: MuJoCo compiles it to the fitted values (6 digits, MuJoCo's writer)
+    m = mujoco.MjModel.from_xml_path(str(tmp_path / "s/identified.xml"))
+    np.testing.assert_allclose(m.body_mass[1:], [TRUTH["mass/upper"], TRUTH["mass/fore"]],
+                               rtol=1e-3)
+    np.testing.assert_allclose(m.dof_damping, [TRUTH["damping/shoulder"],
+                                               TRUTH["damping/elbow"]], rtol=1e-3)
+    nominal = mujoco.MjModel.from_xml_string(ARM)
+    ratio = m.body_inertia[1:] / nominal.body_inertia[1:]  # scaled with the mass, as fitted
+    np.testing.assert_allclose(ratio, np.repeat((m.body_mass[1:] / nominal.body_mass[1:])[:, None],
+                                                3, axis=1), rtol=1e-4)
+    assert m.opt.timestep == nominal.opt.timestep and m.nu == 2
     np.savez(log, qpos=qpos, qvel=qvel[:, :-1], ctrl=ctrl)  # one state short
     assert cli.main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()

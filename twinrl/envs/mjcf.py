@@ -14,6 +14,7 @@ arrays ``sysid.fit`` takes.
     env = envs.from_mjcf("my_arm.xml", frame_skip=1)     # one log sample per physics step
     data = env.transitions(qpos, qvel, ctrl)   # (E, T + 1, nq), (E, T + 1, nv), (E, T, nu)
     result = sysid.fit(env, data, sysid.SysidConfig(known=(("mass/base", 2.0),)))
+    envs.mjcf.save_mjcf(env, result.params, "my_arm_identified.xml")   # for MuJoCo C, MJX, ...
 
 The log must be sampled at the control period ``dt * frame_skip`` of the MJCF's timestep, and
 the simulator runs MJX (``twinrl.physics.Sim``): a model MJX cannot simulate is refused at
@@ -30,7 +31,7 @@ import numpy as np
 
 from twinrl.envs.base import Env, TaskConfig, replace_config
 
-__all__ = ["MJCFTask", "MJCFConfig", "from_mjcf"]
+__all__ = ["MJCFTask", "MJCFConfig", "from_mjcf", "save_mjcf"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,6 +112,24 @@ class MJCFTask(Env):
                              f" (one control between each two logged states)")
         obs = np.concatenate([qpos, qvel], axis=-1).astype(np.float32)
         return {"obs": obs[:, :-1], "action": self.ctrl_to_action(ctrl), "next_obs": obs[:, 1:]}
+
+
+def save_mjcf(env: MJCFTask, params, path) -> Path:
+    """Your MJCF with ``params`` (``PhysParams``, e.g. ``sysid.fit(...).params``) written in,
+    saved at ``path`` (MuJoCo's own writer, ``mj_saveLastXML``: the file compiles to the same
+    model, every value to the 6 significant digits MuJoCo writes; a body whose mass changed gets
+    an explicit ``<inertial>``)."""
+    import mujoco
+
+    path = Path(path)
+    src = env.mjcf()
+    # mj_saveLastXML writes the model MuJoCo parsed last: parse this one right before
+    model = (mujoco.MjModel.from_xml_string(src) if src.lstrip().startswith("<")
+             else mujoco.MjModel.from_xml_path(src))
+    model = params.to_mjmodel(model)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mujoco.mj_saveLastXML(str(path), model)
+    return path
 
 
 def from_mjcf(mjcf, *, name: str | None = None, **config) -> MJCFTask:

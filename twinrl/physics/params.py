@@ -136,6 +136,29 @@ class PhysParams:
             "opt.gravity": self.gravity,
         })
 
+    def to_mjmodel(self, model: mujoco.MjModel) -> mujoco.MjModel:
+        """A copy of ``model`` (a compiled ``mujoco.MjModel``) with these parameters written in
+        as ``apply`` writes them into an ``mjx.Model`` (a body's inertia scaled with its mass):
+        for MuJoCo C, or saved as MJCF (``MJCFTask.save_mjcf``)."""
+        import copy
+
+        self.check_shapes(model)
+        p = self.as_dict()
+        for name in NONNEGATIVE:  # the reparameterisation's floor is a 0 (no friction-loss row)
+            p[name] = np.where(p[name] <= 2 * _SOFTPLUS_FLOOR, 0.0, p[name])
+        m = copy.deepcopy(model)
+        nominal = np.where(m.body_mass[1:] > 0, m.body_mass[1:], 1.0)
+        m.body_inertia[1:] *= (p["mass"] / nominal)[:, None]
+        m.body_mass[1:] = p["mass"]
+        m.dof_damping[:] = p["damping"]
+        m.dof_armature[:] = p["armature"]
+        m.dof_frictionloss[:] = p["frictionloss"]
+        m.geom_friction[:, 0] = p["friction"]
+        m.actuator_gainprm[:, 0] = p["gain"]
+        m.actuator_biasprm[:, :3] = p["bias"]
+        m.opt.gravity[:] = p["gravity"]
+        return m
+
     # ------------------------------------------------------------------ reparameterisation
     def unconstrain(self) -> dict[str, jax.Array]:
         """Unconstrained coordinates: log for positive, softplus^-1 for non-negative fields."""
