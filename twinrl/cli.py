@@ -515,7 +515,7 @@ def _sysid_parser(sub) -> None:
                         "loss and gain), e.g. --param mass/upper; an unknown name lists them")
     p.add_argument("--max-latency", type=int, default=None,
                    help="largest action latency tried, in samples (default: SysidConfig's, 1)")
-    p.add_argument("--frame-skip", type=int, default=1,
+    p.add_argument("--frame-skip", type=int, default=None,
                    help="with an MJCF: physics steps of its timestep per logged sample "
                         "(default 1)")
     p.add_argument("--visual", action="store_true",
@@ -546,6 +546,9 @@ def _cmd_sysid(args) -> int:
     if args.env.lower().endswith(".xml") or Path(args.env).is_file():
         return _sysid_mjcf(args)
     _check_task(args.env)
+    if args.frame_skip is not None:
+        raise UsageError("--frame-skip is for an MJCF's log; a task's dataset is sampled at the "
+                         "task's own control period")
     source = args.source
     if not (source / "meta.json").exists() and (source / "dataset" / "meta.json").exists():
         source = source / "dataset"
@@ -628,7 +631,10 @@ def _sysid_mjcf(args) -> int:
         raise UsageError("--visual and --twin-seed fit a registered task's camera and object; "
                          "an MJCF's sysid takes its qpos/qvel/ctrl log")
     _at_least_one(args, "frame_skip")
-    env = envs.from_mjcf(args.env, frame_skip=args.frame_skip)
+    try:  # an MJCF MJX cannot simulate, an actuator without a ctrlrange, a massless body
+        env = envs.from_mjcf(args.env, frame_skip=args.frame_skip or 1)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
     if not args.source.is_file():
         raise UsageError(f"--from {args.source}: no such file (an MJCF's sysid takes an .npz "
                          f"with qpos, qvel and ctrl)")
@@ -645,18 +651,19 @@ def _sysid_mjcf(args) -> int:
         data = env.transitions(qpos, qvel, ctrl)
     except ValueError as e:
         raise UsageError(f"--from {args.source}: {e}") from None
-    summary = _fit_and_report(args, env, data, int(np.prod(data["action"].shape[:2])),
-                              args.source)
+    summary, res = _fit_and_report(args, env, data, int(np.prod(data["action"].shape[:2])),
+                                   args.source)
     from twinrl import report
     from twinrl.envs.mjcf import save_mjcf
 
-    summary["mjcf"] = str(save_mjcf(env, summary.pop("_params"), args.out / "identified.xml"))
+    summary["mjcf"] = str(save_mjcf(env, res.params, args.out / "identified.xml"))
     report.write_json(args.out / "summary.json", summary)
     report.console.print(f"identified MJCF: {summary['mjcf']}")
     return 0
 
 
-def _fit_and_report(args, env, data, transitions: int, source) -> int:
+def _fit_and_report(args, env, data, transitions: int, source):
+    """sysid's fit, its table and ``OUT/summary.json``: ``(summary, result)``."""
     from twinrl import report
     from twinrl.real2sim import sysid
 
@@ -673,7 +680,7 @@ def _fit_and_report(args, env, data, transitions: int, source) -> int:
         "seconds": res.seconds, "table": res.table,
         "params": {k: v.tolist() for k, v in res.params.as_dict().items()}}
     report.write_json(args.out / "summary.json", summary)
-    return {**summary, "_params": res.params}
+    return summary, res
 
 
 # ---------------------------------------------------------------------------------- run
