@@ -538,8 +538,6 @@ def _sysid_parser(sub) -> None:
 
 
 def _cmd_sysid(args) -> int:
-    import numpy as np
-
     from twinrl import envs, report
     from twinrl.real import dataset as ds
 
@@ -590,13 +588,10 @@ def _cmd_sysid(args) -> int:
         return 0
     recorded = (data.meta.get("metadata") or {}).get("observation", "task")
     env = envs.make(args.env, **({"observation": "state"} if recorded == "state" else {}))
-    try:
-        env.state_from_obs(np.zeros(env.observation_size, np.float32))
-    except NotImplementedError:
+    if not env.observes_state:
         raise UsageError(f"--from {source}: {args.env}'s observation does not determine its "
                          f"state, so sysid cannot start a simulated window from it; record full "
-                         f"states: twinrl collect --env {args.env} --observation state "
-                         f"...") from None
+                         f"states: twinrl collect --env {args.env} --observation state ...")
     _fit_and_report(args, env, data, len(data), source)
     return 0
 

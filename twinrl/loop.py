@@ -517,14 +517,11 @@ def check_settings(env_name: str, out: Path, config: LoopConfig, seed: int,
         raise LoopError(f"unknown task {env_name!r}; registered: {', '.join(envs.names())}")
     if hasattr(config, "algo"):  # the manipulation loop's config (twinrl.loop_arm) has none
         algorithm(config.algo)
-        env = envs.make(env_name)
-        try:  # sysid starts its windows from recorded observations: refused before any work
-            env.state_from_obs(np.zeros(env.observation_size, np.float32))
-        except NotImplementedError:
+        if not envs.make(env_name).observes_state:  # refused before any work
             raise LoopError(f"{env_name}'s observation does not determine its state, and the loop "
                             f"identifies the simulator from recorded observations; identify it "
                             f"from full states instead: twinrl collect --env {env_name} "
-                            f"--observation state, then twinrl sysid") from None
+                            f"--observation state, then twinrl sysid")
     # The perturbation (a custom twin's) is not a setting the loop may read back: the twin's
     # server keeps it with the salt in eval/twin.json and refuses a resume with another one.
     settings = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config)}

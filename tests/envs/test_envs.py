@@ -163,3 +163,13 @@ def test_params_with_new_dry_friction_get_a_friction_row():
         s = s.replace(pipeline_state=env.sim.init(jnp.zeros(2), jnp.zeros(2)))
         moved.append(abs(float(jax.jit(env.step)(s, push).pipeline_state.qvel[0])))
     assert moved[0] > 1e-2 and moved[1] < moved[0] / 10, moved  # (MJX friction is soft)
+
+
+def test_observes_state_says_where_sysid_can_start_from_observations():
+    """Real2Sim's windows start from recorded observations: push's task observation (planar)
+    cannot give them, its full-state observation and a user's MJCF task can."""
+    assert not envs.make("push").observes_state
+    assert envs.make("push", observation="state").observes_state
+    assert envs.make("cartpole_swingup").observes_state
+    assert envs.from_mjcf("<mujoco><worldbody><body><joint type='slide'/><geom size='.1'/>"
+                          "</body></worldbody></mujoco>").observes_state

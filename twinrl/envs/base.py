@@ -190,6 +190,17 @@ class Env(brax_base.Env):
         if config.observation == "state":  # instance attributes shadow the task's hooks
             self.observe, self.state_from_obs = self._full_state, self._split_state
 
+    @property
+    def observes_state(self) -> bool:
+        """Whether ``state_from_obs`` inverts the observation, so that Real2Sim's shooting
+        windows can start from recorded observations (push's task observation cannot: its
+        box's height, tilt and spin are not in it; ``observation="state"`` always can)."""
+        try:
+            self.state_from_obs(jnp.zeros(self.observation_size, jnp.float32))
+        except NotImplementedError:
+            return False
+        return True
+
     def _full_state(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
         return jnp.concatenate([qpos, qvel], axis=-1).astype(jnp.float32)
 
