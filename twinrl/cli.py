@@ -500,7 +500,9 @@ def _sysid_parser(sub) -> None:
         description="From transitions recorded by `twinrl collect`, fit PhysParams and the action "
                     "latency by multiple shooting through the simulator (report table with "
                     "uncertainty and identifiability); with --visual, fit the camera and the "
-                    "task's object to the recorded RGB-D + segmentation frames instead.")
+                    "task's object to the recorded RGB-D + segmentation frames instead. With "
+                    "--env ROBOT.xml, fit your own MJCF to your qpos/qvel/ctrl log (.npz) and "
+                    "write OUT/identified.xml.")
     p.add_argument("--env", required=True,
                    help="task name (see `twinrl envs`), or the path of your robot's MJCF "
                         "(`twinrl.envs.from_mjcf`: its full state observed; --from then takes "
