@@ -6,9 +6,10 @@ factor drawn in [0.85, 1.2] and every joint's damping by one in [0.6, 1.6] (``--
 ``--episodes`` episodes starts at the MJCF's first keyframe (else ``qpos0``) and holds random
 controls (within 40 % of each actuator's half-range around the start, for 10 samples at a time)
 for ``--steps`` samples of ``--frame-skip`` physics steps; ``qpos``, ``qvel`` (plus Gaussian
-``--noise``) and ``ctrl`` are logged as a robot's logger would give them. Then ``sysid.fit(env, env.transitions(...))``
-fits every mass and damping from the nominal MJCF (``--window``-step shooting windows, latency
-0) and the table gives each parameter's relative error against the hidden value, with sysid's
+``--noise``) and ``ctrl`` are logged as a robot's logger would give them. Then
+``sysid.fit(env, env.transitions(...))`` fits every mass and damping from the nominal MJCF
+(``--window``-step shooting windows, latency 0) and the table gives each parameter's relative
+error against the hidden value (``sysid.compare_to_truth``), with sysid's
 own verdict (a body welded to the world, like the Panda's base, moves nothing and is reported
 not identifiable). The identified MJCF is written to ``OUT/identified.xml``.
 
@@ -28,13 +29,15 @@ import numpy as np
 
 import twinrl  # noqa: F401  (before jax: compilation cache, quiet XLA)
 from twinrl import envs, report
+from twinrl.physics import PhysParams
 from twinrl.report import run_meta, write_json
 
 PANDA = Path(twinrl.__file__).parent / "envs" / "arm" / "panda.xml"
 
 
 def robot_logs(path: str, seed: int, episodes: int, steps: int, frame_skip: int):
-    """MuJoCo C on ``path`` with hidden scales: ``(qpos, qvel, ctrl, truth)``."""
+    """MuJoCo C on ``path`` with hidden scales: ``(qpos, qvel, ctrl, truth)``, ``truth`` the
+    robot's ``PhysParams`` (evaluation only)."""
     import mujoco
 
     m = mujoco.MjModel.from_xml_path(path)
@@ -66,8 +69,7 @@ def robot_logs(path: str, seed: int, episodes: int, steps: int, frame_skip: int)
         qp.append(q)
         qv.append(v)
         cs.append(ctrl)
-    truth = {"mass": m.body_mass[1:].copy(), "damping": m.dof_damping.copy()}
-    return np.array(qp), np.array(qv), np.array(cs), truth
+    return np.array(qp), np.array(qv), np.array(cs), PhysParams.from_model(m)
 
 
 def main(argv=None) -> int:
@@ -104,16 +106,11 @@ def main(argv=None) -> int:
     res = sysid.fit(env, env.transitions(qpos, qvel, ctrl),
                     sysid.SysidConfig(params=tuple(names), max_latency=0, window=args.window))
     fit_s = time.perf_counter() - t0
-    rows, index = [], {"mass": 0, "damping": 0}
-    table = {r["parameter"]: r for r in res.table}
-    for n in names:
-        field = n.split("/")[0]
-        true = float(truth[field][index[field]])
-        index[field] += 1
-        r = table[n]
-        rows.append({"parameter": n, "nominal": r["initial"], "truth": true,
-                     "identified": r["identified"], "rel_err": r["identified"] / true - 1,
-                     "nominal_rel_err": r["initial"] / true - 1, "status": r["status"]})
+    initial = {r["parameter"]: r["initial"] for r in res.table}
+    rows = [{"parameter": r["parameter"], "nominal": initial[r["parameter"]], "truth": r["truth"],
+             "identified": r["identified"], "rel_err": r["identified"] / r["truth"] - 1,
+             "nominal_rel_err": initial[r["parameter"]] / r["truth"] - 1, "status": r["status"]}
+            for r in sysid.compare_to_truth(res, truth)]
     ok = [abs(r["rel_err"]) for r in rows if r["status"] == "identified"]
     xml = save_mjcf(env, res.params, args.out / "identified.xml")
     out = {"meta": run_meta(args), "mjcf": args.mjcf, "samples": int(np.prod(ctrl.shape[:2])),
@@ -123,7 +120,8 @@ def main(argv=None) -> int:
     write_json(args.out / "user_mjcf_sysid.json", out)
     report.print_table(
         f"sysid of {Path(args.mjcf).name} from {out['samples']} logged samples of MuJoCo C, "
-        f"noise sd {args.noise[0]:g} / {args.noise[1]:g} ({fit_s:.0f} s)", ["parameter", "truth", "nominal err", "identified err", "sysid says"],
+        f"noise sd {args.noise[0]:g} / {args.noise[1]:g} ({fit_s:.0f} s)",
+        ["parameter", "truth", "nominal err", "identified err", "sysid says"],
         [[r["parameter"], f"{r['truth']:.4g}", f"{100 * r['nominal_rel_err']:+.1f} %",
           f"{100 * r['rel_err']:+.3f} %", r["status"]] for r in rows])
     print(f"wrote {args.out / 'user_mjcf_sysid.json'} and {xml}")
