@@ -139,7 +139,7 @@ class PhysParams:
     def to_mjmodel(self, model: mujoco.MjModel) -> mujoco.MjModel:
         """A copy of ``model`` (a compiled ``mujoco.MjModel``) with these parameters written in
         as ``apply`` writes them into an ``mjx.Model`` (a body's inertia scaled with its mass):
-        for MuJoCo C, or saved as MJCF (``MJCFTask.save_mjcf``)."""
+        for MuJoCo C, or saved as MJCF (``twinrl.envs.mjcf.save_mjcf``)."""
         import copy
 
         self.check_shapes(model)
