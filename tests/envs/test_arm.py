@@ -465,6 +465,30 @@ def test_target_pose_is_fitted_to_one_depth_image(made):
     assert np.median(fit_err) < np.median(mean_err) / 3, (fit_err, mean_err)
 
 
+def test_target_pose_fit_uses_a_subset_of_many_target_pixels(made):
+    """An image showing more target pixels than ``fit_target_pose`` uses (``points``) is fitted
+    from the subset as well as from all: the first guess is the subset's mean (it had divided
+    the subset's sum by every pixel's count, pulling the guess toward the camera; at 256x256,
+    where the needle shows more than the default 256 points, half its views fitted wrong).
+    A needle view at 128x128 showing ~70 pixels, fitted from 16 and from all."""
+    from twinrl.learn.imitation import ImitationConfig, episode_coords
+
+    env = made["needle_threading"]
+    s = env.reset(jax.random.PRNGKey(1))
+    coords = episode_coords(env, ImitationConfig(), jax.random.PRNGKey(2))
+    img = env.render(s, coords, size=128)
+    mask = jnp.sum(img.weights[..., env._target_columns], axis=-1)
+    assert float(jnp.sum(mask)) > 48, float(jnp.sum(mask))  # three times the points used
+    cam = env.mount.camera(coords, 128, 128)
+    idx = np.asarray(env.target_joints)
+    truth = np.asarray(env._wrap_target_pose(s.pipeline_state.qpos[idx]))
+    for points in (16, 256):
+        pose = jax.jit(lambda j, d, m: env.fit_target_pose(j, cam, d, m, points=points))(
+            s.obs[:14], img.depth, mask)
+        err = np.abs(np.asarray(env._wrap_target_pose(pose - truth)))
+        assert np.max(err) < 0.002, (points, err)
+
+
 def test_the_pose_fits_hinge_grid_finds_a_heading_the_local_restarts_miss(made):
     """``fit_target_pose(hinge_grid=K)`` (``ArmConfig.pose_hinge_grid``): a needle view (found
     by ``bench/pose_views.py``'s draw) where the local restarts stop 0.16 rad off the eye's

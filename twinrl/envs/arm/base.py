@@ -886,7 +886,9 @@ class ArmTask(Env):
         data = sg(pts), sg(sw)
         x = jnp.zeros(idx.size, dt)
         Jc = jax.jacfwd(centroid)(x)
-        mean = jnp.sum(sg(w)[:, None] * data[0], 0) / jnp.maximum(sg(n), 1e-3)
+        # the mean of the points the fit uses (`n` counts every target pixel, more than those
+        # where the image shows over `points` of them)
+        mean = jnp.sum(sg(w)[:, None] * data[0], 0) / jnp.maximum(jnp.sum(sg(w)), 1e-3)
         x = jnp.linalg.solve(Jc.T @ Jc + 1e-6 * eye, Jc.T @ (mean - centroid(x)))
 
         def step(_, x):
