@@ -6,7 +6,9 @@ fitted to one depth image (``ArmTask.fit_target_pose``). This takes a run's iden
 
 1. **The fit** at ``--views`` random (start state, mount pose) pairs drawn as the imitation stage
    draws its views (``imitation.episode_coords``), for each ``--hinge-grids`` value
-   (``ArmConfig.pose_hinge_grid``: 0 is the default, local restarts only): the share of views
+   (``ArmConfig.pose_hinge_grid``: 0 is the default, local restarts only) and each
+   ``--image-sizes`` value (``ArmConfig.image_size``, the images' width and height; default the
+   task's): the share of views
    whose fit is off by more than ``--tol`` in any target joint (m for slides, rad for hinges,
    modulo the target's symmetry), which joint is worst there, the fit's RMS residual (mm) on good
    and bad views (a wrong fit at an exact residual is a view that cannot tell), observations/s.
@@ -15,13 +17,16 @@ fitted to one depth image (``ArmTask.fit_target_pose``). This takes a run's iden
    fit, as deployed), ``best`` (the fit with the most target pixels so far: the target is at
    rest), ``truth`` (perfect perception: ``estimate_from_obs``): success, and success split by
    whether the pose the actor used stayed within ``--episode-tol`` throughout; the fit's hinge
-   grid ``--actor-hinge-grid``.
+   grid ``--actor-hinge-grid``, its images ``--actor-image-size`` pixels wide (a pose actor
+   reads the fitted pose, not the pixels: one actor, any image size).
 
 Prints two tables and writes ``OUT/pose_views.json``. Needle, 2 cores: ~1-2 min per fit row
 and per actor mode.
 
     python bench/pose_views.py --run needle_threading=RUN --out B
     python bench/pose_views.py --run needle_threading=RUN --hinge-grids 0 4 8 --modes fit --out B
+    python bench/pose_views.py --run needle_threading=RUN --image-sizes 64 128 \
+        --actor-image-size 128 --modes fit --out B
 """
 
 from __future__ import annotations
@@ -63,10 +68,12 @@ def load_run(spec: str):
     return task, rdir
 
 
-def make_env(task, rdir, hinge_grid: int = 0):
+def make_env(task, rdir, hinge_grid: int = 0, image_size: int | None = None):
     from twinrl.envs.system import System
 
-    env = envs.make(task, system=System.load(rdir / "system.json"), pose_hinge_grid=hinge_grid)
+    size = {} if image_size is None else {"image_size": image_size}
+    env = envs.make(task, system=System.load(rdir / "system.json"), pose_hinge_grid=hinge_grid,
+                    **size)
     if not env.target_joints:
         _bad(f"{task} has no target_joints: its image observation fits no pose")
     return env
@@ -99,7 +106,8 @@ def fit_rows(env, cfg, views: int, tol: float) -> dict:
     rate = views / (time.perf_counter() - t)
     bad = err.max(1) > tol
     worst = np.bincount(err[bad].argmax(1), minlength=err.shape[1]) if bad.any() else []
-    return {"hinge_grid": int(env.config.pose_hinge_grid), "views": views,
+    return {"hinge_grid": int(env.config.pose_hinge_grid),
+            "image_size": int(env.config.image_size), "views": views,
             "bad": float(bad.mean()), "worst_joint_counts": [int(x) for x in worst],
             "median_err": np.median(err, 0).tolist(), "p90_err": np.percentile(err, 90, 0).tolist(),
             "rms_mm_good": float(np.median(support[~bad, 1])) if (~bad).any() else None,
@@ -137,7 +145,8 @@ def actor_row(env, cfg, net, params, mode: str, episodes: int, tol: float) -> di
     out = [f(ks[i:i + 10, 1], coords[i:i + 10]) for i in range(0, episodes, 10)]
     ok, err = (np.concatenate([np.asarray(o[i]) for o in out]).astype(np.float64) for i in (0, 1))
     right = err <= tol
-    return {"mode": mode, "episodes": episodes, "success": float(ok.mean()),
+    return {"mode": mode, "image_size": int(env.config.image_size), "episodes": episodes,
+            "success": float(ok.mean()),
             "estimate_right_throughout": float(right.mean()),
             "success_if_right": float(ok[right].mean()) if right.any() else None,
             "success_if_wrong": float(ok[~right].mean()) if (~right).any() else None}
@@ -153,13 +162,18 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", nargs="*", choices=MODES, default=list(MODES))
     ap.add_argument("--actor-hinge-grid", type=int, default=0,
                     help="the pose fit's hinge grid in the actor's part")
+    ap.add_argument("--image-sizes", type=int, nargs="*", default=[None], metavar="N",
+                    help="the fit's images, N x N pixels (default the task's)")
+    ap.add_argument("--actor-image-size", type=int, default=None, metavar="N",
+                    help="the images in the actor's part (default the task's)")
     ap.add_argument("--episode-tol", type=float, default=0.01,
                     help="the used estimate's tolerance over an episode (m / rad)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     if (args.views < 1 or args.episodes < 0 or args.actor_hinge_grid < 0
-            or any(k < 0 for k in args.hinge_grids)):
-        ap.error("--views must be >= 1, --episodes and --hinge-grids >= 0")
+            or any(k < 0 for k in args.hinge_grids)
+            or any(n is not None and n < 8 for n in [*args.image_sizes, args.actor_image_size])):
+        ap.error("--views must be >= 1, --episodes and --hinge-grids >= 0, image sizes >= 8")
     task, rdir = load_run(args.run)
     from twinrl.learn.sensing import load_actor
 
@@ -168,24 +182,28 @@ def main(argv=None) -> int:
     if cfg.observation != "pose":
         _bad(f"--run {args.run}: its actor reads {cfg.observation!r}, not a fitted pose")
     fits, actors = [], []
-    for k in args.hinge_grids:
-        fits.append(fit_rows(make_env(task, rdir, k), cfg, args.views, args.tol))
-        print(f"[bench] fit, hinge grid {k}: {fits[-1]['bad']:.0%} of views off", flush=True)
-    env = make_env(task, rdir, args.actor_hinge_grid)
+    for n in args.image_sizes:
+        for k in args.hinge_grids:
+            fits.append(fit_rows(make_env(task, rdir, k, n), cfg, args.views, args.tol))
+            print(f"[bench] fit, {fits[-1]['image_size']} px, hinge grid {k}: "
+                  f"{fits[-1]['bad']:.0%} of views off", flush=True)
+    env = make_env(task, rdir, args.actor_hinge_grid, args.actor_image_size)
     for mode in args.modes if args.episodes else []:
         actors.append(actor_row(env, cfg, net, params, mode, args.episodes, args.episode_tol))
         print(f"[bench] actor, estimate {mode}: {actors[-1]['success']:.0%}", flush=True)
+    size = int(env.config.image_size)
     if fits:
         print_table(f"{task}: the pose fit from {args.views} random views (off: any joint > "
-                    f"{args.tol:g})", ["hinge grid", "views off", "worst joint (counts)",
-                                       "RMS mm good / off", "obs/s"],
-                    [[r["hinge_grid"], f"{r['bad']:.1%}", r["worst_joint_counts"],
+                    f"{args.tol:g})", ["image", "hinge grid", "views off",
+                                       "worst joint (counts)", "RMS mm good / off", "obs/s"],
+                    [[f"{r['image_size']} px", r["hinge_grid"], f"{r['bad']:.1%}",
+                      r["worst_joint_counts"],
                       " / ".join("-" if x is None else f"{x:.4f}"
                                  for x in (r["rms_mm_good"], r["rms_mm_bad"])),
                       f"{r['obs_per_s']:.0f}"] for r in fits])
     if actors:
-        print_table(f"{task}: the run's image actor on {args.episodes} random views (hinge grid "
-                    f"{args.actor_hinge_grid})",
+        print_table(f"{task}: the run's image actor on {args.episodes} random views ({size} px, "
+                    f"hinge grid {args.actor_hinge_grid})",
                     ["estimate", "success", f"estimate within {args.episode_tol:g} throughout",
                      "success: within / not"],
                     [[r["mode"], f"{r['success']:.0%}", f"{r['estimate_right_throughout']:.0%}",

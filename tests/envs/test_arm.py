@@ -500,7 +500,7 @@ def test_the_pose_fits_hinge_grid_finds_a_heading_the_local_restarts_miss(made):
     k_cam, k_reset = jax.random.split(jax.random.split(jax.random.PRNGKey(1), 40)[12])
     s = env.reset(k_reset)
     coords = episode_coords(env, ImitationConfig(observation="pose"), k_cam)
-    img = env.render(s, coords)
+    img = env.render(s, coords, size=64)  # the view was found at 64x64
     mask = jnp.sum(img.weights[..., env._target_columns], axis=-1)
     cam = env.mount.camera(coords, 64, 64)
     idx = np.asarray(env.target_joints)

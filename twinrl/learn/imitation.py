@@ -68,7 +68,9 @@ class ImitationConfig(JSONConfig):
     """``"state"``, ``"pixels"``, ``"target"`` or ``"pose"`` (module docstring)."""
     camera: str = "random"
     """Pixels: the mount pose per episode, ``"random"`` over its workspace or ``"default"``."""
-    image_size: int = 64
+    image_size: int | None = None
+    """Image observations: width and height (pixels) of the images the actor is trained on;
+    default (None) the task's (``ArmConfig.image_size``), what the loop deploys it on."""
     views: int = 1
     """Image observations: mount poses each demonstration is rendered from (module docstring)."""
     camera_input: bool | None = None
@@ -131,7 +133,8 @@ class ImitationConfig(JSONConfig):
             choices={"observation": ("state", "pixels", "target", "pose"),
                      "camera": ("random", "default"), "image_head": ("dense", "keypoints"),
                      "keep": ("best", "last"), "camera_input": (None, True, False),
-                     "proprioception": (None, True, False)}, optional=("label_weight",))
+                     "proprioception": (None, True, False)},
+            optional=("label_weight", "image_size"))
         if len(self.conv_strides) != 3:
             raise ValueError(f"conv_strides must name 3 strides, got {self.conv_strides}")
 
@@ -143,7 +146,8 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
     if not hasattr(env, "image_observation"):
         raise ValueError(f"observation={config.observation!r} needs a task with a camera mount; "
                          f"{env.name} has none")
-    n, o = int(config.image_size), (int(env.observation_size),)
+    n = int(config.image_size or env.config.image_size)
+    o = (int(env.observation_size),)
     if config.observation == "pose" and not getattr(env, "target_joints", ()):
         raise ValueError(f"observation='pose' needs ArmTask.target_joints; {env.name} has none")
     spec = {"pixels": {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}, "pose": {"estimate": o},
