@@ -241,3 +241,26 @@ def test_the_spatula_stage_runs_dagger_unless_told_otherwise():
     assert (s["dagger_rounds"], s["observation"], "solved_labels" in s) == (0, "pose", False)
     s = imitation_settings(make_config({"imitation.dagger_rounds": 1}), spatula)
     assert s["dagger_rounds"] == 1 and s["solved_labels"] and s["views"] == 8
+
+
+def test_resuming_a_run_recorded_with_other_images_is_one_line(tmp_path):
+    """A run whose dataset holds images of another size (one an older twinrl started: the
+    needle's went from 64x64 to 128x128) is refused on --resume in one line naming the sizes,
+    before any stage runs; the recorded episodes stay as they were."""
+    from twinrl import envs, loop_arm
+    from twinrl.loop import LoopError
+    from twinrl.real.dataset import DatasetWriter
+
+    out = tmp_path / "run"
+    env = envs.make("peg_insertion")
+    with DatasetWriter(out / "dataset", env="peg_insertion", obs_shape=(env.observation_size,),
+                       action_shape=(env.action_size,), obs_dtype=np.float32,
+                       action_dtype=np.float32,
+                       image_shapes={"rgb": (32, 32, 3), "depth": (32, 32),
+                                     "segmentation": (32, 32)}):
+        pass
+    before = sorted(p.name for p in (out / "dataset").iterdir())
+    with pytest.raises(LoopError, match="records 64x64 images") as e:
+        loop_arm.run("peg_insertion", out, seed=0, resume=True, progress=False)
+    assert "\n" not in str(e.value) and "[32, 32]" in str(e.value)
+    assert sorted(p.name for p in (out / "dataset").iterdir()) == before

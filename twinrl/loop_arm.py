@@ -782,9 +782,16 @@ def _start(env_name, out, config, seed, progress, perturbation) -> RunContext:
                       height=n)
     obs0, _ = twin.reset(seed=seed)
     shapes = {"rgb": (n, n, 3), "depth": (n, n), "segmentation": (n, n)}
-    writer = DatasetWriter(out / "dataset", env=env_name, obs_shape=obs0.shape,
-                           action_shape=twin.action_space.shape, obs_dtype=np.float32,
-                           action_dtype=np.float32, image_shapes=shapes)
+    try:
+        writer = DatasetWriter(out / "dataset", env=env_name, obs_shape=obs0.shape,
+                               action_shape=twin.action_space.shape, obs_dtype=np.float32,
+                               action_dtype=np.float32, image_shapes=shapes)
+    except ValueError as e:  # a dataset recorded with other shapes (an older twinrl's images)
+        twin.close()
+        why = (f". This twinrl's {env_name} records {n}x{n} images (ArmConfig.image_size); "
+               f"resume with the version that started the run"
+               if "image_shapes" in str(e) else "")
+        raise LoopError(f"{e}{why}") from None
     return RunContext(env_name, int(seed), out, config, perturbation, secret, twin, writer,
                 Progress(out / "progress.json"), Progress(ev_dir / "evaluation.json"), say,
                 progress, env, t_start)
