@@ -343,6 +343,27 @@ def test_window_sees_exactly_those_pixels(push):
         full.window(0, 0, 4, 4, step=0)
 
 
+def test_window_of_a_stack_of_cameras_is_each_cameras_window(push):
+    """A stack of cameras (a leading axis on every array, as a hand-eye fit holds one per
+    frame) windows into a stack with one principal point per camera, each the window of its
+    own camera -- it had made one (2,) principal point for the stack, which a vmap over the
+    stack refused (the needle's 128x128 calibration, coarsened to 64x64)."""
+    m, d = push
+    a = Camera.from_mujoco(m, d, "top", 48, 48)
+    moved = dataclasses.replace(a, pos=a.pos + 0.01)
+    off_centre = jnp.asarray([20.0, 27.0])
+    for cams in ((a, moved),  # the default principal point
+                 (dataclasses.replace(a, principal=jnp.asarray([24.0, 24.0])),
+                  dataclasses.replace(moved, principal=off_centre))):
+        stack = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *cams)
+        win = stack.window(1, 2, 16, 15, 3)
+        assert win.principal.shape == (2, 2)
+        rays = jax.vmap(lambda c: c.rays()[1])(win)
+        for i, cam in enumerate(cams):
+            np.testing.assert_allclose(rays[i], cam.window(1, 2, 16, 15, 3).rays()[1],
+                                       atol=1e-6)
+
+
 def test_bad_inputs(push):
     m, d = push
     R = Renderer.create(m)

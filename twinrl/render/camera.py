@@ -166,7 +166,7 @@ class Camera:
         if self.principal is None:
             return (jnp.asarray(self.width / 2.0, self.pos.dtype),
                     jnp.asarray(self.height / 2.0, self.pos.dtype))
-        return self.principal[0], self.principal[1]
+        return self.principal[..., 0], self.principal[..., 1]  # a stack of cameras too
 
     def rays(self) -> tuple[jax.Array, jax.Array]:
         """``origin`` (3,) and per-pixel directions (H, W, 3) in the world frame, scaled so the
@@ -206,7 +206,10 @@ class Camera:
                              "image")
         cx, cy = self._principal()
         # new pixel c's centre c + 0.5 sits at old col0 + step c + 0.5; focal length / step
-        principal = jnp.stack([(cx - col0 - 0.5) / step + 0.5, (cy - row0 - 0.5) / step + 0.5])
+        principal = jnp.stack([(cx - col0 - 0.5) / step + 0.5, (cy - row0 - 0.5) / step + 0.5],
+                              -1)
+        # a stack of cameras (a leading axis on every array) gets one principal point each
+        principal = jnp.broadcast_to(principal, jnp.shape(self.pos)[:-1] + (2,))
         fovy = 2.0 * jnp.rad2deg(jnp.arctan(jnp.tan(jnp.deg2rad(self.fovy) / 2.0)
                                             * step * height / self.height))
         return dataclasses.replace(self, fovy=fovy, width=width, height=height,
