@@ -123,7 +123,8 @@ def test_camera_mount_stays_in_its_workspace_and_looks_at_its_target(made):
 def test_rendered_mount_views_equal_the_real_twins_opengl_frames(name, made):
     """twinrl.render (differentiable) and the real twin's OpenGL camera agree at mount poses."""
     env = made[name]
-    twin = RealTwin(name, perturbation=Perturbation.none(), width=64, height=64)
+    n = env.config.image_size  # the size the loop records and deploys at
+    twin = RealTwin(name, perturbation=Perturbation.none(), width=n, height=n)
     twin.reset(seed=3)
     o = twin.oracle()
     state = env.reset(jax.random.PRNGKey(0))
