@@ -8,7 +8,7 @@ fitted to one depth image (``ArmTask.fit_target_pose``). This takes a run's iden
    draws its views (``imitation.episode_coords``), for each ``--hinge-grids`` value
    (``ArmConfig.pose_hinge_grid``: 0 is the default, local restarts only) and each
    ``--image-sizes`` value (``ArmConfig.image_size``, the images' width and height; default the
-   task's): the share of views
+   run's): the share of views
    whose fit is off by more than ``--tol`` in any target joint (m for slides, rad for hinges,
    modulo the target's symmetry), which joint is worst there, the fit's RMS residual (mm) on good
    and bad views (a wrong fit at an exact residual is a view that cannot tell), observations/s.
@@ -42,7 +42,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl import envs
 from twinrl.learn import imitation
 from twinrl.report import print_table, run_meta, write_json
 
@@ -69,11 +68,13 @@ def load_run(spec: str):
 
 
 def make_env(task, rdir, hinge_grid: int = 0, image_size: int | None = None):
+    """The task in the round's identified twin, at ``image_size`` (default the run's)."""
     from twinrl.envs.system import System
+    from twinrl.loop_arm import run_env
 
     size = {} if image_size is None else {"image_size": image_size}
-    env = envs.make(task, system=System.load(rdir / "system.json"), pose_hinge_grid=hinge_grid,
-                    **size)
+    env = run_env(rdir.parent, System.load(rdir / "system.json"), pose_hinge_grid=hinge_grid,
+                  **size)
     if not env.target_joints:
         _bad(f"{task} has no target_joints: its image observation fits no pose")
     return env
@@ -163,9 +164,9 @@ def main(argv=None) -> int:
     ap.add_argument("--actor-hinge-grid", type=int, default=0,
                     help="the pose fit's hinge grid in the actor's part")
     ap.add_argument("--image-sizes", type=int, nargs="*", default=[None], metavar="N",
-                    help="the fit's images, N x N pixels (default the task's)")
+                    help="the fit's images, N x N pixels (default the run's)")
     ap.add_argument("--actor-image-size", type=int, default=None, metavar="N",
-                    help="the images in the actor's part (default the task's)")
+                    help="the images in the actor's part (default the run's)")
     ap.add_argument("--episode-tol", type=float, default=0.01,
                     help="the used estimate's tolerance over an episode (m / rad)")
     ap.add_argument("--out", type=Path, default=Path("bench/results"))

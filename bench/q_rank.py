@@ -69,13 +69,14 @@ def load_run(task: str, run: Path):
     env being the task in the round's identified twin and ``config`` Q's ``SensingConfig``."""
     from twinrl.envs.system import System
     from twinrl.learn import sensing
+    from twinrl.loop_arm import run_env
     from twinrl.sense import load_q
 
     summary = json.loads((run / "summary.json").read_text())
     if summary.get("env") != task:
         raise SystemExit(f"--run {task}={run}: that run is on {summary.get('env')!r}")
     rdir = run / f"round{summary['final']['round']}"
-    env = envs.make(task, system=System.load(rdir / "system.json"))
+    env = run_env(run, System.load(rdir / "system.json"))  # at the run's image size
     actor, ap, _ = sensing.load_actor(rdir / "actor")
     q, qp, meta = load_q(rdir / "q")
     return summary, env, actor, ap, q, qp, sensing.SensingConfig.from_dict(

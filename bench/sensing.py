@@ -104,6 +104,7 @@ def _from_runs(runs: dict[str, Path], args) -> None:
         if args.seeds != [int(summary["seed"])]:
             print(f"[bench] --run {task}: twin seed {summary['seed']} (the run's)", flush=True)
         args.seeds = [int(summary["seed"])]
+        args.run_dirs[task] = d  # the task's settings the run ran with (its image size)
 
 
 def main(argv=None) -> int:
@@ -150,6 +151,7 @@ def main(argv=None) -> int:
     p.add_argument("--eval-every", type=int, default=5000)
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
+    args.run_dirs = {}
     _from_runs(_per_task(args.run, "--run"), args)
     if args.episodes < 1 or not args.seeds:
         raise SystemExit("--episodes must be >= 1 and --seeds must name at least one seed")
@@ -219,9 +221,18 @@ def main(argv=None) -> int:
     return 0
 
 
+def _env(name, system, args):
+    """The task in ``system`` (a ``system.json``; None: nominal), as ``--run``'s loop ran it."""
+    from twinrl.envs.system import System
+    from twinrl.loop_arm import run_env
+
+    system = None if system is None else System.load(system)
+    run = getattr(args, "run_dirs", {}).get(name)
+    return envs.make(name, system=system) if run is None else run_env(run, system)
+
+
 def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
              residual=None) -> list[dict]:
-    from twinrl.envs.system import System
     from twinrl.learn.camera_choice import image_size
     from twinrl.learn.checkpoint import load_policy
     from twinrl.learn.sensing import SensingConfig, load_actor
@@ -230,7 +241,7 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
     from twinrl.sense import load_q
     from twinrl.sim2real import active
 
-    env = envs.make(name, system=None if system is None else System.load(system))
+    env = _env(name, system, args)
     deployers, size = {}, None
     if actor_dir is not None:
         actor, actor_params, _ = load_actor(actor_dir)
@@ -290,14 +301,13 @@ def run_sim(name, actor_dir, q_dir, args, system=None) -> list[dict]:
     import jax
     import jax.numpy as jnp
 
-    from twinrl.envs.system import System
     from twinrl.learn.camera_choice import select_camera, uniform_coords, view_outcomes
     from twinrl.learn.sensing import SensingConfig, load_actor
     from twinrl.sense import load_q
 
     if actor_dir is None:
         return []
-    env = envs.make(name, system=None if system is None else System.load(system))
+    env = _env(name, system, args)
     actor, ap, _ = load_actor(actor_dir)
     run = jax.jit(lambda k, c: view_outcomes(env, actor, ap, k, c))
     choose = None

@@ -192,6 +192,9 @@ def test_bad_settings_fail_with_one_line(tmp_path):
     assert c.demonstrations == 3
     with pytest.raises(LoopError, match="grasp must be"):
         make_config({"grasp": "yes"})
+    for bad in (4, 64.5, True, "128"):
+        with pytest.raises(LoopError, match="image_size must be an integer >= 16 or null"):
+            make_config({"image_size": bad})
 
 
 def test_the_grasp_is_identified_by_default_where_it_was_measured_to_help():
@@ -263,4 +266,27 @@ def test_resuming_a_run_recorded_with_other_images_is_one_line(tmp_path):
     with pytest.raises(LoopError, match="records 64x64 images") as e:
         loop_arm.run("peg_insertion", out, seed=0, resume=True, progress=False)
     assert "\n" not in str(e.value) and "[32, 32]" in str(e.value)
+    # the loop's own image size (--set image_size=N) is what it records at
+    (out / "loop.json").unlink()
+    with pytest.raises(LoopError, match="records 48x48 images"):
+        loop_arm.run("peg_insertion", out, loop_arm.make_config({"image_size": 48}), seed=0,
+                     resume=True, progress=False)
     assert sorted(p.name for p in (out / "dataset").iterdir()) == before
+
+
+def test_a_runs_env_is_rebuilt_at_the_image_size_it_ran_with(tmp_path):
+    """``loop_arm.run_env`` (what the benches rebuild a run's twin with): the run's
+    ``image_size`` setting, else the task's -- also for a run written before the setting."""
+    import json
+
+    from twinrl import loop_arm
+    from twinrl.report import to_jsonable
+
+    config = loop_arm.make_config({"image_size": 96})
+    (tmp_path / "loop.json").write_text(json.dumps(
+        {"env": "needle_threading", "seed": 0, "config": to_jsonable(config)}))
+    assert loop_arm.run_env(tmp_path).config.image_size == 96
+    assert loop_arm.run_env(tmp_path, pose_hinge_grid=2).config.pose_hinge_grid == 2
+    old = {"env": "needle_threading", "seed": 0, "config": {"rounds": 1}}
+    (tmp_path / "loop.json").write_text(json.dumps(old))
+    assert loop_arm.run_env(tmp_path).config.image_size == 64

@@ -66,7 +66,7 @@ class NeedleThreadingConfig(ArmConfig):
     """Width and height (pixels) of the mount camera's images. The eye shows on 8-33 of them,
     too few to fit its heading from a third of the random mount poses, and which view the
     camera takes decides the task: the camera Q chooses beats the default by +22 points on the
-    real twins. At 128 (``envs.make(..., image_size=128)``) the fit is wrong from 9-13 % of
+    real twins. At 128 (``twinrl run --set image_size=128``) the fit is wrong from 9-13 % of
     random views and the loop's image actor solves 82-86 % of 50 random-view starts where 64
     gave 50-75 %, but the default camera then solves every real start and the choice has
     nothing left to win (twins 0 / 1: chosen 94 / 100 %, default 100 / 100 %; stop 67, docs/
