@@ -290,3 +290,27 @@ def test_a_runs_env_is_rebuilt_at_the_image_size_it_ran_with(tmp_path):
     old = {"env": "needle_threading", "seed": 0, "config": {"rounds": 1}}
     (tmp_path / "loop.json").write_text(json.dumps(old))
     assert loop_arm.run_env(tmp_path).config.image_size == 64
+
+
+def test_a_run_started_before_a_setting_existed_resumes_at_its_default(tmp_path):
+    """``loop.json`` without a setting a later twinrl added (here ``image_size``) resumes when
+    the setting is at its default; a setting it names with another value is still refused."""
+    from twinrl.loop import LoopError, check_settings
+    from twinrl.loop_arm import make_config
+    from twinrl.report import to_jsonable
+
+    out = tmp_path / "run"
+    config = make_config({})
+    check_settings("needle_threading", out, config, 0, resume=False)
+    saved = json.loads((out / "loop.json").read_text())
+    del saved["config"]["image_size"]
+    (out / "loop.json").write_text(json.dumps(saved))
+    assert check_settings("needle_threading", out, config, 0, resume=True) == out
+    assert json.loads((out / "loop.json").read_text())["config"] == to_jsonable(config)
+    with pytest.raises(LoopError, match="other settings"):
+        check_settings("needle_threading", out, make_config({"image_size": 128}), 0,
+                       resume=True)
+    saved["config"]["rounds"] = 3
+    (out / "loop.json").write_text(json.dumps(saved))
+    with pytest.raises(LoopError, match="other settings"):
+        check_settings("needle_threading", out, config, 0, resume=True)

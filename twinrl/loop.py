@@ -531,7 +531,7 @@ def check_settings(env_name: str, out: Path, config: LoopConfig, seed: int,
         if not resume:
             raise LoopError(f"{out} already holds a loop run; pass --resume to continue it or "
                             f"choose a new --out")
-        if previous != report.to_jsonable(settings):
+        if _with_defaults(previous, config) != report.to_jsonable(settings):
             raise LoopError(f"--resume: {settings_file} was started with other settings "
                             f"({previous}); resume with the same ones")
         # the dataset is made after the twin's server has written its secret: data without a
@@ -542,6 +542,17 @@ def check_settings(env_name: str, out: Path, config: LoopConfig, seed: int,
     out.mkdir(parents=True, exist_ok=True)
     report.write_json(settings_file, settings)
     return out
+
+
+def _with_defaults(previous: dict, config) -> dict:
+    """``loop.json``'s settings with a setting it does not name (one a later twinrl added) at
+    its default: a run started before the setting existed ran as its default does, and resumes."""
+    saved = previous.get("config")
+    if not isinstance(saved, dict):
+        return previous
+    defaults = report.to_jsonable(type(config)())
+    return {**previous, "config": {**{k: v for k, v in defaults.items() if k not in saved},
+                                   **saved}}
 
 
 def _start(env_name, out, config, seed, progress, perturbation):
