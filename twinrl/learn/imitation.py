@@ -12,15 +12,14 @@ the actor's plan improved by the simulator's gradient); the labels join the data
 is refitted on all of it. With ``solved_labels`` only the labels whose improved plan solves the
 task are kept (spatula: 66-96 % of them per round; the filtered run reached 90 %).
 
-Demonstrations are ``(keys, actions)``: reset keys and optimised actions (``twinrl.learn.plans``'
-``<task>_plans.npz``; ``load_demonstrations`` keeps the successful plans), re-simulated here.
+Demonstrations: reset keys and optimised actions (``<task>_plans.npz``), the solved ones re-run.
 
 Observations (``ImitationConfig.observation``):
 
 - ``"state"``: the task's privileged observation vector;
 - ``"pixels"``: what the robot would have -- ``{"state": joint angles and velocities,
-  "pixels/mount": 64 x 64 image}`` (RGB, depth in metres, the task's target mask: 5 channels) from
-  the camera mount at a pose drawn per episode uniformly over the mount's workspace
+  "pixels/mount": image}`` (``image_size`` square; RGB, depth in metres, the task's target mask)
+  from the camera mount at a pose drawn per episode uniformly over the mount's workspace
   (``camera="random"``) or at its default pose (``camera="default"``); rendered by
   ``twinrl.render`` (arm tasks: ``ArmTask.render``);
 - ``"target"``: the same image reduced to what its depth and target mask say of the target (the
@@ -69,8 +68,7 @@ class ImitationConfig(JSONConfig):
     camera: str = "random"
     """Pixels: the mount pose per episode, ``"random"`` over its workspace or ``"default"``."""
     image_size: int | None = None
-    """Image observations: width and height (pixels) of the images the actor is trained on;
-    default (None) the task's (``ArmConfig.image_size``), what the loop deploys it on."""
+    """Image observations: their width and height; None: the task's, which the loop deploys at."""
     views: int = 1
     """Image observations: mount poses each demonstration is rendered from (module docstring)."""
     camera_input: bool | None = None
@@ -129,12 +127,11 @@ class ImitationConfig(JSONConfig):
             at_least_one=("fit_steps", "batch_size", "relabel_every", "relabel_iterations",
                           "eval_episodes", "image_size", "dagger_episodes", "views"),
             non_negative=("dagger_rounds", "rgb_jitter", "label_weight", "visit_noise"),
-            widths=("hidden", "conv_strides"),
+            widths=("hidden", "conv_strides"), optional=("label_weight", "image_size"),
             choices={"observation": ("state", "pixels", "target", "pose"),
                      "camera": ("random", "default"), "image_head": ("dense", "keypoints"),
                      "keep": ("best", "last"), "camera_input": (None, True, False),
-                     "proprioception": (None, True, False)},
-            optional=("label_weight", "image_size"))
+                     "proprioception": (None, True, False)})
         if len(self.conv_strides) != 3:
             raise ValueError(f"conv_strides must name 3 strides, got {self.conv_strides}")
 
@@ -146,8 +143,7 @@ def make_observer(env, config: ImitationConfig) -> tuple[Callable, object]:
     if not hasattr(env, "image_observation"):
         raise ValueError(f"observation={config.observation!r} needs a task with a camera mount; "
                          f"{env.name} has none")
-    n = int(config.image_size or env.config.image_size)
-    o = (int(env.observation_size),)
+    n, o = int(config.image_size or env.config.image_size), (int(env.observation_size),)
     if config.observation == "pose" and not getattr(env, "target_joints", ()):
         raise ValueError(f"observation='pose' needs ArmTask.target_joints; {env.name} has none")
     spec = {"pixels": {"state": (PROPRIO,), "pixels/mount": (n, n, 5)}, "pose": {"estimate": o},
