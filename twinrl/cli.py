@@ -628,7 +628,7 @@ def _sysid_mjcf(args) -> int:
         raise UsageError("--visual and --twin-seed fit a registered task's camera and object; "
                          "an MJCF's sysid takes its qpos/qvel/ctrl log")
     _at_least_one(args, "frame_skip")
-    try:  # an MJCF MJX cannot simulate, an actuator without a ctrlrange, a massless body
+    try:  # an MJCF MJX cannot simulate, an actuator without a ctrlrange
         env = envs.from_mjcf(args.env, frame_skip=args.frame_skip or 1)
     except ValueError as e:
         raise UsageError(str(e)) from None

@@ -27,7 +27,7 @@ def test_from_model_shapes(push):
 
 @pytest.mark.parametrize("field, value, match", [
     ("mass", -1.0, r"mass must be > 0, got -1.0"),
-    ("friction", 0.0, r"friction must be > 0"),
+    ("friction", -0.5, r"friction must be > 0"),
     ("damping", -0.1, r"damping must be >= 0"),
     ("gain", np.nan, r"gain has a non-finite value"),
     ("gravity", np.inf, r"gravity has a non-finite value"),
@@ -92,15 +92,34 @@ def test_shapes_are_checked_against_a_model_naming_the_field(push, field, value,
         p.replace(**{field: value}).check_shapes(push.mj_model, "push")
 
 
-def test_a_massless_body_is_named_in_one_line():
-    # a valid MJCF: MuJoCo allows a body without dofs to have no mass (here a bare mount)
-    sim = Sim.load("""<mujoco><worldbody><body name="mount" pos="0 0 1">
-        <body name="link"><joint type="hinge"/><geom size="0.1"/></body>
-        </body></worldbody></mujoco>""")
-    with pytest.raises(ValueError, match=r"^body 'mount' \(id 1\) has mass 0; PhysParams needs "
-                                         r"every body to have a positive mass") as e:
-        sim.default_params()
-    assert "\n" not in str(e.value)
+MOUNT = """<mujoco><worldbody><body name="mount" pos="0 0 1">
+    <body name="link"><joint type="hinge" axis="1 0 0"/><geom size="0.1" pos="0 0.2 0"/></body>
+    </body><body name="frame" pos="1 0 0"><site name="s"/></body></worldbody></mujoco>"""
+
+
+def test_a_massless_frame_stays_massless_and_changes_nothing():
+    """MuJoCo allows a body without dofs to have no mass (a mount, a frame for a site): its mass
+    is the model's 0, kept by from_model, written as 0 by apply and to_mjmodel whatever the field
+    holds, with zero derivative; check_shapes refuses a 0 anywhere the model has none."""
+    sim = Sim.load(MOUNT)
+    p = sim.default_params()
+    np.testing.assert_allclose(p.mass, [0.0, sim.mj_model.body_mass[2], 0.0])
+    back = PhysParams.constrain(p.unconstrain())  # finite both ways, the zeros come back tiny
+    assert np.all(np.isfinite(np.asarray(p.unconstrain()["mass"])))
+    assert float(back.mass[0]) < 1e-8
+    bumped = p.replace(mass=p.mass.at[0].set(5.0))
+    np.testing.assert_array_equal(np.asarray(bumped.apply(sim.model).body_mass), sim.model.body_mass)
+    assert bumped.to_mjmodel(sim.mj_model).body_mass[1] == 0.0
+    d = sim.init(jnp.array([0.3]))
+
+    def final_angle(q):
+        return sim.rollout(d, jnp.zeros((20, 0)), q)[1].qpos[-1, 0]
+
+    g = jax.grad(final_angle)(p)
+    assert float(g.mass[0]) == 0.0 and float(g.mass[2]) == 0.0
+    assert float(final_angle(bumped)) == float(final_angle(p))
+    with pytest.raises(ValueError, match=r"^PhysParams.mass\[1\] is 0 where this model has "):
+        p.replace(mass=p.mass.at[1].set(0.0)).check_shapes(sim.mj_model)
 
 
 def test_an_empty_mjcf_path_says_so():

@@ -1,5 +1,6 @@
 """Real2Sim on a user's own MJCF (``envs.from_mjcf``): an arm written for this test, logged by
-MuJoCo C with heavier and lighter links and other joint damping than its MJCF says, identified
+MuJoCo C with heavier and lighter links and other joint damping than its MJCF says (and a
+massless frame for its tool site, as MJCFs have), identified
 from (qpos, qvel, ctrl) logs through the Python API and ``twinrl sysid --env ARM.xml --from
 LOG.npz``."""
 
@@ -21,6 +22,7 @@ ARM = """<mujoco model="my_arm">
       <body name="fore" pos="0.3 0 0">
         <joint name="elbow" type="hinge" axis="0 1 0" damping="0.1"/>
         <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.025" mass="0.6"/>
+        <body name="tool_frame" pos="0.25 0 0"><site name="tool"/></body>
       </body>
     </body>
   </worldbody>
@@ -86,6 +88,12 @@ def test_sysid_identifies_a_user_mjcf_from_its_logs(logs):
     got = {r["parameter"]: r["identified"] for r in res.table}
     for name, truth in TRUTH.items():
         assert got[name] == pytest.approx(truth, rel=1e-3), (name, got[name], truth)
+    # the massless frame is none of the defaults, and asking for it says why in one line
+    assert "mass/tool_frame" not in sysid.config.default_param_names(env)
+    with pytest.raises(ValueError, match=r"^parameter mass/tool_frame is 0 in the MJCF \(a "
+                                         r"massless body.*cannot be fitted$"):
+        sysid.fit(env, env.transitions(*logs),
+                  sysid.SysidConfig(params=("mass/tool_frame",), max_latency=0))
 
 
 def test_sysid_command_on_a_user_mjcf_and_an_npz_log(logs, tmp_path, capsys):
@@ -103,8 +111,8 @@ def test_sysid_command_on_a_user_mjcf_and_an_npz_log(logs, tmp_path, capsys):
         assert table[name] == pytest.approx(truth, rel=1e-3), (name, table[name], truth)
     # the identified MJCF: MuJoCo compiles it to the fitted values (6 digits, MuJoCo's writer)
     m = mujoco.MjModel.from_xml_path(str(tmp_path / "s/identified.xml"))
-    np.testing.assert_allclose(m.body_mass[1:], [TRUTH["mass/upper"], TRUTH["mass/fore"]],
-                               rtol=1e-3)
+    np.testing.assert_allclose(m.body_mass[1:], [TRUTH["mass/upper"], TRUTH["mass/fore"], 0.0],
+                               rtol=1e-3)  # the tool frame stays massless
     np.testing.assert_allclose(m.dof_damping, [TRUTH["damping/shoulder"],
                                                TRUTH["damping/elbow"]], rtol=1e-3)
     nominal = mujoco.MjModel.from_xml_string(ARM)

@@ -5,11 +5,17 @@ body's rotational inertia is scaled with it, so the mass distribution keeps its 
 damping, armature and friction loss, per-geom sliding friction, per-actuator gain and bias, and
 gravity. Values are physical (kg, N s/m, ...), so a table of them reads as a robot's datasheet.
 
-Optimisers work on the *unconstrained* form (``unconstrain`` / ``constrain``): strictly positive
+Optimisers work on the *unconstrained* form (``unconstrain`` / ``constrain``): positive
 fields (mass, friction, gain) through ``log``, non-negative fields (damping, armature, friction
 loss) through a softplus, real fields (bias, gravity) as they are. So a gradient step can never
 produce a negative mass. Building a ``PhysParams`` with concrete values that are negative or not
 finite raises ``ValueError`` naming the field and index.
+
+Zeros an MJCF writes into a positive field are part of the model, not values: a massless body (a
+frame for a site or a camera, welded to its parent -- MuJoCo allows it for bodies without dofs), a
+frictionless geom, an actuator of gain 0. ``from_model`` keeps them, ``apply`` and ``to_mjmodel``
+write 0 there whatever the field holds (so the derivative there is 0), ``check_shapes`` refuses a
+0 anywhere else, and sysid fits none of them.
 
 Caveat inherited from MJX: friction-loss constraint rows exist only for dofs whose friction loss
 is non-zero in the MJCF; on the other dofs ``frictionloss`` has no effect (and zero gradient).
@@ -35,8 +41,8 @@ _SOFTPLUS_FLOOR = 1e-9
 
 
 class PhysParamsError(ValueError):
-    """Parameters that do not fit a model (a field's shape, a massless body); one line, naming
-    the field or the body."""
+    """Parameters that do not fit a model (a field's shape, a 0 where the model has none); one
+    line, naming the field."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,7 +50,8 @@ class PhysParams:
     """Identifiable parameters of an MJCF model (shapes for a model with nbody, nv, ngeom, nu)."""
 
     mass: jax.Array
-    """Mass of every body except the world body, kg, shape (nbody-1,), > 0."""
+    """Mass of every body except the world body, kg, shape (nbody-1,), > 0 (0 only for a body
+    massless in the MJCF: module docstring)."""
     damping: jax.Array
     """Joint damping per dof, shape (nv,), >= 0."""
     armature: jax.Array
@@ -52,9 +59,9 @@ class PhysParams:
     frictionloss: jax.Array
     """Coulomb (dry) friction per dof, shape (nv,), >= 0."""
     friction: jax.Array
-    """Sliding friction coefficient per geom, shape (ngeom,), > 0."""
+    """Sliding friction coefficient per geom, shape (ngeom,), > 0 (0 where the MJCF has 0)."""
     gain: jax.Array
-    """Actuator gain (``gainprm[0]``), shape (nu,), > 0."""
+    """Actuator gain (``gainprm[0]``), shape (nu,), > 0 (0 where the MJCF has 0)."""
     bias: jax.Array
     """Actuator bias (``biasprm[0:3]``: constant, * length, * velocity), shape (nu, 3)."""
     gravity: jax.Array
@@ -69,16 +76,6 @@ class PhysParams:
     def from_model(cls, model: mujoco.MjModel, dtype=None) -> "PhysParams":
         """The nominal parameters written in an MJCF (compiled ``mujoco.MjModel``)."""
         dtype = dtype or (jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
-        massless = np.flatnonzero(np.asarray(model.body_mass[1:]) <= 0)
-        if massless.size:
-            i = int(massless[0]) + 1
-            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, i) or f"#{i}"
-            more = f" (and {massless.size - 1} more)" if massless.size > 1 else ""
-            # mass is a positive (log-parameterised) field, so a body of mass 0 has no valid value
-            raise PhysParamsError(
-                f"body {name!r} (id {i}) has mass {model.body_mass[i]:g}{more}; PhysParams needs "
-                "every body to have a positive mass: give it a geom or an <inertial mass=...>, or "
-                "merge it into its parent")
         a = lambda x: jnp.asarray(np.array(x, dtype=np.float64), dtype=dtype)
         return cls(
             mass=a(model.body_mass[1:]),
@@ -100,13 +97,23 @@ class PhysParams:
     def check_shapes(self, model: mujoco.MjModel, what: str = "this model") -> "PhysParams":
         """``self`` if every field has the shape ``model`` needs, else ``PhysParamsError`` naming
         the first field that does not, with the expected and given shapes (e.g. parameters of
-        another task, or ``mass=[]``). Returns ``self`` so it can be chained."""
+        another task, or ``mass=[]``), or the first positive entry that is 0 where the model's is
+        not. Returns ``self`` so it can be chained."""
         for name, want in self.expected_shapes(model).items():
             got = tuple(np.shape(getattr(self, name)))
             if got != want:
                 raise PhysParamsError(
                     f"PhysParams.{name} has shape {got}; {what} needs {want} "
                     f"({_SHAPE_RULE[name]}): parameters of another model?")
+        for name, zero in _model_zeros(model).items():
+            v = np.asarray(getattr(self, name))
+            bad = np.flatnonzero((v.reshape(-1) <= 0) & ~zero)
+            if bad.size:
+                i = int(bad[0])
+                raise PhysParamsError(
+                    f"PhysParams.{name}[{i}] is {v.reshape(-1)[i]:g} where {what} has "
+                    f"{_model_field(model, name)[i]:g}: only an entry the MJCF itself makes 0 "
+                    f"may be 0")
         return self
 
     def replace(self, **fields) -> "PhysParams":
@@ -123,15 +130,19 @@ class PhysParams:
     def apply(self, m):
         """Return ``m`` (an ``mjx.Model``) with these parameters written in. Differentiable."""
         nominal_mass = m.body_mass[1:]
-        ratio = self.mass / jnp.where(nominal_mass > 0, nominal_mass, 1.0)
+        # the model's own zeros stay zero (module docstring): a massless frame stays massless
+        mass = jnp.where(nominal_mass > 0, self.mass, 0.0)
+        friction = jnp.where(m.geom_friction[:, 0] > 0, self.friction, 0.0)
+        gain = jnp.where(m.actuator_gainprm[:, 0] != 0, self.gain, 0.0)
+        ratio = mass / jnp.where(nominal_mass > 0, nominal_mass, 1.0)
         return m.tree_replace({
-            "body_mass": m.body_mass.at[1:].set(self.mass),
+            "body_mass": m.body_mass.at[1:].set(mass),
             "body_inertia": m.body_inertia.at[1:].multiply(ratio[:, None]),
             "dof_damping": self.damping,
             "dof_armature": self.armature,
             "dof_frictionloss": self.frictionloss,
-            "geom_friction": m.geom_friction.at[:, 0].set(self.friction),
-            "actuator_gainprm": m.actuator_gainprm.at[:, 0].set(self.gain),
+            "geom_friction": m.geom_friction.at[:, 0].set(friction),
+            "actuator_gainprm": m.actuator_gainprm.at[:, 0].set(gain),
             "actuator_biasprm": m.actuator_biasprm.at[:, :3].set(self.bias),
             "opt.gravity": self.gravity,
         })
@@ -146,6 +157,8 @@ class PhysParams:
         p = self.as_dict()
         for name in NONNEGATIVE:  # the reparameterisation's floor is a 0 (no friction-loss row)
             p[name] = np.where(p[name] <= 2 * _SOFTPLUS_FLOOR, 0.0, p[name])
+        for name, zero in _model_zeros(model).items():  # the model's own zeros stay zero
+            p[name] = np.where(zero, 0.0, p[name])
         m = copy.deepcopy(model)
         nominal = np.where(m.body_mass[1:] > 0, m.body_mass[1:], 1.0)
         m.body_inertia[1:] *= (p["mass"] / nominal)[:, None]
@@ -161,10 +174,11 @@ class PhysParams:
 
     # ------------------------------------------------------------------ reparameterisation
     def unconstrain(self) -> dict[str, jax.Array]:
-        """Unconstrained coordinates: log for positive, softplus^-1 for non-negative fields."""
+        """Unconstrained coordinates: log for positive, softplus^-1 for non-negative fields (a 0
+        the model makes comes back as a tiny value, which ``apply`` writes as 0)."""
         out = {}
-        for name in POSITIVE:
-            out[name] = jnp.log(getattr(self, name))
+        for name in POSITIVE:  # the model's zeros (module docstring) at the floor, not -inf
+            out[name] = jnp.log(jnp.maximum(getattr(self, name), _SOFTPLUS_FLOOR))
         for name in NONNEGATIVE:
             x = jnp.maximum(getattr(self, name), _SOFTPLUS_FLOOR)
             out[name] = x + jnp.log(-jnp.expm1(-x))  # softplus^-1, stable for small and large x
@@ -194,6 +208,17 @@ def position_servos(model) -> np.ndarray:
     gain = np.asarray(model.actuator_gainprm[:, 0])
     return ((np.asarray(model.actuator_biastype) == int(mujoco.mjtBias.mjBIAS_AFFINE))
             & np.isclose(np.asarray(model.actuator_biasprm[:, 1]), -gain) & (gain != 0))
+
+
+def _model_field(model: mujoco.MjModel, name: str) -> np.ndarray:
+    """A positive field's values in ``model`` (a compiled ``mujoco.MjModel``)."""
+    return np.asarray({"mass": model.body_mass[1:], "friction": model.geom_friction[:, 0],
+                       "gain": model.actuator_gainprm[:, 0]}[name], np.float64)
+
+
+def _model_zeros(model: mujoco.MjModel) -> dict[str, np.ndarray]:
+    """Each positive field's entries that ``model`` itself makes 0 (bool)."""
+    return {name: _model_field(model, name) == 0 for name in POSITIVE}
 
 
 _FIELDS = tuple(f.name for f in dataclasses.fields(PhysParams))
@@ -230,8 +255,8 @@ def _check(name: str, value) -> None:
     if bad.any():
         raise ValueError(f"PhysParams.{name} has a non-finite value at index "
                          f"{tuple(int(i) for i in np.argwhere(bad)[0])}: {v[bad][0]}")
-    if name in POSITIVE and (v <= 0).any():
-        i = tuple(int(i) for i in np.argwhere(v <= 0)[0])
+    if name in POSITIVE and (v < 0).any():  # 0: the model's own zeros (check_shapes)
+        i = tuple(int(i) for i in np.argwhere(v < 0)[0])
         raise ValueError(f"PhysParams.{name} must be > 0, got {v[i]} at index {i}")
     if name in NONNEGATIVE and (v < 0).any():
         i = tuple(int(i) for i in np.argwhere(v < 0)[0])

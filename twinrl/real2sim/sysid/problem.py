@@ -88,6 +88,10 @@ class Problem:
                 init[k] = max(init[k], c.nonneg_init)
             if not self.free[k]:
                 init[k] = known[self.names[k]]
+            if f in POSITIVE and init[k] <= 0 and self.free[k]:
+                raise ValueError(f"parameter {self.names[k]} is 0 in the MJCF (a massless body, a "
+                                 "frictionless geom or an actuator without gain): it stays 0 and "
+                                 "cannot be fitted")
             if f in POSITIVE and init[k] <= 0:
                 raise ValueError(f"parameter {self.names[k]} must be > 0, got {init[k]}")
         self.initial = init
