@@ -796,7 +796,7 @@ def run(env_name: str, out: str | Path, config: ArmLoopConfig = ArmLoopConfig(),
 
 
 def _start(env_name, out, config, seed, progress, perturbation) -> RunContext:
-    from twinrl.real.dataset import DatasetWriter
+    from twinrl.real.dataset import DatasetMismatch, DatasetWriter
     from twinrl.real.remote import TwinClient
 
     say = report.console.print if progress else quiet
@@ -817,7 +817,7 @@ def _start(env_name, out, config, seed, progress, perturbation) -> RunContext:
         twin.close()
         why = (f". This twinrl's {env_name} records {n}x{n} images (ArmConfig.image_size); "
                f"resume with the version that started the run"
-               if "image_shapes" in str(e) else "")
+               if isinstance(e, DatasetMismatch) and e.key == "image_shapes" else "")
         raise LoopError(f"{e}{why}") from None
     return RunContext(env_name, int(seed), out, config, perturbation, secret, twin, writer,
                 Progress(out / "progress.json"), Progress(ev_dir / "evaluation.json"), say,

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from twinrl.real.dataset import Dataset, DatasetError, DatasetWriter, read
+from twinrl.real.dataset import Dataset, DatasetError, DatasetMismatch, DatasetWriter, read
 
 HERE = Path(__file__).resolve().parent
 
@@ -231,8 +231,10 @@ def test_reopening_with_different_settings_is_refused(tmp_path, change, field):
         dict(env="fake", obs_shape=(3,), action_shape=(2,), image_shapes=collector.IMAGE_SHAPES)
         | change
     )
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(ValueError, match=field) as e:
         DatasetWriter(path, **kw)
+    if field != "metadata":  # a recorded setting: typed, naming it (the loop reads the key)
+        assert isinstance(e.value, DatasetMismatch) and e.value.key == field
     assert len(read(path)) == LENGTHS[0]
     with open_writer(path) as w:  # the refused writer released the dataset
         assert w.episode_id == 1

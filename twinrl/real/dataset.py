@@ -72,7 +72,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-__all__ = ["Dataset", "DatasetError", "DatasetWriter", "Episode", "read", "IMAGE_DTYPES", "VERSION"]
+__all__ = ["Dataset", "DatasetError", "DatasetMismatch", "DatasetWriter", "Episode", "read",
+           "IMAGE_DTYPES", "VERSION"]
 
 FORMAT = "twinrl.real.dataset"
 VERSION = 1
@@ -108,6 +109,15 @@ class DatasetError(Exception):
     def __init__(self, message: str, problems: Sequence[str] = ()):
         super().__init__(message)
         self.problems = list(problems) or [message]
+
+
+class DatasetMismatch(ValueError):
+    """Continuing a dataset with other settings than it was recorded with; ``key`` names the
+    setting (``"image_shapes"``, ``"obs_shape"``, ...), the message both values and the file."""
+
+    def __init__(self, message: str, key: str):
+        super().__init__(message)
+        self.key = key
 
 
 # --------------------------------------------------------------------------------------------------
@@ -411,9 +421,9 @@ def _open_or_create_meta(
         meta = _read_meta(root)
         for key in _META_KEYS:
             if meta[key] != wanted[key]:
-                raise ValueError(
+                raise DatasetMismatch(
                     f"{key}={wanted[key]!r} does not match {meta[key]!r} recorded in {meta_path}; "
-                    "continue a dataset with the same settings, or write to a new directory"
+                    "continue a dataset with the same settings, or write to a new directory", key
                 )
         if user_meta is not None and meta["metadata"] != user_meta:
             raise ValueError(
