@@ -178,11 +178,23 @@ def step(m, d, iterations: int | None = None, gradient: str = "implicit",
     ``gradient``: how reverse mode goes through the constraint solve (``twinrl.physics.solver``);
     ``contacts``: the collision rule set (``twinrl.physics.collision.CONTACTS``).
     """
+    d0 = d
     d = forward(m, d, iterations, gradient, contacts)
     if m.opt.integrator == IntegratorType.EULER:
-        return _euler(m, d)
-    if m.opt.integrator == IntegratorType.IMPLICITFAST:
-        return _implicit(m, d)
-    if m.opt.integrator == IntegratorType.RK4:
-        return _rk4(m, d, iterations, gradient, contacts)
-    raise NotImplementedError(f"integrator {m.opt.integrator} is not supported by MJX")
+        d = _euler(m, d)
+    elif m.opt.integrator == IntegratorType.IMPLICITFAST:
+        d = _implicit(m, d)
+    elif m.opt.integrator == IntegratorType.RK4:
+        d = _rk4(m, d, iterations, gradient, contacts)
+    else:
+        raise NotImplementedError(f"integrator {m.opt.integrator} is not supported by MJX")
+    return same_dtypes(d, d0)
+
+
+def same_dtypes(new, old):
+    """``new`` with every leaf cast to the dtype of ``old``'s leaf. MJX 3.17's tendon wrapping
+    writes ``ten_wrapadr``, ``ten_wrapnum`` and ``wrap_obj`` as int64 under x64 where
+    ``make_data`` made them int32, so a ``lax.scan`` over stock ``mjx.step`` fails on any model
+    with a tendon in float64; a step that returns what it was given scans."""
+    return jax.tree_util.tree_map(
+        lambda a, b: a if a.dtype == b.dtype else a.astype(b.dtype), new, old)

@@ -230,7 +230,7 @@ class Sim:
         m = self.model_with(params)
         d = data.replace(ctrl=jnp.asarray(action, data.ctrl.dtype).reshape(self.nu))
         for _ in range(self.frame_skip):
-            d = mjx.step(m, d)
+            d = integrator.same_dtypes(mjx.step(m, d), d)  # scannable with tendons in x64
         return d
 
     def rollout(self, data: mjx.Data, actions: jax.Array, params: PhysParams | None = None,
