@@ -35,14 +35,14 @@ height by 1e-14 of itself, a few ulps, turns the gradient w.r.t. the x-rotation'
 largest derivative is 3.4). So the noise is measured as well: the gradient is computed again at
 two points whose every input is moved by ``JITTER`` (1e-13) of ``max(1, |x|)`` either way, and
 the central difference at ``h`` again at the first; their changes (``grad_noise``,
-``fd_noise`` per row) join the bounds above -- ``fd_noise`` is added to ``r`` everywhere, and a
-noise-limited entry is judged by ``|g - fd| <= 10 (s + r + grad_noise)`` provided its
-``grad_noise`` stays within ``rtol`` of the largest effect the differences see (``rtol max_j
-|fd_j| max(1, |x_j|) / max(1, |x_i|)``); a gradient noisier than that fails. Resolved entries
-are judged as before: a gradient that an ulp-sized move changes by more than ``rtol`` of a
-resolved derivative fails there. (Before this, the flat box failed on one or two such entries
-on every seed, with errors of 3e-8 to 6e-7; the unrolled solve's 1.4e6 against 3.4 on the same
-box still fails, as a resolved entry.)
+``fd_noise`` per row) join the bounds above: resolved now needs ``s + r + fd_noise <= 0.1 rtol
+|fd|`` (the kink tests keep ``r``), and a noise-limited entry is judged by ``|g - fd| <= 10 (s +
+r + fd_noise + grad_noise)``, provided its ``grad_noise`` stays within ``rtol`` of the largest
+effect the differences see (``rtol max_j |fd_j| max(1, |x_j|) / max(1, |x_i|)``): a gradient
+noisier than that fails. Resolved entries are judged as before: a gradient that an ulp-sized
+move changes by more than ``rtol`` of a resolved derivative fails there. (Before this, the flat
+box failed on one or two such entries on every seed, with errors of 3e-8 to 6e-7; the unrolled
+solve's 1.4e6 against 3.4 on the same box still fails, as a resolved entry.)
 
 Coverage. A check that resolves no entry of a group has judged nothing through it (a friction
 coefficient through a rollout that never slides, say). Each group reports how many entries were
@@ -207,18 +207,18 @@ def classify(g, fd1, fd4, fwd, bwd, rounding, rtol, fd_noise=0.0, g_noise=0.0,
     """
     g, fd1, fd4, fwd, bwd, rounding, fd_noise, g_noise = (
         np.asarray(a, np.float64) for a in (g, fd1, fd4, fwd, bwd, rounding, fd_noise, g_noise))
-    rounding = rounding + fd_noise  # what the quotient's own noise is, bound or measured
+    noise = rounding + fd_noise  # the quotient's own noise: the bound, plus what was measured
     spread, sided = np.abs(fd1 - fd4), np.abs(fwd - bwd)
     err = np.abs(g - fd1)
     rel = err / np.maximum(np.maximum(np.abs(g), np.abs(fd1)), 1e-300)
     one_sided_kink = sided > np.maximum(1e-3 * np.abs(fd1), 20 * rounding)
     # Resolved first: two step sizes that agree to a tenth of the tolerance are a derivative
     # estimate good enough to judge, even where their spread (h^2 truncation) exceeds 1e-6.
-    resolved = ~one_sided_kink & (spread + rounding <= 0.1 * rtol * np.abs(fd1))
+    resolved = ~one_sided_kink & (spread + noise <= 0.1 * rtol * np.abs(fd1))
     kink = ~resolved & ((spread > np.maximum(1e-6 * np.abs(fd1), 10 * rounding))
                         | one_sided_kink)
     status = np.where(kink, "kink", np.where(resolved, "resolved", "noise"))
-    noise_ok = (err <= 10 * (spread + rounding + g_noise)) & (g_noise <= g_noise_cap)
+    noise_ok = (err <= 10 * (spread + noise + g_noise)) & (g_noise <= g_noise_cap)
     ok = np.where(kink, True, np.where(resolved, rel <= rtol, noise_ok))
     return status, ok & np.isfinite(g), rel, err
 
