@@ -384,15 +384,25 @@ def _cmd_collect(args) -> int:
 
 # ---------------------------------------------------------------------------------- render
 def _render_parser(sub) -> None:
-    p = sub.add_parser("render", help="render a task (sim or real twin) to PNGs and a video",
-                       description="RGB, depth and segmentation PNGs of the last frame and a "
-                                   "video of an open-loop episode of smooth random actions.")
-    p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
+    p = sub.add_parser("render", help="render a task (sim or real twin) to PNGs and a video, "
+                                      "or your MJCF with both renderers",
+                       description="A task: RGB, depth and segmentation PNGs of the last frame "
+                                   "and a video of an open-loop episode of smooth random actions. "
+                                   "Your MJCF (--env FILE.xml): one frame drawn by MuJoCo's "
+                                   "OpenGL and by twinrl's differentiable renderer side by side "
+                                   "(compare.png) and how far they agree (summary.json).")
+    p.add_argument("--env", required=True,
+                   help="task name (see `twinrl envs`) or the path of your MJCF")
     p.add_argument("--real", action="store_true",
                    help="the real twin (hidden perturbation, camera at its true offset pose)")
-    p.add_argument("--steps", type=int, default=100, help="episode steps (default 100)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="episode steps (default 100); for an MJCF, physics steps without "
+                        "actuation from its first keyframe (else qpos0) before the frame "
+                        "(default 0)")
     p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"))
-    p.add_argument("--camera", default=None, help="camera name (default: the task's first)")
+    p.add_argument("--camera", default=None,
+                   help="camera name (default: the task's or the MJCF's first; an MJCF without "
+                        "one is seen from where MuJoCo's viewer opens)")
     _common(p, "runs/render")
     p.set_defaults(func=_cmd_render)
 
@@ -401,9 +411,12 @@ def _cmd_render(args) -> int:
     from twinrl import envs, report
     from twinrl.real.twin import render_episode
 
+    _check_size(args.size)
+    if args.env.lower().endswith(".xml") or Path(args.env).is_file():
+        return _render_mjcf(args)
     _check_task(args.env)
     _at_least_one(args, "steps")
-    _check_size(args.size)
+    args.steps = 100 if args.steps is None else args.steps
     with report.console.status(f"rendering {args.env} ({'real twin' if args.real else 'sim'})..."):
         try:
             paths = render_episode(args.env, real=args.real, seed=args.seed, out_dir=args.out,
@@ -417,6 +430,68 @@ def _cmd_render(args) -> int:
     report.write_json(args.out / "summary.json", {"env": args.env, "real": args.real,
                                                   "seed": args.seed, "steps": args.steps,
                                                   "files": {k: str(v) for k, v in paths.items()}})
+    return 0
+
+
+def _render_mjcf(args) -> int:
+    """``twinrl render --env FILE.xml``: OpenGL and the differentiable renderer side by side."""
+    import mujoco
+
+    from twinrl import report
+    from twinrl.render import check
+    from twinrl.render.renderer import UnsupportedGeomError
+
+    if args.real:
+        raise UsageError("--real is a registered task's real twin; an MJCF has none")
+    if args.steps is not None and args.steps < 0:
+        raise UsageError(f"--steps must be >= 0, got {args.steps}")
+    path = Path(args.env)
+    if not path.is_file():
+        raise UsageError(f"MJCF file not found: {args.env}")
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+        model = spec.compile()
+        camera = args.camera or (model.camera(0).name or 0 if model.ncam else None)
+        if camera is None:
+            model, camera = check.with_view_camera(spec), check.VIEW
+    except ValueError as e:  # MuJoCo's parse and compile errors
+        raise UsageError(f"--env {args.env}: {' '.join(str(e).split())}") from None
+    data = mujoco.MjData(model)
+    if model.nkey:
+        mujoco.mj_resetDataKeyframe(model, data, 0)
+    mujoco.mj_step(model, data, nstep=int(args.steps or 0))
+    mujoco.mj_forward(model, data)
+    args.out.mkdir(parents=True, exist_ok=True)
+    with report.console.status(f"rendering {path.name} with OpenGL and twinrl.render..."):
+        try:
+            result = check.compare(model, data, camera, *args.size)
+        except (UnsupportedGeomError, ValueError) as e:  # hfield/SDF geoms; size; camera name
+            raise UsageError(f"--env {args.env}: {e}") from None
+        far = float(model.vis.map.zfar * model.stat.extent)
+        files = {"compare": check.figure(result, far, args.out / "compare.png",
+                                         f"{path.name}, camera {camera!r}")}
+    import imageio.v2 as imageio
+
+    for side in ("opengl", "twinrl"):
+        files[f"{side}_rgb"] = args.out / f"{side}_rgb.png"
+        imageio.imwrite(files[f"{side}_rgb"], result[side]["rgb"])
+    f = result["figures"]
+    report.print_table(f"render {path.name}: OpenGL against twinrl.render, camera {camera!r}",
+                       ["same geom id", "depth |diff| mean / p99 (mm)", "RGB PSNR (dB)",
+                        "geoms drawn"],
+                       [[f"{100 * f['segmentation_agreement']:.3f} %",
+                         "-" if f["depth_mean_abs_m"] is None else
+                         f"{1e3 * f['depth_mean_abs_m']:.3f} / {1e3 * f['depth_p99_abs_m']:.2f}",
+                         f"{f['rgb_psnr_db']:.1f}", f["geoms_drawn"]]])
+    if f["textures"]:
+        report.console.print(f"{path.name} has {f['textures']} texture(s); twinrl.render draws "
+                             "materials' colours without textures, skyboxes or reflections, so "
+                             "the RGB differs there (depth and segmentation do not)")
+    report.console.print(f"wrote {files['compare']}")
+    report.write_json(args.out / "summary.json", {
+        "mjcf": str(path), "camera": camera if isinstance(camera, str) else int(camera),
+        "size": list(args.size), "steps": int(args.steps or 0), "figures": f,
+        "files": {k: str(v) for k, v in files.items()}})
     return 0
 
 

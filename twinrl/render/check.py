@@ -1,0 +1,133 @@
+"""The differentiable renderer against MuJoCo's OpenGL on any MJCF (``twinrl render --env FILE``).
+
+``gradcheck`` tells a user whether the physics' gradients hold on *their* MJCF; this tells them
+whether ``twinrl.render.Renderer`` draws their scene as MuJoCo does before they fit a camera or an
+object to images through it. ``compare`` renders one state of a model from one camera with both --
+``CameraRenderer`` (``mujoco.Renderer``, OpenGL) and ``Renderer`` (hard image, ``tau = 0``) -- and
+measures how far they agree: depth where both see the same geom (OpenGL tessellates curved geoms,
+so a few mm at silhouettes), the share of pixels with the same geom id, and the RGB's PSNR (our
+shading is OpenGL's fixed-function model without textures or reflections). A model without a
+camera gets MuJoCo's default free view as a fixed camera (``with_view_camera``), so both renderers
+read the very same camera from the model.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+__all__ = ["VIEW", "with_view_camera", "compare", "figure"]
+
+VIEW = "twinrl_view"
+"""Name of the camera ``with_view_camera`` adds."""
+
+
+def with_view_camera(spec: mujoco.MjSpec) -> mujoco.MjModel:
+    """``spec`` compiled with a fixed camera ``VIEW`` where MuJoCo's viewer opens: looking at
+    ``stat.center`` from ``1.5 stat.extent`` away, at the model's ``<visual><global azimuth
+    elevation fovy>`` (``mjv_defaultFreeCamera``)."""
+    m = spec.compile()
+    g = m.vis.global_
+    az, el = np.deg2rad(g.azimuth), np.deg2rad(g.elevation)
+    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    if np.linalg.norm(right) < 1e-9:  # looking straight up or down
+        right = np.array([np.sin(az), -np.cos(az), 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, np.stack([right, up, -forward], axis=1).reshape(-1))
+    pos = np.asarray(m.stat.center) - 1.5 * float(m.stat.extent) * forward
+    spec.worldbody.add_camera(name=VIEW, pos=pos, quat=quat, fovy=float(g.fovy))
+    return spec.compile()
+
+
+def compare(model: mujoco.MjModel, data: mujoco.MjData, camera: str | int, width: int,
+            height: int) -> dict:
+    """Both renderers' images of ``data`` (after ``mj_forward``) from ``camera`` and how far they
+    agree. Returns ``{"opengl": images, "twinrl": images, "figures": {...}}`` (images: ``rgb``
+    uint8, ``depth`` metres, ``segmentation`` geom ids, -1 for none). Raises
+    ``renderer.UnsupportedGeomError`` for a geom type ``Renderer`` cannot draw and ``ValueError``
+    for a size beyond the model's offscreen buffer or an unknown camera."""
+    from twinrl.render import Camera, Geoms, Renderer
+    from twinrl.render.opengl import CameraRenderer
+
+    gl_renderer = CameraRenderer(model, width, height)
+    try:
+        gl = gl_renderer.images(data, camera)
+    finally:
+        gl_renderer.close()
+    renderer = Renderer.create(model)
+    im = renderer.render(Camera.from_mujoco(model, data, camera, width, height),
+                         Geoms.from_mujoco(model, data))
+    ours = {"rgb": (np.clip(np.asarray(im.rgb, np.float64), 0, 1) * 255).round().astype(np.uint8),
+            "depth": np.asarray(im.depth, np.float32),
+            "segmentation": np.asarray(im.segmentation, np.int32)}
+    same = ours["segmentation"] == gl["segmentation"]
+    seen = same & (gl["segmentation"] >= 0)
+    dd = np.abs(ours["depth"].astype(np.float64) - gl["depth"])
+    mse = float(np.mean((ours["rgb"].astype(np.float64) - gl["rgb"]) ** 2))
+    figures = {
+        "pixels": int(same.size),
+        "geom_pixels_opengl": int(np.sum(gl["segmentation"] >= 0)),
+        "segmentation_agreement": float(np.mean(same)),
+        "depth_mean_abs_m": float(dd[seen].mean()) if seen.any() else None,
+        "depth_p99_abs_m": float(np.quantile(dd[seen], 0.99)) if seen.any() else None,
+        "rgb_psnr_db": float("inf") if mse == 0 else float(10 * np.log10(255.0 ** 2 / mse)),
+        "geoms_drawn": int(renderer.ngeom),
+        "textures": int(model.ntex),  # not drawn by ``Renderer``: the RGB differs there
+    }
+    return {"opengl": gl, "twinrl": ours, "figures": figures}
+
+
+def figure(result: dict, far: float, path: str | Path, title: str = "") -> Path:
+    """A 2 x 4 grid of ``compare``'s images: OpenGL on top, ours below (RGB, depth on one colour
+    scale, segmentation in one palette), and where they differ (depth error in mm where both see
+    the same geom; red where the geom ids differ)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    gl, ours = result["opengl"], result["twinrl"]
+    valid = [d[d < 0.999 * far] for d in (gl["depth"], ours["depth"])]
+    both = np.concatenate(valid)
+    lo, hi = (float(both.min()), float(both.max())) if both.size else (0.0, 1.0)
+    palette = np.random.default_rng(0).uniform(0.25, 1.0, size=(256, 3))
+    seg_rgb = lambda s: np.where((s >= 0)[..., None], palette[np.mod(s, 256)], 0.0)
+    fig, axes = plt.subplots(2, 4, figsize=(13, 6.2))
+    for row, (name, im) in enumerate((("OpenGL (mujoco.Renderer)", gl), ("twinrl.render", ours))):
+        depth = np.ma.masked_where(im["depth"] >= 0.999 * far, im["depth"])
+        axes[row, 0].imshow(im["rgb"])
+        axes[row, 0].set_ylabel(name)
+        axes[row, 1].imshow(depth, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-6))
+        axes[row, 2].imshow(seg_rgb(im["segmentation"]))
+    same = ours["segmentation"] == gl["segmentation"]
+    err = np.where(same & (gl["segmentation"] >= 0), np.abs(ours["depth"] - gl["depth"]) * 1e3,
+                   np.nan)
+    shown = axes[0, 3].imshow(err, cmap="magma", vmin=0, vmax=max(np.nanmax(err), 1e-3)
+                              if np.isfinite(err).any() else 1.0)
+    fig.colorbar(shown, ax=axes[0, 3], fraction=0.046, label="|depth difference| (mm)")
+    diff = np.zeros(same.shape + (3,))
+    diff[~same] = (1.0, 0.1, 0.1)
+    axes[1, 3].imshow(diff)
+    f = result["figures"]
+    for ax, label in zip(axes[0], ("RGB", "depth", "segmentation", "depth error, same geom")):
+        ax.set_title(label, fontsize=10)
+    axes[1, 3].set_title(f"geom ids differ ({100 * (1 - f['segmentation_agreement']):.3f} %)",
+                         fontsize=10)
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+    depth_txt = ("no geom seen" if f["depth_mean_abs_m"] is None else
+                 f"depth mean {1e3 * f['depth_mean_abs_m']:.3f} mm, "
+                 f"p99 {1e3 * f['depth_p99_abs_m']:.2f} mm")
+    fig.suptitle(f"{title}  --  same geom id on {100 * f['segmentation_agreement']:.3f} % of "
+                 f"pixels; {depth_txt}; RGB PSNR {f['rgb_psnr_db']:.1f} dB", fontsize=11)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
