@@ -403,6 +403,16 @@ def _render_parser(sub) -> None:
     p.add_argument("--camera", default=None,
                    help="camera name (default: the task's or the MJCF's first; an MJCF without "
                         "one is seen from where MuJoCo's viewer opens)")
+    p.add_argument("--gradcheck", action="store_true",
+                   help="MJCF only: also check the soft image's gradient w.r.t. the camera and "
+                        "every geom's position, size and colour against float64 central "
+                        "differences, at 64x48 (exit 1 if a group is off by more than 5 %%)")
+    p.add_argument("--layers", type=int, default=None,
+                   help="MJCF only: surfaces the soft image composites per pixel "
+                        "(Renderer.create's layers, default 8)")
+    p.add_argument("--cull-above", type=int, default=None,
+                   help="MJCF only: geoms of one type beyond which each pixel tests its nearest "
+                        "few (Renderer.create's cull_above, default 8)")
     _common(p, "runs/render")
     p.set_defaults(func=_cmd_render)
 
@@ -414,6 +424,10 @@ def _cmd_render(args) -> int:
     _check_size(args.size)
     if args.env.lower().endswith(".xml") or Path(args.env).is_file():
         return _render_mjcf(args)
+    for flag in ("gradcheck", "layers", "cull_above"):
+        if getattr(args, flag) not in (None, False):
+            raise UsageError(f"--{flag.replace('_', '-')} is for your MJCF (--env FILE.xml); "
+                             "the tasks' scenes are checked by the test suite")
     _check_task(args.env)
     _at_least_one(args, "steps")
     args.steps = 100 if args.steps is None else args.steps
@@ -448,6 +462,12 @@ def _render_mjcf(args) -> int:
     path = Path(args.env)
     if not path.is_file():
         raise UsageError(f"MJCF file not found: {args.env}")
+    settings = {k: v for k, v in (("layers", args.layers), ("cull_above", args.cull_above))
+                if v is not None}
+    for k, v in settings.items():
+        if v < (1 if k == "layers" else 0):
+            raise UsageError(f"--{k.replace('_', '-')} must be >= {1 if k == 'layers' else 0}, "
+                             f"got {v}")
     try:
         spec = mujoco.MjSpec.from_file(str(path))
         model = spec.compile()
@@ -464,7 +484,7 @@ def _render_mjcf(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     with report.console.status(f"rendering {path.name} with OpenGL and twinrl.render..."):
         try:
-            result = check.compare(model, data, camera, *args.size)
+            result = check.compare(model, data, camera, *args.size, **settings)
         except (UnsupportedGeomError, ValueError) as e:  # hfield/SDF geoms; size; camera name
             raise UsageError(f"--env {args.env}: {e}") from None
         far = float(model.vis.map.zfar * model.stat.extent)
@@ -475,6 +495,18 @@ def _render_mjcf(args) -> int:
     for side in ("opengl", "twinrl"):
         files[f"{side}_rgb"] = args.out / f"{side}_rgb.png"
         imageio.imwrite(files[f"{side}_rgb"], result[side]["rgb"])
+    grads = None
+    if args.gradcheck:
+        with report.console.status("the soft image's gradient against central differences "
+                                   "(float64, 64x48)..."):
+            grads = check.gradcheck(model, data, camera, **settings)
+        report.print_table(
+            f"render --gradcheck {path.name}: the soft image's gradient against float64 central "
+            f"differences (|g - fd| / |fd| per group, tolerance {check.GRAD_RTOL:g})",
+            ["group", "entries", "|grad|", "rel err", "ok"],
+            [[r["group"], r["entries"], f"{r['grad_norm']:.3g}",
+              "inert" if r["inert"] else f"{r['rel_err']:.2e}", "yes" if r["ok"] else "NO"]
+             for r in grads])
     f = result["figures"]
     report.print_table(f"render {path.name}: OpenGL against twinrl.render, camera {camera!r}",
                        ["same geom id", "depth |diff| mean / p99 (mm)", "RGB PSNR (dB)",
@@ -490,8 +522,17 @@ def _render_mjcf(args) -> int:
     report.console.print(f"wrote {files['compare']}")
     report.write_json(args.out / "summary.json", {
         "mjcf": str(path), "camera": camera if isinstance(camera, str) else int(camera),
-        "size": list(args.size), "steps": int(args.steps or 0), "figures": f,
-        "files": {k: str(v) for k, v in files.items()}})
+        "size": list(args.size), "steps": int(args.steps or 0), "renderer": settings,
+        "figures": f,
+        "gradcheck": grads, "files": {k: str(v) for k, v in files.items()}})
+    if grads is not None and not all(r["ok"] for r in grads):
+        bad = [r["group"] for r in grads if not r["ok"]]
+        c = check.crowding(model, **settings)
+        hint = "" if c is None else (f"; {c['why']}: --cull-above {c['cull_above']} --layers "
+                                     f"{c['layers']} composites every surface (slower)")
+        report.console.print(f"gradcheck FAIL: {', '.join(bad)} off by more than "
+                             f"{100 * check.GRAD_RTOL:g} %{hint}")
+        return 1
     return 0
 
 

@@ -49,6 +49,7 @@ def one_line_error(err, *fragments):
     (["render", "--env", "push", "--size", "320", "-1"], "--size 320 -1: width and height"),
     (["render", "--env", "push", "--size", "5000", "5000", "--steps", "1"],
      "image size 5000x5000 must be positive and within the model's offscreen buffer"),
+    (["render", "--env", "push", "--gradcheck"], "--gradcheck is for your MJCF"),
     (["render", "--env", "push", "--camera", "nosuch", "--steps", "1"],
      "camera 'nosuch' is not in the scene"),
     (["run", "--env", "cartpole_swingup", "--rounds", "0"], "rounds must be >= 1"),

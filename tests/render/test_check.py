@@ -53,11 +53,40 @@ def test_render_command_on_an_mjcf_writes_the_comparison(tmp_path, capsys):
         assert (tmp_path / "r" / summary["files"][name]).stat().st_size > 0
 
 
+def test_render_gradcheck_on_an_mjcf_judges_the_camera_and_every_geom(tmp_path, capsys):
+    xml = tmp_path / "desk.xml"
+    xml.write_text(SCENE)
+    code = cli.main(["render", "--env", str(xml), "--size", "32", "24", "--gradcheck",
+                     "--out", str(tmp_path / "r")])
+    assert code == 0, capsys.readouterr().err
+    rows = json.loads((tmp_path / "r/summary.json").read_text())["gradcheck"]
+    groups = {r["group"]: r for r in rows}
+    assert set(groups) == {"camera.pos", "camera.rot"} | {
+        f"{g}.{f}" for g in ("floor", "box:box#1", "rod:capsule#2", "frame:mesh#3")
+        for f in ("pos", "size", "rgb")}
+    assert all(r["ok"] for r in rows) and max(r["rel_err"] for r in rows) < 1e-4
+    # a mesh's size does not shape it (its vertices do): nothing moves either way
+    assert groups["frame:mesh#3.size"]["inert"]
+    assert sum(not r["inert"] for r in rows) == len(rows) - 1
+
+
+def test_crowding_names_what_the_soft_image_leaves_out():
+    rods = "".join(f'<geom type="capsule" size="0.01 0.1" pos="{0.02 * i} 0 0.1"/>'
+                   for i in range(10))
+    model = mujoco.MjModel.from_xml_string(f"<mujoco><worldbody>{rods}</worldbody></mujoco>")
+    c = check.crowding(model)
+    assert "10 capsules (more than cull_above=8" in c["why"]
+    assert c["cull_above"] == 10 and c["layers"] == 10
+    assert check.crowding(model, cull_above=10, layers=10) is None
+    assert check.crowding(mujoco.MjModel.from_xml_string(SCENE)) is None
+
+
 @pytest.mark.parametrize("xml, extra, message", [
     (None, [], "MJCF file not found"),
     (SCENE, ["--real"], "--real is a registered task's real twin; an MJCF has none"),
     (SCENE, ["--camera", "nosuch"], "camera 'nosuch' is not in the scene"),
     ("<mujoco><worldbody><geom type='box'", [], "desk.xml: "),
+    (SCENE, ["--layers", "0"], "--layers must be >= 1, got 0"),
 ])
 def test_render_of_a_bad_mjcf_request_is_one_line(tmp_path, capsys, xml, extra, message):
     path = tmp_path / "desk.xml"

@@ -18,7 +18,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-__all__ = ["VIEW", "with_view_camera", "compare", "figure"]
+__all__ = ["VIEW", "with_view_camera", "compare", "figure", "gradcheck", "GRAD_RTOL",
+           "crowding"]
 
 VIEW = "twinrl_view"
 """Name of the camera ``with_view_camera`` adds."""
@@ -45,12 +46,13 @@ def with_view_camera(spec: mujoco.MjSpec) -> mujoco.MjModel:
 
 
 def compare(model: mujoco.MjModel, data: mujoco.MjData, camera: str | int, width: int,
-            height: int) -> dict:
+            height: int, **renderer) -> dict:
     """Both renderers' images of ``data`` (after ``mj_forward``) from ``camera`` and how far they
     agree. Returns ``{"opengl": images, "twinrl": images, "figures": {...}}`` (images: ``rgb``
     uint8, ``depth`` metres, ``segmentation`` geom ids, -1 for none). Raises
     ``renderer.UnsupportedGeomError`` for a geom type ``Renderer`` cannot draw and ``ValueError``
-    for a size beyond the model's offscreen buffer or an unknown camera."""
+    for a size beyond the model's offscreen buffer or an unknown camera. ``renderer``:
+    ``Renderer.create``'s settings (``layers``, ``cull_above``, ...)."""
     from twinrl.render import Camera, Geoms, Renderer
     from twinrl.render.opengl import CameraRenderer
 
@@ -59,7 +61,7 @@ def compare(model: mujoco.MjModel, data: mujoco.MjData, camera: str | int, width
         gl = gl_renderer.images(data, camera)
     finally:
         gl_renderer.close()
-    renderer = Renderer.create(model)
+    renderer = Renderer.create(model, **renderer)
     im = renderer.render(Camera.from_mujoco(model, data, camera, width, height),
                          Geoms.from_mujoco(model, data))
     ours = {"rgb": (np.clip(np.asarray(im.rgb, np.float64), 0, 1) * 255).round().astype(np.uint8),
@@ -131,3 +133,100 @@ def figure(result: dict, far: float, path: str | Path, title: str = "") -> Path:
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+GRAD_RTOL = 0.05
+"""``gradcheck``'s tolerance on a group's relative error (the renderer's tests' own)."""
+
+
+def gradcheck(model: mujoco.MjModel, data: mujoco.MjData, camera: str | int, width: int = 64,
+              height: int = 48, *, tau: float = 0.5, eps: float = 1e-6, seed: int = 0,
+              **renderer) -> list:
+    """The soft image's gradient against float64 central differences on ``model`` (module
+    docstring). Returns one row per group: ``{"group", "entries", "grad_norm", "fd_norm",
+    "rel_err", "ok"}``, groups ``camera.pos``, ``camera.rot`` and ``<geom>.pos|size|rgb`` for
+    each drawn geom (a group neither side moves is ``inert``: ``rel_err`` 0)."""
+    import jax
+    import jax.numpy as jnp
+    from jax.flatten_util import ravel_pytree
+
+    from twinrl.render import Camera, Geoms, Renderer
+
+    with jax.enable_x64(True):
+        R = Renderer.create(model, **{"iters": 40, **renderer, "shadows": False})
+        ids = np.asarray(R.geom_ids)
+        cam = Camera.from_mujoco(model, data, camera, width, height, dtype=jnp.float64)
+        g = Geoms.from_mujoco(model, data, dtype=jnp.float64)
+        rng = np.random.default_rng(seed)
+        w_rgb = jnp.asarray(rng.normal(size=(height, width, 3)))
+        w_depth = jnp.asarray(rng.normal(size=(height, width)))
+        p0 = {"camera": {"pos": jnp.zeros(3), "rot": jnp.zeros(3)},
+              "geom": {"pos": jnp.zeros((ids.size, 3)), "size": g.size[ids],
+                       "rgb": g.rgba[ids, :3]}}
+
+        def loss(p):
+            c = cam.rotated(p["camera"]["rot"]).translated(p["camera"]["pos"])
+            q = p["geom"]
+            im = R.render(c, g.replace(xpos=g.xpos.at[ids].add(q["pos"]),
+                                       size=g.size.at[ids].set(q["size"]),
+                                       rgba=g.rgba.at[ids, :3].set(q["rgb"])), tau=tau)
+            return jnp.mean(w_rgb * im.rgb) + jnp.mean(w_depth * im.depth)
+
+        x0, unravel = ravel_pytree(p0)
+        grad = np.asarray(ravel_pytree(jax.jit(jax.grad(loss))(p0))[0])
+        flat = jax.jit(jax.vmap(lambda x: loss(unravel(x))))
+        eye = np.eye(x0.size) * eps
+        fd = np.concatenate([  # in chunks: a few hundred renders, each a vmapped batch
+            (np.asarray(flat(x0 + e)) - np.asarray(flat(x0 - e))) / (2 * eps)
+            for e in np.array_split(eye, max(1, x0.size // 32))])
+    index = np.arange(x0.size)
+    slices = {k: v for k, v in zip(("camera.pos", "camera.rot"), np.split(index[:6], 2))}
+    rest = index[6:].reshape(3, ids.size, 3)  # ravel_pytree: geom fields pos, rgb, size
+    names = [_geom_label(model, int(i)) for i in ids]
+    for k, field in enumerate(("pos", "rgb", "size")):
+        for j, name in enumerate(names):
+            slices[f"{name}.{field}"] = rest[k, j]
+    rows = []
+    for group, idx in slices.items():
+        gn, fn = float(np.linalg.norm(grad[idx])), float(np.linalg.norm(fd[idx]))
+        err = float(np.linalg.norm(grad[idx] - fd[idx]))
+        rel = 0.0 if err == 0 else err / max(fn, 1e-300)
+        rows.append({"group": group, "entries": int(len(idx)), "grad_norm": gn, "fd_norm": fn,
+                     "rel_err": rel, "ok": bool(np.isfinite(gn) and rel <= GRAD_RTOL),
+                     "inert": gn == 0 and fn == 0})
+    order = ["camera.pos", "camera.rot"] + [f"{n}.{f}" for n in names
+                                            for f in ("pos", "size", "rgb")]
+    return sorted(rows, key=lambda r: order.index(r["group"]))
+
+
+def _geom_label(model: mujoco.MjModel, i: int) -> str:
+    """A geom's name, else ``body:type#id`` (an unnamed geom is named by what holds it)."""
+    if model.geom(i).name:
+        return model.geom(i).name
+    body = model.body(int(model.geom_bodyid[i])).name or f"body{int(model.geom_bodyid[i])}"
+    kind = mujoco.mjtGeom(int(model.geom_type[i])).name.removeprefix("mjGEOM_").lower()
+    return f"{body}:{kind}#{i}"
+
+
+def crowding(model: mujoco.MjModel, **renderer) -> dict | None:
+    """Why ``Renderer.create(model, **renderer)`` draws the soft image from each pixel's leading
+    surfaces only (module docstring): ``{"why": text, "cull_above": n, "layers": n}``, the
+    settings that composite every surface; ``None`` if it composites every surface already."""
+    from twinrl.render import Renderer
+
+    R = Renderer.create(model, **renderer)
+    groups = R._groups()
+    culled = [f"{len(idx)} {mujoco.mjtGeom(int(t)).name.removeprefix('mjGEOM_').lower()}s"
+              for t, idx in groups if R._culled(t, idx)]
+    slots = sum(R.per_pixel if R._culled(t, idx) else len(idx) for t, idx in groups)
+    if not culled and slots <= R.layers:
+        return None
+    why = []
+    if culled:
+        why.append(f"{', '.join(culled)} (more than cull_above={R.cull_above} of a type)")
+    if slots > R.layers:
+        why.append(f"{slots} surfaces to composite per pixel (more than layers={R.layers})")
+    every = max(R.cull_above, max(len(idx) for _, idx in groups))
+    return {"why": f"this scene has {' and '.join(why)}: the soft image composites each pixel's "
+                   "leading surfaces, which switch as geoms move",
+            "cull_above": every, "layers": max(R.layers, len(R.geom_ids))}
