@@ -96,3 +96,18 @@ def test_render_of_a_bad_mjcf_request_is_one_line(tmp_path, capsys, xml, extra, 
                      str(tmp_path / "r")] + extra)
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and message in err, err
+
+
+def test_the_spatula_scenes_soft_image_gradient_holds_for_every_geom():
+    """The mount's view of spatula flipping: 25 geoms, cylinders among them (the arm's base, the
+    pancake's 1.2 mm-thick top). Before the cylinder's kinks and its missed rays' depth had their
+    derivatives, the pancake's groups were 92-185 % off and the base's 43-57 %."""
+    from twinrl import envs
+
+    model = envs.make("spatula_flipping").sim.mj_model
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    rows = check.gradcheck(model, data, "mount", 32, 24)
+    assert len(rows) == 2 + 3 * 25
+    assert all(r["ok"] for r in rows), [(r["group"], r["rel_err"]) for r in rows if not r["ok"]]
+    assert sum(not r["inert"] for r in rows) >= 50

@@ -470,8 +470,48 @@ def closest_box(o, r, size, iters=16):
 
 
 def closest_cylinder(o, r, size, iters=16):
+    """The line's deepest point in, or nearest approach to, a cylinder: ``line_search_sdf``,
+    with the derivative of the minimum where it sits on one of the SDF's kinks.
+
+    Inside, the SDF is ``max(q0, q1)`` (side ``q0 = |xy| - rad``, cap ``q1 = |z| - h``), and the
+    ray's deepest point is often a kink along the ray that stays a kink as the geometry moves:
+    where ``q0 = q1`` (in through a cap, out through the side) and, on a thin disc, where the
+    ray crosses the mid-plane (``|z|`` at 0). The derivative of such a minimum is neither
+    branch's (which one ``max`` or ``abs`` takes at ``s*`` is rounding) but the mix that keeps
+    the minimum on the kink (Danskin): ``lam dq0 + (1 - lam) dq1`` with ``lam = q1' / (q1' -
+    q0')`` from the pieces' slopes along the ray, and at the mid-plane ``|z|``'s two branches
+    half and half, i.e. no derivative through ``z``. Measured on spatula flipping's mount view
+    (``twinrl.render.check.gradcheck``): the 1.2 mm-thick pancake's position and size gradients
+    were 185 % and 92 % off, the arm's base 57 % and 43 %. The value is unchanged."""
     rb = jnp.sqrt(size[..., 0] ** 2 + size[..., 1] ** 2)
-    return line_search_sdf(sdf_cylinder, o, r, size, rb, iters)
+    s, d = line_search_sdf(sdf_cylinder, o, r, size, rb, iters)
+    sg = jax.lax.stop_gradient
+    rad, h = size[..., 0], size[..., 1]
+    p = o + s[..., None] * r
+    ps, rs = sg(p), sg(r)
+    # the golden section's last bracket, in s: a kink within it is where the minimum sits
+    width = 2.1 * sg(rb) / jnp.sqrt(dot(rs, rs)) * 0.6180339887498949 ** iters
+    z_kink = jnp.abs(ps[..., 2]) <= jnp.abs(rs[..., 2]) * width
+    rxy = jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + 1e-20)
+    q0 = rxy - rad
+    q1 = jnp.where(z_kink, sg(jnp.abs(p[..., 2])), jnp.abs(p[..., 2])) - h
+    d0 = (ps[..., 0] * rs[..., 0] + ps[..., 1] * rs[..., 1]) / sg(rxy)
+    d1 = jnp.where(z_kink, 0.0, jnp.sign(ps[..., 2]) * rs[..., 2])  # the slopes along the ray
+    q0s, q1s = sg(q0), sg(q1)
+    inside = jnp.maximum(q0s, q1s) < 0
+    kink = (d0 * d1 < 0) & (jnp.abs(q0s - q1s) <= (jnp.abs(d0) + jnp.abs(d1)) * width)
+    lam = sg(_safe_div(d1, d1 - d0))
+    g = jnp.where(kink, lam * q0 + (1.0 - lam) * q1, jnp.where(q1s > q0s, q1, q0))
+    # Outside (a ray that misses), ``s`` is also where the renderer puts the surface in depth:
+    # its derivative by the implicit function theorem on ``f'(s) = 0`` (one Newton step whose
+    # value is 0), ``ds = -d(f') / f''``, where ``f`` (the SDF along the ray) curves there.
+    ones = jnp.ones_like(s)
+    along = lambda t, o_, r_, size_: jax.jvp(
+        lambda u: sdf_cylinder(o_ + u[..., None] * r_, size_), (t,), (ones,))[1]
+    curve = jax.jvp(lambda t: along(t, sg(o), rs, sg(size)), (s,), (ones,))[1]
+    step = -along(s, o, r, size) / jnp.where(curve > _EPS, sg(curve), 1.0)
+    s_out = jnp.where(~inside & (curve > _EPS), s + step - sg(step), s)
+    return s_out, jnp.where(inside, sg(d) + g - sg(g), d)
 
 
 def closest_plane(o, r, size, iters=None):
