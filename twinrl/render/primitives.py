@@ -279,13 +279,18 @@ def golden_min(f, lo, hi, iters: int):
     return 0.5 * (st[0] + st[1])
 
 
-def line_search_sdf(sdf, o, r, size, rbound, iters):
-    """(s*, sdf at s*) along the ray for a convex ``sdf`` of a geom of bounding radius ``rbound``."""
-    o_, r_, size_, rb = (jax.lax.stop_gradient(x) for x in (o, r, size, rbound))
+def _search_bracket(o_, r_, rb):
+    """``line_search_sdf``'s interval of ``s``: the ray's stretch across the bounding sphere."""
     rr = dot(r_, r_)
     sc = -dot(o_, r_) / rr
     half = rb / jnp.sqrt(rr) * 1.05 + 1e-6
-    lo, hi = jnp.maximum(sc - half, 1e-6), jnp.maximum(sc + half, 2e-6)
+    return jnp.maximum(sc - half, 1e-6), jnp.maximum(sc + half, 2e-6)
+
+
+def line_search_sdf(sdf, o, r, size, rbound, iters):
+    """(s*, sdf at s*) along the ray for a convex ``sdf`` of a geom of bounding radius ``rbound``."""
+    o_, r_, size_, rb = (jax.lax.stop_gradient(x) for x in (o, r, size, rbound))
+    lo, hi = _search_bracket(o_, r_, rb)
     s = golden_min(lambda s: sdf(o_ + s[..., None] * r_, size_), lo, hi, iters)
     s = jax.lax.stop_gradient(s)
     return s, sdf(o + s[..., None] * r, size)
@@ -490,7 +495,8 @@ def closest_cylinder(o, r, size, iters=16):
     p = o + s[..., None] * r
     ps, rs = sg(p), sg(r)
     # the golden section's last bracket, in s: a kink within it is where the minimum sits
-    width = 2.1 * sg(rb) / jnp.sqrt(dot(rs, rs)) * 0.6180339887498949 ** iters
+    lo, hi = _search_bracket(sg(o), rs, sg(rb))
+    width = (hi - lo) * 0.6180339887498949 ** iters
     z_kink = jnp.abs(ps[..., 2]) <= jnp.abs(rs[..., 2]) * width
     rxy = jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + 1e-20)
     q0 = rxy - rad
