@@ -351,7 +351,7 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
 
     l0, plus1, minus1 = evaluate(1.0)
     _, plus4, minus4 = evaluate(4.0)
-    l0_jit, plus_jit, minus_jit = evaluate(1.0, jitters[0])
+    _, plus_jit, minus_jit = evaluate(1.0, jitters[0])
 
     def differences(scale, plus, minus):
         h_i = scale * steps64
