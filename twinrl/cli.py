@@ -20,6 +20,24 @@ class UsageError(Exception):
     """Bad input named in one line, no traceback."""
 
 
+def _one_line_warnings(prefix: str) -> None:
+    """Print MuJoCo's warnings (``twinrl.physics.MuJoCoWarning``) on the command line as one line
+    each, ``PREFIX: warning: ...``, not Python's two (file:line, then the source line that called
+    MuJoCo); every other warning keeps Python's format."""
+    import warnings
+
+    from twinrl.physics.mjwarn import MuJoCoWarning
+
+    default = warnings.formatwarning
+
+    def formatwarning(message, category, filename, lineno, line=None):
+        if issubclass(category, MuJoCoWarning):
+            return f"{prefix}: warning: {message}\n"
+        return default(message, category, filename, lineno, line)
+
+    warnings.formatwarning = formatwarning
+
+
 def _check_task(name: str) -> None:
     from twinrl import envs
 
@@ -452,6 +470,7 @@ def _render_mjcf(args) -> int:
     import mujoco
 
     from twinrl import report
+    from twinrl.physics import mujoco_warnings
     from twinrl.render import check
     from twinrl.render.renderer import UnsupportedGeomError
 
@@ -469,18 +488,20 @@ def _render_mjcf(args) -> int:
             raise UsageError(f"--{k.replace('_', '-')} must be >= {1 if k == 'layers' else 0}, "
                              f"got {v}")
     try:
-        spec = mujoco.MjSpec.from_file(str(path))
-        model = spec.compile()
-        camera = args.camera or (model.camera(0).name or 0 if model.ncam else None)
-        if camera is None:
-            model, camera = check.with_view_camera(spec), check.VIEW
+        with mujoco_warnings(str(path), stacklevel=2):
+            spec = mujoco.MjSpec.from_file(str(path))
+            model = spec.compile()
+            camera = args.camera or (model.camera(0).name or 0 if model.ncam else None)
+            if camera is None:
+                model, camera = check.with_view_camera(spec), check.VIEW
     except ValueError as e:  # MuJoCo's parse and compile errors
         raise UsageError(f"--env {args.env}: {' '.join(str(e).split())}") from None
     data = mujoco.MjData(model)
     if model.nkey:
         mujoco.mj_resetDataKeyframe(model, data, 0)
-    mujoco.mj_step(model, data, nstep=int(args.steps or 0))
-    mujoco.mj_forward(model, data)
+    with mujoco_warnings(f"{path}: {args.steps or 0} steps", stacklevel=2):
+        mujoco.mj_step(model, data, nstep=int(args.steps or 0))
+        mujoco.mj_forward(model, data)
     args.out.mkdir(parents=True, exist_ok=True)
     with report.console.status(f"rendering {path.name} with OpenGL and twinrl.render..."):
         try:
@@ -955,6 +976,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.verbose:
         _jaxconfig.set_verbose()
+    _one_line_warnings(f"twinrl {args.command}")
     try:
         return args.func(args)
     except (UsageError, MJCFError, PhysParamsError, DatasetError, FileNotFoundError, RunError,

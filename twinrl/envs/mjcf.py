@@ -119,11 +119,14 @@ def save_mjcf(env: MJCFTask, params, path) -> Path:
     an explicit ``<inertial>``)."""
     import mujoco
 
+    from twinrl.physics import mujoco_warnings
+
     path = Path(path)
     src = env.mjcf()
     # mj_saveLastXML writes the model MuJoCo parsed last: parse this one right before
-    model = (mujoco.MjModel.from_xml_string(src) if src.lstrip().startswith("<")
-             else mujoco.MjModel.from_xml_path(src))
+    with mujoco_warnings(env.name):
+        model = (mujoco.MjModel.from_xml_string(src) if src.lstrip().startswith("<")
+                 else mujoco.MjModel.from_xml_path(src))
     model = params.to_mjmodel(model)
     path.parent.mkdir(parents=True, exist_ok=True)
     mujoco.mj_saveLastXML(str(path), model)

@@ -99,6 +99,7 @@ from jax.flatten_util import ravel_pytree
 from mujoco.mjx._src.types import JointType
 
 from twinrl.physics.integrator import tangent_qpos
+from twinrl.physics.mjwarn import mujoco_warnings
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, Scenario, scenario as make_scenario
 from twinrl.physics.sim import Sim
@@ -274,7 +275,8 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
             raise ValueError(f"settle must be >= 0, got {settle}")
         mj_data = mujoco.MjData(sim.mj_model)
         mj_data.qpos[:], mj_data.qvel[:] = sc.qpos, sc.qvel
-        mujoco.mj_step(sim.mj_model, mj_data, nstep=int(settle))
+        with mujoco_warnings(f"{name}: settling"):
+            mujoco.mj_step(sim.mj_model, mj_data, nstep=int(settle))
         sc = dataclasses.replace(sc, qpos=mj_data.qpos.copy(), qvel=mj_data.qvel.copy())
     dtype = jnp.asarray(0.0).dtype
     rng = np.random.default_rng(seed + 1)

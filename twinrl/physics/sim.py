@@ -22,6 +22,7 @@ import numpy as np
 from mujoco import mjx
 
 from twinrl.physics import collision, gradients, integrator, solver
+from twinrl.physics.mjwarn import mujoco_warnings
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, scene_path
 
@@ -43,7 +44,8 @@ def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
         path = scene_path(text)
     elif isinstance(mjcf, str) and text.lstrip().startswith("<"):
         try:
-            return mujoco.MjModel.from_xml_string(text)
+            with mujoco_warnings("the MJCF string"):
+                return mujoco.MjModel.from_xml_string(text)
         except ValueError as e:
             raise MJCFError(f"malformed MJCF string: {_first_line(e)}") from None
     else:
@@ -56,7 +58,8 @@ def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
     if path.is_dir():
         raise MJCFError(f"MJCF path is a directory, not a file: {path}")
     try:
-        return mujoco.MjModel.from_xml_path(str(path))
+        with mujoco_warnings(str(path)):
+            return mujoco.MjModel.from_xml_path(str(path))
     except ValueError as e:
         raise MJCFError(f"malformed MJCF {path}: {_first_line(e)}") from None
 

@@ -44,7 +44,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from twinrl.envs import Env, make  # noqa: E402
-from twinrl.physics import PhysParams, load_mjcf  # noqa: E402
+from twinrl.physics import PhysParams, load_mjcf, mujoco_warnings  # noqa: E402
 from twinrl.real.perturbation import Perturbation, rotvec_quat  # noqa: E402
 from twinrl.render.opengl import IMAGE_KINDS, CameraRenderer, render_states  # noqa: E402,F401
 
@@ -237,8 +237,8 @@ class RealTwin(gym.Env):
         applied = self._pending.popleft()
         d = self._data
         self._data.ctrl[:] = np.asarray(self._control(d.qpos, d.qvel, applied), np.float64)
-        for _ in range(self._n_physics):
-            mujoco.mj_step(self._model, self._data)
+        with mujoco_warnings(f"the {self.task.name} real twin"):
+            mujoco.mj_step(self._model, self._data, nstep=self._n_physics)
         self._t += 1
         d = self._data
         reward, terms = self._reward(d.qpos, d.qvel, a)
