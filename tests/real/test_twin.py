@@ -282,6 +282,36 @@ def test_perturbation_validation_and_sampling():
         twin.reset(options={"qpos": np.zeros(3)})
 
 
+def test_a_twin_built_from_identified_params_simulates_them():
+    # Perturbation.from_params: the twin of the parameters a fit returned (sysid.indirect's
+    # simulator). From a hidden twin's own true parameters it is that twin: same model, same
+    # episode (its latency and sensor noise passed along).
+    hidden = RealTwin("cartpole_swingup", seed=2)
+    model = envs.make("cartpole_swingup").sim.mj_model
+    oracle = hidden.oracle()
+    assert any(oracle.perturbation.extra_frictionloss)  # the cart's rail: a friction loss
+    p = Perturbation.from_params(model, oracle.params,
+                                 latency_steps=oracle.perturbation.latency_steps,
+                                 obs_noise_std=oracle.perturbation.obs_noise_std)
+    twin = RealTwin("cartpole_swingup", perturbation=p)
+    for field in ("mass", "damping", "friction", "gain", "frictionloss"):
+        np.testing.assert_allclose(getattr(twin.oracle().params, field),
+                                   getattr(oracle.params, field), rtol=2e-6, atol=1e-9,
+                                   err_msg=field)
+    a = np.array([0.6], np.float32)
+    out = []
+    for t in (hidden, twin):
+        t.reset(seed=5)
+        out.append(np.array([t.step(a)[0] for _ in range(20)]))
+        t.close()
+    np.testing.assert_allclose(out[1], out[0], rtol=1e-4, atol=1e-5)
+    defaults = envs.make("cartpole_swingup").sim.default_params()
+    with pytest.raises(ValueError, match="params.gravity differ"):
+        Perturbation.from_params(model, defaults.replace(gravity=defaults.gravity * 0.5))
+    with pytest.raises(ValueError, match="params.armature differ"):
+        Perturbation.from_params(model, defaults.replace(armature=defaults.armature + 0.1))
+
+
 def test_oracle_is_called_only_by_the_real_twin_and_evaluation():
     package = Path(__file__).resolve().parents[2] / "twinrl"
     allowed = {"twinrl/report.py", "twinrl/eval.py"}  # evaluation and reporting may look

@@ -106,6 +106,49 @@ class Perturbation:
         return cls()
 
     @classmethod
+    def from_params(cls, model: mujoco.MjModel, params, *, latency_steps: int = 0,
+                    obs_noise_std: float = 0.0) -> "Perturbation":
+        """The perturbation that turns ``model`` (the task's nominal ``mujoco.MjModel``) into
+        one with ``params`` (a ``PhysParams``, e.g. a sysid fit's): a real twin made with it
+        simulates the *identified* model in MuJoCo C, with that latency and sensor noise -- data
+        simulated from what was learned, for indirect inference (``sysid.indirect``). Masses,
+        damping, sliding friction and gains become scales; damping where the model has none
+        becomes ``extra_damping``, a friction loss above the model's ``extra_frictionloss``.
+        ``ValueError`` naming the field when ``params`` differ from ``model`` where a
+        perturbation cannot say so (armature, actuator bias, gravity, a friction loss below the
+        model's, a mass, friction or gain that is 0 in the model and not in ``params``)."""
+        p = {k: np.asarray(v, np.float64) for k, v in params.as_dict().items()}
+        nominal = {"armature": model.dof_armature, "bias": model.actuator_biasprm[:, :3],
+                   "gravity": model.opt.gravity}
+        for name, value in nominal.items():
+            if p[name].shape != np.shape(value) or not np.allclose(p[name], value, rtol=1e-6,
+                                                                   atol=1e-9):
+                raise ValueError(f"Perturbation.from_params: params.{name} differ from the "
+                                 f"model's, and a perturbation has no {name}")
+        extra = p["frictionloss"] - model.dof_frictionloss
+        if np.any(extra < -1e-9):
+            raise ValueError("Perturbation.from_params: params.frictionloss below the model's "
+                             "(a perturbation only adds friction loss)")
+
+        def ratio(name, value, nominal):
+            nominal = np.asarray(nominal, np.float64)
+            if name != "damping" and np.any((nominal == 0) & (np.abs(value) > 1e-12)):
+                raise ValueError(f"Perturbation.from_params: params.{name} is not 0 where the "
+                                 f"model's is, and a scale of 0 stays 0")
+            safe = np.where(nominal != 0, nominal, 1.0)
+            return tuple(np.where(nominal != 0, value / safe, 1.0).tolist())
+
+        dof_damping = np.asarray(model.dof_damping, np.float64)
+        return cls(mass_scale=ratio("mass", p["mass"], model.body_mass[1:]),
+                   damping_scale=ratio("damping", p["damping"], dof_damping),
+                   extra_damping=tuple(np.where(dof_damping == 0, np.maximum(p["damping"], 0.0),
+                                                0.0).tolist()),
+                   friction_scale=ratio("friction", p["friction"], model.geom_friction[:, 0]),
+                   gain_scale=ratio("gain", p["gain"], model.actuator_gainprm[:, 0]),
+                   extra_frictionloss=tuple(np.maximum(extra, 0.0).tolist()),
+                   latency_steps=int(latency_steps), obs_noise_std=float(obs_noise_std))
+
+    @classmethod
     def sample(cls, task: str | Env, rng: int | np.random.Generator) -> "Perturbation":
         """A draw from the task's ``perturbation_spec`` (the default real twin of that task).
 

@@ -89,17 +89,21 @@ Modules (each does one thing; the names above are importable from here):
 - ``optimise``: Levenberg-Marquardt and Adam on a ``Problem``;
 - ``uncertainty``: the Laplace posterior, flat directions and the tests at the bound 0;
 - ``fit``: ``fit`` and ``SysidResult``;
-- ``reporting``: ``print_result`` and (evaluation only) ``compare_to_truth``.
+- ``reporting``: ``print_result`` and (evaluation only) ``compare_to_truth``;
+- ``indirect``: ``indirect`` (an estimator de-biased by simulation: the noise on recorded starts
+  biases one-step fits, and indirect inference finds the parameters whose simulated data the
+  estimator reads as it read the real data) and ``noise_sd_from_quaternions``.
 """
 
 from twinrl.real2sim.sysid.config import FITTABLE, SysidConfig, param_names
 from twinrl.real2sim.sysid.data import Windows, collect, excitation_actions, windows_from_dataset
 from twinrl.real2sim.sysid.fit import SysidResult, fit
+from twinrl.real2sim.sysid.indirect import IndirectResult, indirect, noise_sd_from_quaternions
 from twinrl.real2sim.sysid.problem import Problem, build_problem
 from twinrl.real2sim.sysid.reporting import compare_to_truth, print_result
 
 __all__ = [
     "SysidConfig", "SysidResult", "Windows", "Problem", "fit", "windows_from_dataset",
     "build_problem", "param_names", "compare_to_truth", "excitation_actions", "collect",
-    "print_result", "FITTABLE",
+    "print_result", "FITTABLE", "indirect", "IndirectResult", "noise_sd_from_quaternions",
 ]
