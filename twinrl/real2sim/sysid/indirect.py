@@ -14,7 +14,8 @@ find the parameters at which it returns, on average, what it returned on the rea
 in log coordinates (every parameter here is positive) with ``reps`` simulated datasets per
 evaluation, the same ``seed + r`` at every ``theta`` (common random numbers: the estimator's
 response to ``theta`` is then not drowned by a fresh draw of noise), by Broyden's method started
-from the identity (its first step is the fixed point ``theta <- theta * E(data) / E(sim)``). The
+from the identity (its first step is the fixed point ``theta <- theta * E(data) / E(sim)``),
+safeguarded against the simulated mean's noise (``min_update``). The
 answer is the mean of the last half of the iterates, in log coordinates: near the root the
 simulated mean still scatters (a rocking box's response is chaotic, so common random numbers
 decorrelate), and the iterates scatter with it.
@@ -67,18 +68,26 @@ class IndirectResult:
 
 def indirect(estimate: Callable[[dict], np.ndarray], simulate: Callable[[np.ndarray, int], dict],
              data: dict, *, reps: int = 6, iterations: int = 6, seed: int = 100,
-             raw: np.ndarray | None = None, max_step: float = 1.0, sd_step: float | None = 0.05,
+             raw: np.ndarray | None = None, max_step: float = 0.5, min_update: float = 0.1,
+             sd_step: float | None = 0.2,
              progress: Callable[[dict], None] | None = None) -> IndirectResult:
     """De-bias ``estimate`` (a dataset -> k positive parameter values) by simulation: find
     ``theta`` with ``mean_r estimate(simulate(theta, seed + r)) = estimate(data)`` (module
     docstring). ``simulate(theta, s)`` returns a dataset like ``data`` (same design, same noise)
     from the model at ``theta`` with random seed ``s``. ``raw``: ``estimate(data)`` if already
-    computed. ``max_step``: the largest change of one log-parameter per iteration (a step out of
-    the binding function's reach is cut back). ``sd_step``: the uncertainty's Jacobian by forward
+    computed. ``max_step``: the largest change of one log-parameter per iteration (a longer step
+    is shortened, its direction kept). ``min_update``: Broyden's update only after a step at least
+    this long (log coordinates): near the root a step is as small as the simulated mean's noise,
+    and updates from such steps sent push's iteration at 3.3 mm of noise to 10x the mass in
+    three steps; an update that leaves the Jacobian with an eigenvalue below 0.25 or a condition
+    number above 100 (the binding function is monotone in each parameter) starts it again from
+    the identity. ``sd_step``: the uncertainty's Jacobian by forward
     differences of this size in log coordinates at the answer, with the same seeds, ``(k + 1) *
     reps`` more estimates (Broyden's own Jacobian is right only along the steps it took: on a
     two-parameter test its off-diagonal came out 0.41 where it is 1); ``None``: Broyden's, for
-    free. ``progress`` is called with each history entry."""
+    free. A difference's noise is the simulated estimates' log-sd times ``sqrt(2 / reps) /
+    sd_step``: on push (log-sd 0.05 at 1 mm of noise, 0.2 at 3 mm; 6 reps) a step of 0.05 left
+    entries off by 0.6 and the sd meaningless at 3 mm, hence 0.2. ``progress`` is called with each history entry."""
     if reps < 2 or iterations < 1:
         raise ValueError(f"indirect needs reps >= 2 and iterations >= 1, got {reps}, {iterations}")
     target = np.log(np.asarray(estimate(data) if raw is None else raw, np.float64))
@@ -97,23 +106,21 @@ def indirect(estimate: Callable[[dict], np.ndarray], simulate: Callable[[np.ndar
         draws = draw(x)
         mean = draws.mean(axis=0)
         f = mean - target
-        if prev is not None:  # Broyden's rank-one update from the last step
+        if prev is not None:  # Broyden's rank-one update from the last step, if it was long
             dx, df = x - prev[0], f - prev[1]
-            if float(dx @ dx) > 1e-12:
+            if np.linalg.norm(dx) > min_update:
                 J = J + np.outer(df - J @ dx, dx) / float(dx @ dx)
+                eig = np.linalg.eigvals(J)
+                if np.min(eig.real) < 0.25 or np.linalg.cond(J) > 100:
+                    J = np.eye(k)  # an update that made the binding function non-monotone
         entry = dict(iteration=it, theta=np.exp(x).tolist(), mean=np.exp(mean).tolist(),
                      log_sd=draws.std(axis=0, ddof=1).tolist(), cov=np.cov(draws.T).tolist())
         history.append(entry)
         if progress is not None:
             progress(entry)
         prev = (x, f)
-        try:
-            step = -np.linalg.solve(J, f)
-        except np.linalg.LinAlgError:
-            step = -f
-        if not np.all(np.isfinite(step)) or np.max(np.abs(step)) > 10 * max_step:
-            J, step = np.eye(k), -f  # a Broyden Jacobian gone singular: start it again
-        x = x + np.clip(step, -max_step, max_step)
+        step = -np.linalg.solve(J, f)
+        x = x + step * min(1.0, max_step / max(float(np.max(np.abs(step))), 1e-12))
     tail = np.log(np.array([h["theta"] for h in history[len(history) // 2:]]))
     values = np.exp(tail.mean(axis=0))
     cov = np.array(history[-1]["cov"]).reshape(k, k)
