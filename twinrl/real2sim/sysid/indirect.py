@@ -90,10 +90,11 @@ def indirect(estimate: Callable[[dict], np.ndarray], simulate: Callable[[np.ndar
     entries off by 0.6 and the sd meaningless at 3 mm, hence 0.2. ``progress`` is called with each history entry."""
     if reps < 2 or iterations < 1:
         raise ValueError(f"indirect needs reps >= 2 and iterations >= 1, got {reps}, {iterations}")
-    target = np.log(np.asarray(estimate(data) if raw is None else raw, np.float64))
-    if not np.all(np.isfinite(target)):
+    raw = np.asarray(estimate(data) if raw is None else raw, np.float64)
+    if not np.all(np.isfinite(raw) & (raw > 0)):
         raise ValueError(f"the estimator's values on the real data are not all positive and "
-                         f"finite: {np.exp(target)}")
+                         f"finite: {raw}")
+    target = np.log(raw)
     k = target.size
     x = target.copy()
     J = np.eye(k)
