@@ -31,6 +31,16 @@ def test_compile_warning_is_a_python_warning_and_no_log_file(cwd):
     assert mujoco.get_mju_user_warning() is None  # MuJoCo's own handler is back
 
 
+def test_spec_compile_warnings_are_mujoco_warnings_too(cwd):
+    # MjSpec.compile raises MuJoCo's warnings as plain UserWarnings; other categories pass
+    with pytest.warns(MuJoCoWarning, match=r"spec: MuJoCo: .*settotalmass"):
+        with pytest.warns(DeprecationWarning, match="mine"):
+            with mujoco_warnings("spec"):
+                mujoco.MjSpec.from_string(DEPRECATED).compile()
+                warnings.warn("mine", DeprecationWarning)
+    assert list(cwd.iterdir()) == []
+
+
 def test_unstable_step_warns_once_and_writes_nothing(cwd):
     model = load_mjcf(DEPRECATED.replace('<compiler settotalmass="2"/>', ""))
     data = mujoco.MjData(model)
