@@ -11,10 +11,11 @@ raises the same messages as plain Python ``UserWarning``s instead.
 ``mujoco_warnings(where)`` installs such a handler around a block -- compiling an MJCF, stepping a
 real twin -- and re-raises what MuJoCo said there as ``MuJoCoWarning``s (a ``UserWarning``) naming
 ``where``, each distinct message once (a plain ``UserWarning`` raised in the block counts as
-MuJoCo's: the blocks call nothing else; other categories pass through unchanged). Python's warning filters then decide: shown once per place
-by default, ``warnings.simplefilter("error", MuJoCoWarning)`` turns them into errors,
-``warnings.catch_warnings(record=True)`` records them. The handler that was installed before (yours, if any; MuJoCo's default
-if none) is restored on exit; twinrl changes no MuJoCo setting outside these blocks.
+MuJoCo's: the blocks call nothing else; other categories pass through unchanged). Python's warning
+filters then decide: shown once per place by default, ``warnings.simplefilter("error",
+MuJoCoWarning)`` turns them into errors, ``warnings.catch_warnings(record=True)`` records them. The
+handler that was installed before (yours, if any; MuJoCo's default if none) is restored on exit;
+twinrl changes no MuJoCo setting outside these blocks.
 """
 
 from __future__ import annotations
@@ -45,13 +46,10 @@ def mujoco_warnings(where: str, stacklevel: int = 3):
             yield said
     finally:
         mujoco.set_mju_user_warning(previous)
-        others = []
         for w in python:  # MjSpec.compile raises MuJoCo's warnings as plain UserWarnings
             if w.category is UserWarning:
                 said.append(str(w.message))
-            else:
-                others.append(w)
-        for w in others:  # anything else passes through as it was raised
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            else:  # anything else passes through as it was raised
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         for message in dict.fromkeys(" ".join(str(m).split()) for m in said):
             warnings.warn(f"{where}: MuJoCo: {message}", MuJoCoWarning, stacklevel=stacklevel)

@@ -118,9 +118,9 @@ class Perturbation:
         perturbation cannot say so (armature, actuator bias, gravity, a friction loss below the
         model's, a mass, friction or gain that is 0 in the model and not in ``params``)."""
         p = {k: np.asarray(v, np.float64) for k, v in params.as_dict().items()}
-        nominal = {"armature": model.dof_armature, "bias": model.actuator_biasprm[:, :3],
-                   "gravity": model.opt.gravity}
-        for name, value in nominal.items():
+        fixed = {"armature": model.dof_armature, "bias": model.actuator_biasprm[:, :3],
+                 "gravity": model.opt.gravity}
+        for name, value in fixed.items():
             if p[name].shape != np.shape(value) or not np.allclose(p[name], value, rtol=1e-6,
                                                                    atol=1e-9):
                 raise ValueError(f"Perturbation.from_params: params.{name} differ from the "

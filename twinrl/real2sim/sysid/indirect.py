@@ -10,15 +10,14 @@ distribution the simulator can reproduce: run the same estimator on data *simula
 parameters, with the same excitation, the same sensor noise and the same number of episodes, and
 find the parameters at which it returns, on average, what it returned on the real data.
 
-``indirect(estimate, simulate, data)`` solves ``mean_r E(simulate(theta, seed + r)) = E(data)``
-in log coordinates (every parameter here is positive) with ``reps`` simulated datasets per
-evaluation, the same ``seed + r`` at every ``theta`` (common random numbers: the estimator's
-response to ``theta`` is then not drowned by a fresh draw of noise), by Broyden's method started
-from the identity (its first step is the fixed point ``theta <- theta * E(data) / E(sim)``),
-safeguarded against the simulated mean's noise (``min_update``). The
-answer is the mean of the last half of the iterates, in log coordinates: near the root the
-simulated mean still scatters (a rocking box's response is chaotic, so common random numbers
-decorrelate), and the iterates scatter with it.
+``indirect(estimate, simulate, data)`` solves ``mean_r E(simulate(theta, seed + r)) = E(data)`` in
+log coordinates (every parameter here is positive) with ``reps`` simulated datasets per evaluation,
+the same ``seed + r`` at every ``theta`` (common random numbers: the estimator's response to
+``theta`` is then not drowned by a fresh draw of noise), by Broyden's method started from the
+identity (its first step is the fixed point ``theta <- theta * E(data) / E(sim)``), safeguarded
+against the simulated mean's noise (``min_update``). The answer is the mean of the last half of the
+iterates, in log coordinates: near the root the simulated mean still scatters (a rocking box's
+response is chaotic, so common random numbers decorrelate), and the iterates scatter with it.
 
 Its uncertainty is the real dataset's own: one draw of the estimator, whose spread the simulated
 draws at the answer measure, carried through the binding function's slope (``sd``: the delta
@@ -71,23 +70,23 @@ def indirect(estimate: Callable[[dict], np.ndarray], simulate: Callable[[np.ndar
              raw: np.ndarray | None = None, max_step: float = 0.5, min_update: float = 0.1,
              sd_step: float | None = 0.2,
              progress: Callable[[dict], None] | None = None) -> IndirectResult:
-    """De-bias ``estimate`` (a dataset -> k positive parameter values) by simulation: find
-    ``theta`` with ``mean_r estimate(simulate(theta, seed + r)) = estimate(data)`` (module
-    docstring). ``simulate(theta, s)`` returns a dataset like ``data`` (same design, same noise)
-    from the model at ``theta`` with random seed ``s``. ``raw``: ``estimate(data)`` if already
-    computed. ``max_step``: the largest change of one log-parameter per iteration (a longer step
-    is shortened, its direction kept). ``min_update``: Broyden's update only after a step at least
-    this long (log coordinates): near the root a step is as small as the simulated mean's noise,
-    and updates from such steps sent push's iteration at 3.3 mm of noise to 10x the mass in
-    three steps; an update that leaves the Jacobian with an eigenvalue below 0.25 or a condition
-    number above 100 (the binding function is monotone in each parameter) starts it again from
-    the identity. ``sd_step``: the uncertainty's Jacobian by forward
-    differences of this size in log coordinates at the answer, with the same seeds, ``(k + 1) *
-    reps`` more estimates (Broyden's own Jacobian is right only along the steps it took: on a
-    two-parameter test its off-diagonal came out 0.41 where it is 1); ``None``: Broyden's, for
-    free. A difference's noise is the simulated estimates' log-sd times ``sqrt(2 / reps) /
-    sd_step``: on push (log-sd 0.05 at 1 mm of noise, 0.2 at 3 mm; 6 reps) a step of 0.05 left
-    entries off by 0.6 and the sd meaningless at 3 mm, hence 0.2. ``progress`` is called with each history entry."""
+    """De-bias ``estimate`` (a dataset -> k positive parameter values) by simulation: find ``theta``
+    with ``mean_r estimate(simulate(theta, seed + r)) = estimate(data)`` (module docstring).
+    ``simulate(theta, s)`` returns a dataset like ``data`` (same design, same noise) from the model
+    at ``theta`` with random seed ``s``. ``raw``: ``estimate(data)`` if already computed.
+    ``max_step``: the largest change of one log-parameter per iteration (a longer step is shortened,
+    its direction kept). ``min_update``: Broyden's update only after a step at least this long (log
+    coordinates): near the root a step is as small as the simulated mean's noise, and updates from
+    such steps sent push's iteration at 3.3 mm of noise to 10x the mass in three steps; an update
+    that leaves the Jacobian with an eigenvalue below 0.25 or a condition number above 100 (the
+    binding function is monotone in each parameter) starts it again from the identity. ``sd_step``:
+    the uncertainty's Jacobian by forward differences of this size in log coordinates at the answer,
+    with the same seeds, ``(k + 1) * reps`` more estimates (Broyden's own Jacobian is right only
+    along the steps it took: on a two-parameter test its off-diagonal came out 0.41 where it is 1);
+    ``None``: Broyden's, for free. A difference's noise is the simulated estimates' log-sd times
+    ``sqrt(2 / reps) / sd_step``: on push (log-sd 0.05 at 1 mm of noise, 0.2 at 3 mm; 6 reps) a step
+    of 0.05 left entries off by 0.6 and the sd meaningless at 3 mm, hence 0.2. ``progress`` is
+    called with each history entry."""
     if reps < 2 or iterations < 1:
         raise ValueError(f"indirect needs reps >= 2 and iterations >= 1, got {reps}, {iterations}")
     raw = np.asarray(estimate(data) if raw is None else raw, np.float64)
@@ -99,6 +98,7 @@ def indirect(estimate: Callable[[dict], np.ndarray], simulate: Callable[[np.ndar
     x = target.copy()
     J = np.eye(k)
     history, prev = [], None
+
     def draw(x):
         return np.log(np.array([estimate(simulate(np.exp(x), seed + r)) for r in range(reps)],
                                np.float64))
@@ -135,7 +135,7 @@ def indirect(estimate: Callable[[dict], np.ndarray], simulate: Callable[[np.ndar
         sd = values * np.sqrt(np.maximum(np.diag(Jinv @ cov @ Jinv.T), 0.0))
     except np.linalg.LinAlgError:
         sd = np.full(k, np.inf)
-    return IndirectResult(values=values, raw=np.exp(target), sd=sd, jacobian=J,
+    return IndirectResult(values=values, raw=raw, sd=sd, jacobian=J,
                           history=tuple(history))
 
 
