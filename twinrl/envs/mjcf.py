@@ -19,6 +19,19 @@ arrays ``sysid.fit`` takes.
 The log must be sampled at the control period ``dt * frame_skip`` of the MJCF's timestep, and
 the simulator runs MJX (``twinrl.physics.Sim``): a model MJX cannot simulate is refused at
 ``from_mjcf`` with one line naming what it lacks.
+
+Learning in it (Learn@Sim on your MJCF) needs a reward: ``from_mjcf(path, reward=fn)`` with
+``fn(qpos, qvel, action)`` written in ``jax.numpy`` (the state the step reached, the action in
+[-1, 1]) returning the step's reward, or a dict of named terms (summed; each logged as
+``metrics["reward/<name>"]``), and ``reset_noise`` to start episodes off ``qpos0`` (uniform in
++-``reset_noise`` on every qpos and qvel entry, quaternions renormalised, as Gymnasium's MuJoCo
+tasks do). Every trainer takes the task as it takes a registered one, analytic gradients
+included (the reward's own gradient is part of them):
+
+    def upright(qpos, qvel, action):
+        return {"up": jnp.cos(qpos[0]), "effort": -0.01 * jnp.sum(action ** 2)}
+    env = envs.from_mjcf("my_pendulum.xml", reward=upright, reset_noise=0.1, episode_length=200)
+    policy, params, metrics = twinrl.learn.shac.train(env, SHACConfig(epochs=50))
 """
 
 from __future__ import annotations
@@ -26,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -45,14 +59,18 @@ class MJCFConfig(TaskConfig):
 
 class MJCFTask(Env):
     """A user's MJCF (``from_mjcf``): observation ``[qpos, qvel]``, actions onto the
-    actuators' control ranges, reset at ``qpos0`` (or the MJCF's first keyframe) at rest, no
-    reward (every step's is 0)."""
+    actuators' control ranges, reset at ``qpos0`` (or the MJCF's first keyframe), at rest unless
+    ``reset_noise``; the reward ``from_mjcf``'s ``reward`` gives (0 every step without one)."""
 
     Config = MJCFConfig
     cameras = ()
     reward_term_names = ()
     source: str = ""
     """The MJCF (a path or an XML string) this task's class was made for."""
+    reward_fn = None
+    """``from_mjcf``'s ``reward`` (None: no reward)."""
+    reward_is_dict: bool = False
+    reset_noise: float = 0.0
 
     @classmethod
     def mjcf(cls) -> str:
@@ -63,17 +81,35 @@ class MJCFTask(Env):
         qpos = m.key_qpos[0] if m.nkey else m.qpos0
         qvel = m.key_qvel[0] if m.nkey else np.zeros(m.nv)
         dt = jnp.result_type(float)
-        return jnp.asarray(qpos, dt), jnp.asarray(qvel, dt)
+        qpos, qvel = jnp.asarray(qpos, dt), jnp.asarray(qvel, dt)
+        if not self.reset_noise:
+            return qpos, qvel
+        kp, kv = jax.random.split(rng)
+        u = float(self.reset_noise)
+        qpos = qpos + jax.random.uniform(kp, qpos.shape, dt, -u, u)
+        qvel = qvel + jax.random.uniform(kv, qvel.shape, dt, -u, u)
+        for a in _quaternion_addresses(m):
+            q = qpos[a:a + 4]
+            qpos = qpos.at[a:a + 4].set(q / jnp.linalg.norm(q))
+        return qpos, qvel
 
     # observation="state" (MJCFConfig's only value): Env.__init__ makes the full state the
     # observation and state_from_obs its split; Env wants the hook defined all the same
     observe = Env._full_state
 
     def reward_terms(self, qpos, qvel, action):
-        return {}
+        if self.reward_fn is None:
+            return {}
+        r = self.reward_fn(qpos, qvel, action)
+        if self.reward_is_dict:
+            return {k: jnp.asarray(v) for k, v in r.items()}
+        return {"reward": jnp.asarray(r)}
 
     def combine(self, terms):
-        return jnp.zeros(())
+        total = jnp.zeros(())
+        for k in self.reward_term_names:
+            total = total + terms[k]
+        return total
 
     def ctrl_to_action(self, ctrl) -> np.ndarray:
         """Controls in the actuators' units -> actions in [-1, 1] (``action_to_ctrl``'s
@@ -133,18 +169,68 @@ def save_mjcf(env: MJCFTask, params, path) -> Path:
     return path
 
 
-def from_mjcf(mjcf, *, name: str | None = None, **config) -> MJCFTask:
-    """The task of an MJCF (a path or an XML string; module docstring). ``config``:
-    ``MJCFConfig`` fields (``frame_skip`` physics steps per logged sample, default 1;
-    ``episode_length``; ``solver_iterations``; ``contacts``)."""
+def from_mjcf(mjcf, *, name: str | None = None, reward=None, reset_noise: float = 0.0,
+              **config) -> MJCFTask:
+    """The task of an MJCF (a path or an XML string; module docstring). ``reward``:
+    ``fn(qpos, qvel, action)`` -> a scalar or a dict of scalar terms (summed), in
+    ``jax.numpy``; ``reset_noise``: the half-width of the uniform noise added to every qpos and
+    qvel entry at reset. ``config``: ``MJCFConfig`` fields (``frame_skip`` physics steps per
+    logged sample, default 1; ``episode_length``; ``solver_iterations``; ``contacts``)."""
     text = str(mjcf)
     is_xml = text.lstrip().startswith("<")
     stem = name or ("mjcf" if is_xml else Path(text).stem)
     if config.get("observation", "state") != "state":
         raise ValueError("a user's MJCF task observes the full state; observation='task' is "
                          "for the registered tasks")
+    if reward is not None and not callable(reward):
+        raise TypeError(f"reward must be a function (qpos, qvel, action) -> reward, got "
+                        f"{type(reward).__name__}")
+    noise = float(reset_noise)
+    if not np.isfinite(noise) or noise < 0:
+        raise ValueError(f"reset_noise must be a finite half-width >= 0, got {reset_noise!r}")
     cfg = replace_config(MJCFConfig(), **config)
-    cls = type(f"MJCFTask[{stem}]", (MJCFTask,), {"scene": stem, "source": text if is_xml
-                                                  else str(Path(text))})
-    return cls(cfg, name=stem)
+    attrs = {"scene": stem, "source": text if is_xml else str(Path(text)),
+             "reward_fn": staticmethod(reward) if reward is not None else None,
+             "reset_noise": noise}
+    cls = type(f"MJCFTask[{stem}]", (MJCFTask,), attrs)
+    env = cls(cfg, name=stem)
+    if reward is not None:
+        cls.reward_is_dict, cls.reward_term_names = _reward_terms(env, reward)
+    return env
+
+
+def _reward_terms(env: MJCFTask, reward) -> tuple[bool, tuple[str, ...]]:
+    """Whether ``reward`` returns a dict, and its term names; traced once (``jax.eval_shape``)
+    on the reset state, so a reward that does not return a scalar (or a dict of scalars) is
+    one line here, not a shape error inside a compiled rollout."""
+    qpos, qvel = env.initial_state(jax.random.key(0))
+    action = jnp.zeros(env.action_size, qpos.dtype)
+    try:
+        out = jax.eval_shape(reward, qpos, qvel, action)
+    except Exception as e:  # the user's function: say where it failed, keep the cause
+        raise ValueError(f"{env.name}: reward(qpos, qvel, action) failed on the reset state "
+                         f"(qpos ({env.sim.nq},), qvel ({env.sim.nv},), action "
+                         f"({env.action_size},)): {type(e).__name__}: "
+                         f"{(str(e).splitlines() or [''])[0]}") from e
+    terms = out if isinstance(out, dict) else {"reward": out}
+    for k, v in terms.items():
+        if not hasattr(v, "shape") or v.shape != ():
+            shape = getattr(v, "shape", type(v).__name__)
+            raise ValueError(f"{env.name}: reward term {k!r} must be a scalar, got shape "
+                             f"{shape}")
+    return isinstance(out, dict), tuple(str(k) for k in terms)
+
+
+def _quaternion_addresses(model) -> list[int]:
+    """qpos addresses of every free joint's and ball joint's quaternion."""
+    import mujoco
+
+    out = []
+    for j in range(model.njnt):
+        t, a = model.jnt_type[j], int(model.jnt_qposadr[j])
+        if t == mujoco.mjtJoint.mjJNT_FREE:
+            out.append(a + 3)
+        elif t == mujoco.mjtJoint.mjJNT_BALL:
+            out.append(a)
+    return out
 
