@@ -38,10 +38,21 @@ def _one_line_warnings(prefix: str) -> None:
     warnings.formatwarning = formatwarning
 
 
-def _check_task(name: str) -> None:
+MJCF_LEARN_HINT = ("an MJCF has no reward: learn in it from Python, envs.from_mjcf(PATH, "
+                   "reward=fn) with any trainer (README, 'On your own robot')")
+MJCF_RUN_HINT = ("an MJCF has no reward or real twin for the loop: identify it with `twinrl "
+                 "sysid --env PATH --from LOG.npz`, learn in it from Python with "
+                 "envs.from_mjcf(PATH, reward=fn)")
+
+
+def _check_task(name: str, mjcf_hint: str | None = None) -> None:
+    """A registered task's name, else one line listing them (with ``mjcf_hint`` when ``name``
+    is an MJCF file, which this command does not take)."""
     from twinrl import envs
 
     if name not in envs.names():
+        if mjcf_hint and str(name).lower().endswith(".xml"):
+            raise UsageError(f"--env {name}: {mjcf_hint}")
         raise UsageError(f"unknown task {name!r}; registered tasks are {', '.join(envs.names())}")
 
 
@@ -590,7 +601,7 @@ def _cmd_train(args) -> int:
     from twinrl import report
     from twinrl.learn.runner import parse_overrides, train_run
 
-    _check_task(args.env)
+    _check_task(args.env, MJCF_LEARN_HINT)
     _at_least_one(args, "epochs", "steps")
     s = train_run(args.env, args.algo, args.out, seed=args.seed, epochs=args.epochs,
                   steps=args.steps, overrides=parse_overrides(args.set), resume=args.resume)
@@ -856,7 +867,7 @@ def _cmd_run(args) -> int:
     from twinrl.loop import LoopConfig, LoopError, run
     from twinrl.loop_arm import is_arm_task
 
-    _check_task(args.env)
+    _check_task(args.env, MJCF_RUN_HINT)
     if is_arm_task(args.env):
         return _run_arm(args)
     if args.set:

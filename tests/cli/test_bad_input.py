@@ -59,6 +59,9 @@ def one_line_error(err, *fragments):
      "the loop deploys an image actor"),
     (["run", "--env", "peg_insertion", "--algo", "shac"], "--algo is the state-based loop's"),
     (["run", "--env", "push"], "push's observation does not determine its state"),
+    (["train", "--env", "my_robot.xml", "--algo", "pods"],
+     "--env my_robot.xml: an MJCF has no reward: learn in it from Python, envs.from_mjcf"),
+    (["run", "--env", "my_robot.xml"], "an MJCF has no reward or real twin for the loop"),
 ])
 def test_bad_input_gets_one_clear_line(args, message, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
