@@ -111,3 +111,23 @@ def test_pods_learns_to_turn_the_users_arm(arm):
     best = max(metrics["return"][-3:])
     assert np.all(np.isfinite(metrics["return"]))
     assert best > 0.25 * rand, (rand, metrics["return"])  # a quarter of the loss
+
+
+def test_policy_video_of_a_users_mjcf_without_cameras(arm, tmp_path):
+    """``runner.policy_video`` draws an episode of any task, a user's MJCF with no camera
+    included (where MuJoCo's viewer opens), one frame per control step, the arm moving."""
+    import imageio.v3 as iio
+
+    from twinrl.learn.networks import make_policy
+    from twinrl.learn.runner import policy_video
+
+    assert arm.sim.mj_model.ncam == 0
+    pol = make_policy(arm.observation_size, arm.action_size, (8,))
+    params = pol.init(jax.random.key(0))
+    push = lambda p, obs: jnp.ones(1)  # noqa: E731  (turns the arm at full torque)
+    path = policy_video(arm, push, params, tmp_path / "turn.mp4", size=(64, 48), steps=12)
+    frames = iio.imread(path)
+    assert frames.shape[:3] == (12, 48, 64)
+    assert np.abs(frames[-1].astype(float) - frames[0]).mean() > 0.5  # it turned
+    path = policy_video(arm, pol, params, tmp_path / "net.mp4", size=(64, 48), steps=3)
+    assert iio.imread(path).shape[0] == 3

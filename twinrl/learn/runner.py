@@ -35,7 +35,7 @@ import numpy as np
 from twinrl.learn import tuned
 
 __all__ = ["ALGORITHMS", "Algorithm", "algorithm", "make_config", "parse_overrides", "train_run",
-           "continue_run", "eval_run", "RunError"]
+           "continue_run", "eval_run", "policy_video", "RunError"]
 
 
 class RunError(Exception):
@@ -357,7 +357,8 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
         returns = np.asarray(make_evaluator(env, network.apply, episodes)(
             params, jax.random.key(seed)), float).tolist()
         if video:
-            frames = _sim_frames(env, act, params, seed, episodes, size)
+            frames = _sim_frames(env, act, params,
+                                 jax.random.split(jax.random.key(seed), episodes)[0], size)
     files = {}
     if video and frames:
         files["video"] = str(report.write_video(out / f"{'real' if real else 'sim'}.mp4", frames,
@@ -399,25 +400,47 @@ def _eval_real(env, name, act, params, episodes, seed, frames, size, progress):
     return returns
 
 
-def _sim_frames(env, act, params, seed, episodes, size) -> list[np.ndarray]:
-    """The first evaluation episode of the simulator, drawn by MuJoCo's renderer at the nominal
-    camera (the states are MJX's; only the pixels come from OpenGL)."""
+def policy_video(env, policy, params, path, *, seed: int = 0, size: tuple[int, int] = (320, 240),
+                 camera: str | int | None = None, steps: int | None = None) -> Path:
+    """One deterministic episode of ``policy`` (a ``Network``, or any ``apply(params, obs)``)
+    in ``env``'s simulator from reset key ``seed``, drawn by MuJoCo's renderer and written to
+    ``path`` (MP4 at the control rate; ``report.write_video``). The states are MJX's, only the
+    pixels come from OpenGL. ``camera``: a camera of the MJCF (name or id); default the task's
+    first camera, else the MJCF's first, else where MuJoCo's viewer opens (the free camera), so
+    a user's MJCF without cameras (``envs.from_mjcf``) gets a video too. ``steps``: default the
+    episode length. Returns the path written (``.gif`` without ffmpeg)."""
+    from twinrl import report
+
+    apply = getattr(policy, "apply", policy)
+    frames = _sim_frames(env, jax.jit(apply), params, jax.random.key(int(seed)), size, camera,
+                         steps)
+    return report.write_video(path, frames, fps=1.0 / env.dt)
+
+
+def _sim_frames(env, act, params, key, size, camera=None, steps=None) -> list[np.ndarray]:
+    """An episode of the simulator from reset ``key``, drawn by MuJoCo's renderer
+    (``policy_video``)."""
     import mujoco
 
     from twinrl.render.opengl import CameraRenderer
 
-    state = jax.jit(env.reset)(jax.random.split(jax.random.key(seed), episodes)[0])
-    step = jax.jit(env.step)
     m = env.sim.mj_model
+    if camera is None:
+        camera = env.cameras[0] if env.cameras else (0 if m.ncam else -1)
+    T = int(steps or env.episode_length)
+    if T < 1:
+        raise ValueError(f"steps must be >= 1, got {T}")
+    state = jax.jit(env.reset)(key)
+    step = jax.jit(env.step)
     d = mujoco.MjData(m)
     renderer = CameraRenderer(m, *size)
     frames = []
     try:
-        for _ in range(env.episode_length):
+        for _ in range(T):
             state = step(state, act(params, state.obs))
             d.qpos[:] = np.asarray(state.pipeline_state.qpos)
             mujoco.mj_forward(m, d)
-            frames.append(renderer.images(d, env.cameras[0], ("rgb",))["rgb"])
+            frames.append(renderer.images(d, camera, ("rgb",))["rgb"])
     finally:
         renderer.close()
     return frames
