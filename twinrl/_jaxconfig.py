@@ -11,8 +11,11 @@ some tuning features, two errors ("E... cpu_aot_loader.cc:220] Loading XLA:CPU A
 machine feature +prefer-no-scatter is not supported ... SIGILL") that are harmless here (the
 entries were compiled on this machine): dozens of lines per command. Unless
 ``TF_CPP_MIN_LOG_LEVEL`` is set, it is set to 3 (fatal only) here, before JAX is first imported,
-so child processes inherit it too; a process that imported JAX before twinrl keeps its own
-setting. ``set_verbose()`` (``twinrl --verbose``) shows warnings and errors again.
+so child processes inherit it too. A script that imports JAX first (most do) has jaxlib read the
+variable before twinrl can set it (``import jax`` sets it to 1 where unset), so then, unless the
+user set the variable to another value or set ``jax_logging_level``, twinrl sets ``jax_logging_level`` to ``CRITICAL``, which lowers absl's
+level at run time (and JAX's Python loggers' with it). ``set_verbose()`` (``twinrl
+--verbose``) shows warnings and errors again.
 
 XLA's CPU fusion emitters (on by default in the pinned jaxlib) compile MJX's kinematics, a chain of
 per-body transforms, into code whose run time grows exponentially with the kinematic tree's depth:
@@ -37,10 +40,17 @@ import os
 import sys
 from pathlib import Path
 
-if "jax" not in sys.modules:
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+_JAX_FIRST = "jax" in sys.modules
+# ``import jax`` sets the variable to "1" where it was unset: after it, "1" is JAX's, not the user's
+_QUIET = os.environ.get("TF_CPP_MIN_LOG_LEVEL") in ((None, "1") if _JAX_FIRST else (None,))
+if _QUIET:
+    os.environ["TF_CPP_MIN_LOG_LEVEL"] = "3"  # read by jaxlib on import, and by children
 
 import jax  # noqa: E402
+
+if _JAX_FIRST and _QUIET and jax.config.jax_logging_level in (None, "NOTSET"):
+    # jaxlib read the variable when it was imported: set absl's level at run time instead
+    jax.config.update("jax_logging_level", "CRITICAL")
 
 CPU_FLAGS = "--xla_cpu_use_fusion_emitters=false"
 """What ``set_cpu_flags`` adds to ``XLA_FLAGS`` (module docstring)."""

@@ -83,6 +83,29 @@ def test_the_runtime_log_is_hidden_by_default_and_shown_with_verbose(tmp_path):
     assert absl_line.search(logs[2]), logs[2][-2000:]  # the cache hit's warning at least
 
 
+def test_a_script_that_imports_jax_first_is_quiet_too(tmp_path):
+    # most scripts `import jax` before twinrl: jaxlib has read TF_CPP_MIN_LOG_LEVEL by then
+    # (import jax sets it to 1), so twinrl lowers absl's level at run time; a level the user
+    # set is theirs
+    script = ("import jax, jax.numpy as jnp\n"
+              "import twinrl\n"
+              "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0)\n"
+              "print(jax.jit(lambda x: jnp.cos(x) * 2 - 1)(jnp.ones(3)))\n")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("TF_CPP_MIN_LOG_LEVEL", "JAX_COMPILATION_CACHE_DIR")}
+    env["TWINRL_CACHE_DIR"] = str(tmp_path / "cache")
+    logs = []
+    for level in (None, None, "0"):  # compile, load from the cache, load with the user's level
+        e = dict(env) if level is None else {**env, "TF_CPP_MIN_LOG_LEVEL": level}
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                             env=e, cwd=ROOT, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        logs.append(out.stderr)
+    absl_line = re.compile(r"^[IWE]\d{4} \d\d:\d\d:\d\d", re.M)
+    assert not absl_line.search(logs[1]), logs[1][-2000:]
+    assert absl_line.search(logs[2]), logs[2][-2000:]
+
+
 def test_malformed_mjcf_gets_one_clear_line(tmp_path):
     bad = tmp_path / "broken.xml"
     bad.write_text("<mujoco><worldbody><body><geom type='sphere'/></body></worldbody>")
