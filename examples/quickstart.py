@@ -1,6 +1,6 @@
 """Real2Sim -> Learn@Sim -> Sim2Real in one page of the Python API (about a minute on 2 cores).
 
-    python examples/quickstart.py
+    python examples/quickstart.py [OUT]     # OUT (default runs/quickstart) gets the policy
 
 The pendulum's real twin (MuJoCo C with hidden perturbations: masses, damping, friction,
 actuator gain, latency, sensor noise) is recorded, the differentiable simulator is identified
@@ -9,15 +9,20 @@ and deployed on the real twin. ``twinrl run`` does all of this with rounds, resi
 a report and plots; this is the same thing by hand.
 """
 
+import sys
+from pathlib import Path
+
 import jax
 import numpy as np
 
 import twinrl  # noqa: F401  (the compilation cache, a quiet console)
 from twinrl import envs, real
 from twinrl.learn import PODSConfig, pods
+from twinrl.learn.checkpoint import load_policy, save_policy
 from twinrl.real2sim import sysid
 
 TASK = "pendulum_swingup"
+OUT = Path(sys.argv[1] if len(sys.argv) > 1 else "runs/quickstart")
 
 # Real2Sim: two exciting episodes on the real twin (a gymnasium.Env), then the fit
 twin = real.make_real(TASK, seed=0)
@@ -32,6 +37,9 @@ sysid.print_result(fit)
 env = envs.make(TASK, system=fit.system)
 policy, params, metrics = pods.train(env, PODSConfig(epochs=10), jax.random.key(0))
 print(f"return in the identified simulator: {metrics['return'][-1]:.1f}")
+# a checkpoint with the identified system beside it: `twinrl eval --checkpoint OUT/policy --real`
+save_policy(OUT / "policy", policy, params, system=fit.system, algo="pods", env=TASK)
+policy, params, meta = load_policy(OUT / "policy")
 
 # Sim2Real: the policy on the real twin
 act = jax.jit(policy.apply)

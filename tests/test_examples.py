@@ -31,13 +31,14 @@ def _random_real_return(episodes: int = 3) -> float:
     return float(np.mean(out))
 
 
-def test_quickstart():
+def test_quickstart(tmp_path):
     """Measured: 118.9 in the identified simulator, 132.9 on the real twin; random actions 3.6
     there."""
-    out = subprocess.run([sys.executable, "examples/quickstart.py"], capture_output=True,
-                         text=True, cwd=ROOT, timeout=900)
+    out = subprocess.run([sys.executable, "examples/quickstart.py", str(tmp_path)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     assert not re.search(r"^[IWE]\d{4} \d\d:\d\d:\d\d", out.stderr, re.M), out.stderr[-2000:]
     real = float(re.search(r"return on the real twin: ([-\d.]+)", out.stdout).group(1))
     rand = _random_real_return()
     assert real > rand + 50.0, (real, rand, out.stdout[-2000:])
+    assert (tmp_path / "policy" / "checkpoint.json").exists()  # what it deployed was reloaded
