@@ -102,7 +102,11 @@ class RealTwin(gym.Env):
     """A registered task on the MuJoCo C engine with a hidden perturbation.
 
     Args:
-      task: registered task name (``twinrl.envs.names()``).
+      task: registered task name (``twinrl.envs.names()``), or a task itself (an ``Env``: your
+        MJCF's, ``twinrl.envs.from_mjcf(path, reward=...)``, so your robot gets a real twin to
+        test a pipeline on before the robot: MuJoCo C, the default ``PerturbationSpec``'s hidden
+        draw or your ``perturbation``; its camera is the MJCF's first, else where MuJoCo's
+        viewer opens). ``config`` is for task names only.
       seed: picks the hidden perturbation (unless given) and seeds episodes until ``reset`` is
         given a seed of its own.
       perturbation: the ``Perturbation`` to apply; default ``Perturbation.sample(task, seed)``;
@@ -145,8 +149,18 @@ class RealTwin(gym.Env):
         if int(substeps) < 1 or int(iterations) < 1:
             raise ValueError(f"substeps and iterations must be >= 1, got {substeps}, {iterations}")
         self.task: Env
-        self.task, fns = _task(task, dict(config or {}))
-        self.task_name = task
+        if isinstance(task, Env):
+            if config:
+                raise ValueError("config overrides are for a task name; give the Env built with "
+                                 "them")
+            self.task, fns = _make_jitted(task)
+            self.task_name = task.name
+        elif isinstance(task, str):
+            self.task, fns = _task(task, dict(config or {}))
+            self.task_name = task
+        else:
+            raise TypeError(f"task must be a task name or a twinrl.envs.Env, got "
+                            f"{type(task).__name__}")
         self.seed = int(seed)
         rngs = np.random.SeedSequence(self.seed).spawn(2)
         if perturbation is None:
@@ -183,7 +197,15 @@ class RealTwin(gym.Env):
         self.metadata = {**type(self).metadata, "render_fps": int(round(1.0 / self.task.dt))}
         self.width, self.height = int(width), int(height)
         self.shadows = bool(shadows)
-        self.camera = self.task.cameras[0]
+        m = self.task.sim.mj_model
+        if self.task.cameras:
+            self.camera = self.task.cameras[0]
+        elif m.ncam:
+            self.camera = m.camera(0).name or 0
+        else:
+            self.camera = -1
+        """The default camera: the task's first, else the MJCF's first, else -1 (MuJoCo's
+        free camera, where its viewer opens)."""
         self._renderer: CameraRenderer | None = None
         self._np_random = np.random.default_rng(rngs[1])
         self._pending: collections.deque = collections.deque()
@@ -366,9 +388,13 @@ class RealTwin(gym.Env):
         d = mujoco.MjData(m)
         mujoco.mj_kinematics(m, d)
         mujoco.mj_camlight(m, d)
-        cid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, camera or self.camera)
-        if cid < 0:
-            raise ValueError(f"camera {camera!r} is not in scene {self.task.scene!r}")
+        cam = camera or self.camera
+        cid = (int(cam) if isinstance(cam, (int, np.integer))
+               else mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, cam))
+        if cid < 0 or cid >= m.ncam:
+            raise ValueError(f"camera {cam!r} is not in scene {self.task.scene!r}" + (
+                " (-1, MuJoCo's free camera, has no pose in the MJCF: add a <camera>)"
+                if cam == -1 else ""))
         return {
             "pos": d.cam_xpos[cid].copy(),
             "xmat": d.cam_xmat[cid].reshape(3, 3).copy(),
