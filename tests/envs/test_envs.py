@@ -118,6 +118,10 @@ def test_overrides_make_a_new_config_and_name_bad_fields():
         envs.make("no_such_task")
     with pytest.raises(ValueError, match="episode_length"):
         envs.make("push", episode_length=0)
+    env = envs.make("pendulum_swingup")  # an action of the wrong size is named, not reshaped
+    with pytest.raises(ValueError, match=r"pendulum_swingup: action has shape \(3,\); the task "
+                                         r"takes \(1,\)"):
+        env.step(env.reset(jax.random.key(0)), np.zeros(3))
 
 
 def test_every_config_field_has_a_docstring():

@@ -273,6 +273,8 @@ def test_perturbation_validation_and_sampling():
         RealTwin("push", perturbation=Perturbation(gain_scale=(1.0, 1.0, 1.0)))
     with pytest.raises(ValueError, match="render_mode"):
         RealTwin("push", render_mode="human")
+    with pytest.raises(ValueError, match="seed must be a non-negative integer, got -1"):
+        RealTwin("push", seed=-1)
     twin = RealTwin("push", seed=0)
     p = twin.oracle().perturbation
     np.testing.assert_allclose(twin.oracle().params.mass,

@@ -166,6 +166,8 @@ def test_bad_data_raises_clear_errors(env):
         sysid.build_problem(env, good, sysid.SysidConfig(params=("mass/wheel",), window=WINDOW))
     with pytest.raises(ValueError, match="loss must be one of"):
         sysid.SysidConfig(loss="l1")
+    with pytest.raises(ValueError, match="episodes must be >= 1, got 0"):
+        sysid.collect(None, episodes=0)  # refused before the twin is touched
     with pytest.raises(ValueError, match="observation_weights must be finite"):
         sysid.SysidConfig(observation_weights=(1.0, -1.0))
     with pytest.raises(ValueError, match="observation_weights has 2 entries.*has 5"):

@@ -304,7 +304,11 @@ class Env(brax_base.Env):
 
     def step(self, state: State, action: jax.Array) -> State:
         # JAX's default float (float32; float64 under x64, for finite-difference checks)
-        action = jnp.asarray(action, jnp.result_type(float)).reshape(self.action_size)
+        action = jnp.asarray(action, jnp.result_type(float))
+        if action.size != self.action_size:  # shapes are static: caught once, at trace time
+            raise ValueError(f"{self.name}: action has shape {tuple(action.shape)}; the task "
+                             f"takes ({self.action_size},)")
+        action = action.reshape(self.action_size)
         data = self.sim_step(state.pipeline_state, action, self.params)
         reward, terms = self.reward(data.qpos, data.qvel, action)
         # A diverged simulation ends the episode instead of feeding NaN to the learner.

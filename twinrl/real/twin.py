@@ -161,6 +161,8 @@ class RealTwin(gym.Env):
         else:
             raise TypeError(f"task must be a task name or a twinrl.envs.Env, got "
                             f"{type(task).__name__}")
+        if not isinstance(seed, (int, np.integer)) or int(seed) < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         self.seed = int(seed)
         rngs = np.random.SeedSequence(self.seed).spawn(2)
         if perturbation is None:

@@ -56,6 +56,10 @@ def collect(twin, episodes: int, seed: int = 0, *, steps: int | None = None,
     Returns ``{"obs", "action", "next_obs", "reward"}`` with shapes (E, T, ...); if ``writer``
     (a ``twinrl.real.dataset.DatasetWriter``) is given, every transition is also recorded there.
     """
+    if int(episodes) < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if steps is not None and int(steps) < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
     custom = callable(policy)
     if not custom and policy not in ("auto", "open_loop", "task"):
         raise ValueError(f"policy must be 'auto', 'open_loop', 'task' or a callable "
