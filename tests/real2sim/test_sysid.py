@@ -12,7 +12,7 @@ import pytest
 
 from twinrl import envs
 from twinrl.real import make_real
-from twinrl.real.dataset import DatasetWriter, read
+from twinrl.real.dataset import DatasetError, DatasetWriter, read
 from twinrl.real.perturbation import Perturbation
 from twinrl.real2sim import baselines, sysid
 from twinrl.real2sim.sysid import optimise
@@ -215,8 +215,12 @@ def test_dataset_on_disk_gives_the_same_windows(env, exact, tmp_path):
                       data["next_obs"][e, t], False, t == data["obs"].shape[1] - 1)
     a = sysid.windows_from_dataset(env, read(tmp_path / "ds"), WINDOW, max_latency=1)
     b = sysid.windows_from_dataset(env, data, WINDOW, max_latency=1)
-    for x, y in zip(a[:-1], b[:-1]):
+    c = sysid.windows_from_dataset(env, str(tmp_path / "ds"), WINDOW, max_latency=1)  # its path
+    for x, y, z in zip(a[:-1], b[:-1], c[:-1]):
         np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(x, z)
+    with pytest.raises(DatasetError, match="no dataset at"):
+        sysid.windows_from_dataset(env, tmp_path / "nothing", WINDOW)
     # select: a mask or indices keep those windows, every field alike
     odd = b.select(np.arange(len(b.qpos0)) % 2 == 1)
     assert len(odd.qpos0) == len(b.qpos0) // 2 and odd.max_latency == b.max_latency

@@ -8,6 +8,8 @@ executed under a given latency.
 
 from __future__ import annotations
 
+import os
+
 from typing import Mapping, NamedTuple
 
 import jax
@@ -139,7 +141,12 @@ class Windows(NamedTuple):
 
 
 def _episodes_of(data) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """``(label, obs, action, next_obs)`` per episode from a Dataset, a mapping or a list."""
+    """``(label, obs, action, next_obs)`` per episode from a Dataset (or the path of one, as
+    ``twinrl collect`` writes it), a mapping or a list."""
+    if isinstance(data, (str, os.PathLike)):
+        from twinrl.real.dataset import read
+
+        data = read(data)
     if hasattr(data, "episodes") and hasattr(data, "episode_starts"):  # twinrl.real.dataset
         out = []
         for ep in data.episodes():
@@ -167,23 +174,27 @@ def _episodes_of(data) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
         return [("episode 0", obs, act, nxt)]
     if isinstance(data, (list, tuple)):
         return [(f"episode {i}", e["obs"], e["action"], e["next_obs"]) for i, e in enumerate(data)]
-    raise TypeError(f"data must be a twinrl.real.dataset.Dataset, a mapping of arrays or a list "
-                    f"of episodes, got {type(data).__name__}")
+    raise TypeError(f"data must be a twinrl.real.dataset.Dataset (or its path), a mapping of "
+                    f"arrays or a list of episodes, got {type(data).__name__}")
 
 
 def windows_from_dataset(env: Env, data, window: int, stride: int | None = None,
                          max_latency: int = 0) -> Windows:
     """Cut every episode of ``data`` into shooting windows of ``window`` steps.
 
-    ``data``: a ``twinrl.real.dataset.Dataset`` (e.g. ``twinrl.real.dataset.read(path)``), a
-    mapping with ``obs``, ``action``, ``next_obs`` arrays of shape (T, dim) or (E, T, dim) (or
-    lists of per-episode arrays), or a list of such per-episode mappings.
+    ``data``: a ``twinrl.real.dataset.Dataset`` (``twinrl.real.dataset.read(path)``, or the
+    path itself), a mapping with ``obs``, ``action``, ``next_obs`` arrays of shape (T, dim) or
+    (E, T, dim) (or lists of per-episode arrays), or a list of such per-episode mappings.
     Raises ``ValueError`` naming the episode and step of a NaN/inf, a dimension that does not
     match ``env``, or an episode shorter than ``window``.
     """
     window, stride = int(window), int(stride or window)
     if window < 1 or stride < 1:
         raise ValueError(f"window and stride must be >= 1, got {window}, {stride}")
+    if isinstance(data, (str, os.PathLike)):
+        from twinrl.real.dataset import read
+
+        data = read(data)
     meta_env = getattr(data, "meta", {}).get("env") if hasattr(data, "meta") else None
     if meta_env and meta_env != env.name:
         from twinrl.envs import TASKS
