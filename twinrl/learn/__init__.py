@@ -9,6 +9,7 @@ from twinrl.learn.trajopt import (TrajoptConfig, TrajoptResult, env_problem, imp
                                   trajectory_return)
 from twinrl.learn.pods import PODSConfig  # noqa: E402  (after trajopt, which pods imports)
 from twinrl.learn.hds import HDSConfig  # noqa: E402
+from twinrl.learn.shac import SHACConfig  # noqa: E402
 
 __all__ = ["TrajoptConfig", "TrajoptResult", "env_problem", "improve", "optimize",
-           "trajectory_return", "PODSConfig", "HDSConfig"]
+           "trajectory_return", "PODSConfig", "HDSConfig", "SHACConfig"]
