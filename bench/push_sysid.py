@@ -29,6 +29,10 @@ Prints a table (truth, identified, sd, relative error per parameter) and writes
         damping_scale latency_steps --out B    # one-step windows from the recorded states
     python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --window 1 \
         --recorded-starts --twin-seed 2 --noise 0.0003 --out B   # the same, a 0.3 mm sensor
+    python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --window 1 \
+        --recorded-starts --indirect 6 --out B     # de-biased by indirect inference (15 min)
+    python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --window 1 \
+        --recorded-starts --spread 6 --out B       # how far that answer spreads (4 min)
 
 Why the box's fits stop percents off even on noise-free data: ``bench/push_landscape.py``.
 """
@@ -148,22 +152,18 @@ def slide_first(env, data, known, common):
 BOX = ("mass/box", "friction/box", "friction/pusher")
 
 
-def debiased(env, data, known, common, weights, *, reps, iterations, episodes, config):
-    """``staged`` de-biased by indirect inference (``sysid.indirect``): the same staged fit run
-    on push data simulated in MuJoCo C from the real fit's pusher and latency, candidate box mass,
-    box friction and pusher friction, and the sensor noise read off the box's quaternions
-    (``noise_sd_from_quaternions``); the same excitation seeds at every candidate. Returns the
-    real data's staged fits, the ``IndirectResult`` and the noise sd used."""
+def _indirect_parts(env, data, known, common, weights, *, episodes, config):
+    """What indirect inference on push needs: the real data's staged fits, the sensor noise
+    read off the box's quaternions (``noise_sd_from_quaternions``), ``estimate(data)`` (the
+    staged fit's box mass, box friction and pusher friction) and ``simulate(theta, seed)``
+    (push data in MuJoCo C from the real fit's pusher and latency, the candidate ``theta`` and
+    that noise, the excitation drawn with ``seed``)."""
     model = env.sim.mj_model
     qpos = np.concatenate([data["obs"], data["next_obs"][:, -1:]], axis=1)[..., :model.nq]
     noise = noise_sd_from_quaternions(model, qpos)
     first, res, n_clear = staged(env, data, known, common, weights)
     ids = (("mass", model.body("box").id - 1), ("friction", model.geom("box").id),
            ("friction", model.geom("pusher").id))
-
-    def box_values(fit):
-        value = dict(zip(fit.names, fit.values))
-        return np.array([value[n] for n in BOX])
 
     def estimate(d):
         return box_values(staged(env, d, known, common, weights)[1])
@@ -181,6 +181,24 @@ def debiased(env, data, known, common, weights, *, reps, iterations, episodes, c
         finally:
             twin.close()
 
+    return first, res, n_clear, noise, estimate, simulate
+
+
+def box_values(fit) -> np.ndarray:
+    """A fit's box mass, box friction and pusher friction (``BOX``)."""
+    value = dict(zip(fit.names, fit.values))
+    return np.array([value[n] for n in BOX])
+
+
+def debiased(env, data, known, common, weights, *, reps, iterations, episodes, config):
+    """``staged`` de-biased by indirect inference (``sysid.indirect``): the same staged fit run
+    on push data simulated in MuJoCo C from the real fit's pusher and latency, candidate box mass,
+    box friction and pusher friction, and the sensor noise read off the box's quaternions
+    (``noise_sd_from_quaternions``); the same excitation seeds at every candidate. Returns the
+    real data's staged fits, the ``IndirectResult`` and the noise sd used."""
+    first, res, n_clear, noise, estimate, simulate = _indirect_parts(
+        env, data, known, common, weights, episodes=episodes, config=config)
+
     def progress(h):
         print(f"  indirect {h['iteration']}: theta "
               f"{', '.join(f'{n} {v:.4g}' for n, v in zip(BOX, h['theta']))}", flush=True)
@@ -188,6 +206,39 @@ def debiased(env, data, known, common, weights, *, reps, iterations, episodes, c
     ind = sysid.indirect(estimate, simulate, data, raw=box_values(res),
                          reps=reps, iterations=iterations, progress=progress)
     return first, res, n_clear, ind, noise
+
+
+SPREAD_STEP = 0.1  # ``spread``: the relative step of mass and friction for the binding slope
+
+
+def spread(env, data, known, common, weights, truth, *, reps, episodes, config) -> dict:
+    """How far indirect inference's answer can be trusted from one dataset like ``data``: the
+    staged estimator run on ``reps`` datasets simulated at the box's ``truth`` (mass, friction,
+    pusher friction; evaluation only) and at mass and at friction ``SPREAD_STEP`` above it
+    (the same seeds), the real fit's pusher, latency and noise. The binding function's slope in
+    log coordinates (rows: mass, friction moved; columns: what the estimator reads) carries the
+    estimator's covariance over datasets to the sd of the answer (mass, friction), as the
+    delta method does. Returns the real data's staged fits, their stage-1 window count and
+    the figures."""
+    first, res, n_clear, noise, estimate, simulate = _indirect_parts(
+        env, data, known, common, weights, episodes=episodes, config=config)
+    truth = np.asarray(truth, np.float64)
+    moves = {"truth": np.ones(3), "mass": np.array([1 + SPREAD_STEP, 1, 1]),
+             "friction": np.array([1, 1 + SPREAD_STEP, 1])}
+    logs = {}
+    for name, f in moves.items():
+        logs[name] = np.array([np.log(estimate(simulate(truth * f, 100 + r)))
+                               for r in range(reps)])
+        print(f"  spread: {name} done ({reps} datasets)", flush=True)
+    slope = np.stack([(logs[k] - logs["truth"]).mean(0) for k in ("mass", "friction")]
+                     ) / np.log1p(SPREAD_STEP)
+    inv = np.linalg.inv(slope[:, :2].T)
+    answer_sd = np.sqrt(np.diag(inv @ np.cov(logs["truth"][:, :2].T) @ inv.T))
+    return first, res, n_clear, dict(
+        noise_sd=noise, reps=reps, step=SPREAD_STEP,
+        bias=(np.exp(logs["truth"].mean(0)) / truth - 1).tolist(),
+        estimate_log_sd=logs["truth"].std(0, ddof=1).tolist(), slope=slope.tolist(),
+        answer_sd=answer_sd.tolist(), logs={k: v.tolist() for k, v in logs.items()})
 
 
 def run(args) -> dict:
@@ -216,7 +267,19 @@ def run(args) -> dict:
     t = time.perf_counter()
     n_slide = None
     indirect = None
-    if args.indirect:
+    if args.spread:
+        box_truth = [float(param_value(contact_truth.as_dict(), *parse_param(env, n)))
+                     for n in BOX]
+        first, res, n_clear, out = spread(
+            env, data, known, common, PLANAR_WEIGHTS if args.planar_velocities
+            else POSITION_WEIGHTS, box_truth, reps=args.spread, episodes=args.episodes,
+            config=config)
+        rows = [dict(parameter=n, truth=v, identified=float(v * (1 + b)),
+                     sd=float(np.exp(s) - 1) * v, rel_err=abs(b),
+                     status=f"estimator at the truth (log sd {s:.3f})")
+                for n, v, b, s in zip(BOX, box_truth, out["bias"], out["estimate_log_sd"])]
+        indirect = dict(spread=out)
+    elif args.indirect:
         first, res, n_clear, ind, noise = debiased(
             env, data, known, common, PLANAR_WEIGHTS if args.planar_velocities
             else POSITION_WEIGHTS, reps=args.indirect, iterations=args.indirect_iterations,
@@ -299,6 +362,10 @@ def main(argv=None) -> int:
                     help="with --staged: de-bias the staged fit by indirect inference, R "
                          "simulated datasets per step (sysid.indirect)")
     ap.add_argument("--indirect-iterations", type=int, default=6)
+    ap.add_argument("--spread", type=int, default=0, metavar="R",
+                    help="with --staged: instead of a fit, how far indirect inference's answer "
+                         "spreads from one dataset: the estimator on R datasets simulated at "
+                         "the box's truth and 10 %% above it in mass and in friction")
     ap.add_argument("--out", type=Path, default=Path("bench/results"))
     args = ap.parse_args(argv)
     if args.episodes < 1 or (args.iterations is not None and args.iterations < 1):
@@ -310,6 +377,8 @@ def main(argv=None) -> int:
     if args.indirect and (not args.staged or args.indirect < 2
                           or args.indirect_iterations < 1):
         ap.error("--indirect R goes with --staged, R >= 2, --indirect-iterations >= 1")
+    if args.spread and (not args.staged or args.spread < 3 or args.indirect):
+        ap.error("--spread R goes with --staged, R >= 3, and not with --indirect")
     if args.planar_velocities and not args.staged:
         ap.error("--planar-velocities goes with --staged")
     if not args.start_prior_sd > 0:
@@ -329,6 +398,17 @@ def main(argv=None) -> int:
         ["parameter", "truth", "identified", "sd", "rel err", "status"],
         [[x["parameter"], x["truth"], x["identified"], x["sd"], x["rel_err"], x["status"]]
          for x in r["rows"]])
+    if args.spread:
+        sp = r["indirect"]["spread"]
+        report.print_table(
+            f"indirect inference's spread from one dataset ({args.spread} simulated; noise "
+            f"{sp['noise_sd']:.3g} m): the estimator at the truth, its slope, the answer's sd",
+            ["moved", "reads mass", "reads box friction", "reads pusher friction"],
+            [["slope: mass", *sp["slope"][0]], ["slope: friction", *sp["slope"][1]],
+             ["estimator bias (relative)", *sp["bias"]],
+             ["estimator log sd", *sp["estimate_log_sd"]]])
+        print(f"the answer's sd: mass {sp['answer_sd'][0]:.1%}, friction "
+              f"{sp['answer_sd'][1]:.1%}")
     print(f"wrote {report.write_json(args.out / 'push_sysid.json', r)}")
     return 0
 
