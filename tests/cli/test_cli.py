@@ -60,6 +60,24 @@ def test_xla_cache_warnings_are_quiet_unless_asked_for():
         assert out.stdout.strip() == seen and out.stderr == ""  # nor "Failed to import warp"
 
 
+ABSL_LINE = re.compile(r"^[IWE]\d{4} \d\d:\d\d:\d\d", re.M)  # e.g. "E1123 10:25:44.2"
+
+
+def _cache_runs(tmp_path, script, runs):
+    """``script`` run once per ``(args, extra environment)`` of ``runs``, in order, with a
+    fresh compilation cache and no log level of the caller's; their stderr."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("TF_CPP_MIN_LOG_LEVEL", "JAX_COMPILATION_CACHE_DIR")}
+    env["TWINRL_CACHE_DIR"] = str(tmp_path / "cache")
+    logs = []
+    for args, extra in runs:
+        out = subprocess.run([sys.executable, "-c", script, *args], capture_output=True,
+                             text=True, env={**env, **extra}, cwd=ROOT, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        logs.append(out.stderr)
+    return logs
+
+
 def test_the_runtime_log_is_hidden_by_default_and_shown_with_verbose(tmp_path):
     # a jitted function loaded back from a fresh compilation cache, after `twinrl [--verbose] envs`
     script = ("import sys\n"
@@ -68,19 +86,10 @@ def test_the_runtime_log_is_hidden_by_default_and_shown_with_verbose(tmp_path):
               "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0)\n"
               "assert cli.main(sys.argv[1:]) == 0\n"
               "print(jax.jit(lambda x: jnp.sin(x) * 3 + 1)(jnp.ones(3)))\n")
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("TF_CPP_MIN_LOG_LEVEL", "JAX_COMPILATION_CACHE_DIR")}
-    env["TWINRL_CACHE_DIR"] = str(tmp_path / "cache")
-    logs = []
-    for flags in ([], [], ["--verbose"]):
-        out = subprocess.run([sys.executable, "-c", script, *flags, "envs", "--out",
-                              str(tmp_path / "envs")], capture_output=True, text=True, env=env,
-                             cwd=ROOT, timeout=300)
-        assert out.returncode == 0, out.stderr[-2000:]
-        logs.append(out.stderr)
-    absl_line = re.compile(r"^[IWE]\d{4} \d\d:\d\d:\d\d", re.M)  # e.g. "E1123 10:25:44.2"
-    assert not absl_line.search(logs[1]) and "cpu_aot_loader" not in logs[1], logs[1][-2000:]
-    assert absl_line.search(logs[2]), logs[2][-2000:]  # the cache hit's warning at least
+    envs = ["envs", "--out", str(tmp_path / "envs")]
+    logs = _cache_runs(tmp_path, script, [(envs, {}), (envs, {}), (["--verbose", *envs], {})])
+    assert not ABSL_LINE.search(logs[1]) and "cpu_aot_loader" not in logs[1], logs[1][-2000:]
+    assert ABSL_LINE.search(logs[2]), logs[2][-2000:]  # the cache hit's warning at least
 
 
 def test_a_script_that_imports_jax_first_is_quiet_too(tmp_path):
@@ -91,19 +100,10 @@ def test_a_script_that_imports_jax_first_is_quiet_too(tmp_path):
               "import twinrl\n"
               "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0)\n"
               "print(jax.jit(lambda x: jnp.cos(x) * 2 - 1)(jnp.ones(3)))\n")
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("TF_CPP_MIN_LOG_LEVEL", "JAX_COMPILATION_CACHE_DIR")}
-    env["TWINRL_CACHE_DIR"] = str(tmp_path / "cache")
-    logs = []
-    for level in (None, None, "0"):  # compile, load from the cache, load with the user's level
-        e = dict(env) if level is None else {**env, "TF_CPP_MIN_LOG_LEVEL": level}
-        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                             env=e, cwd=ROOT, timeout=300)
-        assert out.returncode == 0, out.stderr[-2000:]
-        logs.append(out.stderr)
-    absl_line = re.compile(r"^[IWE]\d{4} \d\d:\d\d:\d\d", re.M)
-    assert not absl_line.search(logs[1]), logs[1][-2000:]
-    assert absl_line.search(logs[2]), logs[2][-2000:]
+    # compile, load from the cache, load with the user's level
+    logs = _cache_runs(tmp_path, script, [([], {}), ([], {}), ([], {"TF_CPP_MIN_LOG_LEVEL": "0"})])
+    assert not ABSL_LINE.search(logs[1]), logs[1][-2000:]
+    assert ABSL_LINE.search(logs[2]), logs[2][-2000:]
 
 
 def test_malformed_mjcf_gets_one_clear_line(tmp_path):

@@ -1,8 +1,9 @@
 """Learn@Sim on a user's own MJCF: ``envs.from_mjcf(path, reward=fn, reset_noise=...)`` gives a
-task every trainer takes. A one-joint arm written for this test (a hinge in the horizontal plane
-with a motor: no gravity torque, no contact, a cheap compile) learns with PODS to turn to a
-target angle from random starts, against a random policy; the reward's shape and failures are
-one-line errors at ``from_mjcf``; the reset noise keeps free-joint quaternions unit."""
+task every trainer takes. A one-joint arm written for the tests (``tests/_turntable.py``: a
+hinge in the horizontal plane with a motor, no gravity torque, no contact, a cheap compile)
+learns with PODS to turn to a target angle from random starts, against a random policy; the
+reward's shape and failures are one-line errors at ``from_mjcf``; the reset noise keeps
+free-joint quaternions unit."""
 
 import jax
 import jax.numpy as jnp
@@ -12,17 +13,8 @@ import pytest
 from twinrl import envs
 from twinrl.learn import pods
 from twinrl.learn.pods import PODSConfig
+from tests._turntable import ARM
 
-ARM = """<mujoco model="turntable">
-  <option timestep="0.01"/>
-  <worldbody>
-    <body name="link">
-      <joint name="hinge" type="hinge" axis="0 0 1" damping="0.2"/>
-      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="0.5"/>
-    </body>
-  </worldbody>
-  <actuator><motor joint="hinge" gear="1" ctrlrange="-1 1"/></actuator>
-</mujoco>"""
 
 DROP = """<mujoco><worldbody><geom type="plane" size="1 1 .1"/>
   <body pos="0 0 .3"><freejoint/><geom type="box" size=".05 .05 .05"/></body>

@@ -1,7 +1,7 @@
 """A real twin of a user's own MJCF (``RealTwin(envs.from_mjcf(...))``): MuJoCo C with a hidden
 perturbation, the task's reward and observation, a camera where the MJCF has none; Real2Sim
-through ``sysid.collect`` recovers what was perturbed. The one-joint arm of
-``tests/envs/test_mjcf_reward.py``, so nothing new compiles but the fit."""
+through ``sysid.collect`` recovers what was perturbed. ``tests/_turntable.py``'s one-joint arm,
+as ``tests/envs/test_mjcf_reward.py`` learns in it, so nothing new compiles but the fit."""
 
 import dataclasses
 
@@ -13,17 +13,7 @@ from twinrl import envs
 from twinrl.real import RealTwin, make_real
 from twinrl.real.perturbation import Perturbation
 from twinrl.real2sim import sysid
-
-ARM = """<mujoco model="turntable">
-  <option timestep="0.01"/>
-  <worldbody>
-    <body name="link">
-      <joint name="hinge" type="hinge" axis="0 0 1" damping="0.2"/>
-      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="0.5"/>
-    </body>
-  </worldbody>
-  <actuator><motor name="motor" joint="hinge" gear="1" ctrlrange="-1 1"/></actuator>
-</mujoco>"""
+from tests._turntable import ARM
 
 
 def turn(qpos, qvel, action):
