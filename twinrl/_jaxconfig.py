@@ -13,9 +13,9 @@ entries were compiled on this machine): dozens of lines per command. Unless
 ``TF_CPP_MIN_LOG_LEVEL`` is set, it is set to 3 (fatal only) here, before JAX is first imported,
 so child processes inherit it too. A script that imports JAX first (most do) has jaxlib read the
 variable before twinrl can set it (``import jax`` sets it to 1 where unset), so then, unless the
-user set the variable to another value or set ``jax_logging_level``, twinrl sets ``jax_logging_level`` to ``CRITICAL``, which lowers absl's
-level at run time (and JAX's Python loggers' with it). ``set_verbose()`` (``twinrl
---verbose``) shows warnings and errors again.
+user set the variable to another value or set ``jax_logging_level``, twinrl sets
+``jax_logging_level`` to ``CRITICAL``, which lowers absl's level at run time (and JAX's Python
+loggers' with it). ``set_verbose()`` (``twinrl --verbose``) shows warnings and errors again.
 
 XLA's CPU fusion emitters (on by default in the pinned jaxlib) compile MJX's kinematics, a chain of
 per-body transforms, into code whose run time grows exponentially with the kinematic tree's depth:
@@ -23,8 +23,8 @@ per-body transforms, into code whose run time grows exponentially with the kinem
 with them and 0.59 ms without; inside an episode's scan, a physics step of the Panda tasks
 15.6-16.6 ms against 0.07-0.15 ms (measured on 2 cores, ``bench/xla_cpu.py``).
 ``set_cpu_flags()`` therefore adds ``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` on
-import, unless the user's ``XLA_FLAGS`` already sets that flag or ``TWINRL_XLA_FLAGS=off``. XLA reads the variable when JAX starts its
-first backend, so a process that ran JAX computations before importing twinrl keeps its own
+import, unless the user's ``XLA_FLAGS`` already sets that flag or ``TWINRL_XLA_FLAGS=off``. XLA
+reads the variable when JAX starts its first backend, so a process that ran JAX computations before importing twinrl keeps its own
 setting and is told so once. The flag is added only under the pinned jaxlib's series (0.9 and
 older): jaxlib 0.11.2's XLA no longer knows it and aborts the whole process at its first
 computation on a flag it does not know ("Unknown flag in XLA_FLAGS", seen on a GPU machine), and
