@@ -139,12 +139,15 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
               epochs: int | None = None, steps: int | None = None,
               overrides: dict[str, Any] | None = None, resume: bool = False,
               progress: bool = True, env=None, train_kwargs: dict[str, Any] | None = None,
-              checkpoint_every: int = 1) -> dict[str, Any]:
+              checkpoint_every: int = 1, env_spec: dict[str, Any] | None = None
+              ) -> dict[str, Any]:
     """Train ``algo`` on ``env_name`` into ``out`` (see the module docstring); returns the summary.
 
     ``env`` may be given to train in a specific simulator (``envs.make(name, system=...)``: an
     identified system, the loop); the policy checkpoint keeps that system (``system.json``), so
     ``eval_run`` rebuilds it. ``train_kwargs`` are passed to the trainer (HDS's ``dynamics``).
+    ``env_spec``: a user's MJCF task (``envs.mjcf.task_spec``, with ``env`` built from it), kept
+    in ``run.json`` and the checkpoint so ``--resume`` and ``eval_run`` rebuild that task.
     """
     from twinrl import envs, report
     from twinrl.envs.system import system_of
@@ -154,9 +157,18 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
     config = make_config(algo, env_name, overrides)
     config = _replace(config, _length_overrides(config, epochs, steps), "length")
     env = env if env is not None else envs.make(env_name)
+    if hasattr(config, "lengths"):  # a config that does not fit the task: one line, before files
+        try:
+            config.lengths(env)
+        except ValueError as e:
+            raise RunError(f"{type(config).__name__} on {env_name}: {e} (episode length "
+                           f"{env.episode_length}; --set horizon=... or rollout_length=...)"
+                           ) from None
     out = Path(out)
     run_doc = {"algo": algo, "env": env_name, "seed": int(seed),
                "config": report.to_jsonable(config), "config_class": type(config).__name__}
+    if env_spec is not None:
+        run_doc["mjcf"] = env_spec
     run_file = out / "run.json"
     state_dir = out / "train_state"
     restore = None
@@ -228,7 +240,8 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
     final = {k: (v[at] if v else None) for k, v in metrics.items()}
     save_policy(out / "policy", policy, params, system=system_of(env), algo=algo, env=env_name,
                 env_config=_env_config(env), config=config, seed=int(seed),
-                metrics={k: v for k, v in final.items() if v is not None})
+                metrics={k: v for k, v in final.items() if v is not None},
+                **({"mjcf": env_spec} if env_spec is not None else {}))
     curve = _plot_training(out / "curve.png", metrics, f"{algo} on {env_name}")
     summary = {"algo": algo, "env": env_name, "seed": int(seed), "final": final,
                "best_return": float(np.nanmax(metrics["return"])) if metrics.get("return") else None,
@@ -320,6 +333,13 @@ def _env_from_meta(meta: dict[str, Any], system=None):
     from twinrl import envs
 
     name = meta.get("env")
+    if meta.get("mjcf"):  # a user's MJCF task: its file and reward, as trained
+        from twinrl.envs.mjcf import from_spec
+
+        try:
+            return from_spec(meta["mjcf"])
+        except (ValueError, TypeError, OSError) as e:
+            raise RunError(f"checkpoint's MJCF task cannot be rebuilt: {e}") from None
     if name not in envs.names():
         raise RunError(f"checkpoint's env {name!r} is not a registered task")
     cfg = meta.get("env_config") or {}
@@ -349,8 +369,8 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
     act = jax.jit(network.apply)
     frames: list[np.ndarray] = []
     if real:
-        returns = _eval_real(env, meta["env"], act, params, episodes, seed, frames if video
-                             else None, size, progress)
+        returns = _eval_real(env, env if meta.get("mjcf") else meta["env"], act, params,
+                             episodes, seed, frames if video else None, size, progress)
     else:
         from twinrl.learn.common import make_evaluator
 
