@@ -9,6 +9,7 @@ runs and fails exits 1.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -38,11 +39,9 @@ def _one_line_warnings(prefix: str) -> None:
     warnings.formatwarning = formatwarning
 
 
-MJCF_LEARN_HINT = ("an MJCF has no reward: learn in it from Python, envs.from_mjcf(PATH, "
-                   "reward=fn) with any trainer (README, 'On your own robot')")
-MJCF_RUN_HINT = ("an MJCF has no reward or real twin for the loop: identify it with `twinrl "
-                 "sysid --env PATH --from LOG.npz`, learn in it from Python with "
-                 "envs.from_mjcf(PATH, reward=fn)")
+MJCF_RUN_HINT = ("the loop is for the registered tasks: identify your MJCF with `twinrl sysid "
+                 "--env PATH --from LOG.npz`, learn in it with `twinrl train --env PATH "
+                 "--reward FILE.py:FUNCTION`")
 
 
 def _check_task(name: str, mjcf_hint: str | None = None) -> None:
@@ -578,7 +577,8 @@ def _train_parser(sub) -> None:
                     "TensorBoard events (tb/), curve.png, the policy checkpoint (policy/: orbax "
                     "params + checkpoint.json) and summary.json; the training state is saved "
                     "every epoch so --resume continues a killed run to the same result.")
-    p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
+    p.add_argument("--env", required=True,
+                   help="task name (see `twinrl envs`), or your MJCF file with --reward")
     p.add_argument("--algo", required=True, choices=list(ALGORITHMS),
                    help="pods, pods2 (second order), hds, shac, imitation (an actor from "
                         "trajopt demonstrations), sensing (the camera-scoring Q of an image "
@@ -593,18 +593,65 @@ def _train_parser(sub) -> None:
                         "repeatable, e.g. --set lr=3e-4 --set trajopt.order=2")
     p.add_argument("--resume", action="store_true",
                    help="continue the killed run in --out from its last saved epoch")
+    mjcf = p.add_argument_group("your MJCF (--env FILE.xml; envs.from_mjcf)")
+    mjcf.add_argument("--reward", metavar="FILE.py:FUNCTION",
+                      help="the reward: a function (qpos, qvel, action) -> scalar or dict of "
+                           "terms, in jax.numpy (or module:FUNCTION)")
+    mjcf.add_argument("--reset-noise", type=float, default=0.0,
+                      help="uniform +- noise on every qpos and qvel entry at reset (default 0)")
+    mjcf.add_argument("--episode-length", type=int, default=None,
+                      help="control steps per episode (default 1000)")
+    mjcf.add_argument("--frame-skip", type=int, default=None,
+                      help="physics steps per control step (default 1)")
     _common(p, "runs/train")
     p.set_defaults(func=_cmd_train)
+
+
+def _mjcf_task(args):
+    """``twinrl train --env FILE.xml --reward ...``'s task and its spec (``envs.mjcf``), or
+    (None, None) for a registered task name (where the MJCF options are refused)."""
+    from twinrl import envs
+    from twinrl.envs.mjcf import load_reward, task_spec
+
+    own = ("reward", "episode_length", "frame_skip")
+    if not str(args.env).lower().endswith(".xml"):
+        given = [f"--{k.replace('_', '-')}" for k in own if getattr(args, k) is not None]
+        if args.reset_noise:
+            given.append("--reset-noise")
+        if given:
+            raise UsageError(f"{', '.join(given)}: for your MJCF (--env FILE.xml); task "
+                             f"{args.env!r} has its own")
+        return None, None
+    if not Path(args.env).is_file():
+        raise UsageError(f"--env {args.env}: no such MJCF file")
+    if args.reward is None:
+        raise UsageError(f"--env {args.env}: an MJCF has no reward; give --reward "
+                         f"FILE.py:FUNCTION (a function (qpos, qvel, action) -> reward)")
+    _at_least_one(args, "episode_length", "frame_skip")
+    if not (args.reset_noise >= 0 and math.isfinite(args.reset_noise)):
+        raise UsageError(f"--reset-noise must be a finite value >= 0, got {args.reset_noise}")
+    config = {k: getattr(args, k) for k in ("episode_length", "frame_skip")
+              if getattr(args, k) is not None}
+    try:
+        env = envs.from_mjcf(args.env, reward=load_reward(args.reward),
+                             reset_noise=args.reset_noise, **config)
+    except (ValueError, TypeError) as e:
+        raise UsageError(str(e).splitlines()[0]) from None
+    return env, task_spec(env, args.reward)
 
 
 def _cmd_train(args) -> int:
     from twinrl import report
     from twinrl.learn.runner import parse_overrides, train_run
 
-    _check_task(args.env, MJCF_LEARN_HINT)
+    env, spec = _mjcf_task(args)
+    if env is None:
+        _check_task(args.env)
     _at_least_one(args, "epochs", "steps")
-    s = train_run(args.env, args.algo, args.out, seed=args.seed, epochs=args.epochs,
-                  steps=args.steps, overrides=parse_overrides(args.set), resume=args.resume)
+    s = train_run(env.name if env is not None else args.env, args.algo, args.out,
+                  seed=args.seed, epochs=args.epochs, steps=args.steps,
+                  overrides=parse_overrides(args.set), resume=args.resume, env=env,
+                  env_spec=spec)
     f = s["final"]
     report.print_table(f"trained {args.algo} on {args.env}",
                        ["epochs", "env steps", "final return", "best return", "wall s"],

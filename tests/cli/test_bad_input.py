@@ -59,9 +59,12 @@ def one_line_error(err, *fragments):
      "the loop deploys an image actor"),
     (["run", "--env", "peg_insertion", "--algo", "shac"], "--algo is the state-based loop's"),
     (["run", "--env", "push"], "push's observation does not determine its state"),
-    (["train", "--env", "my_robot.xml", "--algo", "pods"],
-     "--env my_robot.xml: an MJCF has no reward: learn in it from Python, envs.from_mjcf"),
-    (["run", "--env", "my_robot.xml"], "an MJCF has no reward or real twin for the loop"),
+    (["train", "--env", "my_robot.xml", "--algo", "pods"], "--env my_robot.xml: no such MJCF file"),
+    (["train", "--env", "pendulum_swingup", "--algo", "pods", "--set", "horizon=500"],
+     "PODSConfig on pendulum_swingup: horizon (500) must be <= the rollout length (250)"),
+    (["train", "--env", "push", "--algo", "pods", "--reward", "r.py:f"],
+     "--reward: for your MJCF (--env FILE.xml); task 'push' has its own"),
+    (["run", "--env", "my_robot.xml"], "the loop is for the registered tasks"),
 ])
 def test_bad_input_gets_one_clear_line(args, message, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)

@@ -45,7 +45,8 @@ import numpy as np
 
 from twinrl.envs.base import Env, TaskConfig, replace_config
 
-__all__ = ["MJCFTask", "MJCFConfig", "from_mjcf", "save_mjcf"]
+__all__ = ["MJCFTask", "MJCFConfig", "from_mjcf", "save_mjcf", "load_reward", "from_spec",
+           "task_spec"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -234,3 +235,67 @@ def _quaternion_addresses(model) -> list[int]:
             out.append(a)
     return out
 
+
+
+def load_reward(spec: str):
+    """The function a reward spec names: ``"FILE.py:NAME"`` (a Python file's function) or
+    ``"package.module:NAME"`` (an importable module's) -- what ``twinrl train --reward`` takes.
+    A bad spec is a one-line ``ValueError`` naming what is missing."""
+    import importlib
+    import importlib.util
+
+    text = str(spec)
+    where, sep, name = text.rpartition(":")
+    if not sep or not where or not name.isidentifier():
+        raise ValueError(f"reward {text!r}: give FILE.py:FUNCTION or module:FUNCTION")
+    if where.endswith(".py"):
+        path = Path(where)
+        if not path.is_file():
+            raise ValueError(f"reward {text!r}: no file {path}")
+        mod_spec = importlib.util.spec_from_file_location(f"twinrl_reward_{path.stem}", path)
+        module = importlib.util.module_from_spec(mod_spec)
+        try:
+            mod_spec.loader.exec_module(module)
+        except Exception as e:  # the user's file: say which and why, in one line
+            raise ValueError(f"reward {text!r}: {path} failed to run: {type(e).__name__}: "
+                             f"{(str(e).splitlines() or [''])[0]}") from e
+    else:
+        try:
+            module = importlib.import_module(where)
+        except ImportError as e:
+            raise ValueError(f"reward {text!r}: cannot import {where}: {e}") from e
+    fn = getattr(module, name, None)
+    if not callable(fn):
+        raise ValueError(f"reward {text!r}: {where} has no function {name}")
+    return fn
+
+
+def from_spec(spec: dict) -> MJCFTask:
+    """The task ``spec`` describes, as ``MJCFTask.spec`` writes it (a checkpoint's ``mjcf``
+    entry): the MJCF's path, the reward spec (``load_reward``), ``reset_noise`` and the config
+    fields. What ``twinrl eval`` rebuilds a user's MJCF task from."""
+    missing = [k for k in ("mjcf", "name") if k not in spec]
+    if missing:
+        raise ValueError(f"an MJCF task spec needs {', '.join(missing)}")
+    reward = load_reward(spec["reward"]) if spec.get("reward") else None
+    return from_mjcf(spec["mjcf"], name=spec["name"], reward=reward,
+                     reset_noise=float(spec.get("reset_noise", 0.0)),
+                     **dict(spec.get("config") or {}))
+
+
+def task_spec(env: MJCFTask, reward: str | None) -> dict:
+    """``from_spec``'s input for ``env`` (an MJCF file's task) built with the reward spec
+    ``reward``: the file's absolute path, so a checkpoint rebuilds it from anywhere."""
+    import dataclasses as dc
+
+    if env.source.lstrip().startswith("<"):
+        raise ValueError("a task of an XML string has no file to rebuild it from")
+    reward_spec = None
+    if reward:
+        where, _, name = str(reward).rpartition(":")
+        reward_spec = (f"{Path(where).resolve()}:{name}" if where.endswith(".py") else
+                       str(reward))
+    defaults = dc.asdict(MJCFConfig())
+    config = {k: v for k, v in dc.asdict(env.config).items() if defaults.get(k) != v}
+    return {"mjcf": str(Path(env.source).resolve()), "name": env.name, "reward": reward_spec,
+            "reset_noise": float(env.reset_noise), "config": config}
