@@ -32,6 +32,11 @@ included (the reward's own gradient is part of them):
         return {"up": jnp.cos(qpos[0]), "effort": -0.01 * jnp.sum(action ** 2)}
     env = envs.from_mjcf("my_pendulum.xml", reward=upright, reset_noise=0.1, episode_length=200)
     policy, params, metrics = twinrl.learn.shac.train(env, SHACConfig(epochs=50))
+
+From the shell, ``twinrl train --env my_pendulum.xml --reward rewards.py:upright --algo pods``
+does the same (``load_reward`` reads the spec; ``task_spec`` / ``from_spec`` keep the file and
+the reward in the checkpoint so ``twinrl eval`` rebuilds the task), and ``real.make_real(env)``
+is a MuJoCo C twin of it with a hidden perturbation.
 """
 
 from __future__ import annotations
