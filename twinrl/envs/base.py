@@ -191,6 +191,16 @@ class Env(brax_base.Env):
             self.observe, self.state_from_obs = self._full_state, self._split_state
 
     @property
+    def default_camera(self) -> str | int:
+        """The camera a task's images come from unless one is named: its first camera, else
+        its MJCF's first (by name, else id 0), else -1, MuJoCo's free camera (where its viewer
+        opens): a user's MJCF without a camera is drawn too."""
+        if self.cameras:
+            return self.cameras[0]
+        m = self.sim.mj_model
+        return (m.camera(0).name or 0) if m.ncam else -1
+
+    @property
     def observes_state(self) -> bool:
         """Whether ``state_from_obs`` inverts the observation, so that Real2Sim's shooting
         windows can start from recorded observations (push's task observation cannot: its

@@ -445,8 +445,7 @@ def _sim_frames(env, act, params, key, size, camera=None, steps=None) -> list[np
     from twinrl.render.opengl import CameraRenderer
 
     m = env.sim.mj_model
-    if camera is None:
-        camera = env.cameras[0] if env.cameras else (0 if m.ncam else -1)
+    camera = env.default_camera if camera is None else camera
     T = int(steps or env.episode_length)
     if T < 1:
         raise ValueError(f"steps must be >= 1, got {T}")

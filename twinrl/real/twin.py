@@ -199,15 +199,8 @@ class RealTwin(gym.Env):
         self.metadata = {**type(self).metadata, "render_fps": int(round(1.0 / self.task.dt))}
         self.width, self.height = int(width), int(height)
         self.shadows = bool(shadows)
-        m = self.task.sim.mj_model
-        if self.task.cameras:
-            self.camera = self.task.cameras[0]
-        elif m.ncam:
-            self.camera = m.camera(0).name or 0
-        else:
-            self.camera = -1
-        """The default camera: the task's first, else the MJCF's first, else -1 (MuJoCo's
-        free camera, where its viewer opens)."""
+        self.camera = self.task.default_camera
+        """The default camera (``Env.default_camera``)."""
         self._renderer: CameraRenderer | None = None
         self._np_random = np.random.default_rng(rngs[1])
         self._pending: collections.deque = collections.deque()
