@@ -216,8 +216,7 @@ def _reward_terms(env: MJCFTask, reward) -> tuple[bool, tuple[str, ...]]:
     except Exception as e:  # the user's function: say where it failed, keep the cause
         raise ValueError(f"{env.name}: reward(qpos, qvel, action) failed on the reset state "
                          f"(qpos ({env.sim.nq},), qvel ({env.sim.nv},), action "
-                         f"({env.action_size},)): {type(e).__name__}: "
-                         f"{(str(e).splitlines() or [''])[0]}") from e
+                         f"({env.action_size},)): {_cause(e)}") from e
     terms = out if isinstance(out, dict) else {"reward": out}
     for k, v in terms.items():
         if not hasattr(v, "shape") or v.shape != ():
@@ -241,6 +240,10 @@ def _quaternion_addresses(model) -> list[int]:
     return out
 
 
+def _cause(e: Exception) -> str:
+    """A user function's exception in one line: its type and its message's first line."""
+    return f"{type(e).__name__}: {(str(e).splitlines() or [''])[0]}"
+
 
 def load_reward(spec: str):
     """The function a reward spec names: ``"FILE.py:NAME"`` (a Python file's function) or
@@ -262,8 +265,7 @@ def load_reward(spec: str):
         try:
             mod_spec.loader.exec_module(module)
         except Exception as e:  # the user's file: say which and why, in one line
-            raise ValueError(f"reward {text!r}: {path} failed to run: {type(e).__name__}: "
-                             f"{(str(e).splitlines() or [''])[0]}") from e
+            raise ValueError(f"reward {text!r}: {path} failed to run: {_cause(e)}") from e
     else:
         try:
             module = importlib.import_module(where)
@@ -276,7 +278,7 @@ def load_reward(spec: str):
 
 
 def from_spec(spec: dict) -> MJCFTask:
-    """The task ``spec`` describes, as ``MJCFTask.spec`` writes it (a checkpoint's ``mjcf``
+    """The task ``spec`` describes, as ``task_spec`` writes it (a checkpoint's ``mjcf``
     entry): the MJCF's path, the reward spec (``load_reward``), ``reset_noise`` and the config
     fields. What ``twinrl eval`` rebuilds a user's MJCF task from."""
     missing = [k for k in ("mjcf", "name") if k not in spec]
@@ -291,8 +293,6 @@ def from_spec(spec: dict) -> MJCFTask:
 def task_spec(env: MJCFTask, reward: str | None) -> dict:
     """``from_spec``'s input for ``env`` (an MJCF file's task) built with the reward spec
     ``reward``: the file's absolute path, so a checkpoint rebuilds it from anywhere."""
-    import dataclasses as dc
-
     if env.source.lstrip().startswith("<"):
         raise ValueError("a task of an XML string has no file to rebuild it from")
     reward_spec = None
@@ -300,7 +300,7 @@ def task_spec(env: MJCFTask, reward: str | None) -> dict:
         where, _, name = str(reward).rpartition(":")
         reward_spec = (f"{Path(where).resolve()}:{name}" if where.endswith(".py") else
                        str(reward))
-    defaults = dc.asdict(MJCFConfig())
-    config = {k: v for k, v in dc.asdict(env.config).items() if defaults.get(k) != v}
+    defaults = dataclasses.asdict(MJCFConfig())
+    config = {k: v for k, v in dataclasses.asdict(env.config).items() if defaults.get(k) != v}
     return {"mjcf": str(Path(env.source).resolve()), "name": env.name, "reward": reward_spec,
             "reset_noise": float(env.reset_noise), "config": config}
