@@ -9,7 +9,6 @@ executed under a given latency.
 from __future__ import annotations
 
 import os
-
 from typing import Mapping, NamedTuple
 
 import jax
@@ -141,12 +140,7 @@ class Windows(NamedTuple):
 
 
 def _episodes_of(data) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """``(label, obs, action, next_obs)`` per episode from a Dataset (or the path of one, as
-    ``twinrl collect`` writes it), a mapping or a list."""
-    if isinstance(data, (str, os.PathLike)):
-        from twinrl.real.dataset import read
-
-        data = read(data)
+    """``(label, obs, action, next_obs)`` per episode from a Dataset, a mapping or a list."""
     if hasattr(data, "episodes") and hasattr(data, "episode_starts"):  # twinrl.real.dataset
         out = []
         for ep in data.episodes():
