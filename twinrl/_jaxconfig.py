@@ -25,10 +25,11 @@ with them and 0.59 ms without; inside an episode's scan, a physics step of the P
 ``set_cpu_flags()`` therefore adds ``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` on
 import, unless the user's ``XLA_FLAGS`` already sets that flag or ``TWINRL_XLA_FLAGS=off``. XLA
 reads the variable when JAX starts its first backend, so a process that ran JAX computations
-before importing twinrl keeps its own setting and is told so once. The flag is added only under the pinned jaxlib's series (0.9 and
-older): jaxlib 0.11.2's XLA no longer knows it and aborts the whole process at its first
-computation on a flag it does not know ("Unknown flag in XLA_FLAGS", seen on a GPU machine), and
-a version twinrl was not measured on gets XLA's defaults rather than that risk.
+before importing twinrl keeps its own setting and is told so once. The flag is added only under
+the pinned jaxlib's series (0.9 and older): jaxlib 0.11.2's XLA no longer knows it and aborts
+the whole process at its first computation on a flag it does not know ("Unknown flag in
+XLA_FLAGS", seen on a GPU machine), and a version twinrl was not measured on gets XLA's defaults
+rather than that risk.
 """
 
 from __future__ import annotations
