@@ -22,7 +22,10 @@
    pixel is 3.75 mm at the box), ``--frames`` of them (default 5); the Adam stage sees every
    4th pixel (``--coarse`` 64), the refinement every pixel.
 
-``--baseline REF`` also times the renderer of git revision REF (``twinrl/render`` as it was
+Images nobody differentiates (the hard image, the soft forward) are drawn by the C++ kernel
+(``twinrl.render.native``; ``meta.native`` in the JSON says whether it was on); ``--jax`` also
+times this renderer with the kernel off, interleaved (the column "vs JAX" is the kernel's
+speed-up). ``--baseline REF`` also times the renderer of git revision REF (``twinrl/render`` as it was
 there, loaded beside this one), interleaved with this one call by call, so that both see the
 same machine load; speed rows then carry both and their ratio. Timings are the best of
 ``--repeats`` calls after a warm-up call. Prints tables, writes ``DIR/render.json``.
@@ -35,6 +38,7 @@ same machine load; speed rows then carry both and their ratio. Timings are the b
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import platform
@@ -55,7 +59,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from twinrl import report  # noqa: E402
 from twinrl.physics import load_mjcf  # noqa: E402
 from twinrl.physics.scenes import SCENES  # noqa: E402
-from twinrl.render import Camera, Geoms, Renderer, quat_to_mat  # noqa: E402
+from twinrl.render import Camera, Geoms, Renderer, native, quat_to_mat  # noqa: E402
 from twinrl.render import camera as _camera_mod  # noqa: E402
 from twinrl.render import renderer as _renderer_mod  # noqa: E402
 
@@ -122,27 +126,36 @@ def load_baseline(ref: str):
 
 
 def _cases(mods, m, d, cam_name, S, B, **create):
-    """Jitted forward and forward+gradient of a batch of ``B`` cameras, ``S`` x ``S``, for each
-    renderer implementation in ``mods`` ({label: (renderer module, camera module)})."""
+    """Compiled hard image, soft forward and soft forward+gradient of a batch of ``B`` cameras,
+    ``S`` x ``S``, for each renderer implementation in ``mods`` ({label: (renderer module,
+    camera module)}; label "jax": this renderer with the C++ kernel off)."""
     out = {}
     for label, (rmod, cmod) in mods.items():
-        R = rmod.Renderer.create(m, **create)
-        g = rmod.Geoms.from_mujoco(m, d)
-        cam = cmod.Camera.from_mujoco(m, d, cam_name, S, S)
-        target = R.render(cam, g, tau=TAU).rgb
-        cams = jax.tree_util.tree_map(
-            lambda x: jnp.stack([x] * B) + 0.001 * jnp.arange(B).reshape((B,) + (1,) * x.ndim),
-            cam)
-
-        def loss(c, g, R=R, target=target):
-            return jnp.mean((R.render(c, g, tau=TAU).rgb - target) ** 2)
-
-        hard = jax.jit(jax.vmap(lambda c, R=R, g=g: R.render(c, g).rgb))
-        fwd = jax.jit(jax.vmap(lambda c, R=R, g=g: R.render(c, g, tau=TAU).rgb))
-        grad = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1)), in_axes=(0, None)))
-        out[label] = {"hard": (hard, (cams,)), "forward": (fwd, (cams,)),
-                      "forward+grad": (grad, (cams, g))}
+        with native.disabled() if label == "jax" else contextlib.nullcontext():
+            out[label] = _compiled(rmod, cmod, m, d, cam_name, S, B, **create)
     return out
+
+
+def _compiled(rmod, cmod, m, d, cam_name, S, B, **create):
+    """One implementation's three cases ({mode: (compiled function, arguments)})."""
+    R = rmod.Renderer.create(m, **create)
+    g = rmod.Geoms.from_mujoco(m, d)
+    cam = cmod.Camera.from_mujoco(m, d, cam_name, S, S)
+    target = R.render(cam, g, tau=TAU).rgb
+    cams = jax.tree_util.tree_map(
+        lambda x: jnp.stack([x] * B) + 0.001 * jnp.arange(B).reshape((B,) + (1,) * x.ndim),
+        cam)
+
+    def loss(c, g):
+        return jnp.mean((R.render(c, g, tau=TAU).rgb - target) ** 2)
+
+    hard = jax.jit(jax.vmap(lambda c: R.render(c, g).rgb))
+    fwd = jax.jit(jax.vmap(lambda c: R.render(c, g, tau=TAU).rgb))
+    grad = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1)), in_axes=(0, None)))
+    # compiled here, so that the implementation chosen at trace time is this label's
+    return {"hard": (hard.lower(cams).compile(), (cams,)),
+            "forward": (fwd.lower(cams).compile(), (cams,)),
+            "forward+grad": (grad.lower(cams, g).compile(), (cams, g))}
 
 
 def _time_interleaved(cases, repeats):
@@ -168,6 +181,8 @@ def _rows(best, scene, S, B, labels, **extra):
             row[f"frames_per_s_{k}" if k != "new" else "frames_per_s"] = B / best[k, mode]
         if "baseline" in labels:
             row["speedup"] = best["baseline", mode] / best["new", mode]
+        if "jax" in labels:
+            row["speedup_vs_jax"] = best["jax", mode] / best["new", mode]
         rows.append(row)
     return rows
 
@@ -428,6 +443,9 @@ def main(argv=None):
                     help="link counts of the geom-count sweep (none: skip it)")
     ap.add_argument("--baseline", default=None, metavar="REF",
                     help="also time twinrl/render of this git revision, interleaved")
+    ap.add_argument("--jax", action="store_true",
+                    help="also time this renderer with its C++ kernel off (images without "
+                         "derivatives drawn in JAX, as before the kernel), interleaved")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--no-floor", dest="floor", action="store_false",
                     help="skip the floor (the simplest soft image in JAX, timed alike)")
@@ -449,14 +467,19 @@ def main(argv=None):
                     "mujoco": mujoco.__version__, "devices": str(jax.devices()),
                     "machine": platform.machine(), "load_average": list(os.getloadavg()),
                     "baseline": args.baseline}}
+    out["meta"]["native"] = native.status()
     mods = {"new": (_renderer_mod, _camera_mod)}
+    if args.jax:
+        mods["jax"] = (_renderer_mod, _camera_mod)
     if args.baseline:
         mods["baseline"] = load_baseline(args.baseline)
-    cols = ["frames/s"] + (["baseline f/s", "speedup"] if args.baseline else [])
+    cols = (["frames/s"] + (["JAX f/s", "vs JAX"] if args.jax else [])
+            + (["baseline f/s", "speedup"] if args.baseline else []))
 
     def cells(r):
-        return [r["frames_per_s"]] + ([r["frames_per_s_baseline"], r["speedup"]]
-                                      if args.baseline else [])
+        return ([r["frames_per_s"]]
+                + ([r["frames_per_s_jax"], r["speedup_vs_jax"]] if args.jax else [])
+                + ([r["frames_per_s_baseline"], r["speedup"]] if args.baseline else []))
 
     if not args.no_speed:
         t0 = time.perf_counter()

@@ -22,4 +22,4 @@ def test_every_data_file_of_the_package_is_package_data():
         if not any(fnmatch.fnmatch(path.name, pat) for pat in data.get(package, [])):
             missing.append(str(path.relative_to(ROOT.parent)))
     assert not missing, f"not in [tool.setuptools.package-data]: {missing}"
-    assert "twinrl.envs.arm" in data
+    assert "twinrl.envs.arm" in data and "twinrl.render.native" in data

@@ -31,6 +31,9 @@ pixel (``bench/render.py``'s sweep measures how much). A ray's first hit is foun
 and differentiated implicitly (``primitives.hit_implicit``); a ``jax.vmap``-ed render of more
 (pixel, surface) pairs than ``BATCH_ELEMENTS`` is drawn a chunk of cameras at a time, so that its
 arrays stay in the CPU's caches (``_render_batched``; derivatives go through the whole batch).
+An image nobody differentiates is drawn on the CPU by a C++ kernel of the same arithmetic
+(``twinrl.render.native``: each pixel start to finish, built on first use; JAX where there is no
+compiler, and for meshes); derivatives always go through this JAX version.
 
 Everything is a pure function of ``Camera`` and ``Geoms`` pytrees: jit, vmap (batches of cameras
 or scenes) and grad reach the camera pose and intrinsics, geom poses (``geom_xpos``/``geom_xmat``
@@ -636,7 +639,10 @@ class Renderer:
         if isinstance(tau, (int, float)) and isinstance(gamma, (int, float)):
             # one compiled function, not ~3,000 operations dispatched one by one (each compiled
             # on its first use) when called outside jit; inside jit, an inlined call
-            return _render_jit(self, camera, geoms, float(tau), float(gamma))
+            # which implementation draws an image nobody differentiates is a static argument:
+            # traces with and without the C++ kernel are kept apart
+            return _render_jit(self, camera, geoms, float(tau), float(gamma),
+                               self._native_target(camera, geoms))
         return self._render(camera, geoms, tau, gamma)
 
     def surfaces(self) -> int:
@@ -785,6 +791,58 @@ class Renderer:
                       body=body, weights=self._per_geom(w, parts).reshape(H, W, G),
                       background=bg.reshape(H, W))
 
+    # ------------------------------------------------------------------ the C++ kernel
+    @functools.cached_property
+    def _native_attrs(self) -> dict | None:
+        """The scene as the C++ kernel (``twinrl.render.native``) takes it; None where it does
+        not draw it (meshes; more than 64 geoms or surfaces a pixel)."""
+        if _MESH in self.types or self.ngeom > 64 or self.surfaces() > 64 or self.layers > 64:
+            return None
+        L, hl = self.lights, self.headlight
+        rows = [np.concatenate([[L["type"][i]], L["pos"][i], L["dir"][i], L["ambient"][i],
+                                L["diffuse"][i], L["specular"][i],
+                                [L["cutoff"][i], L["exponent"][i]], L["attenuation"][i],
+                                [float(L["castshadow"][i])]]) for i in range(len(L["type"]))]
+        return dict(
+            types=np.asarray(self.types, np.int32), gids=np.asarray(self.geom_ids, np.int32),
+            bodies=np.asarray(self.bodies, np.int32),
+            opts=np.asarray([self.iters, self.per_pixel, self.cull_above, self.layers,
+                             int(self.shadows)], np.int32),
+            mat=np.stack([self.specular, self.shininess, self.emission], -1).reshape(-1),
+            lights=np.concatenate(rows).astype(np.float64) if rows else np.zeros(0),
+            headlight=np.concatenate([[float(hl["active"])], hl["ambient"], hl["diffuse"],
+                                      hl["specular"]]).astype(np.float64))
+
+    def _native_target(self, camera: Camera, geoms: Geoms) -> str | None:
+        """The C++ kernel's FFI target for this render, or None (JAX draws it)."""
+        from twinrl.render import native
+
+        if self._native_attrs is None or not native.available():
+            return None
+        dt = jnp.result_type(camera.pos.dtype, geoms.xpos.dtype)
+        return native.TARGETS.get(jnp.dtype(dt).name)
+
+    def _render_native(self, camera: Camera, geoms: Geoms, tau: float, gamma: float,
+                       target: str) -> Images:
+        """``_render``'s values from the C++ kernel (no derivatives: see ``_render_batched``)."""
+        dt = jnp.result_type(camera.pos.dtype, geoms.xpos.dtype)
+        xpos, xmat, size, rgba = self._select(geoms)
+        G, H, W = self.ngeom, camera.height, camera.width
+        cx, cy = camera._principal()
+        cam = jnp.concatenate([camera.pos.astype(dt), camera.xmat.reshape(9).astype(dt),
+                               jnp.stack([camera.pixel_size(), cx, cy]).astype(dt)])
+        geo = jnp.concatenate([xpos, xmat.reshape(G, 9), size, self._albedo(rgba)],
+                              -1).astype(dt)
+        sds = jax.ShapeDtypeStruct
+        call = jax.ffi.ffi_call(
+            target, (sds((H, W, 3), dt), sds((H, W), dt), sds((H, W), jnp.int32),
+                     sds((H, W), jnp.int32), sds((H, W, G), dt), sds((H, W), dt)),
+            vmap_method="broadcast_all")
+        scal = np.asarray([self.near, self.far, self.far_depth, tau, gamma], np.float64)
+        rgb, depth, seg, body, w, bg = call(cam, geo, scal=scal, **self._native_attrs)
+        return Images(rgb=rgb, depth=depth, segmentation=seg, body=body, weights=w,
+                      background=bg)
+
     def _per_geom(self, w, parts):
         """Slot weights (P, S) back to geoms (P, G), in renderer order."""
         blocks, order, a = [], [], 0
@@ -831,19 +889,23 @@ faster hard and soft (1.8x / 1.3x at 128x128); push's 4 geoms (16k pairs a frame
 at 64x64 (``bench/render.py``)."""
 
 
-def _render_batched(R, camera, geoms, tau, gamma):
-    """``R._render``, the same function under every transformation, except that ``jax.vmap``
-    of it without a derivative draws a large batch in chunks of ``R.batch_chunk`` cameras
-    (``lax.map``) rather than as one array program. Derivatives (``custom_jvp``: forward and
-    reverse mode) go through ``R._render`` as before: chunked, the reverse pass would need a
-    custom VJP, which ``jax.jacfwd`` (visual Real2Sim's Jacobians) cannot go through."""
+def _render_batched(R, camera, geoms, tau, gamma, target=None):
+    """``R._render``, the same function under every transformation, except where nobody
+    differentiates it: there the C++ kernel draws it (``target``, its FFI target; None: JAX),
+    and a ``jax.vmap`` of the JAX version draws a large batch in chunks of ``R.batch_chunk``
+    cameras (``lax.map``) rather than as one array program. Derivatives (``custom_jvp``:
+    forward and reverse mode) go through ``R._render`` as before: a custom VJP (chunks, the
+    kernel) would leave ``jax.jacfwd`` (visual Real2Sim's Jacobians) nothing to go through."""
 
     def plain(c, g):
         return R._render(c, g, tau, gamma)
 
+    def primal(c, g):
+        return plain(c, g) if target is None else R._render_native(c, g, tau, gamma, target)
+
     @jax.custom_batching.custom_vmap
     def chunked(c, g):
-        return plain(c, g)
+        return primal(c, g)
 
     @chunked.def_vmap
     def _rule(axis_size, in_batched, c, g):
@@ -853,10 +915,11 @@ def _render_batched(R, camera, geoms, tau, gamma):
 
         def one(xs):
             it = iter(xs)
-            return plain(*jax.tree_util.tree_unflatten(
+            return primal(*jax.tree_util.tree_unflatten(
                 tree, [next(it) if b else x for x, b in zip(leaves, flags)]))
 
-        k = R.batch_chunk(c.height, c.width, axis_size)
+        # the C++ kernel takes the whole batch (its rows split across the cores)
+        k = axis_size if target is not None else R.batch_chunk(c.height, c.width, axis_size)
         out = (jax.vmap(one)(batched) if k >= axis_size
                else jax.lax.map(one, batched, batch_size=k))
         return out, jax.tree_util.tree_map(lambda _: True, out)
@@ -872,4 +935,4 @@ def _render_batched(R, camera, geoms, tau, gamma):
     return render(camera, geoms)
 
 
-_render_jit = jax.jit(_render_batched, static_argnums=(0, 3, 4))
+_render_jit = jax.jit(_render_batched, static_argnums=(0, 3, 4, 5))
