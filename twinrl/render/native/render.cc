@@ -10,6 +10,12 @@
 // version (renderer.py's custom JVP): this kernel is only ever the primal of a render nobody
 // differentiates. Meshes are not drawn here (the Python side falls back to JAX for them).
 //
+// What it skips leaves the image as JAX draws it: a ray that misses a geom's bounding sphere is
+// not intersected with it; a surface is shaded only where it adds to the pixel (weight > 1e-12);
+// a soft silhouette 30 tau pixels away (coverage < 1e-13) is not searched for. The hard image
+// and shadow rays test every geom, where JAX culls crowded types to the nearest few (exact
+// wherever those hold the first hit, resp. the occluder; culling only ever drops soft coverage).
+//
 // Inputs: cam (..., 15) = pos (3), xmat (9, row-major; columns right, up, back), pixel size at
 // unit depth, principal column and row; geo (..., G, 19) = xpos (3), xmat (9), size (3), albedo
 // rgba (4), the renderer's geoms in its order. Outputs: rgb (..., H, W, 3), depth (..., H, W),
@@ -474,7 +480,7 @@ struct Scene {
 
   // Renderer._choose: the per_pixel geoms of group idx this ray is tested against
   void choose(int t, const std::vector<int>& idx, const T* geo, const T* o, const T* r,
-              T reach, bool has_reach, T front, int* out, T* score) const {
+              T reach, T front, int* out, T* score) const {
     int n = int(idx.size());
     for (int j = 0; j < n; ++j) {
       const T* gp = geo + 19 * idx[j];
@@ -504,7 +510,7 @@ struct Scene {
       T s_c, dist;
       line_segment(o, r, a, b, s_c, dist);
       T depth = std::max(s_c, near_);
-      T lim = has_reach ? rad + reach * depth : rad;
+      T lim = rad + reach * depth;
       bool ahead = s_c + half + rad >= front;
       bool core = dist <= rad * T(1.001) + T(1e-6);
       bool band = dist <= lim * T(1.001) + T(1e-6) && ahead;
@@ -590,8 +596,11 @@ struct Scene {
 
 // per-thread scratch, one entry per surface slot
 template <typename T>
+// (a soft image has at most Scene::slots surfaces a pixel, a hard one every geom)
 struct Scratch {
-  std::vector<T> s_hit, s_n, cover, z, p, n, alb, w, wa, score, col;
+  // per surface: first hit, depth where it is placed, coverage, depth then distance, world
+  // point, point in the geom's frame (for its normal, found only where it is shaded), albedo
+  std::vector<T> s_hit, s_n, cover, z, p, pl, alb, score;
   std::vector<int> gid, type, pick, lay;
   std::vector<T> lit, ahead;
   std::vector<T> ol, oo, rb;  // per geom, per frame
@@ -599,9 +608,9 @@ struct Scratch {
   explicit Scratch(int slots, int G, int NL)
       : Scratch(std::max(slots, G), G, NL, 0) {}
   Scratch(int S, int G, int NL, int)
-      : s_hit(S), s_n(S), cover(S), z(S), p(3 * S), n(3 * S), alb(4 * S), w(S), wa(S),
-        score(S), col(3 * S), gid(S), type(S), pick(S), lay(S), lit(std::max(NL, 1)),
-        ahead(S * S), ol(3 * G), oo(G), rb(G) {}
+      : s_hit(S), s_n(S), cover(S), z(S), p(3 * S), pl(3 * S), alb(4 * S), score(S), gid(S),
+        type(S), pick(S), lay(S), lit(std::max(NL, 1)), ahead(S * S), ol(3 * G), oo(G),
+        rb(G) {}
 };
 
 // ahead[g * S + k]: how much surface k lies in front of surface g (soft: a sigmoid of their depth
@@ -670,7 +679,7 @@ void draw_pixel(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, in
     // Culling only ever drops coverage from the soft image: the hard image tests every geom
     // (bounding spheres first), which is what culling keeps it equal to.
     bool cull = soft && sc.culled(t, n);
-    if (cull) sc.choose(t, idx, geo, o, r, reach, true, sc.near_, X.pick.data(), X.score.data());
+    if (cull) sc.choose(t, idx, geo, o, r, reach, sc.near_, X.pick.data(), X.score.data());
     int m = cull ? sc.per_pixel : n;
     for (int q = 0; q < m; ++q, ++S) {
       int g = idx[cull ? X.pick[q] : q];
@@ -705,7 +714,7 @@ void draw_pixel(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, in
       }
       // the normal is found only where the surface is shaded (draw_pixel's shading loop)
       T sp = soft ? sn : (std::isfinite(s_hit) ? s_hit : sc.far_);
-      for (int k = 0; k < 3; ++k) X.n[3 * S + k] = ol[k] + sp * rl[k];
+      for (int k = 0; k < 3; ++k) X.pl[3 * S + k] = ol[k] + sp * rl[k];
       X.s_hit[S] = (s_hit >= sc.near_ && s_hit <= sc.far_) ? s_hit : K<T>::inf();
       X.s_n[S] = sn;
       X.z[S] = dist;  // soft: the signed distance, turned into coverage below
@@ -784,7 +793,7 @@ void draw_pixel(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, in
     int s = lay[k];
     const T* gp = geo + 19 * X.gid[s];
     T nl[3], nw[3];
-    normal(X.type[s], &X.n[3 * s], gp + 12, soft, ntau * X.s_n[s], nl);
+    normal(X.type[s], &X.pl[3 * s], gp + 12, soft, ntau * X.s_n[s], nl);
     to_world(nl, gp + 3, nw);
     T nn = std::sqrt(dot3(nw, nw) + T(1e-20));
     for (int q = 0; q < 3; ++q) nw[q] /= nn;
