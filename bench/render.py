@@ -6,6 +6,8 @@
    colours), on each scene of ``--scenes`` (``SPEED_SCENES``: push and the manipulation suite's
    arm scenes, peg insertion, spatula flipping and needle threading, each seen from its ``mount``
    camera in the state of its task's ``reset``; the table gives each scene's geom count).
+   Then a batch of 16 image observations of each arm task in ``--scenes`` (``observations``:
+   ``ArmTask.image_observation``'s pixels, what the image actor and Q learn from).
    Then the floor (``floor``, ``--no-floor`` skips it): the simplest soft image written in JAX
    (spheres, coverage, composite, Lambert), timed alike: what XLA on this machine gives at best.
 2. Geom-count sweep (``--sweep``, default 10 20 40): synthetic arm-like scenes (``sweep_mjcf``: a
@@ -25,9 +27,9 @@
 Images nobody differentiates (the hard image, the soft forward) are drawn by the C++ kernel
 (``twinrl.render.native``; ``meta.native`` in the JSON says whether it was on); ``--jax`` also
 times this renderer with the kernel off, interleaved (the column "vs JAX" is the kernel's
-speed-up). ``--baseline REF`` also times the renderer of git revision REF (``twinrl/render`` as it was
-there, loaded beside this one), interleaved with this one call by call, so that both see the
-same machine load; speed rows then carry both and their ratio. Timings are the best of
+speed-up). ``--baseline REF`` also times the renderer of git revision REF (``twinrl/render`` as
+it was there, loaded beside this one), interleaved with this one call by call, so that both see
+the same machine load; speed rows then carry both and their ratio. Timings are the best of
 ``--repeats`` calls after a warm-up call. Prints tables, writes ``DIR/render.json``.
 
     python bench/render.py --out bench/results                 # speed, sweep, agreement
@@ -249,6 +251,37 @@ def sweep(mods, counts, S=64, B=16, repeats=5):
                       culled_soft_rgb_max_diff=float(np.max(diff)),
                       culled_soft_rgb_mean_diff=float(np.mean(diff)),
                       culled_soft_pixels_off=int(np.sum(np.max(diff, -1) > 0.01)))
+    return rows
+
+
+def observations(scenes, with_jax, S=64, B=16, repeats=5):
+    """A batch of ``B`` arm tasks' image observations (``ArmTask.image_observation``'s pixels,
+    ``S`` x ``S`` hard: what the image actor and Q learn from) a second, from ``B`` reset states
+    at the mount's default pose; with ``with_jax`` also with the C++ kernel off, interleaved."""
+    from twinrl import envs
+
+    rows = []
+    for scene in [s for s in scenes if s in ARM_TASKS]:
+        env = envs.make(scene)
+        states = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), B))
+        coords = jnp.broadcast_to(jnp.asarray(env.mount.default, jnp.float32), (B, 3))
+
+        def obs(s, c, env=env):
+            return env.image_observation(s, c, size=S, keys=("pixels/mount",))["pixels/mount"]
+
+        print(f"[bench] {scene} image observations {S}x{S} batch {B} ...", flush=True)
+        cases = {"new": {"observation": (jax.jit(jax.vmap(obs)).lower(states, coords).compile(),
+                                         (states, coords))}}
+        if with_jax:
+            with native.disabled():
+                cases["jax"] = {"observation": (
+                    jax.jit(jax.vmap(obs)).lower(states, coords).compile(), (states, coords))}
+        best = _time_interleaved(cases, repeats)
+        row = {"scene": scene, "size": S, "batch": B, "per_s": B / best["new", "observation"]}
+        if with_jax:
+            row["per_s_jax"] = B / best["jax", "observation"]
+            row["speedup_vs_jax"] = best["jax", "observation"] / best["new", "observation"]
+        rows.append(row)
     return rows
 
 
@@ -489,6 +522,13 @@ def main(argv=None):
                            ["scene", "geoms", "size", "batch", "mode", *cols],
                            [[r["scene"], r["geoms"], r["size"], r["batch"], r["mode"], *cells(r)]
                             for r in out["speed"]])
+        out["observations"] = observations(args.scenes, args.jax, repeats=args.repeats)
+        if out["observations"]:
+            report.print_table("image observations of the arm tasks (64x64 hard, batch 16)",
+                               ["scene", "per s"] + (["JAX per s", "vs JAX"] if args.jax else []),
+                               [[r["scene"], r["per_s"]]
+                                + ([r["per_s_jax"], r["speedup_vs_jax"]] if args.jax else [])
+                                for r in out["observations"]])
         if args.floor:
             out["floor"] = floor(repeats=args.repeats)
             report.print_table("the floor: the simplest soft image in JAX (64x64, batch 16)",
