@@ -133,9 +133,14 @@ def _cases(mods, m, d, cam_name, S, B, **create):
     camera module)}; label "jax": this renderer with the C++ kernel off)."""
     out = {}
     for label, (rmod, cmod) in mods.items():
-        with native.disabled() if label == "jax" else contextlib.nullcontext():
+        with _implementation(label):
             out[label] = _compiled(rmod, cmod, m, d, cam_name, S, B, **create)
     return out
+
+
+def _implementation(label):
+    """The context a label's functions are traced in: "jax" with the C++ kernel off."""
+    return native.disabled() if label == "jax" else contextlib.nullcontext()
 
 
 def _compiled(rmod, cmod, m, d, cam_name, S, B, **create):
@@ -270,12 +275,11 @@ def observations(scenes, with_jax, S=64, B=16, repeats=5):
             return env.image_observation(s, c, size=S, keys=("pixels/mount",))["pixels/mount"]
 
         print(f"[bench] {scene} image observations {S}x{S} batch {B} ...", flush=True)
-        cases = {"new": {"observation": (jax.jit(jax.vmap(obs)).lower(states, coords).compile(),
-                                         (states, coords))}}
-        if with_jax:
-            with native.disabled():
-                cases["jax"] = {"observation": (
-                    jax.jit(jax.vmap(obs)).lower(states, coords).compile(), (states, coords))}
+        cases = {}
+        for label in ["new"] + (["jax"] if with_jax else []):
+            with _implementation(label):
+                f = jax.jit(jax.vmap(obs)).lower(states, coords).compile()
+            cases[label] = {"observation": (f, (states, coords))}
         best = _time_interleaved(cases, repeats)
         row = {"scene": scene, "size": S, "batch": B, "per_s": B / best["new", "observation"]}
         if with_jax:

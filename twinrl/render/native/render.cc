@@ -24,6 +24,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <limits>
 #include <thread>
 #include <vector>
@@ -73,8 +74,10 @@ inline void to_world(const T* v, const T* m, T* out) {
 }
 
 // ------------------------------------------------------------------ first hits (local frame)
+// the nearer of the line's two parameters at distance `rad` from the origin (n: 2 or 3 axes);
+// false where it passes further away
 template <typename T>
-inline bool line_roots(const T* o, const T* r, int n, T rad, T& s0, T& s1) {
+inline bool line_root(const T* o, const T* r, int n, T rad, T& s0) {
   T A = n == 3 ? dot3(r, r) : r[0] * r[0] + r[1] * r[1];
   T B = n == 3 ? dot3(o, r) : o[0] * r[0] + o[1] * r[1];
   A = A > K<T>::eps ? A : K<T>::eps;
@@ -86,21 +89,20 @@ inline bool line_roots(const T* o, const T* r, int n, T rad, T& s0, T& s1) {
   T disc = A * (rad * rad - ll);
   T sq = disc > 0 ? std::sqrt(disc) : T(0);
   s0 = (-B - sq) / A;
-  s1 = (-B + sq) / A;
   return disc >= 0;
 }
 
 template <typename T>
 inline T hit_sphere(const T* o, const T* r, T rad) {
-  T s0, s1;
-  bool ok = line_roots(o, r, 3, rad, s0, s1);
+  T s0;
+  bool ok = line_root(o, r, 3, rad, s0);
   return ok ? first_positive(s0) : K<T>::inf();
 }
 
 template <typename T>
 inline T hit_tube(const T* o, const T* r, T rad, T h) {
-  T s0, s1;
-  bool ok = line_roots(o, r, 2, rad, s0, s1);
+  T s0;
+  bool ok = line_root(o, r, 2, rad, s0);
   T z = o[2] + s0 * r[2];
   bool good = ok && std::fabs(z) <= h && (r[0] * r[0] + r[1] * r[1]) > K<T>::eps;
   return good ? first_positive(s0) : K<T>::inf();
@@ -594,9 +596,9 @@ struct Scene {
   }
 };
 
-// per-thread scratch, one entry per surface slot
+// per-thread scratch, one entry per surface slot (a soft image has at most Scene::slots surfaces
+// a pixel, a hard one every geom)
 template <typename T>
-// (a soft image has at most Scene::slots surfaces a pixel, a hard one every geom)
 struct Scratch {
   // per surface: first hit, depth where it is placed, coverage, depth then distance, world
   // point, point in the geom's frame (for its normal, found only where it is shaded), albedo
@@ -605,21 +607,24 @@ struct Scratch {
   std::vector<T> lit, ahead;
   std::vector<T> ol, oo, rb;  // per geom, per frame
   int64_t frame = -1;
-  explicit Scratch(int slots, int G, int NL)
-      : Scratch(std::max(slots, G), G, NL, 0) {}
-  Scratch(int S, int G, int NL, int)
-      : s_hit(S), s_n(S), cover(S), z(S), p(3 * S), pl(3 * S), alb(4 * S), score(S), gid(S),
-        type(S), pick(S), lay(S), lit(std::max(NL, 1)), ahead(S * S), ol(3 * G), oo(G),
-        rb(G) {}
+  Scratch(int slots, int G, int NL) : lit(std::max(NL, 1)), ol(3 * G), oo(G), rb(G) {
+    const size_t S = std::max(slots, G);
+    for (auto* v : {&s_hit, &s_n, &cover, &z, &score}) v->resize(S);
+    for (auto* v : {&p, &pl}) v->resize(3 * S);
+    alb.resize(4 * S);
+    ahead.resize(S * S);
+    for (auto* v : {&gid, &type, &pick, &lay}) v->resize(S);
+  }
 };
 
 // ahead[g * S + k]: how much surface k lies in front of surface g (soft: a sigmoid of their depth
-// difference over gamma; hard: 0 or 1); only between surfaces that cover the pixel at all
+// difference over gamma; hard: 0 or 1); only between two surfaces that both cover the pixel,
+// the only pairs `composite` reads
 template <typename T>
 void depth_order(int S, const T* a, const T* z, bool soft, T gamma, T* ahead) {
   for (int g = 0; g < S; ++g)
     for (int k = g + 1; k < S; ++k) {
-      if (a[g] == 0 && a[k] == 0) continue;
+      if (a[g] == 0 || a[k] == 0) continue;
       if (soft) {
         T e = std::exp((z[k] - z[g]) / gamma);  // sigmoid((z_g - z_k) / gamma) = 1 / (1 + e)
         ahead[g * S + k] = T(1) / (T(1) + e);
@@ -654,8 +659,7 @@ void composite(int S, const T* a, const T* ahead, T* w, T& bg) {
 }
 
 template <typename T>
-void draw_pixel(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, int H, int W,
-                Scratch<T>& X, T* rgb, T* depth, int32_t* seg, int32_t* body, T* weights,
+void draw_pixel(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, Scratch<T>& X, T* rgb, T* depth, int32_t* seg, int32_t* body, T* weights,
                 T* background) {
   // X.ol / X.oo / X.rb: the camera in each geom's frame, its squared distance from the geom's
   // centre and the geom's bounding radius (per frame: set by the caller)
@@ -839,9 +843,8 @@ ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::ResultBuffer<DT
   const int G = sc.G;
   if (int64_t(cam.element_count()) != N * 15 || int64_t(geo.element_count()) != N * G * 19)
     return ffi::Error::InvalidArgument("camera or geom batch does not match the image batch");
-  bool too_many = sc.slots > 64 || G > 64;
-  for (const auto& grp : sc.groups) too_many |= grp.second.size() > 64;
-  if (too_many) return ffi::Error::InvalidArgument("more than 64 surfaces or geoms of one type");
+  if (sc.slots > 64 || G > 64)
+    return ffi::Error::InvalidArgument("more than 64 geoms or surfaces a pixel");
   const T* camp = cam.typed_data();
   const T* geop = geo.typed_data();
   T* rgbp = rgb->typed_data();
@@ -869,7 +872,7 @@ ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::ResultBuffer<DT
       }
       for (int64_t j = 0; j < W; ++j) {
         int64_t px = (b * H + i) * W + j;
-        draw_pixel(sc, c, g, int(i), int(j), int(H), int(W), X, rgbp + 3 * px, depp + px,
+        draw_pixel(sc, c, g, int(i), int(j), X, rgbp + 3 * px, depp + px,
                    segp + px, bodp + px, wp + int64_t(G) * px, bgp + px);
       }
     }
