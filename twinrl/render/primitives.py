@@ -71,7 +71,8 @@ def _safe_sqrt(x):
 
 
 def _safe_div(a, b):
-    return a / jnp.where(jnp.abs(b) > _EPS, b, jnp.where(b < 0, -_EPS, _EPS))
+    e = jnp.asarray(_EPS, jnp.result_type(b))
+    return a / jnp.where(jnp.abs(b) > e, b, jnp.where(b < 0, -e, e))
 
 
 def _first_positive(*cands):
@@ -438,7 +439,7 @@ def box_depth(o, r, size):
     constraints). The active pair is found without gradients and its crossing then solved
     differentiably, as in ``polyhedral_depth``; ``s`` is held constant (as a search result
     would be)."""
-    sg = jnp.where(r >= 0, 1.0, -1.0)
+    sg = jnp.where(r >= 0, 1.0, -1.0).astype(r.dtype)
     A = sg * r  # slopes |r_i|
     P = sg * o - size  # rising pieces' intercepts
     Q = -sg * o - size  # falling pieces' intercepts
@@ -574,7 +575,7 @@ def normal_cylinder(p, size, tn=None):
     # side normal (x, y, 0) / rxy, cap normal (0, 0, +-1), blended: no (..., 2, 3) stack
     side = (1.0 - w_cap) / rxy
     return jnp.stack([side * p[..., 0], side * p[..., 1],
-                      w_cap * jnp.where(p[..., 2] >= 0, 1.0, -1.0)], -1)
+                      w_cap * jnp.where(p[..., 2] >= 0, 1.0, -1.0).astype(p.dtype)], -1)
 
 
 def normal_box(p, size, tn=None):
@@ -591,7 +592,8 @@ def normal_box(p, size, tn=None):
         e = [jnp.exp((lo - x) / tn) for x in d]
         tot = e[0] + e[1] + e[2]
         w = [x / tot for x in e]
-    return jnp.stack([w[i] * jnp.where(p[..., i] >= 0, 1.0, -1.0) for i in range(3)], -1)
+    return jnp.stack([w[i] * jnp.where(p[..., i] >= 0, 1.0, -1.0).astype(p.dtype)
+                      for i in range(3)], -1)
 
 
 def normal_plane(p, size, tn=None):

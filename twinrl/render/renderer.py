@@ -31,9 +31,10 @@ pixel (``bench/render.py``'s sweep measures how much). A ray's first hit is foun
 and differentiated implicitly (``primitives.hit_implicit``); a ``jax.vmap``-ed render of more
 (pixel, surface) pairs than ``BATCH_ELEMENTS`` is drawn a chunk of cameras at a time, so that its
 arrays stay in the CPU's caches (``_render_batched``; derivatives go through the whole batch).
-An image nobody differentiates is drawn on the CPU by a C++ kernel of the same arithmetic
-(``twinrl.render.native``: each pixel start to finish, built on first use; JAX where there is no
-compiler, and for meshes); derivatives always go through this JAX version.
+On the CPU a C++ kernel of the same arithmetic draws the images (``twinrl.render.native``: each
+pixel start to finish, built on first use; JAX where there is no compiler, and for meshes), and
+its reverse pass gives their gradients (``jax.grad``, ``jax.vjp``); forward mode (``jax.jvp``,
+``jax.jacfwd``) and second derivatives go through this JAX version.
 
 Everything is a pure function of ``Camera`` and ``Geoms`` pytrees: jit, vmap (batches of cameras
 or scenes) and grad reach the camera pose and intrinsics, geom poses (``geom_xpos``/``geom_xmat``
@@ -52,6 +53,7 @@ import mujoco
 import numpy as np
 
 from twinrl._jaxconfig import exact_matmuls
+from twinrl.render import linear
 from twinrl.render import primitives as prim
 from twinrl.render.camera import Camera
 
@@ -535,8 +537,8 @@ class Renderer:
 
     # ------------------------------------------------------------------ shading
     def _albedo(self, rgba):
-        return jnp.where(jnp.asarray(self.use_mat_rgba)[:, None], jnp.asarray(self.mat_rgba),
-                         rgba)
+        return jnp.where(jnp.asarray(self.use_mat_rgba)[:, None],
+                         jnp.asarray(self.mat_rgba, rgba.dtype), rgba)
 
     def _light_dir(self, i, p):
         """Unit direction to light ``i``, its distance and its attenuation/spot factor at ``p``."""
@@ -582,15 +584,17 @@ class Renderer:
         hl = self.headlight
         if hl["active"]:
             l = jnp.broadcast_to(-forward, p.shape)
-            col = light(col, l, jnp.asarray(hl["ambient"]), jnp.asarray(hl["diffuse"]),
-                        jnp.asarray(hl["specular"]), jnp.ones(p.shape[:-1], p.dtype))
+            col = light(col, l, jnp.asarray(hl["ambient"], p.dtype),
+                        jnp.asarray(hl["diffuse"], p.dtype), jnp.asarray(hl["specular"], p.dtype),
+                        jnp.ones(p.shape[:-1], p.dtype))
         L = self.lights
         for i in range(len(L["type"])):
             l, _, factor = self._light_dir(i, p)
             if i in lit:
                 factor = factor * lit[i][..., None]
-            col = light(col, l, jnp.asarray(L["ambient"][i]), jnp.asarray(L["diffuse"][i]),
-                        jnp.asarray(L["specular"][i]), factor)
+            col = light(col, l, jnp.asarray(L["ambient"][i], p.dtype),
+                        jnp.asarray(L["diffuse"][i], p.dtype),
+                        jnp.asarray(L["specular"][i], p.dtype), factor)
         return jnp.clip(col, 0.0, 1.0)
 
     def _unoccluded(self, p, l, dist_l, skip, geoms):
@@ -787,7 +791,8 @@ class Renderer:
             depth = jnp.where(any_hit, jnp.min(s_hit, -1), self.far_depth)
         if oh is not None:  # back to every slot
             w = jnp.einsum("pl,pls->ps", w, oh)
-        return Images(rgb=rgb.reshape(H, W, 3), depth=depth.reshape(H, W), segmentation=seg,
+        return Images(rgb=rgb.astype(r.dtype).reshape(H, W, 3), depth=depth.reshape(H, W),
+                      segmentation=seg,
                       body=body, weights=self._per_geom(w, parts).reshape(H, W, G),
                       background=bg.reshape(H, W))
 
@@ -822,26 +827,50 @@ class Renderer:
         dt = jnp.result_type(camera.pos.dtype, geoms.xpos.dtype)
         return native.TARGETS.get(jnp.dtype(dt).name)
 
+    def _native_inputs(self, camera: Camera, geoms: Geoms, dt):
+        """The kernel's inputs: cam (15,) = position, xmat (row-major), pixel size, principal
+        point; geo (G, 19) = xpos, xmat, size, albedo of the renderer's geoms."""
+        xpos, xmat, size, rgba = self._select(geoms)
+        cx, cy = camera._principal()
+        cam = jnp.concatenate([camera.pos.astype(dt), camera.xmat.reshape(9).astype(dt),
+                               jnp.stack([camera.pixel_size(), cx, cy]).astype(dt)])
+        geo = jnp.concatenate([xpos, xmat.reshape(self.ngeom, 9), size, self._albedo(rgba)],
+                              -1).astype(dt)
+        return cam, geo
+
+    def _native_call(self, target: str, outs, tau: float, gamma: float, *args):
+        call = jax.ffi.ffi_call(target, outs, vmap_method="broadcast_all")
+        scal = np.asarray([self.near, self.far, self.far_depth, tau, gamma], np.float64)
+        return call(*args, scal=scal, **self._native_attrs)
+
     def _render_native(self, camera: Camera, geoms: Geoms, tau: float, gamma: float,
                        target: str) -> Images:
         """``_render``'s values from the C++ kernel (no derivatives: see ``_render_batched``)."""
         dt = jnp.result_type(camera.pos.dtype, geoms.xpos.dtype)
-        xpos, xmat, size, rgba = self._select(geoms)
+        cam, geo = self._native_inputs(camera, geoms, dt)
         G, H, W = self.ngeom, camera.height, camera.width
-        cx, cy = camera._principal()
-        cam = jnp.concatenate([camera.pos.astype(dt), camera.xmat.reshape(9).astype(dt),
-                               jnp.stack([camera.pixel_size(), cx, cy]).astype(dt)])
-        geo = jnp.concatenate([xpos, xmat.reshape(G, 9), size, self._albedo(rgba)],
-                              -1).astype(dt)
         sds = jax.ShapeDtypeStruct
-        call = jax.ffi.ffi_call(
+        rgb, depth, seg, body, w, bg = self._native_call(
             target, (sds((H, W, 3), dt), sds((H, W), dt), sds((H, W), jnp.int32),
                      sds((H, W), jnp.int32), sds((H, W, G), dt), sds((H, W), dt)),
-            vmap_method="broadcast_all")
-        scal = np.asarray([self.near, self.far, self.far_depth, tau, gamma], np.float64)
-        rgb, depth, seg, body, w, bg = call(cam, geo, scal=scal, **self._native_attrs)
+            tau, gamma, cam, geo)
         return Images(rgb=rgb, depth=depth, segmentation=seg, body=body, weights=w,
                       background=bg)
+
+    def _pullback_native(self, camera: Camera, geoms: Geoms, ct: Images, tau: float,
+                         gamma: float, target: str):
+        """The cotangents of ``camera`` and ``geoms`` from those of an image (``ct``): the C++
+        reverse kernel, then the packing of its inputs (``_native_inputs``) in JAX."""
+        from twinrl.render import native
+
+        dt = jnp.result_type(camera.pos.dtype, geoms.xpos.dtype)
+        (cam, geo), pull = jax.vjp(lambda c, g: self._native_inputs(c, g, dt), camera, geoms)
+        sds = jax.ShapeDtypeStruct
+        gcam, ggeo = self._native_call(
+            native.VJP_TARGETS[target], (sds(cam.shape, dt), sds(geo.shape, dt)), tau, gamma,
+            cam, geo, *(jnp.asarray(x, dt) for x in (ct.rgb, ct.depth, ct.weights,
+                                                      ct.background)))
+        return pull((gcam, ggeo))
 
     def _per_geom(self, w, parts):
         """Slot weights (P, S) back to geoms (P, G), in renderer order."""
@@ -890,12 +919,12 @@ at 64x64 (``bench/render.py``)."""
 
 
 def _render_batched(R, camera, geoms, tau, gamma, target=None):
-    """``R._render``, the same function under every transformation, except where nobody
-    differentiates it: there the C++ kernel draws it (``target``, its FFI target; None: JAX),
-    and a ``jax.vmap`` of the JAX version draws a large batch in chunks of ``R.batch_chunk``
-    cameras (``lax.map``) rather than as one array program. Derivatives (``custom_jvp``:
-    forward and reverse mode) go through ``R._render`` as before: a custom VJP (chunks, the
-    kernel) would leave ``jax.jacfwd`` (visual Real2Sim's Jacobians) nothing to go through."""
+    """``R._render``, the same function under every transformation, drawn by the C++ kernel
+    where there is one (``target``, its FFI target; None: JAX), else by a ``jax.vmap`` of the
+    JAX version in chunks of ``R.batch_chunk`` cameras (``lax.map``) rather than as one array
+    program. Its JVP (``custom_jvp``) is ``R._render``'s, whose reverse mode is the kernel's
+    reverse pass (``linear.jvp_with_pullback``: a custom VJP alone would leave ``jax.jacfwd``,
+    visual Real2Sim's Jacobians, nothing to go through)."""
 
     def plain(c, g):
         return R._render(c, g, tau, gamma)
@@ -928,9 +957,25 @@ def _render_batched(R, camera, geoms, tau, gamma, target=None):
     def render(c, g):
         return chunked(c, g)
 
+    def through_jax(cg, ct):
+        return jax.vjp(plain, *cg)[1](ct)
+
+    @jax.custom_jvp
+    def pullback(cg, ct):
+        return R._pullback_native(*cg, ct, tau, gamma, target)
+
+    @pullback.defjvp
+    def _pullback_jvp(primals, tangents):  # second derivatives: through JAX
+        return jax.jvp(through_jax, primals, tangents)
+
     @render.defjvp
     def _jvp(primals, tangents):
-        return jax.jvp(plain, primals, tangents)
+        if target is None:
+            return jax.jvp(plain, primals, tangents)
+        # the kernel draws the image; forward mode differentiates the JAX renderer, reverse
+        # mode runs the kernel's reverse pass (``linear.jvp_with_pullback``)
+        t = linear.jvp_with_pullback(lambda cg: plain(*cg), pullback, primals, tangents)
+        return render(*primals), t  # (itself: differentiable again, e.g. a Hessian)
 
     return render(camera, geoms)
 

@@ -1,11 +1,13 @@
-"""The renderer's image without derivatives, in C++: an XLA FFI custom call on the CPU.
+"""The renderer's images and their gradients in C++: XLA FFI custom calls on the CPU.
 
-``Renderer.render`` draws an image nobody differentiates (an image observation, a real twin's
-frame, a batch of views for the actor and Q) with ``render.cc``: the same arithmetic as the JAX
+``Renderer.render`` draws its images with ``render.cc``: the same arithmetic as the JAX
 renderer, each pixel start to finish, the rows split across the cores, where XLA runs the JAX
-version as hundreds of passes over (pixel, surface) arrays. Derivatives (``jax.grad``,
-``jax.jvp``, ``jax.jacfwd``) still go through the JAX version (the render's custom JVP), so
-everything differentiable is as before. Scenes with meshes stay in JAX.
+version as hundreds of passes over (pixel, surface) arrays. Reverse-mode derivatives
+(``jax.grad``, ``jax.vjp``, ``jax.jacrev``) run its reverse pass: each pixel drawn again and
+differentiated backwards, by hand through compositing and shading and on forward-mode numbers
+through each surface's geometry, into the camera's and the geoms' cotangents. Forward mode
+(``jax.jvp``, ``jax.jacfwd``) and second derivatives go through the JAX version (the render's
+custom JVP, ``twinrl.render.linear``). Scenes with meshes stay in JAX.
 
 The library is compiled on first use with the system's C++ compiler (``$CXX``, else ``g++``,
 ``c++`` or ``clang++``; a few seconds, once) into the compilation cache directory
@@ -30,10 +32,12 @@ from pathlib import Path
 
 import jax
 
-__all__ = ["available", "disabled", "status", "library", "SOURCE", "TARGETS"]
+__all__ = ["available", "disabled", "status", "library", "SOURCE", "TARGETS", "VJP_TARGETS"]
 
 SOURCE = Path(__file__).with_name("render.cc")
 TARGETS = {"float32": "twinrl_render_f32", "float64": "twinrl_render_f64"}
+VJP_TARGETS = {"twinrl_render_f32": "twinrl_render_vjp_f32",
+               "twinrl_render_f64": "twinrl_render_vjp_f64"}
 FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fno-math-errno",
          "-pthread"]
 
@@ -108,8 +112,11 @@ def _load() -> tuple[Path | None, str]:
         path = _build(cxx)
         lib = ctypes.CDLL(str(path))
         for dtype, name in TARGETS.items():
-            sym = getattr(lib, "TwinrlRender" + ("F32" if dtype == "float32" else "F64"))
-            jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(sym), platform="cpu")
+            suffix = "F32" if dtype == "float32" else "F64"
+            for target, sym in ((name, "TwinrlRender" + suffix),
+                                (VJP_TARGETS[name], "TwinrlRenderVjp" + suffix)):
+                jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, sym)),
+                                            platform="cpu")
     except (OSError, RuntimeError, AttributeError) as e:
         return None, f"not built: {e}"
     return path, f"on ({path})"
@@ -130,7 +137,8 @@ def disabled():
 
 
 def available() -> bool:
-    """Whether images without derivatives are drawn by the C++ kernel (built on first call)."""
+    """Whether images (and their reverse-mode gradients) are drawn by the C++ kernel (built
+    on first call)."""
     return not _OFF and _load()[0] is not None
 
 
