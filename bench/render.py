@@ -149,8 +149,10 @@ def _compiled(rmod, cmod, m, d, cam_name, S, B, **create):
     g = rmod.Geoms.from_mujoco(m, d)
     cam = cmod.Camera.from_mujoco(m, d, cam_name, S, S)
     target = R.render(cam, g, tau=TAU).rgb
+    # every camera off the target's (batch 1 too): the reverse kernel skips pixels whose
+    # cotangent is 0, and a frame equal to its target would cost nothing
     cams = jax.tree_util.tree_map(
-        lambda x: jnp.stack([x] * B) + 0.001 * jnp.arange(B).reshape((B,) + (1,) * x.ndim),
+        lambda x: jnp.stack([x] * B) + 0.001 * (jnp.arange(B) + 1).reshape((B,) + (1,) * x.ndim),
         cam)
 
     def loss(c, g):
