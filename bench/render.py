@@ -291,6 +291,49 @@ def observations(scenes, with_jax, S=64, B=16, repeats=5):
     return rows
 
 
+def selections(scenes, with_jax, S=64, repeats=3):
+    """Seconds per camera choice (``sensing.select_camera``: ``SensingConfig``'s restarts and
+    Adam steps of the pose through the soft image, then the hard image's score of the checked
+    iterates) on each arm task at its reset state, ``S`` x ``S`` views. The networks are
+    stand-ins (the actor acts 0; Q is the target's share of the view), so the time is the
+    renderer's and its gradient's; with ``with_jax`` also with the C++ kernel off."""
+    from twinrl import envs
+    from twinrl.learn import sensing
+    from twinrl.learn.networks import Network, NetworkConfig
+
+    rows = []
+    cfg = sensing.SensingConfig()
+    for scene in [s for s in scenes if s in ARM_TASKS]:
+        env = envs.make(scene)
+        spec = {"state": (env.observation_size,), "pixels/mount": (S, S, 5)}
+        na = env.action_size
+        actor = Network(lambda k: {}, lambda p, o, na=na: jnp.zeros(o["state"].shape[:-1] + (na,)),
+                        0, na, NetworkConfig(), spec)
+        q = Network(lambda k: {}, lambda p, o: jnp.mean(o["pixels/mount"][..., 4],
+                                                        axis=(-2, -1))[..., None],
+                    0, 1, NetworkConfig(), {**spec, "action": (na,)})
+        state = env.reset(jax.random.PRNGKey(0))
+        key = jax.random.PRNGKey(1)
+
+        def choose(st, k, env=env, q=q, actor=actor):
+            return sensing.select_camera(env, q, {}, actor, {}, st, k, cfg).coords
+
+        print(f"[bench] {scene} camera choice {S}x{S} ...", flush=True)
+        cases = {}
+        for label in ["new"] + (["jax"] if with_jax else []):
+            with _implementation(label):
+                f = jax.jit(choose).lower(state, key).compile()
+            cases[label] = {"choice": (f, (state, key))}
+        best = _time_interleaved(cases, repeats)
+        row = {"scene": scene, "size": S, "restarts": cfg.restarts, "steps": cfg.ascent_steps,
+               "seconds": best["new", "choice"]}
+        if with_jax:
+            row["seconds_jax"] = best["jax", "choice"]
+            row["speedup_vs_jax"] = best["jax", "choice"] / best["new", "choice"]
+        rows.append(row)
+    return rows
+
+
 def floor(S=64, B=16, n=4, repeats=5):
     """The simplest soft image XLA can be asked for, timed like the renderer: ``n`` spheres in
     front of the camera, each pixel's coverage a sigmoid of its ray's distance to the sphere (in
@@ -483,8 +526,8 @@ def main(argv=None):
     ap.add_argument("--baseline", default=None, metavar="REF",
                     help="also time twinrl/render of this git revision, interleaved")
     ap.add_argument("--jax", action="store_true",
-                    help="also time this renderer with its C++ kernel off (images without "
-                         "derivatives drawn in JAX, as before the kernel), interleaved")
+                    help="also time this renderer with its C++ kernel off (images and their "
+                         "gradients drawn in JAX, as before the kernel), interleaved")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--no-floor", dest="floor", action="store_false",
                     help="skip the floor (the simplest soft image in JAX, timed alike)")
@@ -535,6 +578,14 @@ def main(argv=None):
                                [[r["scene"], r["per_s"]]
                                 + ([r["per_s_jax"], r["speedup_vs_jax"]] if args.jax else [])
                                 for r in out["observations"]])
+        out["selections"] = selections(args.scenes, args.jax)
+        if out["selections"]:
+            report.print_table("camera choice on the arm tasks (sensing.select_camera, 64x64)",
+                               ["scene", "restarts x steps", "seconds"]
+                               + (["JAX seconds", "vs JAX"] if args.jax else []),
+                               [[r["scene"], f"{r['restarts']} x {r['steps']}", r["seconds"]]
+                                + ([r["seconds_jax"], r["speedup_vs_jax"]] if args.jax else [])
+                                for r in out["selections"]])
         if args.floor:
             out["floor"] = floor(repeats=args.repeats)
             report.print_table("the floor: the simplest soft image in JAX (64x64, batch 16)",

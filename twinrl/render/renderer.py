@@ -51,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
 from twinrl._jaxconfig import exact_matmuls
 from twinrl.render import linear
@@ -647,7 +648,8 @@ class Renderer:
             # traces with and without the C++ kernel are kept apart
             return _render_jit(self, camera, geoms, float(tau), float(gamma),
                                self._native_target(camera, geoms))
-        return self._render(camera, geoms, tau, gamma)
+        return _render_batched(self, camera, geoms, tau, gamma,
+                               self._native_target(camera, geoms))
 
     def surfaces(self) -> int:
         """How many surfaces each pixel's ray is tested against (per-pixel culling included;
@@ -838,14 +840,14 @@ class Renderer:
                               -1).astype(dt)
         return cam, geo
 
-    def _native_call(self, target: str, outs, tau: float, gamma: float, *args):
+    def _native_call(self, target: str, outs, *args):
         call = jax.ffi.ffi_call(target, outs, vmap_method="broadcast_all")
-        scal = np.asarray([self.near, self.far, self.far_depth, tau, gamma], np.float64)
+        scal = np.asarray([self.near, self.far, self.far_depth], np.float64)
         return call(*args, scal=scal, **self._native_attrs)
 
-    def _render_native(self, camera: Camera, geoms: Geoms, tau: float, gamma: float,
-                       target: str) -> Images:
-        """``_render``'s values from the C++ kernel (no derivatives: see ``_render_batched``)."""
+    def _render_native(self, camera: Camera, geoms: Geoms, tg, target: str) -> Images:
+        """``_render``'s values from the C++ kernel (``tg``: tau and gamma; derivatives: see
+        ``_render_batched``)."""
         dt = jnp.result_type(camera.pos.dtype, geoms.xpos.dtype)
         cam, geo = self._native_inputs(camera, geoms, dt)
         G, H, W = self.ngeom, camera.height, camera.width
@@ -853,12 +855,11 @@ class Renderer:
         rgb, depth, seg, body, w, bg = self._native_call(
             target, (sds((H, W, 3), dt), sds((H, W), dt), sds((H, W), jnp.int32),
                      sds((H, W), jnp.int32), sds((H, W, G), dt), sds((H, W), dt)),
-            tau, gamma, cam, geo)
+            cam, geo, jnp.asarray(tg, dt))
         return Images(rgb=rgb, depth=depth, segmentation=seg, body=body, weights=w,
                       background=bg)
 
-    def _pullback_native(self, camera: Camera, geoms: Geoms, ct: Images, tau: float,
-                         gamma: float, target: str):
+    def _pullback_native(self, camera: Camera, geoms: Geoms, tg, ct: Images, target: str):
         """The cotangents of ``camera`` and ``geoms`` from those of an image (``ct``): the C++
         reverse kernel, then the packing of its inputs (``_native_inputs``) in JAX."""
         from twinrl.render import native
@@ -867,9 +868,9 @@ class Renderer:
         (cam, geo), pull = jax.vjp(lambda c, g: self._native_inputs(c, g, dt), camera, geoms)
         sds = jax.ShapeDtypeStruct
         gcam, ggeo = self._native_call(
-            native.VJP_TARGETS[target], (sds(cam.shape, dt), sds(geo.shape, dt)), tau, gamma,
-            cam, geo, *(jnp.asarray(x, dt) for x in (ct.rgb, ct.depth, ct.weights,
-                                                      ct.background)))
+            native.VJP_TARGETS[target], (sds(cam.shape, dt), sds(geo.shape, dt)), cam, geo,
+            jnp.asarray(tg, dt), *(jnp.asarray(x, dt) for x in (ct.rgb, ct.depth, ct.weights,
+                                                                 ct.background)))
         return pull((gcam, ggeo))
 
     def _per_geom(self, w, parts):
@@ -926,19 +927,28 @@ def _render_batched(R, camera, geoms, tau, gamma, target=None):
     reverse pass (``linear.jvp_with_pullback``: a custom VJP alone would leave ``jax.jacfwd``,
     visual Real2Sim's Jacobians, nothing to go through)."""
 
-    def plain(c, g):
-        return R._render(c, g, tau, gamma)
+    static = isinstance(tau, (int, float)) and isinstance(gamma, (int, float))
+    # NumPy leaves (a vmap's batched ones too, which stay NumPy inside the batch tracer) made
+    # arrays: custom_jvp takes only canonical arrays
+    camera, geoms = jax.tree_util.tree_map(lambda x: jnp.asarray(x) * 1, (camera, geoms))
+    dt = jnp.result_type(camera.pos.dtype, geoms.xpos.dtype)
+    # the temperatures travel as an argument (the kernel's input), so that a traced tau (an
+    # annealed fit's) is drawn by the kernel too; a Python tau stays static for JAX (0: hard)
+    tg = jnp.stack([jnp.asarray(tau, dt), jnp.asarray(gamma, dt)])
 
-    def primal(c, g):
-        return plain(c, g) if target is None else R._render_native(c, g, tau, gamma, target)
+    def plain(c, g, tg):
+        return R._render(c, g, tau if static else tg[0], gamma if static else tg[1])
+
+    def primal(c, g, tg):
+        return plain(c, g, tg) if target is None else R._render_native(c, g, tg, target)
 
     @jax.custom_batching.custom_vmap
-    def chunked(c, g):
-        return primal(c, g)
+    def chunked(c, g, tg):
+        return primal(c, g, tg)
 
     @chunked.def_vmap
-    def _rule(axis_size, in_batched, c, g):
-        leaves, tree = jax.tree_util.tree_flatten((c, g))
+    def _rule(axis_size, in_batched, c, g, tg):
+        leaves, tree = jax.tree_util.tree_flatten((c, g, tg))
         flags = tree.flatten_up_to(tuple(in_batched))
         batched = [x for x, b in zip(leaves, flags) if b]
 
@@ -954,30 +964,43 @@ def _render_batched(R, camera, geoms, tau, gamma, target=None):
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     @jax.custom_jvp
-    def render(c, g):
-        return chunked(c, g)
+    def render(c, g, tg):
+        return chunked(c, g, tg)
 
-    def through_jax(cg, ct):
-        return jax.vjp(plain, *cg)[1](ct)
+    def through_jax(cgt, ct):
+        return jax.vjp(plain, *cgt)[1](ct)
 
     @jax.custom_jvp
-    def pullback(cg, ct):
-        return R._pullback_native(*cg, ct, tau, gamma, target)
+    def pullback(cgt, ct):
+        c, g, tg = cgt
+        return (*R._pullback_native(c, g, tg, ct, target), jnp.zeros_like(tg))
 
     @pullback.defjvp
     def _pullback_jvp(primals, tangents):  # second derivatives: through JAX
         return jax.jvp(through_jax, primals, tangents)
 
-    @render.defjvp
     def _jvp(primals, tangents):
-        if target is None:
+        through_kernel = target is not None and isinstance(tangents[2], SymbolicZero)
+        tangents = jax.tree_util.tree_map(_instantiate, tangents,
+                                          is_leaf=lambda x: isinstance(x, SymbolicZero))
+        if not through_kernel:  # (or a derivative w.r.t. the temperatures: JAX has one)
             return jax.jvp(plain, primals, tangents)
         # the kernel draws the image; forward mode differentiates the JAX renderer, reverse
         # mode runs the kernel's reverse pass (``linear.jvp_with_pullback``)
-        t = linear.jvp_with_pullback(lambda cg: plain(*cg), pullback, primals, tangents)
+        t = linear.jvp_with_pullback(lambda cgt: plain(*cgt), pullback, primals, tangents)
         return render(*primals), t  # (itself: differentiable again, e.g. a Hessian)
 
-    return render(camera, geoms)
+    render.defjvp(_jvp, symbolic_zeros=True)
+    return render(camera, geoms, tg)
+
+
+def _instantiate(t):
+    """A symbolic zero tangent as an array (``float0`` for integer primals)."""
+    if not isinstance(t, SymbolicZero):
+        return t
+    if t.dtype == jax.dtypes.float0:
+        return np.zeros(t.shape, jax.dtypes.float0)
+    return jnp.zeros(t.shape, t.dtype)
 
 
 _render_jit = jax.jit(_render_batched, static_argnums=(0, 3, 4, 5))

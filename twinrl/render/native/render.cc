@@ -24,9 +24,10 @@
 //
 // Inputs: cam (..., 15) = pos (3), xmat (9, row-major; columns right, up, back), pixel size at
 // unit depth, principal column and row; geo (..., G, 19) = xpos (3), xmat (9), size (3), albedo
-// rgba (4), the renderer's geoms in its order. Outputs: rgb (..., H, W, 3), depth (..., H, W),
+// rgba (4), the renderer's geoms in its order; tg (..., 2) = the soft silhouette's temperature
+// tau in pixels (0: the hard image) and the depth order's gamma. Outputs: rgb (..., H, W, 3), depth (..., H, W),
 // segmentation and body ids (..., H, W) int32, weights (..., H, W, G), background (..., H, W).
-// The reverse pass takes cam, geo and the cotangents of rgb, depth, weights and background, and
+// The reverse pass takes cam, geo, tg and the cotangents of rgb, depth, weights and background, and
 // gives those of cam and geo.
 
 #include <algorithm>
@@ -671,7 +672,7 @@ struct Scene {
     head_on = c.headlight[0] != 0;
     for (int k = 0; k < 9; ++k) head[k] = T(c.headlight[1 + k]);
     near_ = T(c.scal[0]), far_ = T(c.scal[1]), far_depth = T(c.scal[2]);
-    tau = T(c.scal[3]), gamma = T(c.scal[4]);
+    tau = 0, gamma = 1;  // per frame (begin_frame)
     iters = c.opts[0], per_pixel = c.opts[1], cull_above = c.opts[2], layers = c.opts[3];
     shadows = c.opts[4] != 0;
     std::vector<int> ts(types);
@@ -1496,8 +1497,25 @@ int worker_count(int64_t rows) {
   return int(std::max<int64_t>(1, std::min<int64_t>(n, rows)));
 }
 
+// A worker's set-up for frame b: its temperatures (tg: tau, gamma per frame, so that a batch
+// may anneal them or trace them), the camera in each geom's frame, the bounding radii
+template <typename T>
+void begin_frame(Scene<T>& sc, Scratch<T>& X, const T* c, const T* g, const T* tg, int64_t b) {
+  if (X.frame == b) return;
+  sc.tau = tg[2 * b], sc.gamma = tg[2 * b + 1];
+  for (int k = 0; k < sc.G; ++k) {
+    const T* gp = g + 19 * k;
+    T d[3] = {c[0] - gp[0], c[1] - gp[1], c[2] - gp[2]};
+    to_local(d, gp + 3, &X.ol[3 * k]);
+    X.oo[k] = dot3(&X.ol[3 * k], &X.ol[3 * k]);
+    X.rb[k] = bound_radius(sc.types[k], gp + 12);
+  }
+  X.frame = b;
+}
+
 template <typename T, ffi::DataType DT>
-ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::ResultBuffer<DT> rgb,
+ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
+                  ffi::ResultBuffer<DT> rgb,
                   ffi::ResultBuffer<DT> depth, ffi::ResultBuffer<ffi::S32> seg,
                   ffi::ResultBuffer<ffi::S32> body, ffi::ResultBuffer<DT> weights,
                   ffi::ResultBuffer<DT> background, Config cfg) {
@@ -1507,12 +1525,14 @@ ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::ResultBuffer<DT
   const int64_t H = dims[dims.size() - 3], W = dims[dims.size() - 2];
   const int64_t N = int64_t(rgb->element_count()) / (H * W * 3);
   const int G = sc.G;
-  if (int64_t(cam.element_count()) != N * 15 || int64_t(geo.element_count()) != N * G * 19)
-    return ffi::Error::InvalidArgument("camera or geom batch does not match the image batch");
+  if (int64_t(cam.element_count()) != N * 15 || int64_t(geo.element_count()) != N * G * 19 ||
+      int64_t(tg.element_count()) != N * 2)
+    return ffi::Error::InvalidArgument("camera, geom or temperature batch does not match");
   if (sc.slots > 64 || G > 64)
     return ffi::Error::InvalidArgument("more than 64 geoms or surfaces a pixel");
   const T* camp = cam.typed_data();
   const T* geop = geo.typed_data();
+  const T* tgp = tg.typed_data();
   T* rgbp = rgb->typed_data();
   T* depp = depth->typed_data();
   int32_t* segp = seg->typed_data();
@@ -1521,24 +1541,16 @@ ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::ResultBuffer<DT
   T* bgp = background->typed_data();
   const int64_t rows = N * H;
   auto run = [&](int64_t r0, int64_t r1) {
+    Scene<T> S = sc;  // this worker's (its frames' temperatures)
     Scratch<T> X(sc.slots, G, sc.NL);
     for (int64_t row = r0; row < r1; ++row) {
       int64_t b = row / H, i = row % H;
       const T* c = camp + 15 * b;
       const T* g = geop + int64_t(19) * G * b;
-      if (X.frame != b) {  // the camera in each geom's frame
-        for (int k = 0; k < G; ++k) {
-          const T* gp = g + 19 * k;
-          T d[3] = {c[0] - gp[0], c[1] - gp[1], c[2] - gp[2]};
-          to_local(d, gp + 3, &X.ol[3 * k]);
-          X.oo[k] = dot3(&X.ol[3 * k], &X.ol[3 * k]);
-          X.rb[k] = bound_radius(sc.types[k], gp + 12);
-        }
-        X.frame = b;
-      }
+      begin_frame(S, X, c, g, tgp, b);
       for (int64_t j = 0; j < W; ++j) {
         int64_t px = (b * H + i) * W + j;
-        draw_pixel(sc, c, g, int(i), int(j), X, rgbp + 3 * px, depp + px,
+        draw_pixel(S, c, g, int(i), int(j), X, rgbp + 3 * px, depp + px,
                    segp + px, bodp + px, wp + int64_t(G) * px, bgp + px);
       }
     }
@@ -1561,7 +1573,8 @@ ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::ResultBuffer<DT
 // background to those of cam (..., 15) and geo (..., G, 19). Each worker adds its rows' pixels
 // into its own copy of the gradients; the copies are summed at the end.
 template <typename T, ffi::DataType DT>
-ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> c_rgb,
+ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
+                     ffi::Buffer<DT> c_rgb,
                      ffi::Buffer<DT> c_depth, ffi::Buffer<DT> c_w, ffi::Buffer<DT> c_bg,
                      ffi::ResultBuffer<DT> gcam, ffi::ResultBuffer<DT> ggeo, Config cfg) {
   Scene<T> sc(cfg);
@@ -1571,12 +1584,13 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> c
   const int64_t N = int64_t(c_rgb.element_count()) / (H * W * 3);
   const int G = sc.G;
   if (int64_t(cam.element_count()) != N * 15 || int64_t(geo.element_count()) != N * G * 19 ||
-      int64_t(c_w.element_count()) != N * H * W * G)
+      int64_t(tg.element_count()) != N * 2 || int64_t(c_w.element_count()) != N * H * W * G)
     return ffi::Error::InvalidArgument("camera, geom or cotangent batch does not match");
   if (sc.slots > 64 || G > 64)
     return ffi::Error::InvalidArgument("more than 64 geoms or surfaces a pixel");
   const T* camp = cam.typed_data();
   const T* geop = geo.typed_data();
+  const T* tgp = tg.typed_data();
   const T* crgb = c_rgb.typed_data();
   const T* cdep = c_depth.typed_data();
   const T* cw = c_w.typed_data();
@@ -1586,6 +1600,7 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> c
   int nw = worker_count(rows);
   std::vector<std::vector<T>> acc(nw, std::vector<T>(ncam + ngeo, T(0)));
   auto run = [&](int worker, int64_t r0, int64_t r1) {
+    Scene<T> S = sc;
     Scratch<T> X(sc.slots, G, sc.NL);
     T* gc = acc[worker].data();
     T* gg = gc + ncam;
@@ -1593,16 +1608,7 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> c
       int64_t b = row / H, i = row % H;
       const T* c = camp + 15 * b;
       const T* g = geop + int64_t(19) * G * b;
-      if (X.frame != b) {
-        for (int k = 0; k < G; ++k) {
-          const T* gp = g + 19 * k;
-          T d[3] = {c[0] - gp[0], c[1] - gp[1], c[2] - gp[2]};
-          to_local(d, gp + 3, &X.ol[3 * k]);
-          X.oo[k] = dot3(&X.ol[3 * k], &X.ol[3 * k]);
-          X.rb[k] = bound_radius(sc.types[k], gp + 12);
-        }
-        X.frame = b;
-      }
+      begin_frame(S, X, c, g, tgp, b);
       for (int64_t j = 0; j < W; ++j) {
         int64_t px = (b * H + i) * W + j;
         const T* cr = crgb + 3 * px;
@@ -1610,7 +1616,7 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> c
         bool zero = cr[0] == 0 && cr[1] == 0 && cr[2] == 0 && cdep[px] == 0 && cbg[px] == 0;
         for (int k = 0; zero && k < G; ++k) zero = cwp[k] == 0;
         if (zero) continue;  // (a crop's loss, a masked pixel)
-        draw_pixel_vjp(sc, c, g, int(i), int(j), X, cr, cdep[px], cwp, cbg[px], gc + 15 * b,
+        draw_pixel_vjp(S, c, g, int(i), int(j), X, cr, cdep[px], cwp, cbg[px], gc + 15 * b,
                        gg + int64_t(19) * G * b);
       }
     }
@@ -1645,6 +1651,7 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> c
   ffi::Ffi::Bind()                                        \
       .Arg<ffi::Buffer<DT>>()                             \
       .Arg<ffi::Buffer<DT>>()                             \
+      .Arg<ffi::Buffer<DT>>()                             \
       .Ret<ffi::Buffer<DT>>()                             \
       .Ret<ffi::Buffer<DT>>()                             \
       .Ret<ffi::Buffer<ffi::S32>>()                       \
@@ -1661,7 +1668,7 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> c
       .Attr<ffi::Span<const double>>("scal")
 
 template <typename T, ffi::DataType DT>
-static ffi::Error RenderEntry(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo,
+static ffi::Error RenderEntry(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
                               ffi::ResultBuffer<DT> rgb, ffi::ResultBuffer<DT> depth,
                               ffi::ResultBuffer<ffi::S32> seg, ffi::ResultBuffer<ffi::S32> body,
                               ffi::ResultBuffer<DT> weights, ffi::ResultBuffer<DT> background,
@@ -1670,7 +1677,7 @@ static ffi::Error RenderEntry(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo,
                               ffi::Span<const double> mat, ffi::Span<const double> lights,
                               ffi::Span<const double> headlight, ffi::Span<const double> scal) {
   Config cfg{types, gids, bodies, opts, mat, lights, headlight, scal};
-  return Render<T, DT>(cam, geo, rgb, depth, seg, body, weights, background, cfg);
+  return Render<T, DT>(cam, geo, tg, rgb, depth, seg, body, weights, background, cfg);
 }
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(TwinrlRenderF32, (RenderEntry<float, ffi::F32>), TWINRL_BIND(ffi::F32));
@@ -1684,6 +1691,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(TwinrlRenderF64, (RenderEntry<double, ffi::F64>), 
       .Arg<ffi::Buffer<DT>>()                             \
       .Arg<ffi::Buffer<DT>>()                             \
       .Arg<ffi::Buffer<DT>>()                             \
+      .Arg<ffi::Buffer<DT>>()                             \
       .Ret<ffi::Buffer<DT>>()                             \
       .Ret<ffi::Buffer<DT>>()                             \
       .Attr<ffi::Span<const int32_t>>("types")            \
@@ -1696,7 +1704,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(TwinrlRenderF64, (RenderEntry<double, ffi::F64>), 
       .Attr<ffi::Span<const double>>("scal")
 
 template <typename T, ffi::DataType DT>
-static ffi::Error RenderVjpEntry(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> c_rgb,
+static ffi::Error RenderVjpEntry(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
+                                 ffi::Buffer<DT> c_rgb,
                                  ffi::Buffer<DT> c_depth, ffi::Buffer<DT> c_w,
                                  ffi::Buffer<DT> c_bg, ffi::ResultBuffer<DT> gcam,
                                  ffi::ResultBuffer<DT> ggeo, ffi::Span<const int32_t> types,
@@ -1706,7 +1715,7 @@ static ffi::Error RenderVjpEntry(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::
                                  ffi::Span<const double> headlight,
                                  ffi::Span<const double> scal) {
   Config cfg{types, gids, bodies, opts, mat, lights, headlight, scal};
-  return RenderVjp<T, DT>(cam, geo, c_rgb, c_depth, c_w, c_bg, gcam, ggeo, cfg);
+  return RenderVjp<T, DT>(cam, geo, tg, c_rgb, c_depth, c_w, c_bg, gcam, ggeo, cfg);
 }
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(TwinrlRenderVjpF32, (RenderVjpEntry<float, ffi::F32>),
