@@ -1497,6 +1497,20 @@ int worker_count(int64_t rows) {
   return int(std::max<int64_t>(1, std::min<int64_t>(n, rows)));
 }
 
+// run(worker, r0, r1) on nw workers, rows [0, rows) split evenly; this thread is worker 0
+template <typename F>
+void parallel_rows(int nw, int64_t rows, const F& run) {
+  if (nw == 1) {
+    run(0, 0, rows);
+    return;
+  }
+  std::vector<std::thread> pool;
+  for (int k = 1; k < nw; ++k)
+    pool.emplace_back([&run, k, nw, rows] { run(k, rows * k / nw, rows * (k + 1) / nw); });
+  run(0, 0, rows / nw);
+  for (auto& t : pool) t.join();
+}
+
 // A worker's set-up for frame b: its temperatures (tg: tau, gamma per frame, so that a batch
 // may anneal them or trace them), the camera in each geom's frame, the bounding radii
 template <typename T>
@@ -1511,6 +1525,26 @@ void begin_frame(Scene<T>& sc, Scratch<T>& X, const T* c, const T* g, const T* t
     X.rb[k] = bound_radius(sc.types[k], gp + 12);
   }
   X.frame = b;
+}
+
+// pixel(worker, scene, scratch, cam, geo, frame, row, column, index) for every pixel of the
+// batch, the rows split over nw workers, each with its own copy of the scene (its frames'
+// temperatures) and its own scratch
+template <typename T, typename F>
+void for_pixels(const Scene<T>& sc, const T* camp, const T* geop, const T* tgp, int64_t N,
+                int64_t H, int64_t W, int nw, const F& pixel) {
+  parallel_rows(nw, N * H, [&](int worker, int64_t r0, int64_t r1) {
+    Scene<T> S = sc;
+    Scratch<T> X(sc.slots, sc.G, sc.NL);
+    for (int64_t row = r0; row < r1; ++row) {
+      int64_t b = row / H, i = row % H;
+      const T* c = camp + 15 * b;
+      const T* g = geop + int64_t(19) * sc.G * b;
+      begin_frame(S, X, c, g, tgp, b);
+      for (int64_t j = 0; j < W; ++j)
+        pixel(worker, S, X, c, g, b, int(i), int(j), (b * H + i) * W + j);
+    }
+  });
 }
 
 template <typename T, ffi::DataType DT>
@@ -1539,32 +1573,12 @@ ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
   int32_t* bodp = body->typed_data();
   T* wp = weights->typed_data();
   T* bgp = background->typed_data();
-  const int64_t rows = N * H;
-  auto run = [&](int64_t r0, int64_t r1) {
-    Scene<T> S = sc;  // this worker's (its frames' temperatures)
-    Scratch<T> X(sc.slots, G, sc.NL);
-    for (int64_t row = r0; row < r1; ++row) {
-      int64_t b = row / H, i = row % H;
-      const T* c = camp + 15 * b;
-      const T* g = geop + int64_t(19) * G * b;
-      begin_frame(S, X, c, g, tgp, b);
-      for (int64_t j = 0; j < W; ++j) {
-        int64_t px = (b * H + i) * W + j;
-        draw_pixel(S, c, g, int(i), int(j), X, rgbp + 3 * px, depp + px,
-                   segp + px, bodp + px, wp + int64_t(G) * px, bgp + px);
-      }
-    }
-  };
-  int nw = worker_count(rows);
-  if (nw == 1) {
-    run(0, rows);
-  } else {
-    std::vector<std::thread> pool;
-    for (int k = 1; k < nw; ++k)
-      pool.emplace_back(run, rows * k / nw, rows * (k + 1) / nw);
-    run(0, rows / nw);
-    for (auto& t : pool) t.join();
-  }
+  for_pixels(sc, camp, geop, tgp, N, H, W, worker_count(N * H),
+             [&](int, const Scene<T>& S, Scratch<T>& X, const T* c, const T* g, int64_t, int i,
+                 int j, int64_t px) {
+               draw_pixel(S, c, g, i, j, X, rgbp + 3 * px, depp + px, segp + px, bodp + px,
+                          wp + int64_t(G) * px, bgp + px);
+             });
   return ffi::Error::Success();
 }
 
@@ -1599,37 +1613,19 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> t
   const int64_t ncam = N * 15, ngeo = N * G * 19;
   int nw = worker_count(rows);
   std::vector<std::vector<T>> acc(nw, std::vector<T>(ncam + ngeo, T(0)));
-  auto run = [&](int worker, int64_t r0, int64_t r1) {
-    Scene<T> S = sc;
-    Scratch<T> X(sc.slots, G, sc.NL);
-    T* gc = acc[worker].data();
-    T* gg = gc + ncam;
-    for (int64_t row = r0; row < r1; ++row) {
-      int64_t b = row / H, i = row % H;
-      const T* c = camp + 15 * b;
-      const T* g = geop + int64_t(19) * G * b;
-      begin_frame(S, X, c, g, tgp, b);
-      for (int64_t j = 0; j < W; ++j) {
-        int64_t px = (b * H + i) * W + j;
-        const T* cr = crgb + 3 * px;
-        const T* cwp = cw + int64_t(G) * px;
-        bool zero = cr[0] == 0 && cr[1] == 0 && cr[2] == 0 && cdep[px] == 0 && cbg[px] == 0;
-        for (int k = 0; zero && k < G; ++k) zero = cwp[k] == 0;
-        if (zero) continue;  // (a crop's loss, a masked pixel)
-        draw_pixel_vjp(S, c, g, int(i), int(j), X, cr, cdep[px], cwp, cbg[px], gc + 15 * b,
-                       gg + int64_t(19) * G * b);
-      }
-    }
-  };
-  if (nw == 1) {
-    run(0, 0, rows);
-  } else {
-    std::vector<std::thread> pool;
-    for (int k = 1; k < nw; ++k)
-      pool.emplace_back(run, k, rows * k / nw, rows * (k + 1) / nw);
-    run(0, 0, rows / nw);
-    for (auto& t : pool) t.join();
-  }
+  for_pixels(sc, camp, geop, tgp, N, H, W, nw,
+             [&](int worker, const Scene<T>& S, Scratch<T>& X, const T* c, const T* g,
+                 int64_t b, int i, int j, int64_t px) {
+               const T* cr = crgb + 3 * px;
+               const T* cwp = cw + int64_t(G) * px;
+               bool zero = cr[0] == 0 && cr[1] == 0 && cr[2] == 0 && cdep[px] == 0 &&
+                           cbg[px] == 0;
+               for (int k = 0; zero && k < G; ++k) zero = cwp[k] == 0;
+               if (zero) return;  // (a crop's loss, a masked pixel)
+               T* gc = acc[worker].data();
+               draw_pixel_vjp(S, c, g, i, j, X, cr, cdep[px], cwp, cbg[px], gc + 15 * b,
+                              gc + ncam + int64_t(19) * G * b);
+             });
   T* oc = gcam->typed_data();
   T* og = ggeo->typed_data();
   for (int64_t q = 0; q < ncam; ++q) {
@@ -1647,6 +1643,17 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> t
 
 }  // namespace
 
+// the scene's attributes (Config), in both kernels' bindings
+#define TWINRL_ATTRS                                      \
+  .Attr<ffi::Span<const int32_t>>("types")                \
+      .Attr<ffi::Span<const int32_t>>("gids")             \
+      .Attr<ffi::Span<const int32_t>>("bodies")           \
+      .Attr<ffi::Span<const int32_t>>("opts")             \
+      .Attr<ffi::Span<const double>>("mat")               \
+      .Attr<ffi::Span<const double>>("lights")            \
+      .Attr<ffi::Span<const double>>("headlight")         \
+      .Attr<ffi::Span<const double>>("scal")
+
 #define TWINRL_BIND(DT)                                   \
   ffi::Ffi::Bind()                                        \
       .Arg<ffi::Buffer<DT>>()                             \
@@ -1658,14 +1665,7 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> t
       .Ret<ffi::Buffer<ffi::S32>>()                       \
       .Ret<ffi::Buffer<DT>>()                             \
       .Ret<ffi::Buffer<DT>>()                             \
-      .Attr<ffi::Span<const int32_t>>("types")            \
-      .Attr<ffi::Span<const int32_t>>("gids")             \
-      .Attr<ffi::Span<const int32_t>>("bodies")           \
-      .Attr<ffi::Span<const int32_t>>("opts")             \
-      .Attr<ffi::Span<const double>>("mat")               \
-      .Attr<ffi::Span<const double>>("lights")            \
-      .Attr<ffi::Span<const double>>("headlight")         \
-      .Attr<ffi::Span<const double>>("scal")
+      TWINRL_ATTRS
 
 template <typename T, ffi::DataType DT>
 static ffi::Error RenderEntry(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
@@ -1694,14 +1694,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(TwinrlRenderF64, (RenderEntry<double, ffi::F64>), 
       .Arg<ffi::Buffer<DT>>()                             \
       .Ret<ffi::Buffer<DT>>()                             \
       .Ret<ffi::Buffer<DT>>()                             \
-      .Attr<ffi::Span<const int32_t>>("types")            \
-      .Attr<ffi::Span<const int32_t>>("gids")             \
-      .Attr<ffi::Span<const int32_t>>("bodies")           \
-      .Attr<ffi::Span<const int32_t>>("opts")             \
-      .Attr<ffi::Span<const double>>("mat")               \
-      .Attr<ffi::Span<const double>>("lights")            \
-      .Attr<ffi::Span<const double>>("headlight")         \
-      .Attr<ffi::Span<const double>>("scal")
+      TWINRL_ATTRS
 
 template <typename T, ffi::DataType DT>
 static ffi::Error RenderVjpEntry(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
