@@ -321,8 +321,8 @@ def selections(scenes, with_jax, S=64, repeats=3):
         print(f"[bench] {scene} camera choice {S}x{S} ...", flush=True)
         cases = {}
         for label in ["new"] + (["jax"] if with_jax else []):
-            with _implementation(label):
-                f = jax.jit(choose).lower(state, key).compile()
+            with _implementation(label):  # (a new function each: jit caches traces by it)
+                f = jax.jit(lambda s, k: choose(s, k)).lower(state, key).compile()
             cases[label] = {"choice": (f, (state, key))}
         best = _time_interleaved(cases, repeats)
         row = {"scene": scene, "size": S, "restarts": cfg.restarts, "steps": cfg.ascent_steps,
