@@ -834,12 +834,14 @@ struct Scratch {
 
 // ahead[g * S + k]: how much surface k lies in front of surface g (soft: a sigmoid of their depth
 // difference over gamma; hard: 0 or 1); only between two surfaces that both cover the pixel,
-// the only pairs `composite` reads
+// the only pairs `composite` reads, unless every_pair (the reverse pass's composite_vjp reads
+// them all)
 template <typename T>
-void depth_order(int S, const T* a, const T* z, bool soft, T gamma, T* ahead) {
+void depth_order(int S, const T* a, const T* z, bool soft, T gamma, T* ahead,
+                 bool every_pair = false) {
   for (int g = 0; g < S; ++g)
     for (int k = g + 1; k < S; ++k) {
-      if (a[g] == 0 || a[k] == 0) continue;
+      if (!every_pair && (a[g] == 0 || a[k] == 0)) continue;
       if (soft) {
         T e = Exp((z[k] - z[g]) / gamma);  // sigmoid((z_g - z_k) / gamma) = 1 / (1 + e)
         ahead[g * S + k] = T(1) / (T(1) + e);
@@ -1398,12 +1400,7 @@ void draw_pixel_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i, int j
   }
   // the composites (the depth image's only where soft: the hard one's weights are constants)
   T* ahead = X.ahead.data();
-  for (int g = 0; g < L; ++g)
-    for (int k = 0; k < L; ++k) {
-      if (k == g) continue;
-      ahead[g * L + k] = soft ? T(1) / (T(1) + Exp((M.zz[k] - M.zz[g]) / sc.gamma))
-                              : T(M.zz[k] < M.zz[g] ? 1 : 0);
-    }
+  depth_order(L, M.a, M.zz, soft, sc.gamma, ahead, true);
   T dahead[64 * 64];
   for (int q = 0; q < L * L; ++q) dahead[q] = 0;
   composite_vjp(L, M.wa, ahead, d_wrgb, T(0), d_wa, dahead);
