@@ -29,8 +29,8 @@ def _inexact(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
-def _float0_like(x):
-    return np.zeros(np.shape(x), jax.dtypes.float0)
+def _float0(shape):
+    return np.zeros(shape, jax.dtypes.float0)
 
 
 class _Spec:
@@ -49,7 +49,8 @@ class _Spec:
     def tangents(self, leaves, dleaves):
         it = iter(dleaves)
         return jax.tree_util.tree_unflatten(
-            self.tree, [next(it) if d else _float0_like(x) for x, d in zip(leaves, self.diff)])
+            self.tree, [next(it) if d else _float0(np.shape(x))
+                        for x, d in zip(leaves, self.diff)])
 
     def jvp(self, *args):
         """Tangents of the differentiable outputs (a list) at primal leaves, along tangent
@@ -64,7 +65,7 @@ class _Spec:
         outputs."""
         it = iter(cts)
         ct = jax.tree_util.tree_unflatten(
-            self.out_tree, [next(it) if d else _float0_like(np.zeros(a.shape))
+            self.out_tree, [next(it) if d else _float0(a.shape)
                             for a, d in zip(self.out_avals, self.out_diff)])
         g = self.pullback(self.primals(leaves), ct)
         gl = self.tree.flatten_up_to(g)
@@ -84,14 +85,12 @@ def jvp_with_pullback(fun, pullback, primals, tangents):
     out_avals = tuple(jax.core.ShapedArray(o.shape, o.dtype) for o in out_leaves)
     out_diff = tuple(_inexact(o) for o in out_leaves)
     spec = _Spec(fun, pullback, tree, diff, out_tree, out_avals, out_diff)
-    dleaves = [ad.instantiate_zeros(t) if isinstance(t, ad.Zero) else t
-               for t, d in zip(tl, diff) if d]
-    dleaves = [jnp.asarray(t, x.dtype) for t, x in zip(dleaves, [x for x, d in zip(leaves, diff)
-                                                                 if d])]
+    dleaves = [jnp.asarray(ad.instantiate_zeros(t), x.dtype)
+               for t, x, d in zip(tl, leaves, diff) if d]
     res = _lin_p.bind(*leaves, *dleaves, spec=spec)
     it = iter(res)
     return jax.tree_util.tree_unflatten(
-        out_tree, [next(it) if d else _float0_like(np.zeros(a.shape))
+        out_tree, [next(it) if d else _float0(a.shape)
                    for a, d in zip(out_avals, out_diff)])
 
 
@@ -108,10 +107,7 @@ def _transpose(cts, *args, spec):
     leaves, dleaves = args[:n], args[n:]
     if any(ad.is_undefined_primal(x) for x in leaves):
         raise NotImplementedError("twinrl_linear is linear in its tangents only")
-    avals = [a for a, d in zip(spec.out_avals, spec.out_diff) if d]
-    cts = [jnp.zeros(a.shape, a.dtype) if isinstance(c, ad.Zero) else c
-           for c, a in zip(cts, avals)]
-    grads = spec.vjp(leaves, cts)
+    grads = spec.vjp(leaves, [ad.instantiate_zeros(c) for c in cts])
     return [None] * n + [g if ad.is_undefined_primal(t) else None
                          for g, t in zip(grads, dleaves)]
 
