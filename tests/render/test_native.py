@@ -227,3 +227,28 @@ def test_without_a_compiler_or_when_switched_off_jax_draws(monkeypatch, scene):
     with native.disabled():
         assert not native.available()
     assert native.available()
+
+
+def test_images_whose_size_leaves_partial_packets(scene):
+    """The kernel draws packets of pixels (a 4-column tile, one pixel a SIMD lane): at sizes no
+    tile divides, the lanes past the image's edge write nothing and add nothing to a gradient.
+    Hard and soft images, and the soft image's reverse pass, against JAX's in float64 and
+    float32 (their packets differ: half as many lanes in float64)."""
+    m, d = scene
+    R = Renderer.create(m)
+    rng = np.random.default_rng(1)
+    for dt, (W, H), atol, gtol in ((jnp.float64, (21, 13), 1e-8, 1e-6),
+                                   (jnp.float32, (19, 11), 2e-4, 2e-3)):
+        with jax.enable_x64(dt == jnp.float64):
+            g = Geoms.from_mujoco(m, d, dtype=dt)
+            cam = Camera.from_mujoco(m, d, "c", W, H, dtype=dt)
+            for tau in (0.0, 0.6):
+                ours, theirs = _both(R, cam, g, tau)
+                _close(ours, theirs, atol)
+            ct = {k: jnp.asarray(rng.normal(size=getattr(ours, k).shape), dt)
+                  for k in ("rgb", "depth", "weights", "background")}
+            a, b = _image_vjps(R, cam, g, 0.6, ct)
+            for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+                if y.size:
+                    scale = np.abs(np.asarray(y)).max()
+                    np.testing.assert_allclose(x, y, rtol=0, atol=gtol * scale + 1e-12)

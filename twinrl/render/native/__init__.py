@@ -38,7 +38,7 @@ SOURCE = Path(__file__).with_name("render.cc")
 TARGETS = {"float32": "twinrl_render_f32", "float64": "twinrl_render_f64"}
 VJP_TARGETS = {"twinrl_render_f32": "twinrl_render_vjp_f32",
                "twinrl_render_f64": "twinrl_render_vjp_f64"}
-FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fno-math-errno",
+FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fno-math-errno", "-Wno-psabi",
          "-pthread"]
 
 

@@ -5,35 +5,44 @@
 // and (soft image) closest approach and normal in its local frame, per-pixel culling of crowded
 // types, the `layers` most covering surfaces, front-to-back compositing with a smooth depth
 // order, hard shadow rays and OpenGL's fixed-function shading. XLA runs the JAX version as
-// hundreds of passes over (pixel, surface) arrays; here each pixel is drawn start to finish in
-// registers, the frames' rows split across the CPU's cores. The reverse pass (RenderVjp) draws
-// each pixel again and differentiates it backwards: by hand through the composite and the
-// shading, and through each surface's geometry on forward-mode Dual numbers (the same
-// templates, with JAX's own derivative rules where primitives.py defines them: a search's
-// result held constant, a cylinder's kinks). Forward mode stays with the JAX version
-// (renderer.py's custom JVP). Meshes are not drawn here (the Python side falls back to JAX).
+// hundreds of passes over (pixel, surface) arrays; here a packet of pixels (a small tile, one
+// pixel a SIMD lane: 16 float32 lanes where the CPU has AVX-512) is drawn start to finish in
+// registers, the frames' tile rows split across the CPU's cores. Every step is written for all
+// lanes at once: a branch of the per-pixel arithmetic is a lane mask and a select, and work that
+// no lane of a packet needs (a geom every ray misses, a surface no pixel shows, a silhouette
+// too far from every pixel) is skipped for the whole packet. What differs between a packet's
+// pixels (the geoms culling picks, the layers each composites) is held per lane. Type-dependent
+// geometry runs per surface slot (one primitive type for all lanes); compositing runs per layer.
+//
+// The reverse pass (RenderVjp) draws each packet again and differentiates it backwards: by hand
+// through the composite and the shading, and through each surface's geometry on forward-mode
+// Dual numbers of packets (the same templates, with JAX's own derivative rules where
+// primitives.py defines them: a search's result held constant, a cylinder's kinks). Forward
+// mode stays with the JAX version (renderer.py's custom JVP). Meshes are not drawn here (the
+// Python side falls back to JAX).
 //
 // What it skips leaves the image as JAX draws it: a ray that misses a geom's bounding sphere is
 // not intersected with it; a surface is shaded only where it adds to the pixel (weight > 1e-12);
-// a soft silhouette 30 tau pixels away (coverage < 1e-13) is not searched for. The hard image
-// and shadow rays test every geom, where JAX culls crowded types to the nearest few (exact
-// wherever those hold the first hit, resp. the occluder; culling only ever drops soft coverage).
-//
-// The reverse pass leaves out, besides, what adds under 1e-10 to a pixel: a surface whose
-// coverage is under that, a distance where the coverage's sigmoid is that flat.
+// a soft silhouette far from a pixel is not searched for: 30 tau pixels in float64 (coverage
+// under 1e-13), 18 tau pixels in float32 (under 1.5e-8, a quarter of float32's resolution at 1).
+// The hard image and shadow rays test every geom, where JAX culls crowded types to the nearest
+// few (exact wherever those hold the first hit, resp. the occluder; culling only ever drops soft
+// coverage). The reverse pass leaves out, besides, what adds under 1e-10 to a pixel: a surface
+// whose coverage is under that, a distance where the coverage's sigmoid is that flat.
 //
 // Inputs: cam (..., 15) = pos (3), xmat (9, row-major; columns right, up, back), pixel size at
 // unit depth, principal column and row; geo (..., G, 19) = xpos (3), xmat (9), size (3), albedo
 // rgba (4), the renderer's geoms in its order; tg (..., 2) = the soft silhouette's temperature
-// tau in pixels (0: the hard image) and the depth order's gamma. Outputs: rgb (..., H, W, 3), depth (..., H, W),
-// segmentation and body ids (..., H, W) int32, weights (..., H, W, G), background (..., H, W).
-// The reverse pass takes cam, geo, tg and the cotangents of rgb, depth, weights and background, and
-// gives those of cam and geo.
+// tau in pixels (0: the hard image) and the depth order's gamma. Outputs: rgb (..., H, W, 3),
+// depth (..., H, W), segmentation and body ids (..., H, W) int32, weights (..., H, W, G),
+// background (..., H, W). The reverse pass takes cam, geo, tg and the cotangents of rgb, depth,
+// weights and background, and gives those of cam and geo.
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
+#include <cstring>
 #include <limits>
 #include <thread>
 #include <vector>
@@ -51,29 +60,102 @@ namespace {
 constexpr int kLightStride = 22;  // type, pos 3, dir 3, ambient 3, diffuse 3, specular 3,
                                   // cutoff, exponent, attenuation 3, castshadow
 
+// ------------------------------------------------------------------ packets
+// P<T>: one value per lane (GCC's vector extension: the compiler emits the CPU's SIMD
+// instructions for the width it targets); Mask<T>: one truth value per lane. A packet converts
+// from a number by broadcasting it, so the geometry templates read as scalar code does, with
+// sel(mask, a, b) where scalar code would branch.
+#if defined(__AVX512F__)
+constexpr int kBytes = 64;
+#elif defined(__AVX__)
+constexpr int kBytes = 32;
+#else
+constexpr int kBytes = 16;
+#endif
+
+template <typename T> struct Ints;
+template <> struct Ints<float> { using type = int32_t; static constexpr int mant = 23, bias = 127; };
+template <> struct Ints<double> { using type = int64_t; static constexpr int mant = 52, bias = 1023; };
+
 template <typename T>
-struct K {
-  static T eps() { return T(1e-12); }
-  static T inf() { return T(std::numeric_limits<double>::infinity()); }
+struct Mask {
+  using I = typename Ints<T>::type;
+  typedef I VI __attribute__((vector_size(kBytes)));
+  static constexpr int N = kBytes / sizeof(T);
+  VI v;
+  Mask() = default;
+  explicit Mask(VI x) : v(x) {}
+  Mask(bool b) : v(VI{} + I(b ? -1 : 0)) {}  // NOLINT: the scalar code's true / false
+  friend Mask operator&(Mask a, Mask b) { return Mask(a.v & b.v); }
+  friend Mask operator|(Mask a, Mask b) { return Mask(a.v | b.v); }
+  friend Mask operator&&(Mask a, Mask b) { return Mask(a.v & b.v); }
+  friend Mask operator||(Mask a, Mask b) { return Mask(a.v | b.v); }
+  friend Mask operator!(Mask a) { return Mask(~a.v); }
+  Mask& operator|=(Mask b) { v |= b.v; return *this; }
+  Mask& operator&=(Mask b) { v &= b.v; return *this; }
+  bool operator[](int l) const { return v[l] != 0; }
+};
+
+template <typename T> inline bool any(Mask<T> m) {
+  typename Mask<T>::I r = 0;
+  for (int l = 0; l < Mask<T>::N; ++l) r |= m.v[l];
+  return r != 0;
+}
+template <typename T> inline bool all(Mask<T> m) {
+  typename Mask<T>::I r = -1;
+  for (int l = 0; l < Mask<T>::N; ++l) r &= m.v[l];
+  return r != 0;
+}
+template <typename T> inline bool none(Mask<T> m) { return !any(m); }
+
+template <typename T>
+struct P {
+  static constexpr int N = kBytes / sizeof(T);
+  typedef T V __attribute__((vector_size(kBytes)));
+  using M = Mask<T>;
+  V v;
+  P() = default;
+  P(double x) : v(V{} + T(x)) {}  // NOLINT: constants broadcast
+  explicit P(V x) : v(x) {}
+  T operator[](int l) const { return v[l]; }
+  friend P operator+(P a, P b) { return P(a.v + b.v); }
+  friend P operator-(P a, P b) { return P(a.v - b.v); }
+  friend P operator*(P a, P b) { return P(a.v * b.v); }
+  friend P operator/(P a, P b) { return P(a.v / b.v); }
+  friend P operator-(P a) { return P(-a.v); }
+  P& operator+=(P b) { v += b.v; return *this; }
+  P& operator-=(P b) { v -= b.v; return *this; }
+  P& operator*=(P b) { v *= b.v; return *this; }
+  P& operator/=(P b) { v /= b.v; return *this; }
+  friend M operator<(P a, P b) { return M(a.v < b.v); }
+  friend M operator>(P a, P b) { return M(a.v > b.v); }
+  friend M operator<=(P a, P b) { return M(a.v <= b.v); }
+  friend M operator>=(P a, P b) { return M(a.v >= b.v); }
+  friend M operator==(P a, P b) { return M(a.v == b.v); }
+  friend M operator!=(P a, P b) { return M(a.v != b.v); }
+  friend P sel(M m, P a, P b) { return P(m.v ? a.v : b.v); }
 };
 
 // ------------------------------------------------------------------ forward-mode numbers
-// Dual<T, N>: a value and its derivatives along N directions. The reverse kernel (draw_pixel_vjp)
+// Dual<T, N>: a value and its derivatives along N directions (T: a packet). The reverse kernel
 // runs each surface's geometry (hit, closest approach, normal: the same templates the image
 // uses) on these, seeded with the surface's 10 inputs, to get their Jacobian; the rest of a
 // pixel (compositing, shading) is differentiated by hand. Ties of min / max / |x| split as JAX's
 // derivatives do (half each; |x|' = 0 at 0), so that both give the same gradient.
 template <typename T, int N>
 struct Dual {
+  using M = typename T::M;
   T v;
   T d[N];
   Dual() = default;
   Dual(double x) : v(T(x)) {  // NOLINT: constants mix freely
     for (int k = 0; k < N; ++k) d[k] = T(0);
   }
-  static Dual seed(T x, int k) {
-    Dual r(0.0);
-    r.v = x;
+  explicit Dual(const T& x) : v(x) {  // a packet held constant
+    for (int k = 0; k < N; ++k) d[k] = T(0);
+  }
+  static Dual seed(const T& x, int k) {
+    Dual r(x);
     r.d[k] = T(1);
     return r;
   }
@@ -112,70 +194,162 @@ struct Dual {
   Dual& operator-=(const Dual& b) { return *this = *this - b; }
   Dual& operator*=(const Dual& b) { return *this = *this * b; }
   Dual& operator/=(const Dual& b) { return *this = *this / b; }
-  friend bool operator<(const Dual& a, const Dual& b) { return a.v < b.v; }
-  friend bool operator>(const Dual& a, const Dual& b) { return a.v > b.v; }
-  friend bool operator<=(const Dual& a, const Dual& b) { return a.v <= b.v; }
-  friend bool operator>=(const Dual& a, const Dual& b) { return a.v >= b.v; }
-  friend bool operator==(const Dual& a, const Dual& b) { return a.v == b.v; }
-  friend bool operator!=(const Dual& a, const Dual& b) { return a.v != b.v; }
+  friend M operator<(const Dual& a, const Dual& b) { return a.v < b.v; }
+  friend M operator>(const Dual& a, const Dual& b) { return a.v > b.v; }
+  friend M operator<=(const Dual& a, const Dual& b) { return a.v <= b.v; }
+  friend M operator>=(const Dual& a, const Dual& b) { return a.v >= b.v; }
+  friend M operator==(const Dual& a, const Dual& b) { return a.v == b.v; }
+  friend M operator!=(const Dual& a, const Dual& b) { return a.v != b.v; }
+  friend Dual sel(M m, const Dual& a, const Dual& b) {
+    Dual r;
+    r.v = sel(m, a.v, b.v);
+    for (int k = 0; k < N; ++k) r.d[k] = sel(m, a.d[k], b.d[k]);
+    return r;
+  }
 };
 
 template <typename T> struct IsDual { static constexpr bool value = false; };
 template <typename T, int N> struct IsDual<Dual<T, N>> { static constexpr bool value = true; };
 
-// a Dual's value (a plain number as it is) and the same number held constant (stop_gradient)
-template <typename T> inline T value(T x) { return x; }
+// a Dual's value (a packet as it is) and the same number held constant (stop_gradient)
+template <typename T> inline P<T> value(const P<T>& x) { return x; }
 template <typename T, int N> inline T value(const Dual<T, N>& x) { return x.v; }
-template <typename T> inline T constant(T x) { return x; }
+template <typename T> inline P<T> constant(const P<T>& x) { return x; }
 template <typename T, int N> inline Dual<T, N> constant(const Dual<T, N>& x) {
-  Dual<T, N> r(0.0);
-  r.v = x.v;
-  return r;
+  return Dual<T, N>(x.v);
 }
 template <typename T> struct Base { using type = T; };
 template <typename T, int N> struct Base<Dual<T, N>> { using type = T; };
+// the scalar type of a packet or a Dual of packets
+template <typename T> struct Scalar;
+template <typename T> struct Scalar<P<T>> { using type = T; };
+template <typename T, int N> struct Scalar<Dual<T, N>> { using type = typename Scalar<T>::type; };
+
+template <typename T>
+struct K {
+  static T eps() { return T(1e-12); }
+  static T inf() { return T(std::numeric_limits<double>::infinity()); }
+};
+
+// ------------------------------------------------------------------ packet arithmetic
+template <typename T>
+inline P<T> Sqrt(const P<T>& x) {
+  P<T> r;
+  for (int l = 0; l < P<T>::N; ++l) r.v[l] = std::sqrt(x.v[l]);
+  return r;
+}
+template <typename T>
+inline P<T> Fabs(const P<T>& x) {
+  using VI = typename Mask<T>::VI;
+  using I = typename Ints<T>::type;
+  const I keep = ~(I(1) << (8 * sizeof(T) - 1));
+  return P<T>((typename P<T>::V)((VI)x.v & keep));
+}
+template <typename T> inline Mask<T> Finite(const P<T>& x) { return (x - x) == P<T>(0.0); }
+template <typename T> inline P<T> Min(const P<T>& a, const P<T>& b) { return sel(b < a, b, a); }
+template <typename T> inline P<T> Max(const P<T>& a, const P<T>& b) { return sel(a < b, b, a); }
+
+// exp: 2^n exp(r), |r| <= ln2 / 2 (Cody-Waite), Taylor to below the type's rounding, 2^n as two
+// factors so that no intermediate leaves the normal range; overflow inf, underflow 0, NaN kept
+template <typename T>
+P<T> Exp(const P<T>& x) {
+  using IT = Ints<T>;
+  using VI = typename Mask<T>::VI;
+  using V = typename P<T>::V;
+  constexpr bool f32 = sizeof(T) == 4;
+  const P<T> hi(f32 ? 88.72283935546875 : 709.782712893384);
+  const P<T> lo(f32 ? -103.97208404541016 : -745.1332191019411);
+  P<T> xc = Min(Max(x, lo), hi);
+  const double magic = f32 ? 12582912.0 : 6755399441055744.0;  // 1.5 * 2^23, 1.5 * 2^52
+  P<T> n = (xc * P<T>(1.4426950408889634) + P<T>(magic)) - P<T>(magic);
+  P<T> r = xc - n * P<T>(f32 ? 0.693359375 : 6.93147180369123816490e-01);
+  r = r - n * P<T>(f32 ? -2.12194440e-4 : 1.90821492927058770002e-10);
+  const int deg = f32 ? 7 : 13;
+  double cf[14];
+  cf[0] = 1;
+  for (int k = 1; k <= deg; ++k) cf[k] = cf[k - 1] / k;  // 1 / k!
+  P<T> p(cf[deg]);
+  for (int k = deg - 1; k >= 0; --k) p = P<T>(cf[k]) + r * p;
+  VI ni = __builtin_convertvector(n.v, VI);
+  VI n1 = ni >> 1, n2 = ni - n1;
+  V s1 = (V)((n1 + typename IT::type(IT::bias)) << IT::mant);
+  V s2 = (V)((n2 + typename IT::type(IT::bias)) << IT::mant);
+  P<T> res = p * P<T>(s1) * P<T>(s2);
+  res = sel(x > hi, K<P<T>>::inf(), res);
+  res = sel(x < lo, P<T>(0.0), res);
+  return sel(x != x, x, res);
+}
+
+// log: x = 2^e m, m in [sqrt(1/2), sqrt(2)); log(1 + f) = f - f^2/2 + s (f^2/2 + R) with
+// s = f / (2 + f), R the series of 2 atanh(s) - 2 s over s (fdlibm's arrangement)
+template <typename T>
+P<T> Log(const P<T>& x) {
+  using IT = Ints<T>;
+  using I = typename IT::type;
+  using VI = typename Mask<T>::VI;
+  using V = typename P<T>::V;
+  constexpr bool f32 = sizeof(T) == 4;
+  const T tiny = std::numeric_limits<T>::min();
+  auto small = x < P<T>(tiny);  // subnormal: scaled up by 2^mant first
+  P<T> xs = sel(small, x * P<T>(std::ldexp(1.0, IT::mant)), x);
+  VI bits = (VI)xs.v;
+  VI e = ((bits >> IT::mant) & I((1 << (8 * sizeof(T) == 32 ? 8 : 11)) - 1)) - I(IT::bias);
+  VI mb = (bits & ((I(1) << IT::mant) - 1)) | (I(IT::bias) << IT::mant);
+  P<T> m((V)mb);
+  auto big = m > P<T>(1.4142135623730951);
+  m = sel(big, m * P<T>(0.5), m);
+  P<T> ef(__builtin_convertvector(e, V));
+  ef = ef + sel(big, P<T>(1.0), P<T>(0.0)) - sel(small, P<T>(double(IT::mant)), P<T>(0.0));
+  P<T> f = m - P<T>(1.0);
+  P<T> s = f / (P<T>(2.0) + f);
+  P<T> z = s * s;
+  const int terms = f32 ? 5 : 11;
+  P<T> R(2.0 / (2 * terms + 1));
+  for (int k = terms - 1; k >= 1; --k) R = P<T>(2.0 / (2 * k + 1)) + z * R;
+  R = z * R;
+  P<T> hfsq = P<T>(0.5) * f * f;
+  P<T> res = ef * P<T>(f32 ? 0.693359375 : 6.93147180369123816490e-01) +
+             (((f - hfsq) + s * (hfsq + R)) +
+              ef * P<T>(f32 ? -2.12194440e-4 : 1.90821492927058770002e-10));
+  res = sel(x == P<T>(0.0), -K<P<T>>::inf(), res);
+  res = sel(x < P<T>(0.0), P<T>(std::numeric_limits<double>::quiet_NaN()), res);
+  res = sel(x == K<P<T>>::inf(), x, res);
+  return sel(x != x, x, res);
+}
 
 // f(x) with derivative f'(x) (the chain rule once, for the unary functions below)
 template <typename T, int N>
-inline Dual<T, N> chain(const Dual<T, N>& x, T f, T df) {
+inline Dual<T, N> chain(const Dual<T, N>& x, const T& f, const T& df) {
   Dual<T, N> r;
   r.v = f;
   for (int k = 0; k < N; ++k) r.d[k] = df * x.d[k];
   return r;
 }
 
-template <typename T> inline T Sqrt(T x) { return std::sqrt(x); }
-template <typename T> inline T Exp(T x) { return std::exp(x); }
-template <typename T> inline T Log(T x) { return std::log(x); }
-template <typename T> inline T Fabs(T x) { return std::fabs(x); }
-template <typename T> inline bool Finite(T x) { return std::isfinite(x); }
-template <typename T> inline T Min(const T& a, const T& b) { return b < a ? b : a; }
-template <typename T> inline T Max(const T& a, const T& b) { return a < b ? b : a; }
-
 template <typename T, int N> inline Dual<T, N> Sqrt(const Dual<T, N>& x) {
-  T s = std::sqrt(x.v);
+  T s = Sqrt(x.v);
   return chain(x, s, T(0.5) / s);
 }
 template <typename T, int N> inline Dual<T, N> Exp(const Dual<T, N>& x) {
-  T e = std::exp(x.v);
+  T e = Exp(x.v);
   return chain(x, e, e);
 }
 template <typename T, int N> inline Dual<T, N> Log(const Dual<T, N>& x) {
-  return chain(x, T(std::log(x.v)), T(1) / x.v);
+  return chain(x, Log(x.v), T(1) / x.v);
 }
 template <typename T, int N> inline Dual<T, N> Fabs(const Dual<T, N>& x) {
-  return chain(x, T(std::fabs(x.v)), T(x.v > 0 ? 1 : (x.v < 0 ? -1 : 0)));
+  return chain(x, Fabs(x.v), sel(x.v > T(0), T(1), sel(x.v < T(0), T(-1), T(0))));
 }
-template <typename T, int N> inline bool Finite(const Dual<T, N>& x) { return std::isfinite(x.v); }
+template <typename T, int N> inline typename T::M Finite(const Dual<T, N>& x) {
+  return Finite(x.v);
+}
 template <typename T, int N>
 inline Dual<T, N> Min(const Dual<T, N>& a, const Dual<T, N>& b) {
-  if (a.v == b.v) return (a + b) * Dual<T, N>(0.5);
-  return b.v < a.v ? b : a;
+  return sel(a.v == b.v, (a + b) * Dual<T, N>(0.5), sel(b.v < a.v, b, a));
 }
 template <typename T, int N>
 inline Dual<T, N> Max(const Dual<T, N>& a, const Dual<T, N>& b) {
-  if (a.v == b.v) return (a + b) * Dual<T, N>(0.5);
-  return a.v < b.v ? b : a;
+  return sel(a.v == b.v, (a + b) * Dual<T, N>(0.5), sel(a.v < b.v, b, a));
 }
 
 template <typename T>
@@ -184,58 +358,62 @@ inline T dot3(const T* a, const T* b) { return (a[0] * b[0] + a[1] * b[1]) + a[2
 template <typename T>
 inline T safe_div(T a, T b) {
   T e = K<T>::eps();
-  return a / (Fabs(b) > e ? b : (b < 0 ? -e : e));
+  return a / sel(Fabs(b) > e, b, sel(b < T(0), -e, e));
 }
 
 template <typename T>
-inline T first_positive(T c) { return c > 0 ? c : K<T>::inf(); }
+inline T first_positive(T c) { return sel(c > T(0), c, K<T>::inf()); }
 
 template <typename T>
 inline T sigmoid(T x) { return T(1) / (T(1) + Exp(-x)); }
 
-// p_loc = (v - xpos) @ xmat, or v @ xmat for directions
-template <typename T>
-inline void to_local(const T* v, const T* m, T* out) {
-  for (int j = 0; j < 3; ++j) out[j] = (v[0] * m[j] + v[1] * m[3 + j]) + v[2] * m[6 + j];
+// p_loc = (v - xpos) @ xmat, or v @ xmat for directions (the matrix a packet's or a number's)
+template <typename T, typename U>
+inline void to_local(const T* v, const U* m, T* out) {
+  for (int j = 0; j < 3; ++j)
+    out[j] = (v[0] * T(m[j]) + v[1] * T(m[3 + j])) + v[2] * T(m[6 + j]);
 }
-template <typename T>
-inline void to_world(const T* v, const T* m, T* out) {
-  for (int i = 0; i < 3; ++i) out[i] = (v[0] * m[3 * i] + v[1] * m[3 * i + 1]) + v[2] * m[3 * i + 2];
+template <typename T, typename U>
+inline void to_world(const T* v, const U* m, T* out) {
+  for (int i = 0; i < 3; ++i)
+    out[i] = (v[0] * T(m[3 * i]) + v[1] * T(m[3 * i + 1])) + v[2] * T(m[3 * i + 2]);
 }
 
 // ------------------------------------------------------------------ first hits (local frame)
+// Every function here runs on packets (T = P) and on Dual numbers of packets alike.
+
 // the nearer of the line's two parameters at distance `rad` from the origin (n: 2 or 3 axes);
-// false where it passes further away
+// the mask is false where it passes further away
 template <typename T>
-inline bool line_root(const T* o, const T* r, int n, T rad, T& s0) {
+inline typename T::M line_root(const T* o, const T* r, int n, T rad, T& s0) {
   T A = n == 3 ? dot3(r, r) : r[0] * r[0] + r[1] * r[1];
   T B = n == 3 ? dot3(o, r) : o[0] * r[0] + o[1] * r[1];
-  A = A > K<T>::eps() ? A : K<T>::eps();
+  A = sel(A > K<T>::eps(), A, K<T>::eps());
   T f = B / A, ll = 0;
   for (int k = 0; k < n; ++k) {
     T lc = o[k] - f * r[k];
     ll = k == 0 ? lc * lc : ll + lc * lc;
   }
   T disc = A * (rad * rad - ll);
-  T sq = disc > 0 ? Sqrt(disc) : T(0);
+  T sq = sel(disc > T(0), Sqrt(disc), T(0));
   s0 = (-B - sq) / A;
-  return disc >= 0;
+  return disc >= T(0);
 }
 
 template <typename T>
 inline T hit_sphere(const T* o, const T* r, T rad) {
   T s0;
-  bool ok = line_root(o, r, 3, rad, s0);
-  return ok ? first_positive(s0) : K<T>::inf();
+  auto ok = line_root(o, r, 3, rad, s0);
+  return sel(ok, first_positive(s0), K<T>::inf());
 }
 
 template <typename T>
 inline T hit_tube(const T* o, const T* r, T rad, T h) {
   T s0;
-  bool ok = line_root(o, r, 2, rad, s0);
+  auto ok = line_root(o, r, 2, rad, s0);
   T z = o[2] + s0 * r[2];
-  bool good = ok && Fabs(z) <= h && (r[0] * r[0] + r[1] * r[1]) > K<T>::eps();
-  return good ? first_positive(s0) : K<T>::inf();
+  auto good = ok & (Fabs(z) <= h) & ((r[0] * r[0] + r[1] * r[1]) > K<T>::eps());
+  return sel(good, first_positive(s0), K<T>::inf());
 }
 
 template <typename T>
@@ -245,9 +423,8 @@ T hit(int type, const T* o, const T* r, const T* sz) {
     case 0: {  // plane z = 0, front side, finite rectangle where sizes > 0
       T s = safe_div(-o[2], r[2]);
       T px = o[0] + s * r[0], py = o[1] + s * r[1];
-      bool in = (sz[0] > 0 ? Fabs(px) <= sz[0] : true) &&
-                (sz[1] > 0 ? Fabs(py) <= sz[1] : true);
-      return (o[2] > 0 && r[2] < 0 && in && s > 0) ? s : inf;
+      auto in = (!(sz[0] > T(0)) | (Fabs(px) <= sz[0])) & (!(sz[1] > T(0)) | (Fabs(py) <= sz[1]));
+      return sel((o[2] > T(0)) & (r[2] < T(0)) & in & (s > T(0)), s, inf);
     }
     case 2:
       return hit_sphere(o, r, sz[0]);
@@ -269,8 +446,8 @@ T hit(int type, const T* o, const T* r, const T* sz) {
         T sign = k == 0 ? T(1) : T(-1);
         T s = safe_div(sign * h - o[2], r[2]);
         T px = o[0] + s * r[0], py = o[1] + s * r[1];
-        bool in = px * px + py * py <= rad * rad;
-        caps = Min(caps, in ? first_positive(s) : inf);
+        auto in = px * px + py * py <= rad * rad;
+        caps = Min(caps, sel(in, first_positive(s), inf));
       }
       return Min(side, caps);
     }
@@ -282,7 +459,7 @@ T hit(int type, const T* o, const T* r, const T* sz) {
         tmin = k == 0 ? lo : Max(tmin, lo);
         tmax = k == 0 ? hi : Min(tmax, hi);
       }
-      return (tmin <= tmax && tmin > 0) ? tmin : inf;
+      return sel((tmin <= tmax) & (tmin > T(0)), tmin, inf);
     }
   }
   return inf;
@@ -335,8 +512,44 @@ struct BoxEdges {
 };
 const BoxEdges kBox;
 
+// x[i] for a per-lane index i (a packet of small whole numbers) into 3 candidates
+template <typename T, typename V>
+inline T pick3(const V& i, const T* x) {
+  return sel(i == V(0.0), x[0], sel(i == V(1.0), x[1], x[2]));
+}
+
 template <typename D>
 void closest_cylinder_dual(const D* o, const D* r, const D* sz, int iters, D& s, D& d);
+
+// the golden-section search of a cylinder's SDF along the ray (values only)
+template <typename T>
+void closest_cylinder(const T* o, const T* r, const T* sz, int iters, T& s, T& d) {
+  T rad = sz[0], h = sz[1];
+  T rb = Sqrt(rad * rad + h * h);
+  T rr = dot3(r, r);
+  T sc = -dot3(o, r) / rr;
+  T half = rb / Sqrt(rr) * T(1.05) + T(1e-6);
+  T lo = Max(sc - half, T(1e-6)), hi = Max(sc + half, T(2e-6));
+  const T g = T(0.6180339887498949);
+  auto f = [&](T t) {
+    T p[3] = {o[0] + t * r[0], o[1] + t * r[1], o[2] + t * r[2]};
+    return sdf_cylinder(p, rad, h);
+  };
+  T c = hi - g * (hi - lo), dd = lo + g * (hi - lo);
+  T fc = f(c), fd = f(dd);
+  for (int it = 0; it < iters; ++it) {
+    auto left = fc < fd;
+    hi = sel(left, dd, hi);
+    lo = sel(left, lo, c);
+    T nc = sel(left, hi - g * (hi - lo), dd);
+    T nd = sel(left, c, lo + g * (hi - lo));
+    T fx = f(sel(left, nc, nd));
+    T fc2 = sel(left, fx, fd), fd2 = sel(left, fc, fx);
+    fc = fc2, fd = fd2, c = nc, dd = nd;
+  }
+  s = T(0.5) * (lo + hi);
+  d = f(s);
+}
 
 template <typename T>
 void closest(int type, const T* o, const T* r, const T* sz, int iters, T& s, T& d) {
@@ -345,14 +558,14 @@ void closest(int type, const T* o, const T* r, const T* sz, int iters, T& s, T& 
     case 0: {
       T sp = safe_div(-o[2], r[2]);
       T px = o[0] + sp * r[0], py = o[1] + sp * r[1];
-      bool front = o[2] > 0 && r[2] < 0;
+      auto front = (o[2] > T(0)) & (r[2] < T(0));
       T qx = Fabs(px) - sz[0], qy = Fabs(py) - sz[1];
-      bool finite = sz[0] > 0 && sz[1] > 0;
+      auto finite = (sz[0] > T(0)) & (sz[1] > T(0));
       T a = Max(qx, T(0)), b = Max(qy, T(0));
       T dd = Min(Max(qx, qy), T(0)) + Sqrt(a * a + b * b + T(1e-20));
-      dd = finite ? dd : T(-1e3);
-      s = front ? sp : inf;
-      d = front ? dd : T(1e3);
+      dd = sel(finite, dd, T(-1e3));
+      s = sel(front, sp, inf);
+      d = sel(front, dd, T(1e3));
       return;
     }
     case 2: {
@@ -379,73 +592,52 @@ void closest(int type, const T* o, const T* r, const T* sz, int iters, T& s, T& 
     case 5: {
       if constexpr (IsDual<T>::value) {  // the derivatives JAX's closest_cylinder defines
         closest_cylinder_dual(o, r, sz, iters, s, d);
-        return;
+      } else {
+        closest_cylinder(o, r, sz, iters, s, d);
       }
-      T rad = sz[0], h = sz[1];
-      T rb = Sqrt(rad * rad + h * h);
-      T rr = dot3(r, r);
-      T sc = -dot3(o, r) / rr;
-      T half = rb / Sqrt(rr) * T(1.05) + T(1e-6);
-      T lo = Max(sc - half, T(1e-6)), hi = Max(sc + half, T(2e-6));
-      const T g = T(0.6180339887498949);
-      auto f = [&](T t) {
-        T p[3] = {o[0] + t * r[0], o[1] + t * r[1], o[2] + t * r[2]};
-        return sdf_cylinder(p, rad, h);
-      };
-      T c = hi - g * (hi - lo), dd = lo + g * (hi - lo);
-      T fc = f(c), fd = f(dd);
-      for (int it = 0; it < iters; ++it) {
-        bool left = fc < fd;
-        hi = left ? dd : hi;
-        lo = left ? lo : c;
-        T nc = left ? hi - g * (hi - lo) : dd;
-        T nd = left ? c : lo + g * (hi - lo);
-        T fx = f(left ? nc : nd);
-        T fc2 = left ? fx : fd, fd2 = left ? fc : fx;
-        fc = fc2, fd = fd2, c = nc, dd = nd;
-      }
-      s = T(0.5) * (lo + hi);
-      d = f(s);
       return;
     }
     case 6: {
       // inside: the deepest point (box_depth); outside: the nearest edge. The searches run on
       // values (V; on Dual numbers only the chosen piece is differentiated, as in JAX)
       using V = typename Base<T>::type;
-      T A[3], P[3], Q[3];
+      T A[3], Pp[3], Q[3];
       V Av[3], Pv[3], Qv[3], ov[3], rv[3], hv[3];
       for (int k = 0; k < 3; ++k) {
-        T sg = r[k] >= 0 ? T(1) : T(-1);
+        T sg = sel(r[k] >= T(0), T(1), T(-1));
         A[k] = sg * r[k];
-        P[k] = sg * o[k] - sz[k];
+        Pp[k] = sg * o[k] - sz[k];
         Q[k] = -sg * o[k] - sz[k];
-        Av[k] = value(A[k]), Pv[k] = value(P[k]), Qv[k] = value(Q[k]);
+        Av[k] = value(A[k]), Pv[k] = value(Pp[k]), Qv[k] = value(Q[k]);
         ov[k] = value(o[k]), rv[k] = value(r[k]), hv[k] = value(sz[k]);
       }
-      const V vinf = std::numeric_limits<V>::infinity();
-      V best_v = 0, best_s = 0;
-      int bi = 0, bj = 0;
+      const V vinf = K<V>::inf();
+      V best_v = 0, best_s = 0, bi = 0, bj = 0;
       for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) {
           V den = Av[i] + Av[j];
-          bool ok = den > 0;
-          den = ok ? den : V(1);
-          V v = ok ? (Av[i] * Qv[j] + Av[j] * Pv[i]) / den : -vinf;
+          auto ok = den > V(0);
+          den = sel(ok, den, V(1));
+          V v = sel(ok, (Av[i] * Qv[j] + Av[j] * Pv[i]) / den, -vinf);
           V sv = (Qv[j] - Pv[i]) / den;
           if (i == 0 && j == 0) {
             best_v = v, best_s = sv;
-          } else if (v > best_v) {
-            best_v = v, best_s = sv, bi = i, bj = j;
+          } else {
+            auto up = v > best_v;
+            best_v = sel(up, v, best_v), best_s = sel(up, sv, best_s);
+            bi = sel(up, V(double(i)), bi), bj = sel(up, V(double(j)), bj);
           }
         }
-      T d_in = (A[bi] * Q[bj] + A[bj] * P[bi]) / (A[bi] + A[bj]);
-      if (d_in < 0) {
+      T Ai = pick3(bi, A), Aj = pick3(bj, A), Pi = pick3(bi, Pp), Qj = pick3(bj, Q);
+      T d_in = (Ai * Qj + Aj * Pi) / (Ai + Aj);
+      auto inside = d_in < T(0);
+      if (all(inside)) {
         s = T(best_s), d = d_in;  // s held constant, as JAX's box_depth
         return;
       }
       V rr = dot3(rv, rv), irr = V(1) / rr;
-      int best_k = 0;
       V best_d = vinf;
+      V ca[3] = {0, 0, 0}, ce[3] = {0, 0, 0};  // the nearest edge's corner and direction signs
       for (int k = 0; k < 12; ++k) {
         V a[3], e[3];
         for (int i = 0; i < 3; ++i) a[i] = V(kBox.a[k][i]) * hv[i], e[i] = V(kBox.e[k][i]) * hv[i];
@@ -458,14 +650,20 @@ void closest(int type, const T* o, const T* r, const T* sz, int iters, T& s, T& 
         V z = Min(Max(-uv / Max(vv, K<V>::eps()), V(0)), V(1));
         V x0 = u[0] + z * v[0], x1 = u[1] + z * v[1], x2 = u[2] + z * v[2];
         V dd = x0 * x0 + x1 * x1 + x2 * x2;
-        if (dd < best_d) best_d = dd, best_k = k;
+        auto up = dd < best_d;
+        best_d = sel(up, dd, best_d);
+        for (int i = 0; i < 3; ++i)
+          ca[i] = sel(up, V(kBox.a[k][i]), ca[i]), ce[i] = sel(up, V(kBox.e[k][i]), ce[i]);
       }
       T a[3], b[3];
       for (int i = 0; i < 3; ++i) {
-        a[i] = T(kBox.a[best_k][i]) * sz[i];
-        b[i] = a[i] + T(kBox.e[best_k][i]) * sz[i];
+        a[i] = T(ca[i]) * sz[i];
+        b[i] = a[i] + T(ce[i]) * sz[i];
       }
-      line_segment(o, r, a, b, s, d);
+      T s_e, d_e;
+      line_segment(o, r, a, b, s_e, d_e);
+      s = sel(inside, T(best_s), s_e);
+      d = sel(inside, d_in, d_e);
       return;
     }
   }
@@ -478,17 +676,17 @@ template <typename U>
 U cylinder_slope(U t, const U* o, const U* r, const U* sz) {
   using T = typename Base<U>::type;
   auto pick = [](T a, T b, U da, U db) {  // d max(a, b)
-    return a > b ? da : (b > a ? db : (da + db) * U(0.5));
+    return sel(a > b, da, sel(b > a, db, (da + db) * U(0.5)));
   };
   U p[3] = {o[0] + t * r[0], o[1] + t * r[1], o[2] + t * r[2]};
   U rxy = Sqrt(p[0] * p[0] + p[1] * p[1] + U(1e-20));
   U q0 = rxy - sz[0], q1 = Fabs(p[2]) - sz[1];
   U dq0 = (p[0] * r[0] + p[1] * r[1]) / rxy;
   T pz = value(p[2]);
-  U dq1 = (pz > 0 ? r[2] : (pz < 0 ? -r[2] : U(0)));
-  T q0v = value(q0), q1v = value(q1), m = std::max(q0v, q1v);
+  U dq1 = sel(pz > T(0), r[2], sel(pz < T(0), -r[2], U(0)));
+  T q0v = value(q0), q1v = value(q1), m = Max(q0v, q1v);
   U dm = pick(q0v, q1v, dq0, dq1);
-  U dmn = m < 0 ? dm : (m > 0 ? U(0) : dm * U(0.5));
+  U dmn = sel(m < T(0), dm, sel(m > T(0), U(0), dm * U(0.5)));
   U a = Max(q0, U(0)), b = Max(q1, U(0));
   U da = pick(q0v, T(0), dq0, U(0)), db = pick(q1v, T(0), dq1, U(0));
   U sq = Sqrt(a * a + b * b + U(1e-20));
@@ -505,40 +703,38 @@ void closest_cylinder_dual(const D* o, const D* r, const D* sz, int iters, D& s_
   T ov[3], rv[3], hv[3];
   for (int k = 0; k < 3; ++k) ov[k] = value(o[k]), rv[k] = value(r[k]), hv[k] = value(sz[k]);
   T sv, dv;
-  closest<T>(5, ov, rv, hv, iters, sv, dv);
-  T rb = std::sqrt(hv[0] * hv[0] + hv[1] * hv[1]);
+  closest_cylinder(ov, rv, hv, iters, sv, dv);
+  T rb = Sqrt(hv[0] * hv[0] + hv[1] * hv[1]);
   T rr = dot3(rv, rv);
   T sc = -dot3(ov, rv) / rr;
-  T half = rb / std::sqrt(rr) * T(1.05) + T(1e-6);
-  T lo = std::max(sc - half, T(1e-6)), hi = std::max(sc + half, T(2e-6));
+  T half = rb / Sqrt(rr) * T(1.05) + T(1e-6);
+  T lo = Max(sc - half, T(1e-6)), hi = Max(sc + half, T(2e-6));
   T width = (hi - lo) * T(std::pow(0.6180339887498949, iters));
-  D S = D(0.0);
-  S.v = sv;
+  D S(sv);
   D p[3];
   for (int k = 0; k < 3; ++k) p[k] = o[k] + S * r[k];
   T ps[3] = {value(p[0]), value(p[1]), value(p[2])};
-  bool z_kink = std::fabs(ps[2]) <= std::fabs(rv[2]) * width;
+  auto z_kink = Fabs(ps[2]) <= Fabs(rv[2]) * width;
   D rxy = Sqrt(p[0] * p[0] + p[1] * p[1] + D(1e-20));
   D q0 = rxy - sz[0];
-  D q1 = (z_kink ? constant(Fabs(p[2])) : Fabs(p[2])) - sz[1];
+  D q1 = sel(z_kink, constant(Fabs(p[2])), Fabs(p[2])) - sz[1];
   T d0 = (ps[0] * rv[0] + ps[1] * rv[1]) / value(rxy);
-  T d1 = z_kink ? T(0) : (ps[2] > 0 ? rv[2] : (ps[2] < 0 ? -rv[2] : T(0)));
+  T d1 = sel(z_kink, T(0), sel(ps[2] > T(0), rv[2], sel(ps[2] < T(0), -rv[2], T(0))));
   T q0s = value(q0), q1s = value(q1);
-  bool inside = std::max(q0s, q1s) < 0;
-  bool kink = d0 * d1 < 0 && std::fabs(q0s - q1s) <= (std::fabs(d0) + std::fabs(d1)) * width;
+  auto inside = Max(q0s, q1s) < T(0);
+  auto kink = (d0 * d1 < T(0)) & (Fabs(q0s - q1s) <= (Fabs(d0) + Fabs(d1)) * width);
   T lam = safe_div(d1, d1 - d0);
-  D g = kink ? D(lam) * q0 + D(T(1) - lam) * q1 : (q1s > q0s ? q1 : q0);
+  D g = sel(kink, D(lam) * q0 + D(T(1) - lam) * q1, sel(q1s > q0s, q1, q0));
   D dd = sdf_cylinder(p, sz[0], sz[1]);
   // f'' along the ray at s (a constant): the slope's own derivative in s
   using D1 = Dual<T, 1>;
   D1 o1[3], r1[3], h1[3];
-  for (int k = 0; k < 3; ++k) o1[k] = D1(0.0), r1[k] = D1(0.0), h1[k] = D1(0.0);
-  for (int k = 0; k < 3; ++k) o1[k].v = ov[k], r1[k].v = rv[k], h1[k].v = hv[k];
+  for (int k = 0; k < 3; ++k) o1[k] = D1(ov[k]), r1[k] = D1(rv[k]), h1[k] = D1(hv[k]);
   T curve = cylinder_slope(D1::seed(sv, 0), o1, r1, h1).d[0];
-  bool curved = curve > K<T>::eps();
-  D step = -cylinder_slope(S, o, r, sz) / D(curved ? curve : T(1));
-  s_out = (!inside && curved) ? S + step - constant(step) : S;
-  d_out = inside ? constant(dd) + g - constant(g) : dd;
+  auto curved = curve > K<T>::eps();
+  D step = -cylinder_slope(S, o, r, sz) / D(sel(curved, curve, T(1)));
+  s_out = sel(!inside & curved, S + step - constant(step), S);
+  d_out = sel(inside, constant(dd) + g - constant(g), dd);
 }
 
 // unnormalised outward normal at local p; soft: faces blended over tn metres, else the nearest
@@ -562,9 +758,9 @@ void normal(int type, const T* p, const T* sz, bool soft, T tn, T* n) {
     case 5: {
       T rxy = Sqrt(p[0] * p[0] + p[1] * p[1] + T(1e-20));
       T dr = Fabs(rxy - sz[0]), dz = Fabs(Fabs(p[2]) - sz[1]);
-      T w_cap = soft ? sigmoid((dr - dz) / tn) : T(dz < dr ? 1 : 0);
+      T w_cap = soft ? sigmoid((dr - dz) / tn) : sel(dz < dr, T(1), T(0));
       T side = (T(1) - w_cap) / rxy;
-      n[0] = side * p[0], n[1] = side * p[1], n[2] = w_cap * (p[2] >= 0 ? T(1) : T(-1));
+      n[0] = side * p[0], n[1] = side * p[1], n[2] = w_cap * sel(p[2] >= T(0), T(1), T(-1));
       return;
     }
     case 6: {
@@ -577,11 +773,12 @@ void normal(int type, const T* p, const T* sz, bool soft, T tn, T* n) {
         T tot = (e[0] + e[1]) + e[2];
         for (int k = 0; k < 3; ++k) w[k] = e[k] / tot;
       } else {
-        bool k0 = d[0] <= d[1] && d[0] <= d[2];
-        bool k1 = !k0 && d[1] <= d[2];
-        w[0] = k0, w[1] = k1, w[2] = !k0 && !k1;
+        auto k0 = (d[0] <= d[1]) & (d[0] <= d[2]);
+        auto k1 = !k0 & (d[1] <= d[2]);
+        w[0] = sel(k0, T(1), T(0)), w[1] = sel(k1, T(1), T(0));
+        w[2] = sel(!k0 & !k1, T(1), T(0));
       }
-      for (int k = 0; k < 3; ++k) n[k] = w[k] * (p[k] >= 0 ? T(1) : T(-1));
+      for (int k = 0; k < 3; ++k) n[k] = w[k] * sel(p[k] >= T(0), T(1), T(-1));
       return;
     }
   }
@@ -594,9 +791,9 @@ inline T bound_radius(int t, const T* sz) {
   switch (t) {
     case 2: return sz[0];
     case 3: return sz[0] + sz[1];
-    case 4: return Max(Max(sz[0], sz[1]), sz[2]);
-    case 5: return Sqrt(sz[0] * sz[0] + sz[1] * sz[1]);
-    case 6: return Sqrt(dot3(sz, sz));
+    case 4: return std::max(std::max(sz[0], sz[1]), sz[2]);
+    case 5: return std::sqrt(sz[0] * sz[0] + sz[1] * sz[1]);
+    case 6: return std::sqrt((sz[0] * sz[0] + sz[1] * sz[1]) + sz[2] * sz[2]);
   }
   return T(0);
 }
@@ -614,24 +811,77 @@ inline T bound_gap(const T* o, const T* r, T rb) {
 // is below sigmoid(-margin / tau). (Not for ellipsoids, whose closest approach is taken in a
 // scaled frame.)
 template <typename T>
-inline bool far_from(int t, const T* o, const T* r, T rb, T gap, T px, T near_, T margin) {
-  if (t == 0 || t == 4 || !(gap > 0)) return false;
+inline typename T::M far_from(int t, const T* o, const T* r, T rb, T gap, T px, T near_,
+                              T margin) {
+  if (t == 0 || t == 4) return false;
   T rr = dot3(r, r);
   T s_max = -dot3(o, r) / rr + rb / Sqrt(rr) * T(1.05) + T(1e-6);
-  return gap > margin * Max(s_max, near_) * px;
+  return (gap > T(0)) & (gap > margin * Max(s_max, near_) * px);
 }
 
-// lax.top_k's indices: the k largest of x[0..n), largest first, ties to the lower index
+// lax.top_k's indices, per lane: the k largest of x[0..n), largest first, ties to the lower
+// index (out: packets of indices)
 template <typename T>
-inline void top_k(const T* x, int n, int k, int* out) {
-  uint64_t taken = 0;  // n <= 64
+inline void top_k(const T* x, int n, int k, T* out) {
+  using M = typename T::M;
+  M taken[64];
+  for (int j = 0; j < n; ++j) taken[j] = false;
   for (int q = 0; q < k; ++q) {
-    int best = -1;
-    for (int j = 0; j < n; ++j)
-      if (!((taken >> j) & 1) && (best < 0 || x[j] > x[best])) best = j;
-    out[q] = best;
-    taken |= uint64_t(1) << best;
+    T best = 0, bidx = -1;
+    for (int j = 0; j < n; ++j) {
+      M take = !taken[j] & ((bidx < T(0)) | (x[j] > best));
+      best = sel(take, x[j], best);
+      bidx = sel(take, T(double(j)), bidx);
+    }
+    out[q] = bidx;
+    for (int j = 0; j < n; ++j) taken[j] |= bidx == T(double(j));
   }
+}
+
+// ------------------------------------------------------------------ packets of pixels
+// A packet's lane l is the pixel (i0 + l / tile_w, j0 + l % tile_w): a tile of tile_w columns
+template <typename T> constexpr int tile_w() { return P<T>::N >= 4 ? 4 : P<T>::N; }
+template <typename T> constexpr int tile_h() { return P<T>::N / tile_w<T>(); }
+
+template <typename T>
+inline P<T> lane_column() {
+  P<T> r;
+  for (int l = 0; l < P<T>::N; ++l) r.v[l] = T(l % tile_w<T>());
+  return r;
+}
+template <typename T>
+inline P<T> lane_row() {
+  P<T> r;
+  for (int l = 0; l < P<T>::N; ++l) r.v[l] = T(l / tile_w<T>());
+  return r;
+}
+
+// base[stride * idx[l] + off] in lane l (idx: a packet of whole numbers)
+template <typename T>
+inline P<T> gather_lanes(const T* base, int stride, const P<T>& idx, int off) {
+  P<T> r;
+  for (int l = 0; l < P<T>::N; ++l) r.v[l] = base[stride * int(idx[l]) + off];
+  return r;
+}
+
+// arr[stride * idx[l] + comp][l] in lane l: a per-slot packet array read at each lane's own slot
+template <typename T>
+inline P<T> pick_lanes(const P<T>* arr, int stride, const P<T>& idx, int comp) {
+  P<T> r;
+  for (int l = 0; l < P<T>::N; ++l) r.v[l] = arr[stride * int(idx[l]) + comp][l];
+  return r;
+}
+
+template <typename T>
+inline T hsum(const P<T>& x) {
+  T s = 0;
+  for (int l = 0; l < P<T>::N; ++l) s += x[l];
+  return s;
+}
+
+template <typename T, typename U>
+inline T dot3m(const T* a, const U* b) {
+  return (a[0] * T(b[0]) + a[1] * T(b[1])) + a[2] * T(b[2]);
 }
 
 // ------------------------------------------------------------------ the scene
@@ -641,11 +891,17 @@ struct Config {
 };
 
 template <typename T>
+struct Scratch;
+
+template <typename T>
 struct Scene {
+  using Pk = P<T>;
+  using Mk = Mask<T>;
   int G, NL;
   int iters, per_pixel, cull_above, layers;
   bool shadows;
   T near_, far_, far_depth, tau, gamma;
+  T margin;  // far_from's cut, in tau pixels (see the header)
   std::vector<int> types, gids, bodies;
   std::vector<T> spec, shin, emis;            // per geom
   std::vector<T> light;                        // NL x kLightStride
@@ -673,6 +929,7 @@ struct Scene {
     for (int k = 0; k < 9; ++k) head[k] = T(c.headlight[1 + k]);
     near_ = T(c.scal[0]), far_ = T(c.scal[1]), far_depth = T(c.scal[2]);
     tau = 0, gamma = 1;  // per frame (begin_frame)
+    margin = sizeof(T) == 4 ? T(18) : T(30);
     iters = c.opts[0], per_pixel = c.opts[1], cull_above = c.opts[2], layers = c.opts[3];
     shadows = c.opts[4] != 0;
     std::vector<int> ts(types);
@@ -690,11 +947,12 @@ struct Scene {
     for (int i = 0; i < NL; ++i) any_shadow |= light[i * kLightStride + 21] != 0;
   }
 
-  bool culled(int t, int n) const { return t != 0 && n > Max(per_pixel, cull_above); }
+  bool culled(int t, int n) const { return t != 0 && n > std::max(per_pixel, cull_above); }
 
-  // Renderer._choose: the per_pixel geoms of group idx this ray is tested against
-  void choose(int t, const std::vector<int>& idx, const T* geo, const T* o, const T* r,
-              T reach, T front, int* out, T* score) const {
+  // Renderer._choose: the per_pixel geoms of group idx each lane's ray is tested against
+  // (out: per lane, indices into idx)
+  void choose(int t, const std::vector<int>& idx, const T* geo, const Pk* o, const Pk* r,
+              T reach, T front, Pk* out, Pk* score) const {
     int n = int(idx.size());
     for (int j = 0; j < n; ++j) {
       const T* gp = geo + 19 * idx[j];
@@ -713,194 +971,291 @@ struct Scene {
         if (h[2] > h[k]) k = 2;
         half = h[k];
         T hh = ((h[0] * h[0] + h[1] * h[1]) + h[2] * h[2]) - half * half;
-        rad = Sqrt(Max(hh, T(0)));
+        rad = std::sqrt(std::max(hh, T(0)));
         col = k;
       }
-      T a[3], b[3];
+      Pk a[3], b[3];
       for (int i = 0; i < 3; ++i) {
         T e = half * m[3 * i + col];
-        a[i] = c[i] - e, b[i] = c[i] + e;
+        a[i] = Pk(c[i] - e), b[i] = Pk(c[i] + e);
       }
-      T s_c, dist;
+      Pk s_c, dist;
       line_segment(o, r, a, b, s_c, dist);
-      T depth = Max(s_c, near_);
-      T lim = rad + reach * depth;
-      bool ahead = s_c + half + rad >= front;
-      bool core = dist <= rad * T(1.001) + T(1e-6);
-      bool band = dist <= lim * T(1.001) + T(1e-6) && ahead;
-      score[j] = (core && ahead) ? T(1e6) - s_c
-                                 : (band ? -(dist - rad) / depth : T(-1e9) - dist);
+      Pk depth = Max(s_c, Pk(near_));
+      Pk lim = Pk(rad) + Pk(reach) * depth;
+      Mk ahead = s_c + Pk(half) + Pk(rad) >= Pk(front);
+      Mk core = dist <= Pk(rad * T(1.001) + T(1e-6));
+      Mk band = (dist <= lim * Pk(1.001) + Pk(1e-6)) & ahead;
+      score[j] = sel(core & ahead, Pk(1e6) - s_c,
+                     sel(band, -(dist - Pk(rad)) / depth, Pk(-1e9) - dist));
     }
     top_k(score, n, per_pixel, out);
   }
 
-  void light_dir(int i, const T* p, T* l, T& dist, T& factor) const {
+  void light_dir(int i, const Pk* p, Pk* l, Pk& dist, Pk& factor) const {
     const T* L = &light[i * kLightStride];
     int type = int(L[0]);
     if (type == 1) {
-      for (int k = 0; k < 3; ++k) l[k] = -L[4 + k];
-      dist = T(1e9), factor = 1;
+      for (int k = 0; k < 3; ++k) l[k] = Pk(-L[4 + k]);
+      dist = Pk(1e9), factor = Pk(1);
       return;
     }
-    T dl[3];
-    for (int k = 0; k < 3; ++k) dl[k] = L[1 + k] - p[k];
-    dist = Sqrt(dot3(dl, dl) + T(1e-20));
+    Pk dl[3];
+    for (int k = 0; k < 3; ++k) dl[k] = Pk(L[1 + k]) - p[k];
+    dist = Sqrt(dot3(dl, dl) + Pk(1e-20));
     for (int k = 0; k < 3; ++k) l[k] = dl[k] / dist;
-    factor = T(1) / (L[18] + L[19] * dist + L[20] * dist * dist);
+    factor = Pk(1) / (Pk(L[18]) + Pk(L[19]) * dist + Pk(L[20]) * dist * dist);
     if (type == 0) {
-      T cosang = -dot3(l, L + 4);
-      bool inside = cosang >= cutoff_cos[i];
-      factor = factor * (inside ? Exp(L[17] * Log(Max(cosang, T(1e-30)))) : T(0));
+      Pk cosang = -dot3m(l, L + 4);
+      Mk inside = cosang >= Pk(cutoff_cos[i]);
+      if (any(inside))
+        factor = factor * sel(inside, Exp(Pk(L[17]) * Log(Max(cosang, Pk(1e-30)))), Pk(0));
+      else
+        factor = Pk(0);
     }
   }
 
-  // Renderer._unoccluded: 1 if the ray from p to the light meets no geom but `skip`. Every geom
-  // is tested (bounding spheres first), where JAX tests a culled type's `per_pixel` nearest: the
-  // same verdict wherever those include the occluder.
-  T unoccluded(const T* geo, const T* p, const T* l, T dist, int skip) const {
-    T o[3];
-    for (int k = 0; k < 3; ++k) o[k] = p[k] + T(1e-5) * l[k];
+  // Renderer._unoccluded: 1 where the ray from p to the light meets no geom but the lane's
+  // `skip`. Every geom is tested (bounding spheres first; rb: the frame's bounding radii), where
+  // JAX tests a culled type's `per_pixel` nearest: the same verdict wherever those include the
+  // occluder.
+  Pk unoccluded(const T* geo, const T* rb, const Pk* p, const Pk* l, const Pk& dist,
+                const Pk& skip) const {
+    Pk o[3];
+    for (int k = 0; k < 3; ++k) o[k] = p[k] + Pk(1e-5) * l[k];
+    Mk blocked = false;
     for (int g = 0; g < G; ++g) {
       int t = types[g];
-      if (t == 0 || g == skip) continue;  // a plane casts no shadow upwards
+      if (t == 0) continue;  // a plane casts no shadow upwards
       const T* gp = geo + 19 * g;
-      T d[3], ol[3], rl[3];
-      for (int k = 0; k < 3; ++k) d[k] = o[k] - gp[k];
+      Pk d[3], ol[3], rl[3];
+      for (int k = 0; k < 3; ++k) d[k] = o[k] - Pk(gp[k]);
       to_local(d, gp + 3, ol);
       to_local(l, gp + 3, rl);
-      if (bound_gap(ol, rl, bound_radius(t, gp + 12)) > 0) continue;
-      if (hit(t, ol, rl, gp + 12) < dist) return T(0);
+      Mk cand = !blocked & (skip != Pk(double(g))) & !(bound_gap(ol, rl, Pk(rb[g])) > Pk(0));
+      if (none(cand)) continue;
+      Pk sz[3] = {Pk(gp[12]), Pk(gp[13]), Pk(gp[14])};
+      blocked |= cand & (hit(t, ol, rl, sz) < dist);
+      if (all(blocked)) break;
     }
-    return T(1);
+    return sel(blocked, Pk(0), Pk(1));
   }
 
-  void shade(const T* p, const T* n, const T* o, const T* fwd, const T* alb, int g,
-             const T* lit, T* col) const {
-    T v[3];
-    for (int k = 0; k < 3; ++k) v[k] = o[k] - p[k];
-    T vn = Sqrt(dot3(v, v) + T(1e-20));
+  void shade(const Pk* p, const Pk* n, const T* o, const T* fwd, const Pk* alb, const Pk* mat,
+             const Pk* lit, Pk* col) const {
+    Pk v[3];
+    for (int k = 0; k < 3; ++k) v[k] = Pk(o[k]) - p[k];
+    Pk vn = Sqrt(dot3(v, v) + Pk(1e-20));
     for (int k = 0; k < 3; ++k) v[k] /= vn;
-    T spec_m = spec[g], sh = T(128) * shin[g];
-    for (int k = 0; k < 3; ++k) col[k] = emis[g] * alb[k];
-    auto add = [&](const T* l, const T* amb, const T* dif, const T* spe, T factor) {
-      T ndl = dot3(n, l);
-      T h[3] = {l[0] + v[0], l[1] + v[1], l[2] + v[2]};
-      T hn = Sqrt(dot3(h, h) + T(1e-20));
+    Pk spec_m = mat[0], sh = Pk(128) * mat[1];
+    for (int k = 0; k < 3; ++k) col[k] = mat[2] * alb[k];
+    auto add = [&](const Pk* l, const T* amb, const T* dif, const T* spe, const Pk& factor) {
+      Pk ndl = dot3(n, l);
+      Pk h[3] = {l[0] + v[0], l[1] + v[1], l[2] + v[2]};
+      Pk hn = Sqrt(dot3(h, h) + Pk(1e-20));
       for (int k = 0; k < 3; ++k) h[k] /= hn;
-      T ndh = Max(dot3(n, h), T(0));
-      T sp = ndl > 0 ? Exp(sh * Log(ndh + T(1e-30))) : T(0);
-      T nd = Max(ndl, T(0));
+      Pk ndh = Max(dot3(n, h), Pk(0));
+      Mk lit_side = ndl > Pk(0);
+      Pk sp = any(lit_side) ? sel(lit_side, Exp(sh * Log(ndh + Pk(1e-30))), Pk(0)) : Pk(0);
+      Pk nd = Max(ndl, Pk(0));
       for (int k = 0; k < 3; ++k)
-        col[k] = col[k] + amb[k] * alb[k] + factor * (dif[k] * nd * alb[k] + spe[k] * spec_m * sp);
+        col[k] = col[k] + Pk(amb[k]) * alb[k] +
+                 factor * (Pk(dif[k]) * nd * alb[k] + Pk(spe[k]) * spec_m * sp);
     };
     if (head_on) {
-      T l[3] = {-fwd[0], -fwd[1], -fwd[2]};
-      add(l, head, head + 3, head + 6, T(1));
+      Pk l[3] = {Pk(-fwd[0]), Pk(-fwd[1]), Pk(-fwd[2])};
+      add(l, head, head + 3, head + 6, Pk(1));
     }
     for (int i = 0; i < NL; ++i) {
       const T* L = &light[i * kLightStride];
-      T l[3], dist, factor;
+      Pk l[3], dist, factor;
       light_dir(i, p, l, dist, factor);
       if (shadows && L[21] != 0) factor = factor * lit[i];
       add(l, L + 7, L + 10, L + 13, factor);
     }
-    for (int k = 0; k < 3; ++k) col[k] = Min(Max(col[k], T(0)), T(1));
+    for (int k = 0; k < 3; ++k) col[k] = Min(Max(col[k], Pk(0)), Pk(1));
   }
 };
 
-// per-thread scratch, one entry per surface slot (a soft image has at most Scene::slots surfaces
-// a pixel, a hard one every geom)
+// A packet's rays and what they meet, up to the surfaces they composite.
+template <typename T>
+struct Ray {
+  P<T> r[3], jj, ii;  // direction; each lane's pixel column and row
+  T fwd[3], px;
+  int S, L;
+  bool identity;      // every lane composites every surface slot, in order (S <= layers)
+  P<T> first, first_hit;  // the slot of the first hit, its depth
+  Mask<T> any_hit;
+};
+
+// per-thread scratch: per surface slot (a soft image has at most Scene::slots surfaces a pixel,
+// a hard one every geom) and per composited layer
 template <typename T>
 struct Scratch {
-  // per surface: first hit, depth where it is placed, coverage, depth then distance, world
-  // point, point in the geom's frame (for its normal, found only where it is shaded), albedo
-  std::vector<T> s_hit, s_n, cover, z, p, pl, alb, score;
-  std::vector<T> rl, dist;     // per surface: the ray in the geom's frame, signed distance
-  std::vector<int> gid, type, pick, lay;
-  std::vector<int> skip;       // per surface: 1 the ray misses the bounding sphere, 2 far
-                               // from the silhouette too (coverage < 1e-13: no search)
-  std::vector<T> lit, ahead;
-  std::vector<T> ol, oo, rb;  // per geom, per frame
-  int64_t frame = -1;
-  Scratch(int slots, int G, int NL) : lit(Max(NL, 1)), ol(3 * G), oo(G), rb(G) {
-    const size_t S = Max(slots, G);
-    for (auto* v : {&s_hit, &s_n, &cover, &z, &score, &dist}) v->resize(S);
-    for (auto* v : {&p, &pl, &rl}) v->resize(3 * S);
+  using Pk = P<T>;
+  using Mk = Mask<T>;
+  // per slot: its primitive type; its geom, or -1 where culling picks one per lane (gv)
+  std::vector<int> type, gid;
+  std::vector<Pk> gv;
+  // per slot: first hit, depth where it is placed, signed distance, coverage, depth used,
+  // the camera and ray in the geom's frame, world point, point in the geom's frame (for its
+  // normal, found only where it is shaded), albedo
+  std::vector<Pk> s_hit, s_n, dist, cover, z, key;
+  std::vector<Pk> ol, rl, p, pl, alb;
+  std::vector<Mk> miss, far;  // the ray misses the bounding sphere; far from the silhouette too
+  // per layer: the slot each lane composites there; the composite's inputs and weights
+  std::vector<Pk> lay, a, zz, alpha, w, wa, wrgb;
+  Pk bg, bg_rgb;
+  std::vector<Pk> ahead, occl, dahead;  // layer pairs
+  std::vector<Pk> score, pick, lit;
+  // the reverse pass's cotangents, per layer and per slot
+  std::vector<Pk> d_w, d_zz, d_a, d_wa, d_wrgb, d_wrgb_slot;
+  std::vector<Pk> d_hit, d_sn, d_dist, d_z, d_nl;
+  std::vector<Mk> shaded;
+  // per geom, per frame: the camera in its frame, that point's squared distance from the
+  // centre, the bounding radius
+  std::vector<T> fol, foo, frb;
+  // the reverse pass's gradients of this worker's current frame, lane by lane
+  std::vector<Pk> gcam, ggeo;
+  int64_t frame = -1, acc_frame = -1;
+  Scratch(int slots, int G, int NL) {
+    const size_t S = std::max(std::max(slots, G), 1), L = 64;
+    type.resize(S), gid.resize(S);
+    for (auto* v : {&gv, &s_hit, &s_n, &dist, &cover, &z, &key, &d_hit, &d_sn, &d_dist, &d_z,
+                    &d_wrgb_slot})
+      v->resize(S);
+    for (auto* v : {&ol, &rl, &p, &pl, &d_nl}) v->resize(3 * S);
     alb.resize(4 * S);
-    ahead.resize(S * S);
-    for (auto* v : {&gid, &type, &pick, &lay, &skip}) v->resize(S);
+    miss.resize(S), far.resize(S), shaded.resize(S);
+    for (auto* v : {&lay, &a, &zz, &alpha, &w, &wa, &wrgb, &d_w, &d_zz, &d_a, &d_wa, &d_wrgb})
+      v->resize(std::max(S, L));
+    for (auto* v : {&ahead, &occl, &dahead}) v->resize(std::max(S, L) * std::max(S, L));
+    score.resize(std::max(S, size_t(64))), pick.resize(64), lit.resize(std::max(NL, 1));
+    fol.resize(3 * G), foo.resize(G), frb.resize(G);
+    gcam.assign(15, Pk(0)), ggeo.assign(19 * size_t(G), Pk(0));
+  }
+  // slot s's geom in lane l
+  int geom(int s, int l) const { return gid[s] >= 0 ? gid[s] : int(gv[s][l]); }
+  // the slot lane l composites as layer k
+  int slot_of(const Ray<T>& R, int k, int l) const { return R.identity ? k : int(lay[k][l]); }
+  // field f of slot s's geom (geo: the frame's (G, 19) rows), lane by lane
+  Pk param(const T* geo, int s, int f) const {
+    return gid[s] >= 0 ? Pk(geo[19 * gid[s] + f]) : gather_lanes(geo, 19, gv[s], f);
+  }
+  // slot s's material (specular, shininess, emission)
+  void material(const Scene<T>& sc, int s, Pk* mat) const {
+    if (gid[s] >= 0) {
+      mat[0] = Pk(sc.spec[gid[s]]), mat[1] = Pk(sc.shin[gid[s]]), mat[2] = Pk(sc.emis[gid[s]]);
+    } else {
+      mat[0] = gather_lanes(sc.spec.data(), 1, gv[s], 0);
+      mat[1] = gather_lanes(sc.shin.data(), 1, gv[s], 0);
+      mat[2] = gather_lanes(sc.emis.data(), 1, gv[s], 0);
+    }
+  }
+  // per layer k, the per-slot packet array arr (stride, component) at each lane's slot
+  Pk at_layer(const Ray<T>& R, const std::vector<Pk>& arr, int stride, int comp, int k) const {
+    return R.identity ? arr[stride * k + comp] : pick_lanes(arr.data(), stride, lay[k], comp);
+  }
+  // v (a layer's packet) added into the per-slot array dst at each lane's slot
+  void to_slots(const Ray<T>& R, int k, const Pk& v, std::vector<Pk>& dst) const {
+    if (R.identity) {
+      dst[k] += v;
+      return;
+    }
+    for (int s = 0; s < R.S; ++s) dst[s] += sel(lay[k] == Pk(double(s)), v, Pk(0));
+  }
+  // the per-slot packet of a per-layer array (each lane's layer holding slot s; 0 where none)
+  Pk of_slot(const Ray<T>& R, const std::vector<Pk>& per_layer, int s) const {
+    if (R.identity) return per_layer[s];
+    Pk out(0);
+    for (int k = 0; k < R.L; ++k) out += sel(lay[k] == Pk(double(s)), per_layer[k], Pk(0));
+    return out;
+  }
+  // the reverse pass: v added to field f of slot s's geom's gradient, lane by lane
+  void add_geom(int s, int f, const Pk& v) {
+    if (gid[s] >= 0) {
+      ggeo[19 * gid[s] + f] += v;
+      return;
+    }
+    for (int l = 0; l < Pk::N; ++l) ggeo[19 * int(gv[s][l]) + f].v[l] += v[l];
+  }
+  void add_layer_geom(const Ray<T>& R, int k, int f, const Pk& v) {
+    if (R.identity) {
+      add_geom(k, f, v);
+      return;
+    }
+    for (int l = 0; l < Pk::N; ++l) ggeo[19 * geom(int(lay[k][l]), l) + f].v[l] += v[l];
   }
 };
 
 // ahead[g * S + k]: how much surface k lies in front of surface g (soft: a sigmoid of their depth
-// difference over gamma; hard: 0 or 1); only between two surfaces that both cover the pixel,
-// the only pairs `composite` reads, unless every_pair (the reverse pass's composite_vjp reads
-// them all)
+// difference over gamma; hard: 0 or 1); only between two surfaces that both cover the pixel in
+// some lane, the only pairs `composite` reads, unless every_pair (the reverse pass's
+// composite_vjp reads them all)
 template <typename T>
-void depth_order(int S, const T* a, const T* z, bool soft, T gamma, T* ahead,
+void depth_order(int S, const P<T>* a, const P<T>* z, bool soft, T gamma, P<T>* ahead,
                  bool every_pair = false) {
+  using Pk = P<T>;
   for (int g = 0; g < S; ++g)
     for (int k = g + 1; k < S; ++k) {
-      if (!every_pair && (a[g] == 0 || a[k] == 0)) continue;
+      if (!every_pair && none((a[g] != Pk(0)) & (a[k] != Pk(0)))) continue;
       if (soft) {
-        T e = Exp((z[k] - z[g]) / gamma);  // sigmoid((z_g - z_k) / gamma) = 1 / (1 + e)
-        ahead[g * S + k] = T(1) / (T(1) + e);
-        ahead[k * S + g] = T(1) / (T(1) + T(1) / e);
+        Pk e = Exp((z[k] - z[g]) / Pk(gamma));  // sigmoid((z_g - z_k) / gamma) = 1 / (1 + e)
+        ahead[g * S + k] = Pk(1) / (Pk(1) + e);
+        ahead[k * S + g] = Pk(1) / (Pk(1) + Pk(1) / e);
       } else {
-        ahead[g * S + k] = T(z[k] < z[g] ? 1 : 0);
-        ahead[k * S + g] = T(z[g] < z[k] ? 1 : 0);
+        ahead[g * S + k] = sel(z[k] < z[g], Pk(1), Pk(0));
+        ahead[k * S + g] = sel(z[g] < z[k], Pk(1), Pk(0));
       }
     }
 }
 
 // w_g = a_g prod_{k != g} (1 - a_k ahead[g, k]), background prod_k (1 - a_k), both normalised
 template <typename T>
-void composite(int S, const T* a, const T* ahead, T* w, T& bg) {
-  T tot = 0;
+void composite(int S, const P<T>* a, const P<T>* ahead, P<T>* w, P<T>& bg) {
+  using Pk = P<T>;
+  Pk tot = 0;
   bg = 1;
-  for (int k = 0; k < S; ++k) bg = k == 0 ? T(1) - a[0] : bg * (T(1) - a[k]);
+  for (int k = 0; k < S; ++k) bg = k == 0 ? Pk(1) - a[0] : bg * (Pk(1) - a[k]);
   for (int g = 0; g < S; ++g) {
-    T prod = 1;
+    Pk prod = 1;
+    auto ag = a[g] != Pk(0);
     for (int k = 0; k < S; ++k) {
-      T occl = 1;
-      if (k != g && a[k] != 0 && a[g] != 0) occl = T(1) - a[k] * ahead[g * S + k];
+      Pk occl = 1;
+      if (k != g) occl = sel((a[k] != Pk(0)) & ag, Pk(1) - a[k] * ahead[g * S + k], Pk(1));
       prod = k == 0 ? occl : prod * occl;
     }
     w[g] = a[g] * prod;
     tot = g == 0 ? w[0] : tot + w[g];
   }
   tot = tot + bg;
-  tot = tot > 0 ? tot : T(1);
+  tot = sel(tot > Pk(0), tot, Pk(1));
   for (int g = 0; g < S; ++g) w[g] = w[g] / tot;
   bg = bg / tot;
 }
 
-// A pixel's ray and what it meets, up to the surfaces it composites: each surface's hit, depth,
-// distance, coverage, points; the first hit; the `layers` chosen (X.lay[0..L)).
 template <typename T>
-struct Ray {
-  T r[3], fwd[3], px;
-  int S, L, first;
-  bool any_hit;
-};
-
-template <typename T>
-void gather(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, Scratch<T>& X,
+void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scratch<T>& X,
             Ray<T>& R) {
-  // X.ol / X.oo / X.rb: the camera in each geom's frame, its squared distance from the geom's
-  // centre and the geom's bounding radius (per frame: set by the caller)
-  const int G = sc.G;
+  // X.fol / X.foo / X.frb: the camera in each geom's frame, its squared distance from the
+  // geom's centre and the geom's bounding radius (per frame: begin_frame)
+  using Pk = P<T>;
+  using Mk = Mask<T>;
   const bool soft = sc.tau != 0;
-  const T* o = cam;
   const T* cm = cam + 3;
   T px = cam[12], cx = cam[13], cy = cam[14];
-  T loc[3] = {(T(j) + T(0.5) - cx) * px, (cy - T(i) - T(0.5)) * px, T(-1)};
-  T* r = R.r;
-  for (int k = 0; k < 3; ++k) r[k] = (loc[0] * cm[3 * k] + loc[1] * cm[3 * k + 1]) + loc[2] * cm[3 * k + 2];
+  R.jj = Pk(double(j0)) + lane_column<T>();
+  R.ii = Pk(double(i0)) + lane_row<T>();
+  Pk loc[3] = {(R.jj + Pk(0.5) - Pk(cx)) * Pk(px), (Pk(cy) - R.ii - Pk(0.5)) * Pk(px), Pk(-1)};
+  Pk* r = R.r;
+  for (int k = 0; k < 3; ++k)
+    r[k] = (loc[0] * Pk(cm[3 * k]) + loc[1] * Pk(cm[3 * k + 1])) + loc[2] * Pk(cm[3 * k + 2]);
   for (int k = 0; k < 3; ++k) R.fwd[k] = -cm[3 * k + 2];
   R.px = px;
   T band = soft ? T(15) * sc.tau + T(2) : T(2);
-  T reach = band * px, ntau = sc.tau * px;
+  T reach = band * px;
+  Pk O[3] = {Pk(cam[0]), Pk(cam[1]), Pk(cam[2])};
+  const Pk inf = K<Pk>::inf();
 
   int S = 0;
   for (const auto& grp : sc.groups) {
@@ -910,246 +1265,295 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, Scratc
     // Culling only ever drops coverage from the soft image: the hard image tests every geom
     // (bounding spheres first), which is what culling keeps it equal to.
     bool cull = soft && sc.culled(t, n);
-    if (cull) sc.choose(t, idx, geo, o, r, reach, sc.near_, X.pick.data(), X.score.data());
+    if (cull) sc.choose(t, idx, geo, O, r, reach, sc.near_, X.pick.data(), X.score.data());
     int m = cull ? sc.per_pixel : n;
     for (int q = 0; q < m; ++q, ++S) {
-      int g = idx[cull ? X.pick[q] : q];
-      const T* gp = geo + 19 * g;
-      const T* xm = gp + 3;
-      const T* sz = gp + 12;
-      const T* ol = &X.ol[3 * g];
-      T* rl = &X.rl[3 * S];
-      to_local(r, xm, rl);
-      T rb = X.rb[g];
-      T gap = -1;
-      if (t != 0) {  // does the ray miss the bounding sphere? (squared, no root)
-        T rr = dot3(rl, rl), orr = dot3(ol, rl), rbm = rb * T(1.001) + T(1e-6);
-        T miss = X.oo[g] * rr - orr * orr - rbm * rbm * rr;
-        if (miss > 0) gap = soft ? bound_gap(ol, rl, rb) : T(1);
+      X.type[S] = t;
+      if (cull) {
+        X.gid[S] = -1;
+        for (int l = 0; l < Pk::N; ++l) X.gv[S].v[l] = T(idx[int(X.pick[q][l])]);
+      } else {
+        X.gid[S] = idx[q];
       }
-      X.skip[S] = gap > 0 ? 1 : 0;
-      T s_hit = gap > 0 ? K<T>::inf() : hit(t, ol, rl, sz);
-      T sn, dist = 0;
+      Pk xm[9], sz[3], oo, rb;
+      for (int k = 0; k < 9; ++k) xm[k] = X.param(geo, S, 3 + k);
+      for (int k = 0; k < 3; ++k) sz[k] = X.param(geo, S, 12 + k);
+      Pk* ol = &X.ol[3 * S];
+      Pk* rl = &X.rl[3 * S];
+      if (X.gid[S] >= 0) {
+        int g = X.gid[S];
+        for (int k = 0; k < 3; ++k) ol[k] = Pk(X.fol[3 * g + k]);
+        oo = Pk(X.foo[g]), rb = Pk(X.frb[g]);
+      } else {
+        for (int k = 0; k < 3; ++k) ol[k] = gather_lanes(X.fol.data(), 3, X.gv[S], k);
+        oo = gather_lanes(X.foo.data(), 1, X.gv[S], 0);
+        rb = gather_lanes(X.frb.data(), 1, X.gv[S], 0);
+      }
+      to_local(r, xm, rl);
+      Pk gap = -1;
+      if (t != 0) {  // does the ray miss the bounding sphere? (squared, no root)
+        Pk rr = dot3(rl, rl), orr = dot3(ol, rl), rbm = rb * Pk(1.001) + Pk(1e-6);
+        Mk mm = oo * rr - orr * orr - rbm * rbm * rr > Pk(0);
+        if (any(mm)) gap = sel(mm, soft ? bound_gap(ol, rl, rb) : Pk(1), Pk(-1));
+      }
+      Mk miss = gap > Pk(0);
+      Pk s_hit = all(miss) ? inf : sel(miss, inf, hit(t, ol, rl, sz));
+      Pk sn, dist = 0;
+      Mk farm = false;
       if (!soft) {
         sn = s_hit;
-      } else if (far_from(t, ol, rl, rb, gap, px, sc.near_, T(30) * sc.tau)) {
-        // the ray passes so far from the geom's bounding sphere that its coverage is under
-        // sigmoid(-30) ~ 1e-13: nothing to search for; it adds nothing to the pixel
-        sn = -dot3(ol, rl) / dot3(rl, rl);
-        sn = Finite(sn) ? sn : sc.far_;
-        dist = K<T>::inf();
-        X.skip[S] = 2;
       } else {
-        T s_c;
-        closest(t, ol, rl, sz, sc.iters, s_c, dist);
-        sn = Finite(s_hit) ? s_hit : s_c;
-        sn = Finite(sn) ? sn : sc.far_;
+        // where the ray passes so far from the geom's bounding sphere that its coverage is
+        // negligible (the header), nothing is searched for: it adds nothing to the pixel
+        farm = far_from(t, ol, rl, rb, gap, Pk(px), Pk(sc.near_), Pk(sc.margin * sc.tau));
+        Pk snf = 0;
+        if (any(farm)) {
+          snf = -dot3(ol, rl) / dot3(rl, rl);
+          snf = sel(Finite(snf), snf, Pk(sc.far_));
+        }
+        if (all(farm)) {
+          sn = snf, dist = inf;
+        } else {
+          Pk s_c;
+          closest(t, ol, rl, sz, sc.iters, s_c, dist);
+          sn = sel(Finite(s_hit), s_hit, s_c);
+          sn = sel(Finite(sn), sn, Pk(sc.far_));
+          if (any(farm)) sn = sel(farm, snf, sn), dist = sel(farm, inf, dist);
+        }
       }
-      // the normal is found only where the surface is shaded (draw_pixel's shading loop)
-      T sp = soft ? sn : (Finite(s_hit) ? s_hit : sc.far_);
+      // the normal is found only where the surface is shaded (draw_packet's shading loop)
+      Pk sp = soft ? sn : sel(Finite(s_hit), s_hit, Pk(sc.far_));
       for (int k = 0; k < 3; ++k) X.pl[3 * S + k] = ol[k] + sp * rl[k];
-      X.s_hit[S] = (s_hit >= sc.near_ && s_hit <= sc.far_) ? s_hit : K<T>::inf();
+      X.s_hit[S] = sel((s_hit >= Pk(sc.near_)) & (s_hit <= Pk(sc.far_)), s_hit, inf);
       X.s_n[S] = sn;
       X.dist[S] = dist;
-      for (int k = 0; k < 4; ++k) X.alb[4 * S + k] = gp[15 + k];
-      X.gid[S] = g;
-      X.type[S] = t;
+      X.miss[S] = miss, X.far[S] = farm;
+      for (int k = 0; k < 4; ++k) X.alb[4 * S + k] = X.param(geo, S, 15 + k);
     }
   }
   // first hit: segmentation, body, hard depth
-  int first = 0;
-  bool any_hit = false;
-  for (int k = 0; k < S; ++k) {
-    if (X.s_hit[k] < X.s_hit[first]) first = k;
+  Pk first = 0, best = X.s_hit[0];
+  Mk any_hit = Finite(X.s_hit[0]);
+  for (int k = 1; k < S; ++k) {
+    Mk up = X.s_hit[k] < best;
+    best = sel(up, X.s_hit[k], best), first = sel(up, Pk(double(k)), first);
     any_hit |= Finite(X.s_hit[k]);
   }
   for (int k = 0; k < S; ++k) {
-    bool h = Finite(X.s_hit[k]);
-    T zk;
+    Mk h = Finite(X.s_hit[k]);
+    Pk zk;
     if (!soft) {
-      zk = h ? X.s_hit[k] : sc.far_;
-      X.cover[k] = h ? T(1) : T(0);
+      zk = sel(h, X.s_hit[k], Pk(sc.far_));
+      X.cover[k] = sel(h, Pk(1), Pk(0));
     } else {
       zk = X.s_n[k];
-      T d_px = X.dist[k] / (Max(zk, sc.near_) * px);
-      X.cover[k] = sigmoid(-d_px / sc.tau) * T(zk >= sc.near_ && zk <= sc.far_ ? 1 : 0);
+      Pk d_px = X.dist[k] / (Max(zk, Pk(sc.near_)) * Pk(px));
+      X.cover[k] = sigmoid(-d_px / Pk(sc.tau)) *
+                   sel((zk >= Pk(sc.near_)) & (zk <= Pk(sc.far_)), Pk(1), Pk(0));
     }
     X.z[k] = zk;
-    for (int q = 0; q < 3; ++q) X.p[3 * k + q] = o[q] + zk * r[q];
+    for (int q = 0; q < 3; ++q) X.p[3 * k + q] = O[q] + zk * r[q];
   }
   // the `layers` most covering surfaces not hidden behind a solid one
   int L = S;
-  int* lay = X.lay.data();
-  for (int k = 0; k < S; ++k) lay[k] = k;
+  R.identity = true;
   if (S > sc.layers) {
-    T solid = K<T>::inf();
-    for (int k = 0; k < S; ++k)
-      if (X.cover[k] > T(0.999)) solid = Min(solid, X.z[k]);
-    T* key = X.score.data();
+    Pk solid = inf;
+    for (int k = 0; k < S; ++k) solid = sel(X.cover[k] > Pk(0.999), Min(solid, X.z[k]), solid);
     for (int k = 0; k < S; ++k) {
-      bool shown = X.z[k] <= solid + (soft ? T(10) * sc.gamma : T(0));
-      key[k] = shown ? X.cover[k] - T(1e-6) * X.z[k] / sc.far_ : T(-1) - X.z[k] / sc.far_;
+      Mk shown = X.z[k] <= solid + Pk(soft ? T(10) * sc.gamma : T(0));
+      X.key[k] = sel(shown, X.cover[k] - Pk(1e-6) * X.z[k] / Pk(sc.far_),
+                     Pk(-1) - X.z[k] / Pk(sc.far_));
     }
-    top_k(key, S, sc.layers, lay);
+    top_k(X.key.data(), S, sc.layers, X.lay.data());
     L = sc.layers;
+    R.identity = false;
   }
-  R.S = S, R.L = L, R.first = first, R.any_hit = any_hit;
+  R.S = S, R.L = L, R.first = first, R.first_hit = best, R.any_hit = any_hit;
 }
 
-// A pixel's composite over its `layers` surfaces X.lay[0..L): coverage, depth, weights of the
-// depth image (w, bg) and of the colour (wrgb: coverage times alpha), and the shadow factors.
+// A packet's composite over its `layers` surfaces: coverage, depth, weights of the depth image
+// (w, bg) and of the colour (wrgb: coverage times alpha), and the shadow factors.
 template <typename T>
-struct Mix {
-  T a[64], zz[64], w[64], wa[64], wrgb[64], bg, bg_rgb;
-};
-
-template <typename T>
-void mix(const Scene<T>& sc, const T* geo, Scratch<T>& X, const Ray<T>& R, Mix<T>& M) {
+void mix(const Scene<T>& sc, const T* geo, Scratch<T>& X, const Ray<T>& R) {
+  using Pk = P<T>;
   const bool soft = sc.tau != 0;
   const int L = R.L;
-  const int* lay = X.lay.data();
-  for (int k = 0; k < L; ++k) M.a[k] = X.cover[lay[k]], M.zz[k] = X.z[lay[k]];
-  T* ahead = X.ahead.data();
-  depth_order(L, M.a, M.zz, soft, sc.gamma, ahead);
-  composite(L, M.a, ahead, M.w, M.bg);
-  T* lit = X.lit.data();
+  for (int k = 0; k < L; ++k) {
+    X.a[k] = X.at_layer(R, X.cover, 1, 0, k);
+    X.zz[k] = X.at_layer(R, X.z, 1, 0, k);
+    X.alpha[k] = X.at_layer(R, X.alb, 4, 3, k);
+  }
+  depth_order(L, X.a.data(), X.zz.data(), soft, sc.gamma, X.ahead.data());
+  composite(L, X.a.data(), X.ahead.data(), X.w.data(), X.bg);
   if (sc.shadows && sc.any_shadow) {
-    int win = 0;
-    for (int k = 1; k < L; ++k)
-      if (M.w[k] > M.w[win]) win = k;
-    const T* pw = &X.p[3 * lay[win]];
-    int gw = X.gid[lay[win]];
+    // one shadow ray a pixel, from the surface that shows most there
+    Pk win = 0, wb = X.w[0];
+    for (int k = 1; k < L; ++k) {
+      auto up = X.w[k] > wb;
+      wb = sel(up, X.w[k], wb), win = sel(up, Pk(double(k)), win);
+    }
+    Pk slot = R.identity ? win : pick_lanes(X.lay.data(), 1, win, 0);
+    Pk pw[3], gw;
+    for (int q = 0; q < 3; ++q) pw[q] = pick_lanes(X.p.data(), 3, slot, q);
+    for (int l = 0; l < Pk::N; ++l) gw.v[l] = T(X.geom(int(slot[l]), l));
     for (int li = 0; li < sc.NL; ++li) {
       if (sc.light[li * kLightStride + 21] == 0) continue;
-      T l[3], dist, factor;
+      Pk l[3], dist, factor;
       sc.light_dir(li, pw, l, dist, factor);
-      lit[li] = sc.unoccluded(geo, pw, l, dist, gw);
+      X.lit[li] = sc.unoccluded(geo, X.frb.data(), pw, l, dist, gw);
     }
   }
-  for (int k = 0; k < L; ++k) M.wa[k] = M.a[k] * X.alb[4 * lay[k] + 3];
-  composite(L, M.wa, ahead, M.wrgb, M.bg_rgb);
+  for (int k = 0; k < L; ++k) X.wa[k] = X.a[k] * X.alpha[k];
+  composite(L, X.wa.data(), X.ahead.data(), X.wrgb.data(), X.bg_rgb);
 }
 
-// surface s's unit world normal n (and the local one, nl, and world nw it is made from)
+// slot s's unit world normal n (and the local one, nl, and world nw it is made from)
 template <typename T>
 void surface_normal(const Scene<T>& sc, const T* geo, const Scratch<T>& X, const Ray<T>& R,
-                    int s, T* nl, T* nw, T* n, T& nn) {
-  const T* gp = geo + 19 * X.gid[s];
-  normal(X.type[s], &X.pl[3 * s], gp + 12, sc.tau != 0, sc.tau * R.px * X.s_n[s], nl);
-  to_world(nl, gp + 3, nw);
-  nn = Sqrt(dot3(nw, nw) + T(1e-20));
+                    int s, P<T>* nl, P<T>* nw, P<T>* n, P<T>& nn, P<T>* xm) {
+  using Pk = P<T>;
+  Pk sz[3];
+  for (int k = 0; k < 3; ++k) sz[k] = X.param(geo, s, 12 + k);
+  for (int k = 0; k < 9; ++k) xm[k] = X.param(geo, s, 3 + k);
+  normal(X.type[s], &X.pl[3 * s], sz, sc.tau != 0, Pk(sc.tau * R.px) * X.s_n[s], nl);
+  to_world(nl, xm, nw);
+  nn = Sqrt(dot3(nw, nw) + Pk(1e-20));
   for (int q = 0; q < 3; ++q) n[q] = nw[q] / nn;
 }
 
+// where a packet's lanes write: the pixel index of each lane inside the image, -1 outside
 template <typename T>
-void draw_pixel(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, Scratch<T>& X,
-                T* rgb, T* depth, int32_t* seg, int32_t* body, T* weights, T* background) {
+inline void lane_pixels(int64_t b, int i0, int j0, int64_t H, int64_t W, int64_t* px) {
+  for (int l = 0; l < P<T>::N; ++l) {
+    int64_t i = i0 + l / tile_w<T>(), j = j0 + l % tile_w<T>();
+    px[l] = (i < H && j < W) ? (b * H + i) * W + j : -1;
+  }
+}
+
+template <typename T>
+void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scratch<T>& X,
+                 const int64_t* pix, T* rgb, T* depth, int32_t* seg, int32_t* body, T* weights,
+                 T* background) {
+  using Pk = P<T>;
   Ray<T> R;
-  gather(sc, cam, geo, i, j, X, R);
-  Mix<T> M;
-  mix(sc, geo, X, R, M);
+  gather(sc, cam, geo, i0, j0, X, R);
+  mix(sc, geo, X, R);
   const int L = R.L;
-  const int* lay = X.lay.data();
-  *seg = R.any_hit ? sc.gids[X.gid[R.first]] : -1;
-  *body = R.any_hit ? sc.bodies[X.gid[R.first]] : -1;
-  T out[3] = {0, 0, 0};
-  for (int k = 0; k < L; ++k) {
+  Pk out[3] = {0, 0, 0};
+  for (int s = 0; s < R.S; ++s) {
     // a surface that adds nothing here is not shaded: the hard image's hidden ones (weight
     // exactly 0), the soft one's far from their silhouette (coverage under 1e-12)
-    if (!(M.wrgb[k] > T(1e-12))) continue;
-    int s = lay[k];
-    T nl[3], nw[3], n[3], nn, col[3];
-    surface_normal(sc, geo, X, R, s, nl, nw, n, nn);
-    sc.shade(&X.p[3 * s], n, cam, R.fwd, &X.alb[4 * s], X.gid[s], X.lit.data(), col);
-    for (int q = 0; q < 3; ++q) out[q] = out[q] + M.wrgb[k] * col[q];
+    Pk wr = X.of_slot(R, X.wrgb, s);
+    auto shown = wr > Pk(1e-12);
+    if (none(shown)) continue;
+    Pk nl[3], nw[3], n[3], nn, xm[9], col[3], mat[3];
+    surface_normal(sc, geo, X, R, s, nl, nw, n, nn, xm);
+    X.material(sc, s, mat);
+    sc.shade(&X.p[3 * s], n, cam, R.fwd, &X.alb[4 * s], mat, X.lit.data(), col);
+    for (int q = 0; q < 3; ++q) out[q] = out[q] + sel(shown, wr * col[q], Pk(0));
   }
-  for (int q = 0; q < 3; ++q) rgb[q] = out[q];
+  Pk dep;
   if (sc.tau != 0) {
-    T dsum = 0;
-    for (int k = 0; k < L; ++k) dsum = k == 0 ? M.w[0] * M.zz[0] : dsum + M.w[k] * M.zz[k];
-    *depth = dsum + M.bg * sc.far_depth;
+    Pk dsum = 0;
+    for (int k = 0; k < L; ++k) dsum = k == 0 ? X.w[0] * X.zz[0] : dsum + X.w[k] * X.zz[k];
+    dep = dsum + X.bg * Pk(sc.far_depth);
   } else {
-    *depth = R.any_hit ? X.s_hit[R.first] : sc.far_depth;
+    dep = sel(R.any_hit, R.first_hit, Pk(sc.far_depth));
   }
-  for (int g = 0; g < sc.G; ++g) weights[g] = 0;
-  for (int k = 0; k < L; ++k) weights[X.gid[lay[k]]] += M.w[k];
-  *background = M.bg;
+  const int G = sc.G;
+  for (int l = 0; l < Pk::N; ++l) {
+    int64_t p = pix[l];
+    if (p < 0) continue;
+    int g = X.geom(int(R.first[l]), l);
+    seg[p] = R.any_hit[l] ? sc.gids[g] : -1;
+    body[p] = R.any_hit[l] ? sc.bodies[g] : -1;
+    for (int q = 0; q < 3; ++q) rgb[3 * p + q] = out[q][l];
+    depth[p] = dep[l];
+    T* wp = weights + int64_t(G) * p;
+    for (int k = 0; k < G; ++k) wp[k] = 0;
+    for (int k = 0; k < L; ++k) wp[X.geom(X.slot_of(R, k, l), l)] += X.w[k][l];
+    background[p] = X.bg[l];
+  }
 }
 
 // ------------------------------------------------------------------ the reverse pass
-// The gradient of <cotangent, image> with respect to the camera and the geoms, pixel by pixel:
-// the pixel is drawn again (gather, mix), then differentiated backwards by hand through the
+// The gradient of <cotangent, image> with respect to the camera and the geoms, packet by packet:
+// the packet is drawn again (gather, mix), then differentiated backwards by hand through the
 // composite and the shading down to each surface's depth, distance and normal, and from those
 // to the surface's inputs (the ray and camera in the geom's frame, its size, the pixel size)
 // through that surface's Jacobian, found on Dual numbers by the same templates that drew it.
 
 // the composite's reverse (every pair, as JAX takes them: a pair with a zero coverage has
-// occlusion exactly 1 either way, but its derivative need not be 0)
+// occlusion exactly 1 either way, but its derivative need not be 0); occl: L * L scratch
 template <typename T>
-void composite_vjp(int L, const T* a, const T* ahead, const T* dw, T dbg, T* da, T* dahead) {
-  T occl[64 * 64], P[64], u[64];
-  T B = 1, tot = 0;
+void composite_vjp(int L, const P<T>* a, const P<T>* ahead, const P<T>* dw, const P<T>& dbg,
+                   P<T>* da, P<T>* dahead, P<T>* occl) {
+  using Pk = P<T>;
+  Pk Pg[64], u[64];
+  Pk B = 1, tot = 0;
   for (int g = 0; g < L; ++g) {
-    T prod = 1;
+    Pk prod = 1;
     for (int k = 0; k < L; ++k) {
-      T o = k == g ? T(1) : T(1) - a[k] * ahead[g * L + k];
+      Pk o = k == g ? Pk(1) : Pk(1) - a[k] * ahead[g * L + k];
       occl[g * L + k] = o;
       prod = k == 0 ? o : prod * o;
     }
-    P[g] = prod;
+    Pg[g] = prod;
     u[g] = a[g] * prod;
     tot = g == 0 ? u[0] : tot + u[g];
-    B = g == 0 ? T(1) - a[0] : B * (T(1) - a[g]);
+    B = g == 0 ? Pk(1) - a[0] : B * (Pk(1) - a[g]);
   }
   tot = tot + B;
-  bool pos = tot > 0;
-  T t = pos ? tot : T(1);
-  T dtot = 0;
-  if (pos) {
-    for (int g = 0; g < L; ++g) dtot -= dw[g] * u[g];
-    dtot = (dtot - dbg * B) / (t * t);
-  }
-  T dB = dbg / t + dtot;
-  T pre[65], suf[65];
+  auto pos = tot > Pk(0);
+  Pk t = sel(pos, tot, Pk(1));
+  Pk dtot = 0;
+  for (int g = 0; g < L; ++g) dtot -= dw[g] * u[g];
+  dtot = sel(pos, (dtot - dbg * B) / (t * t), Pk(0));
+  Pk dB = dbg / t + dtot;
+  Pk pre[65], suf[65];
   for (int g = 0; g < L; ++g) {
-    T du = dw[g] / t + dtot;
-    da[g] += du * P[g];
-    T coef = du * a[g];
-    if (coef == 0) continue;
-    const T* og = &occl[g * L];
+    Pk du = dw[g] / t + dtot;
+    da[g] += du * Pg[g];
+    Pk coef = du * a[g];
+    if (all(coef == Pk(0))) continue;
+    const Pk* og = &occl[g * L];
     pre[0] = 1;
     for (int k = 0; k < L; ++k) pre[k + 1] = pre[k] * og[k];
     suf[L] = 1;
     for (int k = L - 1; k >= 0; --k) suf[k] = suf[k + 1] * og[k];
     for (int k = 0; k < L; ++k) {
       if (k == g) continue;
-      T d_o = coef * pre[k] * suf[k + 1];
+      Pk d_o = coef * pre[k] * suf[k + 1];
       da[k] -= d_o * ahead[g * L + k];
       dahead[g * L + k] -= d_o * a[k];
     }
   }
-  if (dB != 0) {
+  if (any(dB != Pk(0))) {
     pre[0] = 1;
-    for (int k = 0; k < L; ++k) pre[k + 1] = pre[k] * (T(1) - a[k]);
+    for (int k = 0; k < L; ++k) pre[k + 1] = pre[k] * (Pk(1) - a[k]);
     suf[L] = 1;
-    for (int k = L - 1; k >= 0; --k) suf[k] = suf[k + 1] * (T(1) - a[k]);
+    for (int k = L - 1; k >= 0; --k) suf[k] = suf[k + 1] * (Pk(1) - a[k]);
     for (int k = 0; k < L; ++k) da[k] -= dB * pre[k] * suf[k + 1];
   }
 }
 
 // d clip(x, 0, 1) / dx as JAX's (ties half)
 template <typename T>
-inline T clip_slope(T x) {
-  T lo = x > 0 ? T(1) : (x == 0 ? T(0.5) : T(0));
-  T hi = x < 1 ? T(1) : (x == 1 ? T(0.5) : T(0));
+inline P<T> clip_slope(const P<T>& x) {
+  using Pk = P<T>;
+  Pk lo = sel(x > Pk(0), Pk(1), sel(x == Pk(0), Pk(0.5), Pk(0)));
+  Pk hi = sel(x < Pk(1), Pk(1), sel(x == Pk(1), Pk(0.5), Pk(0)));
   return lo * hi;
 }
 template <typename T>
-inline T relu_slope(T x) { return x > 0 ? T(1) : (x == 0 ? T(0.5) : T(0)); }
+inline P<T> relu_slope(const P<T>& x) {
+  return sel(x > P<T>(0), P<T>(1), sel(x == P<T>(0), P<T>(0.5), P<T>(0)));
+}
 
 // the reverse of x / sqrt(x.x + 1e-20) (y, its value; nn, the root): dx from dy
 template <typename T>
-inline void unit_vjp(const T* y, T nn, const T* dy, T* dx) {
+inline void unit_vjp(const T* y, const T& nn, const T* dy, T* dx) {
   T yd = dot3(y, dy);
   for (int k = 0; k < 3; ++k) dx[k] += (dy[k] - y[k] * yd) / nn;
 }
@@ -1157,30 +1561,34 @@ inline void unit_vjp(const T* y, T nn, const T* dy, T* dx) {
 // Scene::shade's reverse: dcol (the clamped colour's cotangent) to p, n, the camera position o,
 // the view direction fwd and the albedo's rgb (all added to); out: the colour Scene::shade gives
 template <typename T>
-void shade_vjp(const Scene<T>& sc, const T* p, const T* n, const T* o, const T* fwd,
-               const T* alb, int g, const T* lit, const T* dcol_clamped, T* dp, T* dn, T* d_o,
-               T* dfwd, T* dalb, T* out) {
-  T col[3];
-  T v0[3];
-  for (int k = 0; k < 3; ++k) v0[k] = o[k] - p[k];
-  T vn = Sqrt(dot3(v0, v0) + T(1e-20));
-  T v[3] = {v0[0] / vn, v0[1] / vn, v0[2] / vn};
-  T spec_m = sc.spec[g], sh = T(128) * sc.shin[g];
+void shade_vjp(const Scene<T>& sc, const P<T>* p, const P<T>* n, const T* o, const T* fwd,
+               const P<T>* alb, const P<T>* mat, const P<T>* lit, const P<T>* dcol_clamped,
+               P<T>* dp, P<T>* dn, P<T>* d_o, P<T>* dfwd, P<T>* dalb, P<T>* out) {
+  using Pk = P<T>;
+  using Mk = Mask<T>;
+  Pk col[3];
+  Pk v0[3];
+  for (int k = 0; k < 3; ++k) v0[k] = Pk(o[k]) - p[k];
+  Pk vn = Sqrt(dot3(v0, v0) + Pk(1e-20));
+  Pk v[3] = {v0[0] / vn, v0[1] / vn, v0[2] / vn};
+  Pk spec_m = mat[0], sh = Pk(128) * mat[1], emis = mat[2];
   // the unclamped colour (to know where the clamp passes the gradient)
-  for (int k = 0; k < 3; ++k) col[k] = sc.emis[g] * alb[k];
-  auto light_terms = [&](const T* l, T& ndl, T* h, T& hn, T* h0, T& ndh, T& nh, T& sp, T& nd) {
+  for (int k = 0; k < 3; ++k) col[k] = emis * alb[k];
+  auto light_terms = [&](const Pk* l, Pk& ndl, Pk* h, Pk& hn, Pk* h0, Pk& ndh, Pk& nh, Pk& sp,
+                         Pk& nd) {
     ndl = dot3(n, l);
     for (int k = 0; k < 3; ++k) h0[k] = l[k] + v[k];
-    hn = Sqrt(dot3(h0, h0) + T(1e-20));
+    hn = Sqrt(dot3(h0, h0) + Pk(1e-20));
     for (int k = 0; k < 3; ++k) h[k] = h0[k] / hn;
     nh = dot3(n, h);
-    ndh = Max(nh, T(0));
-    sp = ndl > 0 ? Exp(sh * Log(ndh + T(1e-30))) : T(0);
-    nd = Max(ndl, T(0));
+    ndh = Max(nh, Pk(0));
+    Mk lit_side = ndl > Pk(0);
+    sp = any(lit_side) ? sel(lit_side, Exp(sh * Log(ndh + Pk(1e-30))), Pk(0)) : Pk(0);
+    nd = Max(ndl, Pk(0));
   };
   // light q (the headlight first where it is on): direction, factor (shadow included), colours
   struct LightEval {
-    T l[3], factor;
+    Pk l[3], factor;
     const T *amb, *dif, *spe;
     int kind;  // 0 headlight, 1 directional, 2 point or spot
     int index;
@@ -1188,14 +1596,14 @@ void shade_vjp(const Scene<T>& sc, const T* p, const T* n, const T* o, const T* 
   const int ne = sc.NL + (sc.head_on ? 1 : 0);
   auto eval = [&](int q, LightEval& e) {
     if (sc.head_on && q == 0) {
-      for (int k = 0; k < 3; ++k) e.l[k] = -fwd[k];
+      for (int k = 0; k < 3; ++k) e.l[k] = Pk(-fwd[k]);
       e.amb = sc.head, e.dif = sc.head + 3, e.spe = sc.head + 6;
       e.factor = 1, e.kind = 0, e.index = -1;
       return;
     }
     int i = q - (sc.head_on ? 1 : 0);
     const T* L = &sc.light[i * kLightStride];
-    T dist;
+    Pk dist;
     sc.light_dir(i, p, e.l, dist, e.factor);
     if (sc.shadows && L[21] != 0) e.factor = e.factor * lit[i];
     e.amb = L + 7, e.dif = L + 10, e.spe = L + 13;
@@ -1205,39 +1613,39 @@ void shade_vjp(const Scene<T>& sc, const T* p, const T* n, const T* o, const T* 
   for (int q = 0; q < ne; ++q) {
     LightEval e;
     eval(q, e);
-    T ndl, h[3], hn, h0[3], ndh, nh, sp, nd;
+    Pk ndl, h[3], hn, h0[3], ndh, nh, sp, nd;
     light_terms(e.l, ndl, h, hn, h0, ndh, nh, sp, nd);
     for (int k = 0; k < 3; ++k)
-      col[k] = col[k] + e.amb[k] * alb[k] +
-               e.factor * (e.dif[k] * nd * alb[k] + e.spe[k] * spec_m * sp);
+      col[k] = col[k] + Pk(e.amb[k]) * alb[k] +
+               e.factor * (Pk(e.dif[k]) * nd * alb[k] + Pk(e.spe[k]) * spec_m * sp);
   }
-  T dcol[3];
+  Pk dcol[3];
   for (int k = 0; k < 3; ++k) {
     dcol[k] = dcol_clamped[k] * clip_slope(col[k]);
-    out[k] = Min(Max(col[k], T(0)), T(1));
+    out[k] = Min(Max(col[k], Pk(0)), Pk(1));
   }
-  if (dcol[0] == 0 && dcol[1] == 0 && dcol[2] == 0) return;
-  T dv[3] = {0, 0, 0};
-  for (int k = 0; k < 3; ++k) dalb[k] += dcol[k] * sc.emis[g];
+  if (all((dcol[0] == Pk(0)) & (dcol[1] == Pk(0)) & (dcol[2] == Pk(0)))) return;
+  Pk dv[3] = {0, 0, 0};
+  for (int k = 0; k < 3; ++k) dalb[k] += dcol[k] * emis;
   for (int q = 0; q < ne; ++q) {
     LightEval e;
     eval(q, e);
-    T ndl, h[3], hn, h0[3], ndh, nh, sp, nd;
+    Pk ndl, h[3], hn, h0[3], ndh, nh, sp, nd;
     light_terms(e.l, ndl, h, hn, h0, ndh, nh, sp, nd);
-    T dfactor = 0, dnd = 0, dsp = 0;
+    Pk dfactor = 0, dnd = 0, dsp = 0;
     for (int k = 0; k < 3; ++k) {
-      dalb[k] += dcol[k] * (e.amb[k] + e.factor * e.dif[k] * nd);
-      dfactor += dcol[k] * (e.dif[k] * nd * alb[k] + e.spe[k] * spec_m * sp);
-      dnd += dcol[k] * e.dif[k] * alb[k];
-      dsp += dcol[k] * e.spe[k];
+      dalb[k] += dcol[k] * (Pk(e.amb[k]) + e.factor * Pk(e.dif[k]) * nd);
+      dfactor += dcol[k] * (Pk(e.dif[k]) * nd * alb[k] + Pk(e.spe[k]) * spec_m * sp);
+      dnd += dcol[k] * Pk(e.dif[k]) * alb[k];
+      dsp += dcol[k] * Pk(e.spe[k]);
     }
     dnd *= e.factor;
     dsp *= e.factor * spec_m;
-    T dndl = dnd * relu_slope(ndl);
-    T dndh = ndl > 0 ? dsp * sp * sh / (ndh + T(1e-30)) : T(0);
-    T dnh = dndh * relu_slope(nh);
-    T dl[3], dh0[3] = {0, 0, 0};
-    T dh[3];
+    Pk dndl = dnd * relu_slope(ndl);
+    Pk dndh = sel(ndl > Pk(0), dsp * sp * sh / (ndh + Pk(1e-30)), Pk(0));
+    Pk dnh = dndh * relu_slope(nh);
+    Pk dl[3], dh0[3] = {0, 0, 0};
+    Pk dh[3];
     for (int k = 0; k < 3; ++k) {
       dn[k] += dnh * h[k] + dndl * e.l[k];
       dh[k] = dnh * n[k];
@@ -1250,32 +1658,31 @@ void shade_vjp(const Scene<T>& sc, const T* p, const T* n, const T* o, const T* 
     } else if (e.kind == 2) {
       // l = (pos - p) / dist, factor = lit / (a0 + a1 dist + a2 dist^2) [x spot(cos)]
       const T* L = &sc.light[e.index * kLightStride];
-      T dlv[3];
-      for (int k = 0; k < 3; ++k) dlv[k] = L[1 + k] - p[k];
-      T dist = Sqrt(dot3(dlv, dlv) + T(1e-20));
-      T f0 = T(1) / (L[18] + L[19] * dist + L[20] * dist * dist);
-      T shadow = (sc.shadows && L[21] != 0) ? lit[e.index] : T(1);
-      T spot = 1;
+      Pk dlv[3];
+      for (int k = 0; k < 3; ++k) dlv[k] = Pk(L[1 + k]) - p[k];
+      Pk dist = Sqrt(dot3(dlv, dlv) + Pk(1e-20));
+      Pk f0 = Pk(1) / (Pk(L[18]) + Pk(L[19]) * dist + Pk(L[20]) * dist * dist);
+      Pk shadow = (sc.shadows && L[21] != 0) ? lit[e.index] : Pk(1);
+      Pk spot = 1;
       if (int(L[0]) == 0) {
-        T cosang = -dot3(e.l, L + 4);
-        bool inside = cosang >= sc.cutoff_cos[e.index];
-        spot = inside ? Exp(L[17] * Log(Max(cosang, T(1e-30)))) : T(0);
-        T dspot = dfactor * f0 * shadow;
-        T dcos = (inside && cosang > T(1e-30)) ? dspot * spot * L[17] / cosang : T(0);
-        for (int k = 0; k < 3; ++k) dl[k] -= dcos * L[4 + k];
+        Pk cosang = -dot3m(e.l, L + 4);
+        Mk inside = cosang >= Pk(sc.cutoff_cos[e.index]);
+        spot = any(inside) ? sel(inside, Exp(Pk(L[17]) * Log(Max(cosang, Pk(1e-30)))), Pk(0))
+                           : Pk(0);
+        Pk dspot = dfactor * f0 * shadow;
+        Pk dcos = sel(inside & (cosang > Pk(1e-30)), dspot * spot * Pk(L[17]) / cosang, Pk(0));
+        for (int k = 0; k < 3; ++k) dl[k] -= dcos * Pk(L[4 + k]);
       }
-      T df0 = dfactor * spot * shadow;
-      T ddist = -df0 * f0 * f0 * (L[19] + T(2) * L[20] * dist);
-      T ldl = dot3(dl, dlv);
-      T ddlv[3];
-      for (int k = 0; k < 3; ++k) {
-        ddlv[k] = dl[k] / dist;
-      }
+      Pk df0 = dfactor * spot * shadow;
+      Pk ddist = -df0 * f0 * f0 * (Pk(L[19]) + Pk(2) * Pk(L[20]) * dist);
+      Pk ldl = dot3(dl, dlv);
+      Pk ddlv[3];
+      for (int k = 0; k < 3; ++k) ddlv[k] = dl[k] / dist;
       ddist -= ldl / (dist * dist);
       for (int k = 0; k < 3; ++k) dp[k] -= ddlv[k] + ddist * dlv[k] / dist;
     }
   }
-  T dv0[3] = {0, 0, 0};
+  Pk dv0[3] = {0, 0, 0};
   unit_vjp(v, vn, dv, dv0);
   for (int k = 0; k < 3; ++k) d_o[k] += dv0[k], dp[k] -= dv0[k];
 }
@@ -1283,203 +1690,222 @@ void shade_vjp(const Scene<T>& sc, const T* p, const T* n, const T* o, const T* 
 constexpr int kIn = 10;  // a surface's inputs: the camera (3) and ray (3) in the geom's frame,
                          // the geom's size (3), the pixel size
 
-// Surface s's Jacobian applied to the cotangents of its first hit, placed depth, signed distance
-// and local normal: the cotangents of its kIn inputs (g_in, overwritten)
+// Slot s's Jacobian applied to the cotangents of its first hit, placed depth, signed distance
+// and local normal: the cotangents of its kIn inputs (g_in, overwritten), lane by lane
 template <typename T>
-void surface_vjp(const Scene<T>& sc, const T* geo, const Scratch<T>& X, T px, int s, T d_hit,
-                 T d_sn, T d_dist, const T* d_nl, bool normal_needed, T* g_in) {
-  using D = Dual<T, kIn>;
+void surface_vjp(const Scene<T>& sc, const T* geo, const Scratch<T>& X, T px, int s,
+                 const P<T>& d_hit, const P<T>& d_sn, const P<T>& d_dist, const P<T>* d_nl,
+                 Mask<T> normal_needed, P<T>* g_in) {
+  using Pk = P<T>;
+  using D = Dual<Pk, kIn>;
   const bool soft = sc.tau != 0;
   const int t = X.type[s];
-  const T* gp = geo + 19 * X.gid[s];
-  const T* ol = &X.ol[3 * X.gid[s]];
-  const T* rlv = &X.rl[3 * s];
+  const Pk* ol = &X.ol[3 * s];
+  const Pk* rlv = &X.rl[3 * s];
   D o[3], r[3], sz[3];
   for (int k = 0; k < 3; ++k) {
     o[k] = D::seed(ol[k], k);
     r[k] = D::seed(rlv[k], 3 + k);
-    sz[k] = D::seed(gp[12 + k], 6 + k);
+    sz[k] = D::seed(X.param(geo, s, 12 + k), 6 + k);
   }
-  D P = D::seed(px, 9);
-  const T inf = K<T>::inf();
-  D s_hit = X.skip[s] ? D(inf) : hit(t, o, r, sz);
+  D Pd = D::seed(Pk(px), 9);
+  const D inf = K<D>::inf();
+  const auto miss = X.miss[s];
+  D s_hit = all(miss) ? inf : sel(miss, inf, hit(t, o, r, sz));
   D sn, dist(0.0);
   if (!soft) {
     sn = s_hit;
-  } else if (d_dist == 0 && Finite(s_hit)) {
+  } else if (none(!((d_dist == Pk(0)) & Finite(s_hit)))) {
     sn = s_hit;  // the closest approach would only give the distance, which nothing needs
   } else {
     D s_c;
     closest(t, o, r, sz, sc.iters, s_c, dist);
-    sn = Finite(s_hit) ? s_hit : s_c;
-    sn = Finite(sn) ? sn : D(value(sc.far_));
+    sn = sel(Finite(s_hit), s_hit, s_c);
+    sn = sel(Finite(sn), sn, D(sc.far_));
   }
   for (int k = 0; k < kIn; ++k) g_in[k] = 0;
-  auto add = [&](const D& x, T c) {
-    if (c != 0)
-      for (int k = 0; k < kIn; ++k) g_in[k] += c * x.d[k];
+  auto add = [&](const D& x, const Pk& c) {
+    auto on = c != Pk(0);
+    if (none(on)) return;
+    for (int k = 0; k < kIn; ++k) g_in[k] += sel(on, c * x.d[k], Pk(0));
   };
   add(s_hit, d_hit);
   add(sn, d_sn);
   add(dist, d_dist);
-  if (normal_needed) {
-    D sp = soft ? sn : (Finite(s_hit) ? s_hit : D(value(sc.far_)));
+  if (any(normal_needed)) {
+    D sp = soft ? sn : sel(Finite(s_hit), s_hit, D(sc.far_));
     D pl[3], nl[3];
     for (int k = 0; k < 3; ++k) pl[k] = o[k] + sp * r[k];
-    D tn = D(value(sc.tau)) * P * sn;
+    D tn = D(sc.tau) * Pd * sn;
     normal(t, pl, sz, soft, tn, nl);
-    for (int k = 0; k < 3; ++k) add(nl[k], d_nl[k]);
+    for (int k = 0; k < 3; ++k) add(nl[k], sel(normal_needed, d_nl[k], Pk(0)));
   }
 }
 
+// The packet's contribution to the gradients (X.gcam, X.ggeo: this frame's, lane by lane), from
+// the cotangents of its pixels' colour (c_rgb), depth, per-geom weights (cw: the batch's array,
+// read at each lane's pixel `pix`, 0 outside the image) and background
 template <typename T>
-void draw_pixel_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i, int j, Scratch<T>& X,
-                    const T* c_rgb, T c_depth, const T* c_w, T c_bg, T* gcam, T* ggeo) {
+void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
+                     Scratch<T>& X, const int64_t* pix, const P<T>* c_rgb, const P<T>& c_depth,
+                     const T* cw, const P<T>& c_bg) {
+  using Pk = P<T>;
+  using Mk = Mask<T>;
   const bool soft = sc.tau != 0;
+  const int G = sc.G;
   Ray<T> R;
-  gather(sc, cam, geo, i, j, X, R);
-  Mix<T> M;
-  mix(sc, geo, X, R, M);
+  gather(sc, cam, geo, i0, j0, X, R);
+  mix(sc, geo, X, R);
   const int L = R.L, S = R.S;
-  const int* lay = X.lay.data();
-  const T* r = R.r;
-  // cotangents per layer and per surface
-  T d_w[64], d_zz[64], d_a[64], d_wa[64], d_wrgb[64];
-  T d_hit[64], d_sn[64], d_dist[64], d_z[64], d_nl[3 * 64];
-  bool shaded[64];
+  const Pk* r = R.r;
+  // cotangents per layer and per slot
   for (int k = 0; k < S; ++k) {
-    d_hit[k] = d_sn[k] = d_dist[k] = d_z[k] = 0;
-    d_nl[3 * k] = d_nl[3 * k + 1] = d_nl[3 * k + 2] = 0;
-    shaded[k] = false;
+    X.d_hit[k] = X.d_sn[k] = X.d_dist[k] = X.d_z[k] = X.d_wrgb_slot[k] = 0;
+    X.d_nl[3 * k] = X.d_nl[3 * k + 1] = X.d_nl[3 * k + 2] = 0;
+    X.shaded[k] = false;
   }
-  T d_bg = c_bg;
+  Pk d_bg = c_bg;
   for (int k = 0; k < L; ++k) {
-    d_w[k] = c_w[X.gid[lay[k]]];
-    d_zz[k] = d_a[k] = d_wa[k] = d_wrgb[k] = 0;
+    Pk dw;
+    for (int l = 0; l < Pk::N; ++l)
+      dw.v[l] = pix[l] < 0 ? T(0) : cw[int64_t(G) * pix[l] + X.geom(X.slot_of(R, k, l), l)];
+    X.d_w[k] = dw;
+    X.d_zz[k] = X.d_a[k] = X.d_wa[k] = X.d_wrgb[k] = 0;
   }
   if (soft) {
-    for (int k = 0; k < L; ++k) d_w[k] += c_depth * M.zz[k], d_zz[k] += c_depth * M.w[k];
-    d_bg += c_depth * sc.far_depth;
-  } else if (R.any_hit) {
-    d_hit[R.first] += c_depth;
+    for (int k = 0; k < L; ++k) X.d_w[k] += c_depth * X.zz[k], X.d_zz[k] += c_depth * X.w[k];
+    d_bg += c_depth * Pk(sc.far_depth);
+  } else {
+    for (int s = 0; s < S; ++s)
+      X.d_hit[s] += sel(R.any_hit & (R.first == Pk(double(s))), c_depth, Pk(0));
   }
-  T d_o[3] = {0, 0, 0}, d_r[3] = {0, 0, 0}, d_fwd[3] = {0, 0, 0}, d_px = 0;
-  for (int k = 0; k < L; ++k) {
+  Pk d_o[3] = {0, 0, 0}, d_r[3] = {0, 0, 0}, d_fwd[3] = {0, 0, 0}, d_px = 0;
+  for (int s = 0; s < S; ++s) {
     // A surface's colour matters where it is drawn (wrgb) and, through the derivative of its
     // weight, wherever it covers the pixel (wa): hidden behind an opaque one, its colour is
     // what that one's alpha lets through. (Under 1e-12 either way, nothing is lost.)
-    if (!(M.wa[k] > T(1e-12))) continue;
-    int s = lay[k];
-    int g = X.gid[s];
-    T* gg = ggeo + 19 * g;
-    const T* gp = geo + 19 * g;
-    T nl[3], nw[3], n[3], nn, col[3];
-    surface_normal(sc, geo, X, R, s, nl, nw, n, nn);
-    if (!(M.wrgb[k] > T(1e-12))) {
-      sc.shade(&X.p[3 * s], n, cam, R.fwd, &X.alb[4 * s], g, X.lit.data(), col);
-      d_wrgb[k] = dot3(c_rgb, col);
-      continue;
-    }
-    T dcol[3] = {M.wrgb[k] * c_rgb[0], M.wrgb[k] * c_rgb[1], M.wrgb[k] * c_rgb[2]};
-    T dp[3] = {0, 0, 0}, dn[3] = {0, 0, 0}, dalb[3] = {0, 0, 0};
-    shade_vjp(sc, &X.p[3 * s], n, cam, R.fwd, &X.alb[4 * s], g, X.lit.data(), dcol, dp, dn, d_o,
-              d_fwd, dalb, col);
-    d_wrgb[k] = dot3(c_rgb, col);
-    for (int q = 0; q < 3; ++q) gg[15 + q] += dalb[q];
-    T dnw[3] = {0, 0, 0};
+    Pk wa = X.of_slot(R, X.wa, s);
+    Mk covers = wa > Pk(1e-12);
+    if (none(covers)) continue;
+    Pk wr = X.of_slot(R, X.wrgb, s);
+    Mk drawn = covers & (wr > Pk(1e-12));
+    Pk nl[3], nw[3], n[3], nn, xm[9], col[3], mat[3];
+    surface_normal(sc, geo, X, R, s, nl, nw, n, nn, xm);
+    X.material(sc, s, mat);
+    Pk w_on = sel(drawn, wr, Pk(0));
+    Pk dcol[3] = {w_on * c_rgb[0], w_on * c_rgb[1], w_on * c_rgb[2]};
+    Pk dp[3] = {0, 0, 0}, dn[3] = {0, 0, 0}, dalb[3] = {0, 0, 0}, dos[3] = {0, 0, 0};
+    Pk dfw[3] = {0, 0, 0};
+    shade_vjp(sc, &X.p[3 * s], n, cam, R.fwd, &X.alb[4 * s], mat, X.lit.data(), dcol, dp, dn,
+              dos, dfw, dalb, col);
+    X.d_wrgb_slot[s] = sel(covers, dot3(c_rgb, col), Pk(0));
+    if (none(drawn)) continue;
+    for (int q = 0; q < 3; ++q) X.add_geom(s, 15 + q, sel(drawn, dalb[q], Pk(0)));
+    for (int q = 0; q < 3; ++q) dn[q] = sel(drawn, dn[q], Pk(0));
+    Pk dnw[3] = {0, 0, 0};
     unit_vjp(n, nn, dn, dnw);
     for (int a = 0; a < 3; ++a)
       for (int b = 0; b < 3; ++b) {
-        d_nl[3 * s + b] += dnw[a] * gp[3 + 3 * a + b];
-        gg[3 + 3 * a + b] += dnw[a] * nl[b];
+        X.d_nl[3 * s + b] += dnw[a] * xm[3 * a + b];
+        X.add_geom(s, 3 + 3 * a + b, dnw[a] * nl[b]);
       }
-    shaded[s] = true;
+    X.shaded[s] = drawn;
     // p = o + z r
-    for (int q = 0; q < 3; ++q) d_o[q] += dp[q], d_r[q] += X.z[s] * dp[q];
-    d_z[s] += dot3(dp, r);
+    for (int q = 0; q < 3; ++q) {
+      dp[q] = sel(drawn, dp[q], Pk(0));
+      d_o[q] += sel(drawn, dos[q], Pk(0)) + dp[q];
+      d_fwd[q] += sel(drawn, dfw[q], Pk(0));
+      d_r[q] += X.z[s] * dp[q];
+    }
+    X.d_z[s] += dot3(dp, r);
   }
+  for (int k = 0; k < L; ++k) X.d_wrgb[k] = X.at_layer(R, X.d_wrgb_slot, 1, 0, k);
   // the composites (the depth image's only where soft: the hard one's weights are constants)
-  T* ahead = X.ahead.data();
-  depth_order(L, M.a, M.zz, soft, sc.gamma, ahead, true);
-  T dahead[64 * 64];
+  Pk* ahead = X.ahead.data();
+  depth_order(L, X.a.data(), X.zz.data(), soft, sc.gamma, ahead, true);
+  Pk* dahead = X.dahead.data();
   for (int q = 0; q < L * L; ++q) dahead[q] = 0;
-  composite_vjp(L, M.wa, ahead, d_wrgb, T(0), d_wa, dahead);
+  composite_vjp(L, X.wa.data(), ahead, X.d_wrgb.data(), Pk(0), X.d_wa.data(), dahead,
+                X.occl.data());
   for (int k = 0; k < L; ++k) {
-    int s = lay[k];
-    ggeo[19 * X.gid[s] + 18] += d_wa[k] * M.a[k];
-    d_a[k] += d_wa[k] * X.alb[4 * s + 3];
+    X.add_layer_geom(R, k, 18, X.d_wa[k] * X.a[k]);
+    X.d_a[k] += X.d_wa[k] * X.alpha[k];
   }
   if (soft) {
-    composite_vjp(L, M.a, ahead, d_w, d_bg, d_a, dahead);
+    composite_vjp(L, X.a.data(), ahead, X.d_w.data(), d_bg, X.d_a.data(), dahead, X.occl.data());
     for (int g = 0; g < L; ++g)
       for (int k = g + 1; k < L; ++k) {
-        T h = ahead[g * L + k];
-        T dz = (dahead[g * L + k] - dahead[k * L + g]) * h * (T(1) - h) / sc.gamma;
-        d_zz[g] += dz, d_zz[k] -= dz;
+        Pk h = ahead[g * L + k];
+        Pk dz = (dahead[g * L + k] - dahead[k * L + g]) * h * (Pk(1) - h) / Pk(sc.gamma);
+        X.d_zz[g] += dz, X.d_zz[k] -= dz;
       }
     for (int k = 0; k < L; ++k) {
-      int s = lay[k];
-      d_z[s] += d_zz[k];
-      T c = X.cover[s];
+      X.to_slots(R, k, X.d_zz[k], X.d_z);
+      Pk c = X.a[k];
       // masked (outside near..far), or so far in or out that the sigmoid is flat: a derivative
       // under 1e-10 of the others (and the distance need not be differentiated at all)
-      if (!(c * (T(1) - c) > T(1e-10))) continue;
-      T M_ = Max(X.s_n[s], sc.near_);
-      T den = M_ * R.px * sc.tau;
-      T dx = d_a[k] * c * (T(1) - c);
-      d_dist[s] += -dx / den;
-      T dM = dx * X.dist[s] / (den * M_);
-      d_sn[s] += dM * relu_slope(X.s_n[s] - sc.near_);
-      d_px += dx * X.dist[s] / (den * R.px);
+      Mk steep = c * (Pk(1) - c) > Pk(1e-10);
+      if (none(steep)) continue;
+      Pk sn = X.at_layer(R, X.s_n, 1, 0, k), dist = X.at_layer(R, X.dist, 1, 0, k);
+      Pk M_ = Max(sn, Pk(sc.near_));
+      Pk den = M_ * Pk(R.px) * Pk(sc.tau);
+      Pk dx = X.d_a[k] * c * (Pk(1) - c);
+      X.to_slots(R, k, sel(steep, -dx / den, Pk(0)), X.d_dist);
+      Pk dM = dx * dist / (den * M_);
+      X.to_slots(R, k, sel(steep, dM * relu_slope(sn - Pk(sc.near_)), Pk(0)), X.d_sn);
+      d_px += sel(steep, dx * dist / (den * Pk(R.px)), Pk(0));
     }
     for (int s = 0; s < S; ++s) {
-      d_sn[s] += d_z[s];
-      if (!(X.cover[s] > T(1e-10)) && !shaded[s]) d_sn[s] = 0;  // adds nothing to the pixel
+      X.d_sn[s] += X.d_z[s];
+      // adds nothing to the pixel
+      X.d_sn[s] = sel(!(X.cover[s] > Pk(1e-10)) & !X.shaded[s], Pk(0), X.d_sn[s]);
     }
   } else {
-    for (int s = 0; s < S; ++s)
-      if (Finite(X.s_hit[s])) d_hit[s] += d_z[s];
+    for (int s = 0; s < S; ++s) X.d_hit[s] += sel(Finite(X.s_hit[s]), X.d_z[s], Pk(0));
   }
   // each surface's inputs
   for (int s = 0; s < S; ++s) {
-    bool any = d_hit[s] != 0 || d_sn[s] != 0 || d_dist[s] != 0 || shaded[s];
-    if (!any || X.skip[s] == 2) continue;
-    T g_in[kIn];
-    surface_vjp(sc, geo, X, R.px, s, d_hit[s], d_sn[s], d_dist[s], &d_nl[3 * s], shaded[s],
-                g_in);
-    int g = X.gid[s];
-    T* gg = ggeo + 19 * g;
-    const T* gp = geo + 19 * g;
+    Mk on = ((X.d_hit[s] != Pk(0)) | (X.d_sn[s] != Pk(0)) | (X.d_dist[s] != Pk(0)) |
+             X.shaded[s]) & !X.far[s];
+    if (none(on)) continue;
+    Pk g_in[kIn], dnl[3];
+    for (int q = 0; q < 3; ++q) dnl[q] = sel(on, X.d_nl[3 * s + q], Pk(0));
+    surface_vjp(sc, geo, X, R.px, s, sel(on, X.d_hit[s], Pk(0)), sel(on, X.d_sn[s], Pk(0)),
+                sel(on, X.d_dist[s], Pk(0)), dnl, X.shaded[s] & on, g_in);
+    Pk m[9], xp[3];
+    for (int k = 0; k < 9; ++k) m[k] = X.param(geo, s, 3 + k);
+    for (int k = 0; k < 3; ++k) xp[k] = X.param(geo, s, k);
     for (int a = 0; a < 3; ++a) {
-      T t_o = 0, t_r = 0;
+      Pk t_o = 0, t_r = 0;
       for (int b = 0; b < 3; ++b) {
-        T m = gp[3 + 3 * a + b];
-        t_o += g_in[b] * m;
-        t_r += g_in[3 + b] * m;
-        gg[3 + 3 * a + b] += (cam[a] - gp[a]) * g_in[b] + r[a] * g_in[3 + b];
+        t_o += g_in[b] * m[3 * a + b];
+        t_r += g_in[3 + b] * m[3 * a + b];
+        X.add_geom(s, 3 + 3 * a + b, (Pk(cam[a]) - xp[a]) * g_in[b] + r[a] * g_in[3 + b]);
       }
       d_o[a] += t_o;
-      gg[a] -= t_o;
+      X.add_geom(s, a, -t_o);
       d_r[a] += t_r;
-      gg[12 + a] += g_in[6 + a];
+      X.add_geom(s, 12 + a, g_in[6 + a]);
     }
     d_px += g_in[9];
   }
   // the ray r = cm loc, loc = ((j + 0.5 - cx) px, (cy - i - 0.5) px, -1); fwd = -cm[:, 2]
   const T* cm = cam + 3;
   T px = cam[12], cx = cam[13], cy = cam[14];
-  T loc[3] = {(T(j) + T(0.5) - cx) * px, (cy - T(i) - T(0.5)) * px, T(-1)};
-  T dloc[3] = {0, 0, 0};
+  Pk lx = R.jj + Pk(0.5) - Pk(cx), ly = Pk(cy) - R.ii - Pk(0.5);
+  Pk loc[3] = {lx * Pk(px), ly * Pk(px), Pk(-1)};
+  Pk dloc[3] = {0, 0, 0};
+  Pk* gcam = X.gcam.data();
   for (int a = 0; a < 3; ++a)
     for (int c = 0; c < 3; ++c) {
       gcam[3 + 3 * a + c] += d_r[a] * loc[c];
-      dloc[c] += d_r[a] * cm[3 * a + c];
+      dloc[c] += d_r[a] * Pk(cm[3 * a + c]);
     }
   for (int a = 0; a < 3; ++a) gcam[3 + 3 * a + 2] -= d_fwd[a], gcam[a] += d_o[a];
-  d_px += dloc[0] * (T(j) + T(0.5) - cx) + dloc[1] * (cy - T(i) - T(0.5));
+  d_px += dloc[0] * lx + dloc[1] * ly;
   gcam[12] += d_px;
-  gcam[13] -= dloc[0] * px;
-  gcam[14] += dloc[1] * px;
+  gcam[13] -= dloc[0] * Pk(px);
+  gcam[14] += dloc[1] * Pk(px);
 }
 
 int worker_count(int64_t rows) {
@@ -1490,7 +1916,7 @@ int worker_count(int64_t rows) {
 #else
   n = int(std::thread::hardware_concurrency());
 #endif
-  if (const char* env = std::getenv("TWINRL_RENDER_THREADS")) n = Max(1, std::atoi(env));
+  if (const char* env = std::getenv("TWINRL_RENDER_THREADS")) n = std::max(1, std::atoi(env));
   return int(std::max<int64_t>(1, std::min<int64_t>(n, rows)));
 }
 
@@ -1517,30 +1943,35 @@ void begin_frame(Scene<T>& sc, Scratch<T>& X, const T* c, const T* g, const T* t
   for (int k = 0; k < sc.G; ++k) {
     const T* gp = g + 19 * k;
     T d[3] = {c[0] - gp[0], c[1] - gp[1], c[2] - gp[2]};
-    to_local(d, gp + 3, &X.ol[3 * k]);
-    X.oo[k] = dot3(&X.ol[3 * k], &X.ol[3 * k]);
-    X.rb[k] = bound_radius(sc.types[k], gp + 12);
+    T* ol = &X.fol[3 * k];
+    for (int j = 0; j < 3; ++j) ol[j] = (d[0] * gp[3 + j] + d[1] * gp[6 + j]) + d[2] * gp[9 + j];
+    X.foo[k] = (ol[0] * ol[0] + ol[1] * ol[1]) + ol[2] * ol[2];
+    X.frb[k] = bound_radius(sc.types[k], gp + 12);
   }
   X.frame = b;
 }
 
-// pixel(worker, scene, scratch, cam, geo, frame, row, column, index) for every pixel of the
-// batch, the rows split over nw workers, each with its own copy of the scene (its frames'
-// temperatures) and its own scratch
-template <typename T, typename F>
-void for_pixels(const Scene<T>& sc, const T* camp, const T* geop, const T* tgp, int64_t N,
-                int64_t H, int64_t W, int nw, const F& pixel) {
-  parallel_rows(nw, N * H, [&](int worker, int64_t r0, int64_t r1) {
+// packet(worker, scene, scratch, cam, geo, frame, row, column) for every packet of the batch
+// (the top-left pixel's row and column), the rows of packets split over nw workers, each with
+// its own copy of the scene (its frames' temperatures) and its own scratch; finish(worker,
+// scratch) when a worker is done
+template <typename T, typename F, typename E>
+void for_packets(const Scene<T>& sc, const T* camp, const T* geop, const T* tgp, int64_t N,
+                 int64_t H, int64_t W, const F& packet, const E& finish) {
+  const int TH = tile_h<T>(), TW = tile_w<T>();
+  const int64_t rows = (H + TH - 1) / TH, cols = (W + TW - 1) / TW;
+  parallel_rows(worker_count(N * rows), N * rows, [&](int worker, int64_t r0, int64_t r1) {
     Scene<T> S = sc;
     Scratch<T> X(sc.slots, sc.G, sc.NL);
     for (int64_t row = r0; row < r1; ++row) {
-      int64_t b = row / H, i = row % H;
+      int64_t b = row / rows;
+      int i0 = int(row % rows) * TH;
       const T* c = camp + 15 * b;
       const T* g = geop + int64_t(19) * sc.G * b;
       begin_frame(S, X, c, g, tgp, b);
-      for (int64_t j = 0; j < W; ++j)
-        pixel(worker, S, X, c, g, b, int(i), int(j), (b * H + i) * W + j);
+      for (int64_t tj = 0; tj < cols; ++tj) packet(worker, S, X, c, g, b, i0, int(tj) * TW);
     }
+    finish(worker, X);
   });
 }
 
@@ -1570,24 +2001,29 @@ ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
   int32_t* bodp = body->typed_data();
   T* wp = weights->typed_data();
   T* bgp = background->typed_data();
-  for_pixels(sc, camp, geop, tgp, N, H, W, worker_count(N * H),
-             [&](int, const Scene<T>& S, Scratch<T>& X, const T* c, const T* g, int64_t, int i,
-                 int j, int64_t px) {
-               draw_pixel(S, c, g, i, j, X, rgbp + 3 * px, depp + px, segp + px, bodp + px,
-                          wp + int64_t(G) * px, bgp + px);
-             });
+  for_packets(
+      sc, camp, geop, tgp, N, H, W,
+      [&](int, const Scene<T>& S, Scratch<T>& X, const T* c, const T* g, int64_t b, int i0,
+          int j0) {
+        int64_t pix[P<T>::N];
+        lane_pixels<T>(b, i0, j0, H, W, pix);
+        draw_packet(S, c, g, i0, j0, X, pix, rgbp, depp, segp, bodp, wp, bgp);
+      },
+      [](int, Scratch<T>&) {});
   return ffi::Error::Success();
 }
 
 
 // The reverse kernel: cotangents of rgb (..., H, W, 3), depth, weights (..., H, W, G) and
-// background to those of cam (..., 15) and geo (..., G, 19). Each worker adds its rows' pixels
-// into its own copy of the gradients; the copies are summed at the end.
+// background to those of cam (..., 15) and geo (..., G, 19). Each worker adds its frames'
+// packets into its own copy of the gradients (lane by lane within a frame); the copies are
+// summed at the end.
 template <typename T, ffi::DataType DT>
 ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
                      ffi::Buffer<DT> c_rgb,
                      ffi::Buffer<DT> c_depth, ffi::Buffer<DT> c_w, ffi::Buffer<DT> c_bg,
                      ffi::ResultBuffer<DT> gcam, ffi::ResultBuffer<DT> ggeo, Config cfg) {
+  using Pk = P<T>;
   Scene<T> sc(cfg);
   auto dims = c_rgb.dimensions();
   if (dims.size() < 3) return ffi::Error::InvalidArgument("rgb must be (..., H, W, 3)");
@@ -1606,23 +2042,43 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> t
   const T* cdep = c_depth.typed_data();
   const T* cw = c_w.typed_data();
   const T* cbg = c_bg.typed_data();
-  const int64_t rows = N * H;
   const int64_t ncam = N * 15, ngeo = N * G * 19;
-  int nw = worker_count(rows);
+  const int TH = tile_h<T>();
+  int nw = worker_count(N * ((H + TH - 1) / TH));
   std::vector<std::vector<T>> acc(nw, std::vector<T>(ncam + ngeo, T(0)));
-  for_pixels(sc, camp, geop, tgp, N, H, W, nw,
-             [&](int worker, const Scene<T>& S, Scratch<T>& X, const T* c, const T* g,
-                 int64_t b, int i, int j, int64_t px) {
-               const T* cr = crgb + 3 * px;
-               const T* cwp = cw + int64_t(G) * px;
-               bool zero = cr[0] == 0 && cr[1] == 0 && cr[2] == 0 && cdep[px] == 0 &&
-                           cbg[px] == 0;
-               for (int k = 0; zero && k < G; ++k) zero = cwp[k] == 0;
-               if (zero) return;  // (a crop's loss, a masked pixel)
-               T* gc = acc[worker].data();
-               draw_pixel_vjp(S, c, g, i, j, X, cr, cdep[px], cwp, cbg[px], gc + 15 * b,
-                              gc + ncam + int64_t(19) * G * b);
-             });
+  // a worker's lane-by-lane sums of its frame (X.acc_frame) into its copy of the gradients
+  auto flush = [&](int worker, Scratch<T>& X) {
+    if (X.acc_frame < 0) return;
+    T* a = acc[worker].data();
+    int64_t b = X.acc_frame;
+    for (int q = 0; q < 15; ++q) a[15 * b + q] += hsum(X.gcam[q]), X.gcam[q] = Pk(0);
+    for (int q = 0; q < 19 * G; ++q)
+      a[ncam + int64_t(19) * G * b + q] += hsum(X.ggeo[q]), X.ggeo[q] = Pk(0);
+    X.acc_frame = -1;
+  };
+  for_packets(
+      sc, camp, geop, tgp, N, H, W,
+      [&](int worker, const Scene<T>& S, Scratch<T>& X, const T* c, const T* g, int64_t b,
+          int i0, int j0) {
+        int64_t pix[Pk::N];
+        lane_pixels<T>(b, i0, j0, H, W, pix);
+        Pk cr[3] = {0, 0, 0}, cd = 0, cb = 0;
+        bool zero = true;
+        for (int l = 0; l < Pk::N; ++l) {
+          int64_t p = pix[l];
+          if (p < 0) continue;
+          for (int q = 0; q < 3; ++q) cr[q].v[l] = crgb[3 * p + q];
+          cd.v[l] = cdep[p], cb.v[l] = cbg[p];
+          bool z = cr[0][l] == 0 && cr[1][l] == 0 && cr[2][l] == 0 && cd[l] == 0 && cb[l] == 0;
+          const T* cwp = cw + int64_t(G) * p;
+          for (int k = 0; z && k < G; ++k) z = cwp[k] == 0;
+          zero = zero && z;
+        }
+        if (zero) return;  // (a crop's loss, a masked pixel)
+        if (X.acc_frame != b) flush(worker, X), X.acc_frame = b;
+        draw_packet_vjp(S, c, g, i0, j0, X, pix, cr, cd, cw, cb);
+      },
+      flush);
   T* oc = gcam->typed_data();
   T* og = ggeo->typed_data();
   for (int64_t q = 0; q < ncam; ++q) {
