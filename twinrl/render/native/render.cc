@@ -890,6 +890,18 @@ struct Config {
   ffi::Span<const double> mat, lights, headlight, scal;
 };
 
+// One light's part in a surface's shading, kept from shade_vjp's colour for its reverse: the
+// direction, factor (shadow included) and, for point and spot lights, distance, attenuation and
+// falloff; the Blinn-Phong terms
+template <typename T>
+struct LightTerms {
+  P<T> l[3], factor, dist, f0, spot;
+  P<T> ndl, h[3], hn, ndh, nh, sp, nd;
+  const T *amb, *dif, *spe;
+  int kind;  // 0 headlight, 1 directional, 2 point or spot
+  int index;
+};
+
 template <typename T>
 struct Scratch;
 
@@ -992,27 +1004,33 @@ struct Scene {
     top_k(score, n, per_pixel, out);
   }
 
-  void light_dir(int i, const Pk* p, Pk* l, Pk& dist, Pk& factor) const {
+  // the direction l towards light i from p and its distance; where asked, its factor: the
+  // attenuation f0 times the spot's falloff (shadows need the direction alone)
+  void light_dir(int i, const Pk* p, Pk* l, Pk& dist, Pk* factor, Pk* f0 = nullptr,
+                 Pk* spot = nullptr) const {
     const T* L = &light[i * kLightStride];
     int type = int(L[0]);
     if (type == 1) {
       for (int k = 0; k < 3; ++k) l[k] = Pk(-L[4 + k]);
-      dist = Pk(1e9), factor = Pk(1);
+      dist = Pk(1e9);
+      if (factor) *factor = Pk(1);
       return;
     }
     Pk dl[3];
     for (int k = 0; k < 3; ++k) dl[k] = Pk(L[1 + k]) - p[k];
     dist = Sqrt(dot3(dl, dl) + Pk(1e-20));
     for (int k = 0; k < 3; ++k) l[k] = dl[k] / dist;
-    factor = Pk(1) / (Pk(L[18]) + Pk(L[19]) * dist + Pk(L[20]) * dist * dist);
+    if (!factor) return;
+    Pk att = Pk(1) / (Pk(L[18]) + Pk(L[19]) * dist + Pk(L[20]) * dist * dist), fall = 1;
     if (type == 0) {
       Pk cosang = -dot3m(l, L + 4);
       Mk inside = cosang >= Pk(cutoff_cos[i]);
-      if (any(inside))
-        factor = factor * sel(inside, Exp(Pk(L[17]) * Log(Max(cosang, Pk(1e-30)))), Pk(0));
-      else
-        factor = Pk(0);
+      fall = any(inside) ? sel(inside, Exp(Pk(L[17]) * Log(Max(cosang, Pk(1e-30)))), Pk(0))
+                         : Pk(0);
     }
+    *factor = type == 0 ? att * fall : att;
+    if (f0) *f0 = att;
+    if (spot) *spot = fall;
   }
 
   // Renderer._unoccluded: 1 where the ray from p to the light meets no geom but the lane's
@@ -1069,7 +1087,7 @@ struct Scene {
     for (int i = 0; i < NL; ++i) {
       const T* L = &light[i * kLightStride];
       Pk l[3], dist, factor;
-      light_dir(i, p, l, dist, factor);
+      light_dir(i, p, l, dist, &factor);
       if (shadows && L[21] != 0) factor = factor * lit[i];
       add(l, L + 7, L + 10, L + 13, factor);
     }
@@ -1108,6 +1126,7 @@ struct Scratch {
   Pk bg, bg_rgb;
   std::vector<Pk> ahead, occl, dahead;  // layer pairs
   std::vector<Pk> score, pick, lit;
+  std::vector<LightTerms<T>> lights;  // shade_vjp's, NL + 1
   // the reverse pass's cotangents, per layer and per slot
   std::vector<Pk> d_w, d_zz, d_a, d_wa, d_wrgb, d_wrgb_slot;
   std::vector<Pk> d_hit, d_sn, d_dist, d_z, d_nl;
@@ -1131,6 +1150,7 @@ struct Scratch {
       v->resize(std::max(S, L));
     for (auto* v : {&ahead, &occl, &dahead}) v->resize(std::max(S, L) * std::max(S, L));
     score.resize(std::max(S, size_t(64))), pick.resize(64), lit.resize(std::max(NL, 1));
+    lights.resize(NL + 1);
     fol.resize(3 * G), foo.resize(G), frb.resize(G);
     gcam.assign(15, Pk(0)), ggeo.assign(19 * size_t(G), Pk(0));
   }
@@ -1399,8 +1419,8 @@ void mix(const Scene<T>& sc, const T* geo, Scratch<T>& X, const Ray<T>& R) {
     for (int l = 0; l < Pk::N; ++l) gw.v[l] = T(X.geom(int(slot[l]), l));
     for (int li = 0; li < sc.NL; ++li) {
       if (sc.light[li * kLightStride + 21] == 0) continue;
-      Pk l[3], dist, factor;
-      sc.light_dir(li, pw, l, dist, factor);
+      Pk l[3], dist;
+      sc.light_dir(li, pw, l, dist, nullptr);
       X.lit[li] = sc.unoccluded(geo, X.frb.data(), pw, l, dist, gw);
     }
   }
@@ -1462,6 +1482,9 @@ void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
     dep = sel(R.any_hit, R.first_hit, Pk(sc.far_depth));
   }
   const int G = sc.G;
+  // each geom a slot of its own (no culling): every weight is written once, none need zeroing
+  bool every = R.S == G;
+  for (int s = 0; s < R.S && every; ++s) every = X.gid[s] >= 0;
   for (int l = 0; l < Pk::N; ++l) {
     int64_t p = pix[l];
     if (p < 0) continue;
@@ -1470,10 +1493,15 @@ void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
     body[p] = R.any_hit[l] ? sc.bodies[g] : -1;
     for (int q = 0; q < 3; ++q) rgb[3 * p + q] = out[q][l];
     depth[p] = dep[l];
-    T* wp = weights + int64_t(G) * p;
-    for (int k = 0; k < G; ++k) wp[k] = 0;
-    for (int k = 0; k < L; ++k) wp[X.geom(X.slot_of(R, k, l), l)] += X.w[k][l];
     background[p] = X.bg[l];
+    if (!every) std::fill(weights + int64_t(G) * p, weights + int64_t(G) * (p + 1), T(0));
+  }
+  // a lane's layers hold distinct geoms (culling picks distinct ones), so each weight is one
+  // layer's
+  for (int s = 0; s < R.S; ++s) {
+    Pk ws = X.of_slot(R, X.w, s);
+    for (int l = 0; l < Pk::N; ++l)
+      if (pix[l] >= 0) weights[int64_t(G) * pix[l] + X.geom(s, l)] = ws[l];
   }
 }
 
@@ -1559,11 +1587,13 @@ inline void unit_vjp(const T* y, const T& nn, const T* dy, T* dx) {
 }
 
 // Scene::shade's reverse: dcol (the clamped colour's cotangent) to p, n, the camera position o,
-// the view direction fwd and the albedo's rgb (all added to); out: the colour Scene::shade gives
+// the view direction fwd and the albedo's rgb (all added to); out: the colour Scene::shade gives;
+// E: scratch for the lights' terms (NL + 1)
 template <typename T>
 void shade_vjp(const Scene<T>& sc, const P<T>* p, const P<T>* n, const T* o, const T* fwd,
                const P<T>* alb, const P<T>* mat, const P<T>* lit, const P<T>* dcol_clamped,
-               P<T>* dp, P<T>* dn, P<T>* d_o, P<T>* dfwd, P<T>* dalb, P<T>* out) {
+               P<T>* dp, P<T>* dn, P<T>* d_o, P<T>* dfwd, P<T>* dalb, P<T>* out,
+               LightTerms<T>* E) {
   using Pk = P<T>;
   using Mk = Mask<T>;
   Pk col[3];
@@ -1574,50 +1604,36 @@ void shade_vjp(const Scene<T>& sc, const P<T>* p, const P<T>* n, const T* o, con
   Pk spec_m = mat[0], sh = Pk(128) * mat[1], emis = mat[2];
   // the unclamped colour (to know where the clamp passes the gradient)
   for (int k = 0; k < 3; ++k) col[k] = emis * alb[k];
-  auto light_terms = [&](const Pk* l, Pk& ndl, Pk* h, Pk& hn, Pk* h0, Pk& ndh, Pk& nh, Pk& sp,
-                         Pk& nd) {
-    ndl = dot3(n, l);
-    for (int k = 0; k < 3; ++k) h0[k] = l[k] + v[k];
-    hn = Sqrt(dot3(h0, h0) + Pk(1e-20));
-    for (int k = 0; k < 3; ++k) h[k] = h0[k] / hn;
-    nh = dot3(n, h);
-    ndh = Max(nh, Pk(0));
-    Mk lit_side = ndl > Pk(0);
-    sp = any(lit_side) ? sel(lit_side, Exp(sh * Log(ndh + Pk(1e-30))), Pk(0)) : Pk(0);
-    nd = Max(ndl, Pk(0));
-  };
-  // light q (the headlight first where it is on): direction, factor (shadow included), colours
-  struct LightEval {
-    Pk l[3], factor;
-    const T *amb, *dif, *spe;
-    int kind;  // 0 headlight, 1 directional, 2 point or spot
-    int index;
-  };
+  // light q (the headlight first where it is on)
   const int ne = sc.NL + (sc.head_on ? 1 : 0);
-  auto eval = [&](int q, LightEval& e) {
+  for (int q = 0; q < ne; ++q) {
+    LightTerms<T>& e = E[q];
     if (sc.head_on && q == 0) {
       for (int k = 0; k < 3; ++k) e.l[k] = Pk(-fwd[k]);
       e.amb = sc.head, e.dif = sc.head + 3, e.spe = sc.head + 6;
       e.factor = 1, e.kind = 0, e.index = -1;
-      return;
+    } else {
+      int i = q - (sc.head_on ? 1 : 0);
+      const T* L = &sc.light[i * kLightStride];
+      sc.light_dir(i, p, e.l, e.dist, &e.factor, &e.f0, &e.spot);
+      if (sc.shadows && L[21] != 0) e.factor = e.factor * lit[i];
+      e.amb = L + 7, e.dif = L + 10, e.spe = L + 13;
+      e.kind = int(L[0]) == 1 ? 1 : 2;
+      e.index = i;
     }
-    int i = q - (sc.head_on ? 1 : 0);
-    const T* L = &sc.light[i * kLightStride];
-    Pk dist;
-    sc.light_dir(i, p, e.l, dist, e.factor);
-    if (sc.shadows && L[21] != 0) e.factor = e.factor * lit[i];
-    e.amb = L + 7, e.dif = L + 10, e.spe = L + 13;
-    e.kind = int(L[0]) == 1 ? 1 : 2;
-    e.index = i;
-  };
-  for (int q = 0; q < ne; ++q) {
-    LightEval e;
-    eval(q, e);
-    Pk ndl, h[3], hn, h0[3], ndh, nh, sp, nd;
-    light_terms(e.l, ndl, h, hn, h0, ndh, nh, sp, nd);
+    e.ndl = dot3(n, e.l);
+    Pk h0[3];
+    for (int k = 0; k < 3; ++k) h0[k] = e.l[k] + v[k];
+    e.hn = Sqrt(dot3(h0, h0) + Pk(1e-20));
+    for (int k = 0; k < 3; ++k) e.h[k] = h0[k] / e.hn;
+    e.nh = dot3(n, e.h);
+    e.ndh = Max(e.nh, Pk(0));
+    Mk lit_side = e.ndl > Pk(0);
+    e.sp = any(lit_side) ? sel(lit_side, Exp(sh * Log(e.ndh + Pk(1e-30))), Pk(0)) : Pk(0);
+    e.nd = Max(e.ndl, Pk(0));
     for (int k = 0; k < 3; ++k)
       col[k] = col[k] + Pk(e.amb[k]) * alb[k] +
-               e.factor * (Pk(e.dif[k]) * nd * alb[k] + Pk(e.spe[k]) * spec_m * sp);
+               e.factor * (Pk(e.dif[k]) * e.nd * alb[k] + Pk(e.spe[k]) * spec_m * e.sp);
   }
   Pk dcol[3];
   for (int k = 0; k < 3; ++k) {
@@ -1628,30 +1644,27 @@ void shade_vjp(const Scene<T>& sc, const P<T>* p, const P<T>* n, const T* o, con
   Pk dv[3] = {0, 0, 0};
   for (int k = 0; k < 3; ++k) dalb[k] += dcol[k] * emis;
   for (int q = 0; q < ne; ++q) {
-    LightEval e;
-    eval(q, e);
-    Pk ndl, h[3], hn, h0[3], ndh, nh, sp, nd;
-    light_terms(e.l, ndl, h, hn, h0, ndh, nh, sp, nd);
+    const LightTerms<T>& e = E[q];
     Pk dfactor = 0, dnd = 0, dsp = 0;
     for (int k = 0; k < 3; ++k) {
-      dalb[k] += dcol[k] * (Pk(e.amb[k]) + e.factor * Pk(e.dif[k]) * nd);
-      dfactor += dcol[k] * (Pk(e.dif[k]) * nd * alb[k] + Pk(e.spe[k]) * spec_m * sp);
+      dalb[k] += dcol[k] * (Pk(e.amb[k]) + e.factor * Pk(e.dif[k]) * e.nd);
+      dfactor += dcol[k] * (Pk(e.dif[k]) * e.nd * alb[k] + Pk(e.spe[k]) * spec_m * e.sp);
       dnd += dcol[k] * Pk(e.dif[k]) * alb[k];
       dsp += dcol[k] * Pk(e.spe[k]);
     }
     dnd *= e.factor;
     dsp *= e.factor * spec_m;
-    Pk dndl = dnd * relu_slope(ndl);
-    Pk dndh = sel(ndl > Pk(0), dsp * sp * sh / (ndh + Pk(1e-30)), Pk(0));
-    Pk dnh = dndh * relu_slope(nh);
+    Pk dndl = dnd * relu_slope(e.ndl);
+    Pk dndh = sel(e.ndl > Pk(0), dsp * e.sp * sh / (e.ndh + Pk(1e-30)), Pk(0));
+    Pk dnh = dndh * relu_slope(e.nh);
     Pk dl[3], dh0[3] = {0, 0, 0};
     Pk dh[3];
     for (int k = 0; k < 3; ++k) {
-      dn[k] += dnh * h[k] + dndl * e.l[k];
+      dn[k] += dnh * e.h[k] + dndl * e.l[k];
       dh[k] = dnh * n[k];
       dl[k] = dndl * n[k];
     }
-    unit_vjp(h, hn, dh, dh0);
+    unit_vjp(e.h, e.hn, dh, dh0);
     for (int k = 0; k < 3; ++k) dl[k] += dh0[k], dv[k] += dh0[k];
     if (e.kind == 0) {
       for (int k = 0; k < 3; ++k) dfwd[k] -= dl[k];
@@ -1660,15 +1673,14 @@ void shade_vjp(const Scene<T>& sc, const P<T>* p, const P<T>* n, const T* o, con
       const T* L = &sc.light[e.index * kLightStride];
       Pk dlv[3];
       for (int k = 0; k < 3; ++k) dlv[k] = Pk(L[1 + k]) - p[k];
-      Pk dist = Sqrt(dot3(dlv, dlv) + Pk(1e-20));
-      Pk f0 = Pk(1) / (Pk(L[18]) + Pk(L[19]) * dist + Pk(L[20]) * dist * dist);
+      const Pk& dist = e.dist;
+      const Pk& f0 = e.f0;
       Pk shadow = (sc.shadows && L[21] != 0) ? lit[e.index] : Pk(1);
       Pk spot = 1;
       if (int(L[0]) == 0) {
         Pk cosang = -dot3m(e.l, L + 4);
         Mk inside = cosang >= Pk(sc.cutoff_cos[e.index]);
-        spot = any(inside) ? sel(inside, Exp(Pk(L[17]) * Log(Max(cosang, Pk(1e-30)))), Pk(0))
-                           : Pk(0);
+        spot = e.spot;
         Pk dspot = dfactor * f0 * shadow;
         Pk dcos = sel(inside & (cosang > Pk(1e-30)), dspot * spot * Pk(L[17]) / cosang, Pk(0));
         for (int k = 0; k < 3; ++k) dl[k] -= dcos * Pk(L[4 + k]);
@@ -1744,7 +1756,8 @@ void surface_vjp(const Scene<T>& sc, const T* geo, const Scratch<T>& X, T px, in
 
 // The packet's contribution to the gradients (X.gcam, X.ggeo: this frame's, lane by lane), from
 // the cotangents of its pixels' colour (c_rgb), depth, per-geom weights (cw: the batch's array,
-// read at each lane's pixel `pix`, 0 outside the image) and background
+// read at each lane's pixel `pix`, 0 outside the image; null where 0 over the packet) and
+// background
 template <typename T>
 void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
                      Scratch<T>& X, const int64_t* pix, const P<T>* c_rgb, const P<T>& c_depth,
@@ -1765,13 +1778,19 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
     X.shaded[k] = false;
   }
   Pk d_bg = c_bg;
+  if (cw) {  // the weights' cotangent, read per slot (each lane's geom there)
+    for (int s = 0; s < S; ++s) {
+      Pk dw = 0;
+      for (int l = 0; l < Pk::N; ++l)
+        if (pix[l] >= 0) dw.v[l] = cw[int64_t(G) * pix[l] + X.geom(s, l)];
+      X.d_wrgb_slot[s] = dw;  // (a free slot array, overwritten below)
+    }
+  }
   for (int k = 0; k < L; ++k) {
-    Pk dw;
-    for (int l = 0; l < Pk::N; ++l)
-      dw.v[l] = pix[l] < 0 ? T(0) : cw[int64_t(G) * pix[l] + X.geom(X.slot_of(R, k, l), l)];
-    X.d_w[k] = dw;
+    X.d_w[k] = cw ? X.at_layer(R, X.d_wrgb_slot, 1, 0, k) : Pk(0);
     X.d_zz[k] = X.d_a[k] = X.d_wa[k] = X.d_wrgb[k] = 0;
   }
+  for (int k = 0; k < S; ++k) X.d_wrgb_slot[k] = 0;
   if (soft) {
     for (int k = 0; k < L; ++k) X.d_w[k] += c_depth * X.zz[k], X.d_zz[k] += c_depth * X.w[k];
     d_bg += c_depth * Pk(sc.far_depth);
@@ -1797,7 +1816,7 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
     Pk dp[3] = {0, 0, 0}, dn[3] = {0, 0, 0}, dalb[3] = {0, 0, 0}, dos[3] = {0, 0, 0};
     Pk dfw[3] = {0, 0, 0};
     shade_vjp(sc, &X.p[3 * s], n, cam, R.fwd, &X.alb[4 * s], mat, X.lit.data(), dcol, dp, dn,
-              dos, dfw, dalb, col);
+              dos, dfw, dalb, col, X.lights.data());
     X.d_wrgb_slot[s] = sel(covers, dot3(c_rgb, col), Pk(0));
     if (none(drawn)) continue;
     for (int q = 0; q < 3; ++q) X.add_geom(s, 15 + q, sel(drawn, dalb[q], Pk(0)));
@@ -2063,20 +2082,20 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> t
         int64_t pix[Pk::N];
         lane_pixels<T>(b, i0, j0, H, W, pix);
         Pk cr[3] = {0, 0, 0}, cd = 0, cb = 0;
-        bool zero = true;
+        bool zero = true, w_zero = true;
         for (int l = 0; l < Pk::N; ++l) {
           int64_t p = pix[l];
           if (p < 0) continue;
           for (int q = 0; q < 3; ++q) cr[q].v[l] = crgb[3 * p + q];
           cd.v[l] = cdep[p], cb.v[l] = cbg[p];
-          bool z = cr[0][l] == 0 && cr[1][l] == 0 && cr[2][l] == 0 && cd[l] == 0 && cb[l] == 0;
+          zero = zero && cr[0][l] == 0 && cr[1][l] == 0 && cr[2][l] == 0 && cd[l] == 0 &&
+                 cb[l] == 0;
           const T* cwp = cw + int64_t(G) * p;
-          for (int k = 0; z && k < G; ++k) z = cwp[k] == 0;
-          zero = zero && z;
+          for (int k = 0; w_zero && k < G; ++k) w_zero = cwp[k] == 0;
         }
-        if (zero) return;  // (a crop's loss, a masked pixel)
+        if (zero && w_zero) return;  // (a crop's loss, a masked pixel)
         if (X.acc_frame != b) flush(worker, X), X.acc_frame = b;
-        draw_packet_vjp(S, c, g, i0, j0, X, pix, cr, cd, cw, cb);
+        draw_packet_vjp(S, c, g, i0, j0, X, pix, cr, cd, w_zero ? nullptr : cw, cb);
       },
       flush);
   T* oc = gcam->typed_data();
