@@ -1101,7 +1101,10 @@ struct Ray {
   P<T> r[3], jj, ii;  // direction; each lane's pixel column and row
   T fwd[3], px;
   int S, L;
-  bool identity;      // every lane composites every surface slot, in order (S <= layers)
+  // the composited slots: ulay[k], layer k's slot; uslot[s], slot s's layer or -1 (a dead
+  // slot); any_dropped: some lane leaves some layer out (Scratch::kept)
+  int ulay[64], uslot[64];
+  bool any_dropped;
   P<T> first, first_hit;  // the slot of the first hit, its depth
   Mask<T> any_hit;
 };
@@ -1121,8 +1124,13 @@ struct Scratch {
   std::vector<Pk> s_hit, s_n, dist, cover, z, key;
   std::vector<Pk> ol, rl, p, pl, alb;
   std::vector<Mk> miss, far;  // the ray misses the bounding sphere; far from the silhouette too
-  // per layer: the slot each lane composites there; the composite's inputs and weights
-  std::vector<Pk> lay, a, zz, alpha, w, wa, wrgb;
+  // per slot: whether any lane needs it; a dead slot (no lane's ray near its geom) has coverage
+  // 0 and is neither searched, shaded nor differentiated
+  std::vector<char> live;
+  // per layer: the lanes that composite it (where some lane leaves it out); the composite's
+  // inputs and weights
+  std::vector<Mk> kept;
+  std::vector<Pk> a, zz, alpha, w, wa, wrgb;
   Pk bg, bg_rgb;
   std::vector<Pk> ahead, occl, dahead;  // layer pairs
   std::vector<Pk> score, pick, lit;
@@ -1134,6 +1142,11 @@ struct Scratch {
   // per geom, per frame: the camera in its frame, that point's squared distance from the
   // centre, the bounding radius
   std::vector<T> fol, foo, frb;
+  // per geom, per packet (gather's first pass): the rays in its frame, their bounding-sphere
+  // gap, miss and far masks, where a far ray is placed, whether any lane needs the geom
+  std::vector<Pk> grl, ggap, gsnf;
+  std::vector<Mk> gmiss, gfar;
+  std::vector<char> grel;
   // the reverse pass's gradients of this worker's current frame, lane by lane
   std::vector<Pk> gcam, ggeo;
   int64_t frame = -1, acc_frame = -1;
@@ -1145,9 +1158,12 @@ struct Scratch {
       v->resize(S);
     for (auto* v : {&ol, &rl, &p, &pl, &d_nl}) v->resize(3 * S);
     alb.resize(4 * S);
-    miss.resize(S), far.resize(S), shaded.resize(S);
-    for (auto* v : {&lay, &a, &zz, &alpha, &w, &wa, &wrgb, &d_w, &d_zz, &d_a, &d_wa, &d_wrgb})
+    miss.resize(S), far.resize(S), shaded.resize(S), live.resize(S);
+    grl.resize(3 * size_t(G)), ggap.resize(G), gsnf.resize(G), gmiss.resize(G), gfar.resize(G);
+    grel.resize(G);
+    for (auto* v : {&a, &zz, &alpha, &w, &wa, &wrgb, &d_w, &d_zz, &d_a, &d_wa, &d_wrgb})
       v->resize(std::max(S, L));
+    kept.resize(std::max(S, L));
     for (auto* v : {&ahead, &occl, &dahead}) v->resize(std::max(S, L) * std::max(S, L));
     score.resize(std::max(S, size_t(64))), pick.resize(64), lit.resize(std::max(NL, 1));
     lights.resize(NL + 1);
@@ -1156,8 +1172,6 @@ struct Scratch {
   }
   // slot s's geom in lane l
   int geom(int s, int l) const { return gid[s] >= 0 ? gid[s] : int(gv[s][l]); }
-  // the slot lane l composites as layer k
-  int slot_of(const Ray<T>& R, int k, int l) const { return R.identity ? k : int(lay[k][l]); }
   // field f of slot s's geom (geo: the frame's (G, 19) rows), lane by lane
   Pk param(const T* geo, int s, int f) const {
     return gid[s] >= 0 ? Pk(geo[19 * gid[s] + f]) : gather_lanes(geo, 19, gv[s], f);
@@ -1172,24 +1186,13 @@ struct Scratch {
       mat[2] = gather_lanes(sc.emis.data(), 1, gv[s], 0);
     }
   }
-  // per layer k, the per-slot packet array arr (stride, component) at each lane's slot
+  // per layer k, the per-slot packet array arr (stride, component) at its slot
   Pk at_layer(const Ray<T>& R, const std::vector<Pk>& arr, int stride, int comp, int k) const {
-    return R.identity ? arr[stride * k + comp] : pick_lanes(arr.data(), stride, lay[k], comp);
+    return arr[stride * R.ulay[k] + comp];
   }
-  // v (a layer's packet) added into the per-slot array dst at each lane's slot
-  void to_slots(const Ray<T>& R, int k, const Pk& v, std::vector<Pk>& dst) const {
-    if (R.identity) {
-      dst[k] += v;
-      return;
-    }
-    for (int s = 0; s < R.S; ++s) dst[s] += sel(lay[k] == Pk(double(s)), v, Pk(0));
-  }
-  // the per-slot packet of a per-layer array (each lane's layer holding slot s; 0 where none)
+  // the per-slot packet of a per-layer array (0 for a dead slot)
   Pk of_slot(const Ray<T>& R, const std::vector<Pk>& per_layer, int s) const {
-    if (R.identity) return per_layer[s];
-    Pk out(0);
-    for (int k = 0; k < R.L; ++k) out += sel(lay[k] == Pk(double(s)), per_layer[k], Pk(0));
-    return out;
+    return R.uslot[s] >= 0 ? per_layer[R.uslot[s]] : Pk(0);
   }
   // the reverse pass: v added to field f of slot s's geom's gradient, lane by lane
   void add_geom(int s, int f, const Pk& v) {
@@ -1198,13 +1201,6 @@ struct Scratch {
       return;
     }
     for (int l = 0; l < Pk::N; ++l) ggeo[19 * int(gv[s][l]) + f].v[l] += v[l];
-  }
-  void add_layer_geom(const Ray<T>& R, int k, int f, const Pk& v) {
-    if (R.identity) {
-      add_geom(k, f, v);
-      return;
-    }
-    for (int l = 0; l < Pk::N; ++l) ggeo[19 * geom(int(lay[k][l]), l) + f].v[l] += v[l];
   }
 };
 
@@ -1254,6 +1250,14 @@ void composite(int S, const P<T>* a, const P<T>* ahead, P<T>* w, P<T>& bg) {
   bg = bg / tot;
 }
 
+// per lane, mask arr[idx[l]] (idx: a packet of whole numbers)
+template <typename T>
+inline Mask<T> pick_masks(const Mask<T>* arr, const P<T>& idx) {
+  Mask<T> r;
+  for (int l = 0; l < P<T>::N; ++l) r.v[l] = arr[int(idx[l])].v[l];
+  return r;
+}
+
 template <typename T>
 void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scratch<T>& X,
             Ray<T>& R) {
@@ -1277,6 +1281,38 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
   Pk O[3] = {Pk(cam[0]), Pk(cam[1]), Pk(cam[2])};
   const Pk inf = K<Pk>::inf();
 
+  // Every geom against the packet's rays, once: the rays in its frame, whether each misses its
+  // bounding sphere (by how much), whether it passes so far from the silhouette that the
+  // geom's coverage is negligible (the header; nothing is searched for there), where such a ray
+  // is placed, and whether any lane needs the geom at all (hard image: a ray that may hit it;
+  // soft: one not far from it).
+  for (int g = 0; g < sc.G; ++g) {
+    int t = sc.types[g];
+    const T* gp = geo + 19 * g;
+    Pk* rl = &X.grl[3 * g];
+    to_local(r, gp + 3, rl);
+    if (t == 0) {
+      X.ggap[g] = -1, X.gmiss[g] = false, X.gfar[g] = false, X.grel[g] = 1;
+      continue;
+    }
+    const T* olv = &X.fol[3 * g];
+    Pk ol[3] = {Pk(olv[0]), Pk(olv[1]), Pk(olv[2])};
+    Pk rr = dot3(rl, rl), orr = dot3(ol, rl);
+    Pk rb = X.frb[g], rbm = rb * Pk(1.001) + Pk(1e-6);
+    Mk mm = Pk(X.foo[g]) * rr - orr * orr - rbm * rbm * rr > Pk(0);  // (squared, no root)
+    Pk gap = -1;
+    if (any(mm)) gap = sel(mm, soft ? bound_gap(ol, rl, rb) : Pk(1), Pk(-1));
+    Mk miss = gap > Pk(0), farm = false;
+    if (soft)
+      farm = far_from(t, ol, rl, rb, gap, Pk(px), Pk(sc.near_), Pk(sc.margin * sc.tau));
+    X.ggap[g] = gap, X.gmiss[g] = miss, X.gfar[g] = farm;
+    X.grel[g] = soft ? !all(farm) : !all(miss);
+    if (soft && any(farm)) {
+      Pk snf = -orr / rr;
+      X.gsnf[g] = sel(Finite(snf), snf, Pk(sc.far_));
+    }
+  }
+
   int S = 0;
   for (const auto& grp : sc.groups) {
     int t = grp.first;
@@ -1289,57 +1325,55 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
     int m = cull ? sc.per_pixel : n;
     for (int q = 0; q < m; ++q, ++S) {
       X.type[S] = t;
+      X.gid[S] = cull ? -1 : idx[q];
       if (cull) {
-        X.gid[S] = -1;
-        for (int l = 0; l < Pk::N; ++l) X.gv[S].v[l] = T(idx[int(X.pick[q][l])]);
-      } else {
-        X.gid[S] = idx[q];
+        Pk gq;
+        for (int l = 0; l < Pk::N; ++l) gq.v[l] = T(idx[int(X.pick[q][l])]);
+        if (all(gq == Pk(gq[0])))
+          X.gid[S] = int(gq[0]);  // every lane picked the same geom
+        else
+          X.gv[S] = gq;
       }
-      Pk xm[9], sz[3], oo, rb;
-      for (int k = 0; k < 9; ++k) xm[k] = X.param(geo, S, 3 + k);
-      for (int k = 0; k < 3; ++k) sz[k] = X.param(geo, S, 12 + k);
+      const int g = X.gid[S];
       Pk* ol = &X.ol[3 * S];
       Pk* rl = &X.rl[3 * S];
-      if (X.gid[S] >= 0) {
-        int g = X.gid[S];
-        for (int k = 0; k < 3; ++k) ol[k] = Pk(X.fol[3 * g + k]);
-        oo = Pk(X.foo[g]), rb = Pk(X.frb[g]);
+      Mk farm;
+      if (g >= 0) {
+        for (int k = 0; k < 3; ++k) ol[k] = Pk(X.fol[3 * g + k]), rl[k] = X.grl[3 * g + k];
+        X.miss[S] = X.gmiss[g], farm = X.gfar[g];
+        X.live[S] = X.grel[g];
       } else {
-        for (int k = 0; k < 3; ++k) ol[k] = gather_lanes(X.fol.data(), 3, X.gv[S], k);
-        oo = gather_lanes(X.foo.data(), 1, X.gv[S], 0);
-        rb = gather_lanes(X.frb.data(), 1, X.gv[S], 0);
+        for (int k = 0; k < 3; ++k) {
+          ol[k] = gather_lanes(X.fol.data(), 3, X.gv[S], k);
+          rl[k] = pick_lanes(X.grl.data(), 3, X.gv[S], k);
+        }
+        X.miss[S] = pick_masks(X.gmiss.data(), X.gv[S]);
+        farm = pick_masks(X.gfar.data(), X.gv[S]);
+        X.live[S] = !all(farm);
       }
-      to_local(r, xm, rl);
-      Pk gap = -1;
-      if (t != 0) {  // does the ray miss the bounding sphere? (squared, no root)
-        Pk rr = dot3(rl, rl), orr = dot3(ol, rl), rbm = rb * Pk(1.001) + Pk(1e-6);
-        Mk mm = oo * rr - orr * orr - rbm * rbm * rr > Pk(0);
-        if (any(mm)) gap = sel(mm, soft ? bound_gap(ol, rl, rb) : Pk(1), Pk(-1));
+      X.far[S] = farm;
+      Pk snf = 0;
+      if (any(farm)) snf = g >= 0 ? X.gsnf[g] : pick_lanes(X.gsnf.data(), 1, X.gv[S], 0);
+      if (!X.live[S]) {  // coverage 0 in every lane: only where a far ray is placed
+        X.s_hit[S] = inf;
+        X.s_n[S] = soft ? snf : Pk(sc.far_);
+        X.dist[S] = soft ? inf : Pk(0);
+        for (int k = 0; k < 4; ++k) X.alb[4 * S + k] = 0;
+        continue;
       }
-      Mk miss = gap > Pk(0);
+      Pk sz[3];
+      for (int k = 0; k < 3; ++k) sz[k] = X.param(geo, S, 12 + k);
+      const Mk miss = X.miss[S];
       Pk s_hit = all(miss) ? inf : sel(miss, inf, hit(t, ol, rl, sz));
       Pk sn, dist = 0;
-      Mk farm = false;
       if (!soft) {
         sn = s_hit;
       } else {
-        // where the ray passes so far from the geom's bounding sphere that its coverage is
-        // negligible (the header), nothing is searched for: it adds nothing to the pixel
-        farm = far_from(t, ol, rl, rb, gap, Pk(px), Pk(sc.near_), Pk(sc.margin * sc.tau));
-        Pk snf = 0;
-        if (any(farm)) {
-          snf = -dot3(ol, rl) / dot3(rl, rl);
-          snf = sel(Finite(snf), snf, Pk(sc.far_));
-        }
-        if (all(farm)) {
-          sn = snf, dist = inf;
-        } else {
-          Pk s_c;
-          closest(t, ol, rl, sz, sc.iters, s_c, dist);
-          sn = sel(Finite(s_hit), s_hit, s_c);
-          sn = sel(Finite(sn), sn, Pk(sc.far_));
-          if (any(farm)) sn = sel(farm, snf, sn), dist = sel(farm, inf, dist);
-        }
+        Pk s_c;
+        closest(t, ol, rl, sz, sc.iters, s_c, dist);
+        sn = sel(Finite(s_hit), s_hit, s_c);
+        sn = sel(Finite(sn), sn, Pk(sc.far_));
+        if (any(farm)) sn = sel(farm, snf, sn), dist = sel(farm, inf, dist);
       }
       // the normal is found only where the surface is shaded (draw_packet's shading loop)
       Pk sp = soft ? sn : sel(Finite(s_hit), s_hit, Pk(sc.far_));
@@ -1347,7 +1381,6 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
       X.s_hit[S] = sel((s_hit >= Pk(sc.near_)) & (s_hit <= Pk(sc.far_)), s_hit, inf);
       X.s_n[S] = sn;
       X.dist[S] = dist;
-      X.miss[S] = miss, X.far[S] = farm;
       for (int k = 0; k < 4; ++k) X.alb[4 * S + k] = X.param(geo, S, 15 + k);
     }
   }
@@ -1355,14 +1388,20 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
   Pk first = 0, best = X.s_hit[0];
   Mk any_hit = Finite(X.s_hit[0]);
   for (int k = 1; k < S; ++k) {
+    if (!X.live[k]) continue;
     Mk up = X.s_hit[k] < best;
     best = sel(up, X.s_hit[k], best), first = sel(up, Pk(double(k)), first);
     any_hit |= Finite(X.s_hit[k]);
   }
+  int live = 0;
   for (int k = 0; k < S; ++k) {
-    Mk h = Finite(X.s_hit[k]);
+    live += X.live[k];
     Pk zk;
-    if (!soft) {
+    if (!X.live[k]) {
+      zk = X.s_n[k];
+      X.cover[k] = 0;
+    } else if (!soft) {
+      Mk h = Finite(X.s_hit[k]);
       zk = sel(h, X.s_hit[k], Pk(sc.far_));
       X.cover[k] = sel(h, Pk(1), Pk(0));
     } else {
@@ -1374,9 +1413,16 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
     X.z[k] = zk;
     for (int q = 0; q < 3; ++q) X.p[3 * k + q] = O[q] + zk * r[q];
   }
-  // the `layers` most covering surfaces not hidden behind a solid one
-  int L = S;
-  R.identity = true;
+  // The `layers` most covering surfaces not hidden behind a solid one (Renderer._render's
+  // top_k, ties to the lower slot), taken as every live slot in slot order with its coverage
+  // set to 0 in the lanes whose choice leaves it out: a dead slot, or a layer of coverage 0,
+  // adds exactly nothing to the composite or its gradient.
+  int L = 0;
+  for (int s = 0; s < S; ++s) {
+    R.uslot[s] = X.live[s] ? L : -1;
+    if (X.live[s]) R.ulay[L++] = s;
+  }
+  R.any_dropped = false;
   if (S > sc.layers) {
     Pk solid = inf;
     for (int k = 0; k < S; ++k) solid = sel(X.cover[k] > Pk(0.999), Min(solid, X.z[k]), solid);
@@ -1385,9 +1431,17 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
       X.key[k] = sel(shown, X.cover[k] - Pk(1e-6) * X.z[k] / Pk(sc.far_),
                      Pk(-1) - X.z[k] / Pk(sc.far_));
     }
-    top_k(X.key.data(), S, sc.layers, X.lay.data());
-    L = sc.layers;
-    R.identity = false;
+    for (int q = 0; q < L; ++q) {
+      int s = R.ulay[q];
+      // how many slots top_k takes before s (a larger key, or an equal one at a lower index)
+      Pk before = 0;
+      for (int k = 0; k < S; ++k)
+        if (k != s)
+          before += sel((X.key[k] > X.key[s]) | ((X.key[k] == X.key[s]) & Mk(k < s)), Pk(1),
+                        Pk(0));
+      X.kept[q] = before < Pk(double(sc.layers));
+      R.any_dropped = R.any_dropped || !all(X.kept[q]);
+    }
   }
   R.S = S, R.L = L, R.first = first, R.first_hit = best, R.any_hit = any_hit;
 }
@@ -1400,20 +1454,22 @@ void mix(const Scene<T>& sc, const T* geo, Scratch<T>& X, const Ray<T>& R) {
   const bool soft = sc.tau != 0;
   const int L = R.L;
   for (int k = 0; k < L; ++k) {
-    X.a[k] = X.at_layer(R, X.cover, 1, 0, k);
-    X.zz[k] = X.at_layer(R, X.z, 1, 0, k);
-    X.alpha[k] = X.at_layer(R, X.alb, 4, 3, k);
+    const int s = R.ulay[k];
+    X.a[k] = R.any_dropped ? sel(X.kept[k], X.cover[s], Pk(0)) : X.cover[s];
+    X.zz[k] = X.z[s];
+    X.alpha[k] = X.alb[4 * s + 3];
   }
   depth_order(L, X.a.data(), X.zz.data(), soft, sc.gamma, X.ahead.data());
   composite(L, X.a.data(), X.ahead.data(), X.w.data(), X.bg);
-  if (sc.shadows && sc.any_shadow) {
+  if (sc.shadows && sc.any_shadow && L > 0) {
     // one shadow ray a pixel, from the surface that shows most there
     Pk win = 0, wb = X.w[0];
     for (int k = 1; k < L; ++k) {
       auto up = X.w[k] > wb;
       wb = sel(up, X.w[k], wb), win = sel(up, Pk(double(k)), win);
     }
-    Pk slot = R.identity ? win : pick_lanes(X.lay.data(), 1, win, 0);
+    Pk slot;
+    for (int l = 0; l < Pk::N; ++l) slot.v[l] = T(R.ulay[int(win[l])]);
     Pk pw[3], gw;
     for (int q = 0; q < 3; ++q) pw[q] = pick_lanes(X.p.data(), 3, slot, q);
     for (int l = 0; l < Pk::N; ++l) gw.v[l] = T(X.geom(int(slot[l]), l));
@@ -1464,6 +1520,7 @@ void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
   for (int s = 0; s < R.S; ++s) {
     // a surface that adds nothing here is not shaded: the hard image's hidden ones (weight
     // exactly 0), the soft one's far from their silhouette (coverage under 1e-12)
+    if (!X.live[s]) continue;
     Pk wr = X.of_slot(R, X.wrgb, s);
     auto shown = wr > Pk(1e-12);
     if (none(shown)) continue;
@@ -1803,6 +1860,7 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
     // A surface's colour matters where it is drawn (wrgb) and, through the derivative of its
     // weight, wherever it covers the pixel (wa): hidden behind an opaque one, its colour is
     // what that one's alpha lets through. (Under 1e-12 either way, nothing is lost.)
+    if (!X.live[s]) continue;
     Pk wa = X.of_slot(R, X.wa, s);
     Mk covers = wa > Pk(1e-12);
     if (none(covers)) continue;
@@ -1847,7 +1905,7 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
   composite_vjp(L, X.wa.data(), ahead, X.d_wrgb.data(), Pk(0), X.d_wa.data(), dahead,
                 X.occl.data());
   for (int k = 0; k < L; ++k) {
-    X.add_layer_geom(R, k, 18, X.d_wa[k] * X.a[k]);
+    X.add_geom(R.ulay[k], 18, X.d_wa[k] * X.a[k]);
     X.d_a[k] += X.d_wa[k] * X.alpha[k];
   }
   if (soft) {
@@ -1859,19 +1917,20 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
         X.d_zz[g] += dz, X.d_zz[k] -= dz;
       }
     for (int k = 0; k < L; ++k) {
-      X.to_slots(R, k, X.d_zz[k], X.d_z);
+      const int s = R.ulay[k];
+      X.d_z[s] += X.d_zz[k];
       Pk c = X.a[k];
       // masked (outside near..far), or so far in or out that the sigmoid is flat: a derivative
       // under 1e-10 of the others (and the distance need not be differentiated at all)
       Mk steep = c * (Pk(1) - c) > Pk(1e-10);
       if (none(steep)) continue;
-      Pk sn = X.at_layer(R, X.s_n, 1, 0, k), dist = X.at_layer(R, X.dist, 1, 0, k);
+      Pk sn = X.s_n[s], dist = X.dist[s];
       Pk M_ = Max(sn, Pk(sc.near_));
       Pk den = M_ * Pk(R.px) * Pk(sc.tau);
       Pk dx = X.d_a[k] * c * (Pk(1) - c);
-      X.to_slots(R, k, sel(steep, -dx / den, Pk(0)), X.d_dist);
+      X.d_dist[s] += sel(steep, -dx / den, Pk(0));
       Pk dM = dx * dist / (den * M_);
-      X.to_slots(R, k, sel(steep, dM * relu_slope(sn - Pk(sc.near_)), Pk(0)), X.d_sn);
+      X.d_sn[s] += sel(steep, dM * relu_slope(sn - Pk(sc.near_)), Pk(0));
       d_px += sel(steep, dx * dist / (den * Pk(R.px)), Pk(0));
     }
     for (int s = 0; s < S; ++s) {
@@ -1884,6 +1943,7 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
   }
   // each surface's inputs
   for (int s = 0; s < S; ++s) {
+    if (!X.live[s]) continue;
     Mk on = ((X.d_hit[s] != Pk(0)) | (X.d_sn[s] != Pk(0)) | (X.d_dist[s] != Pk(0)) |
              X.shaded[s]) & !X.far[s];
     if (none(on)) continue;
