@@ -63,6 +63,15 @@ __all__ = ["Geoms", "Images", "Renderer", "UnsupportedGeomError"]
 _MESH = 7
 
 
+def negligible_coverage(dtype) -> float:
+    """The coverage below which a surface counts as covering nothing when the layers are chosen:
+    sigmoid(-18) ~ 1.5e-8 in float32 (a quarter of its resolution at 1), sigmoid(-30) ~ 9.4e-14
+    in float64. Such a surface ranks below every other (it cannot take a hidden surface's place),
+    and the C++ kernel neither searches nor differentiates one whose rays all pass that far from
+    its silhouette (``twinrl.render.native``)."""
+    return 9.357622968840175e-14 if jnp.dtype(dtype) == jnp.float64 else 1.5229979744712629e-08
+
+
 class UnsupportedGeomError(ValueError):
     """A geom type the renderer cannot draw (height fields, SDF plugins)."""
 
@@ -494,8 +503,10 @@ class Renderer:
         the rays passing through it come first, nearest first, then those passing within
         ``reach`` (..., metres per unit of ``s``; None: 0) of it, closest first (the soft
         silhouette's band); only ``s`` past ``front`` counts. Returns their positions in
-        ``idx`` (..., K) and as one-hot rows (..., K, n); no gradient (a geom left out covers
-        nothing there)."""
+        ``idx`` (..., K), as one-hot rows (..., K, n), and whether each is one of those (...,
+        K): a pick beyond the band only fills the K places and covers nothing (where the
+        pixel has fewer than K geoms near it); no gradient (a geom left out covers nothing
+        there)."""
         sg = jax.lax.stop_gradient
         c, m, h, o, r = sg(xpos[idx]), sg(xmat[idx]), sg(size[idx]), sg(o), sg(r)
         if t == 2:  # sphere
@@ -513,20 +524,22 @@ class Renderer:
         lim = rad if reach is None else rad + reach[..., None] * depth
         core = dist <= rad * 1.001 + 1e-6
         band = (dist <= lim * 1.001 + 1e-6) & (s_c + half + rad >= front)
-        score = jnp.where(core & (s_c + half + rad >= front), 1e6 - s_c,
-                          jnp.where(band, -(dist - rad) / depth, -1e9 - dist))
+        near = core & (s_c + half + rad >= front)
+        score = jnp.where(near, 1e6 - s_c, jnp.where(band, -(dist - rad) / depth, -1e9 - dist))
         k = jax.lax.top_k(score, self.per_pixel)[1]
-        return k, (k[..., None] == jnp.arange(len(idx))).astype(r.dtype)
+        return (k, (k[..., None] == jnp.arange(len(idx))).astype(r.dtype),
+                jnp.take_along_axis(near | band, k, -1))
 
     def _group_params(self, t, idx, o, r, xpos, xmat, size, extra, reach, front, const=None):
         """Per group of one type: the geoms' (or, culled, each ray's chosen geoms') ``xpos``,
         ``xmat``, ``size``, ``extra`` (G, E) per-geom columns, renderer indices ``gid`` ((n,)
-        static, else (..., K)) and the rows of the NumPy table ``const`` (G, C)."""
+        static, else (..., K)), the rows of the NumPy table ``const`` (G, C), and (culled)
+        whether each choice is near the ray (``_choose``; else None)."""
         dt = xpos.dtype
         if not self._culled(t, idx):
             return (xpos[idx], xmat[idx], size[idx], extra[idx], jnp.asarray(idx, jnp.int32),
-                    None if const is None else jnp.asarray(const[idx], dt))
-        k, oh = self._choose(t, idx, o, r, xpos, xmat, size, reach, front)
+                    None if const is None else jnp.asarray(const[idx], dt), None)
+        k, oh, near = self._choose(t, idx, o, r, xpos, xmat, size, reach, front)
         n = len(idx)
         table = jnp.concatenate([xpos[idx], xmat[idx].reshape(n, 9), size[idx], extra[idx]], -1)
         # a one-hot matrix product, not a gather: its reverse pass is another product (a gather's
@@ -534,7 +547,7 @@ class Renderer:
         tab = jnp.einsum("...kn,nd->...kd", oh, table)
         return (tab[..., 0:3], tab[..., 3:12].reshape(*tab.shape[:-1], 3, 3), tab[..., 12:15],
                 tab[..., 15:], jnp.asarray(idx, jnp.int32)[k],
-                None if const is None else oh @ jnp.asarray(const[idx], dt))
+                None if const is None else oh @ jnp.asarray(const[idx], dt), near)
 
     # ------------------------------------------------------------------ shading
     def _albedo(self, rgba):
@@ -615,8 +628,8 @@ class Renderer:
                 s = self._cast_mesh(o, l, geoms, xpos, xmat, idx, False, self.iters)[0]
                 gid = jnp.asarray(idx, jnp.int32)
             else:
-                gx, gm, gs, _, gid, _ = self._group_params(t, idx, o, l, xpos, xmat, size, none,
-                                                           None, 0.0)
+                gx, gm, gs, _, gid, _, _ = self._group_params(t, idx, o, l, xpos, xmat, size,
+                                                              none, None, 0.0)
                 s = self._cast_prim(t, o, l, gx, gm, gs, False, self.iters,
                                     differentiable=False)[0]
             blocked = blocked | jnp.any((gid != skip[..., None]) & (s < dist_l[..., None]), -1)
@@ -695,10 +708,12 @@ class Renderer:
                 if not soft:
                     out = (out[0], self._mesh_normals(o, r, out[0], geoms, xpos, xmat, idx))
             else:
-                gx, gm, gs, ex, gid, mt = self._group_params(t, idx, o, r, xpos, xmat, size,
-                                                             albedo, reach, self.near, mat)
+                gx, gm, gs, ex, gid, mt, near = self._group_params(
+                    t, idx, o, r, xpos, xmat, size, albedo, reach, self.near, mat)
                 out = self._cast_prim(t, o, r, gx, gm, gs, soft, self.iters, ntau,
                                       hard_normals=not soft)
+                if soft and near is not None:  # a pick beyond the band covers nothing
+                    out = (out[0], out[1], jnp.where(near, out[2], 1e6), *out[3:])
             parts.append((*out, ex, mt, gid))
         if any(self._culled(t, idx) for t, idx in self._groups()):
             # per-pixel geoms somewhere: every group's shading inputs per pixel
@@ -740,11 +755,13 @@ class Renderer:
             # composite (its cost grows with the square of the surfaces) and shade only each
             # pixel's `layers` most covering surfaces among those not hidden: behind the nearest
             # solid one (coverage > 0.999) by more than 10 gamma, a surface's weight is < 1e-3 of
-            # its coverage. Ties (hard image: all hits) go to the nearest.
+            # its coverage. Ties (hard image: all hits) go to the nearest. A surface whose
+            # coverage the dtype cannot resolve ranks below every other (negligible_coverage).
             a_, z_ = jax.lax.stop_gradient(cover), jax.lax.stop_gradient(z)
             solid = jnp.min(jnp.where(a_ > 0.999, z_, jnp.inf), -1, keepdims=True)
             shown = z_ <= solid + (10.0 * gamma if soft else 0.0)
             key = jnp.where(shown, a_ - 1e-6 * z_ / self.far, -1.0 - z_ / self.far)
+            key = jnp.where(a_ >= negligible_coverage(r.dtype), key, -3.0)
             lay = jax.lax.top_k(key, self.layers)[1]  # (P, L)
             oh = (lay[..., None] == jnp.arange(S)).astype(r.dtype)  # (P, L, S)
 

@@ -74,8 +74,14 @@ constexpr int kBytes = 16;
 #endif
 
 template <typename T> struct Ints;
-template <> struct Ints<float> { using type = int32_t; static constexpr int mant = 23, bias = 127; };
-template <> struct Ints<double> { using type = int64_t; static constexpr int mant = 52, bias = 1023; };
+template <> struct Ints<float> {
+  using type = int32_t;
+  static constexpr int mant = 23, bias = 127;
+};
+template <> struct Ints<double> {
+  using type = int64_t;
+  static constexpr int mant = 52, bias = 1023;
+};
 
 template <typename T>
 struct Mask {
@@ -856,14 +862,6 @@ inline P<T> lane_row() {
   return r;
 }
 
-// base[stride * idx[l] + off] in lane l (idx: a packet of whole numbers)
-template <typename T>
-inline P<T> gather_lanes(const T* base, int stride, const P<T>& idx, int off) {
-  P<T> r;
-  for (int l = 0; l < P<T>::N; ++l) r.v[l] = base[stride * int(idx[l]) + off];
-  return r;
-}
-
 // arr[stride * idx[l] + comp][l] in lane l: a per-slot packet array read at each lane's own slot
 template <typename T>
 inline P<T> pick_lanes(const P<T>* arr, int stride, const P<T>& idx, int comp) {
@@ -914,6 +912,7 @@ struct Scene {
   bool shadows;
   T near_, far_, far_depth, tau, gamma;
   T margin;  // far_from's cut, in tau pixels (see the header)
+  T negligible;  // sigmoid(-margin): renderer.negligible_coverage
   std::vector<int> types, gids, bodies;
   std::vector<T> spec, shin, emis;            // per geom
   std::vector<T> light;                        // NL x kLightStride
@@ -942,6 +941,7 @@ struct Scene {
     near_ = T(c.scal[0]), far_ = T(c.scal[1]), far_depth = T(c.scal[2]);
     tau = 0, gamma = 1;  // per frame (begin_frame)
     margin = sizeof(T) == 4 ? T(18) : T(30);
+    negligible = sizeof(T) == 4 ? T(1.5229979744712629e-08) : T(9.357622968840175e-14);
     iters = c.opts[0], per_pixel = c.opts[1], cull_above = c.opts[2], layers = c.opts[3];
     shadows = c.opts[4] != 0;
     std::vector<int> ts(types);
@@ -961,31 +961,38 @@ struct Scene {
 
   bool culled(int t, int n) const { return t != 0 && n > std::max(per_pixel, cull_above); }
 
-  // Renderer._choose: the per_pixel geoms of group idx each lane's ray is tested against
-  // (out: per lane, indices into idx)
-  void choose(int t, const std::vector<int>& idx, const T* geo, const Pk* o, const Pk* r,
-              T reach, T front, Pk* out, Pk* score) const {
-    int n = int(idx.size());
+  // The capsule culling bounds each geom of a crowded type by: a segment along its longest
+  // axis (half its half-length) and a radius (Renderer._choose)
+  static void capsule(int t, const T* h, T& half, T& rad, int& col) {
+    if (t == 2) {
+      half = 0, rad = h[0], col = 2;
+    } else if (t == 3 || t == 5) {
+      half = h[1], rad = h[0], col = 2;
+    } else {
+      int k = 0;
+      if (h[1] > h[k]) k = 1;
+      if (h[2] > h[k]) k = 2;
+      half = h[k];
+      T hh = ((h[0] * h[0] + h[1] * h[1]) + h[2] * h[2]) - half * half;
+      rad = std::sqrt(std::max(hh, T(0)));
+      col = k;
+    }
+  }
+
+  // Renderer._choose: each lane's per_pixel best geoms among the candidates `cand` (renderer
+  // indices, in their group's order: the geoms of one crowded type that a block's rays pass
+  // near), as positions in cand (out; m = min(per_pixel, candidates) of them), and whether each
+  // pick is near the lane's ray (near: through its capsule or within the soft band): a pick
+  // that is not only fills a place and covers nothing
+  int choose(int t, const int* cand, int n, const T* geo, const Pk* o, const Pk* r, T reach,
+             T front, Pk* out, Mk* near, Pk* score) const {
     for (int j = 0; j < n; ++j) {
-      const T* gp = geo + 19 * idx[j];
+      const T* gp = geo + 19 * cand[j];
       const T* c = gp;
       const T* m = gp + 3;
-      const T* h = gp + 12;
       T half, rad;
       int col;
-      if (t == 2) {
-        half = 0, rad = h[0], col = 2;
-      } else if (t == 3 || t == 5) {
-        half = h[1], rad = h[0], col = 2;
-      } else {
-        int k = 0;
-        if (h[1] > h[k]) k = 1;
-        if (h[2] > h[k]) k = 2;
-        half = h[k];
-        T hh = ((h[0] * h[0] + h[1] * h[1]) + h[2] * h[2]) - half * half;
-        rad = std::sqrt(std::max(hh, T(0)));
-        col = k;
-      }
+      capsule(t, gp + 12, half, rad, col);
       Pk a[3], b[3];
       for (int i = 0; i < 3; ++i) {
         T e = half * m[3 * i + col];
@@ -1001,7 +1008,10 @@ struct Scene {
       score[j] = sel(core & ahead, Pk(1e6) - s_c,
                      sel(band, -(dist - Pk(rad)) / depth, Pk(-1e9) - dist));
     }
-    top_k(score, n, per_pixel, out);
+    int m = std::min(per_pixel, n);
+    top_k(score, n, m, out);
+    for (int q = 0; q < m; ++q) near[q] = pick_lanes(score, 1, out[q], 0) > Pk(-1e8);
+    return m;
   }
 
   // the direction l towards light i from p and its distance; where asked, its factor: the
@@ -1037,15 +1047,40 @@ struct Scene {
   // `skip`. Every geom is tested (bounding spheres first; rb: the frame's bounding radii), where
   // JAX tests a culled type's `per_pixel` nearest: the same verdict wherever those include the
   // occluder.
+  // A geom first meets a packet-level bound: every lane's shadow ray lies within rho (+ its 1e-5
+  // offsets) of the segment from the lanes' mean point m towards light li (to the light's
+  // position, or along a directional light), so a bounding sphere further from that segment
+  // blocks no lane.
   Pk unoccluded(const T* geo, const T* rb, const Pk* p, const Pk* l, const Pk& dist,
-                const Pk& skip) const {
+                const Pk& skip, int li) const {
     Pk o[3];
     for (int k = 0; k < 3; ++k) o[k] = p[k] + Pk(1e-5) * l[k];
+    double m[3], rho = 0;
+    for (int k = 0; k < 3; ++k) m[k] = double(hsum(p[k])) / Pk::N;
+    for (int q = 0; q < Pk::N; ++q) {
+      double d2 = 0;
+      for (int k = 0; k < 3; ++k) d2 += (double(p[k][q]) - m[k]) * (double(p[k][q]) - m[k]);
+      rho = std::max(rho, std::sqrt(d2));
+    }
+    const T* L = &light[li * kLightStride];
+    const bool directional = int(L[0]) == 1;
+    double e[3], len = 0;  // the segment's direction (unit) and length
+    for (int k = 0; k < 3; ++k) e[k] = directional ? -double(L[4 + k]) : double(L[1 + k]) - m[k];
+    for (int k = 0; k < 3; ++k) len += e[k] * e[k];
+    len = std::sqrt(len);
+    for (int k = 0; k < 3; ++k) e[k] = len > 0 ? e[k] / len : 0;
+    if (directional) len = 1e300;
     Mk blocked = false;
     for (int g = 0; g < G; ++g) {
       int t = types[g];
       if (t == 0) continue;  // a plane casts no shadow upwards
       const T* gp = geo + 19 * g;
+      double c[3], along = 0, d2 = 0;
+      for (int k = 0; k < 3; ++k) c[k] = double(gp[k]) - m[k], along += c[k] * e[k];
+      along = std::min(std::max(along, 0.0), len);
+      for (int k = 0; k < 3; ++k) d2 += (c[k] - along * e[k]) * (c[k] - along * e[k]);
+      double reach = double(rb[g]) * 1.001 + 1e-6 + rho + 3e-5;
+      if (d2 > reach * reach * (1 + 1e-6) + 1e-12) continue;
       Pk d[3], ol[3], rl[3];
       for (int k = 0; k < 3; ++k) d[k] = o[k] - Pk(gp[k]);
       to_local(d, gp + 3, ol);
@@ -1115,18 +1150,16 @@ template <typename T>
 struct Scratch {
   using Pk = P<T>;
   using Mk = Mask<T>;
-  // per slot: its primitive type; its geom, or -1 where culling picks one per lane (gv)
+  // per slot: its primitive type and geom
   std::vector<int> type, gid;
-  std::vector<Pk> gv;
   // per slot: first hit, depth where it is placed, signed distance, coverage, depth used,
   // the camera and ray in the geom's frame, world point, point in the geom's frame (for its
   // normal, found only where it is shaded), albedo
   std::vector<Pk> s_hit, s_n, dist, cover, z, key;
   std::vector<Pk> ol, rl, p, pl, alb;
-  std::vector<Mk> miss, far;  // the ray misses the bounding sphere; far from the silhouette too
-  // per slot: whether any lane needs it; a dead slot (no lane's ray near its geom) has coverage
-  // 0 and is neither searched, shaded nor differentiated
-  std::vector<char> live;
+  // per slot: the ray misses the bounding sphere; far from the silhouette too, or (culled) the
+  // pick is not near it: coverage 0 there, nothing searched or differentiated
+  std::vector<Mk> miss, far;
   // per layer: the lanes that composite it (where some lane leaves it out); the composite's
   // inputs and weights
   std::vector<Mk> kept;
@@ -1142,25 +1175,32 @@ struct Scratch {
   // per geom, per frame: the camera in its frame, that point's squared distance from the
   // centre, the bounding radius
   std::vector<T> fol, foo, frb;
-  // per geom, per packet (gather's first pass): the rays in its frame, their bounding-sphere
-  // gap, miss and far masks, where a far ray is placed, whether any lane needs the geom
-  std::vector<Pk> grl, ggap, gsnf;
+  // per geom, per packet (gather's first pass): the rays in its frame, their miss and far
+  // masks, where a far ray is placed
+  std::vector<Pk> grl, gsnf;
   std::vector<Mk> gmiss, gfar;
-  std::vector<char> grel;
+  // per block of kBlock x kBlock pixels of this frame's current row of blocks (block_geoms):
+  // the geoms its rays can need, per block column (a list; done: computed)
+  int64_t blk_frame = -1;
+  int blk_row = -1;
+  std::vector<std::vector<int>> blk;
+  std::vector<char> blk_done;
+  std::vector<char> need;  // per geom: in the current packet's block's list
+  std::vector<int> cand;
   // the reverse pass's gradients of this worker's current frame, lane by lane
   std::vector<Pk> gcam, ggeo;
   int64_t frame = -1, acc_frame = -1;
   Scratch(int slots, int G, int NL) {
     const size_t S = std::max(std::max(slots, G), 1), L = 64;
     type.resize(S), gid.resize(S);
-    for (auto* v : {&gv, &s_hit, &s_n, &dist, &cover, &z, &key, &d_hit, &d_sn, &d_dist, &d_z,
+    for (auto* v : {&s_hit, &s_n, &dist, &cover, &z, &key, &d_hit, &d_sn, &d_dist, &d_z,
                     &d_wrgb_slot})
       v->resize(S);
     for (auto* v : {&ol, &rl, &p, &pl, &d_nl}) v->resize(3 * S);
     alb.resize(4 * S);
-    miss.resize(S), far.resize(S), shaded.resize(S), live.resize(S);
-    grl.resize(3 * size_t(G)), ggap.resize(G), gsnf.resize(G), gmiss.resize(G), gfar.resize(G);
-    grel.resize(G);
+    miss.resize(S), far.resize(S), shaded.resize(S);
+    grl.resize(3 * size_t(G)), gsnf.resize(G), gmiss.resize(G), gfar.resize(G);
+    need.resize(G), cand.resize(G);
     for (auto* v : {&a, &zz, &alpha, &w, &wa, &wrgb, &d_w, &d_zz, &d_a, &d_wa, &d_wrgb})
       v->resize(std::max(S, L));
     kept.resize(std::max(S, L));
@@ -1170,21 +1210,11 @@ struct Scratch {
     fol.resize(3 * G), foo.resize(G), frb.resize(G);
     gcam.assign(15, Pk(0)), ggeo.assign(19 * size_t(G), Pk(0));
   }
-  // slot s's geom in lane l
-  int geom(int s, int l) const { return gid[s] >= 0 ? gid[s] : int(gv[s][l]); }
-  // field f of slot s's geom (geo: the frame's (G, 19) rows), lane by lane
-  Pk param(const T* geo, int s, int f) const {
-    return gid[s] >= 0 ? Pk(geo[19 * gid[s] + f]) : gather_lanes(geo, 19, gv[s], f);
-  }
+  // field f of slot s's geom (geo: the frame's (G, 19) rows)
+  Pk param(const T* geo, int s, int f) const { return Pk(geo[19 * gid[s] + f]); }
   // slot s's material (specular, shininess, emission)
   void material(const Scene<T>& sc, int s, Pk* mat) const {
-    if (gid[s] >= 0) {
-      mat[0] = Pk(sc.spec[gid[s]]), mat[1] = Pk(sc.shin[gid[s]]), mat[2] = Pk(sc.emis[gid[s]]);
-    } else {
-      mat[0] = gather_lanes(sc.spec.data(), 1, gv[s], 0);
-      mat[1] = gather_lanes(sc.shin.data(), 1, gv[s], 0);
-      mat[2] = gather_lanes(sc.emis.data(), 1, gv[s], 0);
-    }
+    mat[0] = Pk(sc.spec[gid[s]]), mat[1] = Pk(sc.shin[gid[s]]), mat[2] = Pk(sc.emis[gid[s]]);
   }
   // per layer k, the per-slot packet array arr (stride, component) at its slot
   Pk at_layer(const Ray<T>& R, const std::vector<Pk>& arr, int stride, int comp, int k) const {
@@ -1195,13 +1225,7 @@ struct Scratch {
     return R.uslot[s] >= 0 ? per_layer[R.uslot[s]] : Pk(0);
   }
   // the reverse pass: v added to field f of slot s's geom's gradient, lane by lane
-  void add_geom(int s, int f, const Pk& v) {
-    if (gid[s] >= 0) {
-      ggeo[19 * gid[s] + f] += v;
-      return;
-    }
-    for (int l = 0; l < Pk::N; ++l) ggeo[19 * int(gv[s][l]) + f].v[l] += v[l];
-  }
+  void add_geom(int s, int f, const Pk& v) { ggeo[19 * gid[s] + f] += v; }
 };
 
 // ahead[g * S + k]: how much surface k lies in front of surface g (soft: a sigmoid of their depth
@@ -1250,17 +1274,80 @@ void composite(int S, const P<T>* a, const P<T>* ahead, P<T>* w, P<T>& bg) {
   bg = bg / tot;
 }
 
-// per lane, mask arr[idx[l]] (idx: a packet of whole numbers)
+constexpr int kBlock = 16;  // pixels a side of the blocks whose rays block_geoms bounds
+
+// The geoms a block of pixels (rows i0..i1, columns j0..j1, inclusive) can need: the cone of its
+// rays' lines (the block's central ray and the widest angle to a corner's) against each geom's
+// bounding sphere. Left out is a geom that, for every ray of the block, the hard image misses;
+// the soft image passes far from (far_from; ellipsoids and planes are always in); or, in a
+// crowded type culling picks from, passes beyond culling's band (such a pick covers nothing).
+// Conservative (double precision, margins for the float32 tests it stands for): a geom left out
+// would have been a dead slot in every lane, whose coverage is negligible (the header).
 template <typename T>
-inline Mask<T> pick_masks(const Mask<T>* arr, const P<T>& idx) {
-  Mask<T> r;
-  for (int l = 0; l < P<T>::N; ++l) r.v[l] = arr[int(idx[l])].v[l];
-  return r;
+void block_geoms(const Scene<T>& sc, const T* cam, const T* geo, const Scratch<T>& X, int i0,
+                 int i1, int j0, int j1, std::vector<int>& out) {
+  const bool soft = sc.tau != 0;
+  const double px = cam[12], cx = cam[13], cy = cam[14];
+  auto dir = [&](double i, double j, double* u) {
+    double loc[3] = {(j + 0.5 - cx) * px, (cy - i - 0.5) * px, -1.0}, n = 0;
+    for (int k = 0; k < 3; ++k) {
+      u[k] = loc[0] * cam[3 + 3 * k] + loc[1] * cam[4 + 3 * k] + loc[2] * cam[5 + 3 * k];
+      n += u[k] * u[k];
+    }
+    for (int k = 0; k < 3; ++k) u[k] /= std::sqrt(n);
+  };
+  double dc[3], cos_t = 1;
+  dir(0.5 * (i0 + i1), 0.5 * (j0 + j1), dc);
+  for (int c = 0; c < 4; ++c) {
+    double u[3];
+    dir(c & 1 ? i1 : i0, c & 2 ? j1 : j0, u);
+    cos_t = std::min(cos_t, dc[0] * u[0] + dc[1] * u[1] + dc[2] * u[2]);
+  }
+  cos_t = std::max(-1.0, cos_t - 1e-9);
+  const double sin_t = std::sqrt(std::max(0.0, 1 - cos_t * cos_t));
+  const double reach = (soft ? 15 * double(sc.tau) + 2 : 2) * px;
+  out.clear();
+  for (const auto& grp : sc.groups) {
+    const int t = grp.first;
+    const bool cull = soft && sc.culled(t, int(grp.second.size()));
+    for (int g : grp.second) {
+      const T* gp = geo + 19 * g;
+      if (t == 0 || (soft && t == 4 && !cull)) {
+        out.push_back(g);
+        continue;
+      }
+      double c[3], D = 0, ca = 0;
+      for (int k = 0; k < 3; ++k) c[k] = double(gp[k]) - double(cam[k]), D += c[k] * c[k];
+      D = std::sqrt(D);
+      for (int k = 0; k < 3; ++k) ca += c[k] * dc[k];
+      ca = D > 0 ? std::fabs(ca) / D : 1;  // the angle of the centre off the lines' axis
+      // the centre's least distance from the block's ray lines
+      double perp = ca >= cos_t ? 0 : D * (std::sqrt(std::max(0.0, 1 - ca * ca)) * cos_t -
+                                           ca * sin_t);
+      perp = std::max(0.0, perp) * (1 - 1e-3) - 1e-7;
+      const double rb = X.frb[g];
+      bool needed;
+      if (!soft) {
+        needed = perp <= rb * 1.001 + 1e-6;
+      } else if (!cull) {
+        double thr = double(sc.margin) * double(sc.tau) * px *
+                     std::max(D + 1.05 * rb + 1e-6, double(sc.near_));
+        needed = !(perp - rb * 1.001 - 1e-6 > thr * (1 + 1e-3));
+      } else {
+        T half, rad;
+        int col;
+        Scene<T>::capsule(t, gp + 12, half, rad, col);
+        double lim = double(rad) + reach * std::max(D + double(half), double(sc.near_));
+        needed = perp - double(half) <= (lim * 1.001 + 1e-6) * (1 + 1e-3);
+      }
+      if (needed) out.push_back(g);
+    }
+  }
 }
 
 template <typename T>
-void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scratch<T>& X,
-            Ray<T>& R) {
+void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, int64_t H,
+            int64_t W, int64_t b, Scratch<T>& X, Ray<T>& R) {
   // X.fol / X.foo / X.frb: the camera in each geom's frame, its squared distance from the
   // geom's centre and the geom's bounding radius (per frame: begin_frame)
   using Pk = P<T>;
@@ -1281,18 +1368,33 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
   Pk O[3] = {Pk(cam[0]), Pk(cam[1]), Pk(cam[2])};
   const Pk inf = K<Pk>::inf();
 
-  // Every geom against the packet's rays, once: the rays in its frame, whether each misses its
-  // bounding sphere (by how much), whether it passes so far from the silhouette that the
-  // geom's coverage is negligible (the header; nothing is searched for there), where such a ray
-  // is placed, and whether any lane needs the geom at all (hard image: a ray that may hit it;
-  // soft: one not far from it).
-  for (int g = 0; g < sc.G; ++g) {
+  // the geoms this packet's block can need (cached per block)
+  const int bi = i0 / kBlock, bj = j0 / kBlock;
+  if (X.blk_frame != b || X.blk_row != bi) {
+    X.blk_frame = b, X.blk_row = bi;
+    X.blk.resize((W + kBlock - 1) / kBlock);
+    X.blk_done.assign(X.blk.size(), 0);
+  }
+  if (!X.blk_done[bj]) {
+    block_geoms(sc, cam, geo, X, bi * kBlock, int(std::min<int64_t>(H, (bi + 1) * kBlock)) - 1,
+                bj * kBlock, int(std::min<int64_t>(W, (bj + 1) * kBlock)) - 1, X.blk[bj]);
+    X.blk_done[bj] = 1;
+  }
+  const std::vector<int>& needed = X.blk[bj];
+  std::fill(X.need.begin(), X.need.end(), 0);
+
+  // Every needed geom against the packet's rays, once: the rays in its frame, whether each
+  // misses its bounding sphere, whether it passes so far from the silhouette that the geom's
+  // coverage is negligible (the header; nothing is searched for there), where such a ray is
+  // placed; whether any lane needs the geom (hard image: a ray that may hit it; soft: one not
+  // far from it).
+  for (int g : needed) {
     int t = sc.types[g];
     const T* gp = geo + 19 * g;
     Pk* rl = &X.grl[3 * g];
     to_local(r, gp + 3, rl);
     if (t == 0) {
-      X.ggap[g] = -1, X.gmiss[g] = false, X.gfar[g] = false, X.grel[g] = 1;
+      X.gmiss[g] = false, X.gfar[g] = false, X.need[g] = 1;
       continue;
     }
     const T* olv = &X.fol[3 * g];
@@ -1305,14 +1407,16 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
     Mk miss = gap > Pk(0), farm = false;
     if (soft)
       farm = far_from(t, ol, rl, rb, gap, Pk(px), Pk(sc.near_), Pk(sc.margin * sc.tau));
-    X.ggap[g] = gap, X.gmiss[g] = miss, X.gfar[g] = farm;
-    X.grel[g] = soft ? !all(farm) : !all(miss);
-    if (soft && any(farm)) {
+    X.gmiss[g] = miss, X.gfar[g] = farm;
+    X.need[g] = soft ? !all(farm) : !all(miss);
+    if (soft) {
       Pk snf = -orr / rr;
       X.gsnf[g] = sel(Finite(snf), snf, Pk(sc.far_));
     }
   }
 
+  // The surface slots some lane needs, in Renderer._render's order of groups: a slot no lane
+  // needs adds nothing to the image and is left out.
   int S = 0;
   for (const auto& grp : sc.groups) {
     int t = grp.first;
@@ -1321,46 +1425,42 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
     // Culling only ever drops coverage from the soft image: the hard image tests every geom
     // (bounding spheres first), which is what culling keeps it equal to.
     bool cull = soft && sc.culled(t, n);
-    if (cull) sc.choose(t, idx, geo, O, r, reach, sc.near_, X.pick.data(), X.score.data());
-    int m = cull ? sc.per_pixel : n;
-    for (int q = 0; q < m; ++q, ++S) {
-      X.type[S] = t;
-      X.gid[S] = cull ? -1 : idx[q];
+    // culled: each geom some lane picks, near its ray, is a slot of its own, covering nothing
+    // in the other lanes (as the pick it is not there)
+    int m = n;
+    const int* geoms = idx.data();
+    Mk picked[64];
+    if (cull) {
+      int nc = 0;  // the block's candidates (every lane's near geoms are among them)
+      for (int g : needed)
+        if (sc.types[g] == t) X.cand[nc++] = g;
+      Mk near[64];
+      int k = nc ? sc.choose(t, X.cand.data(), nc, geo, O, r, reach, sc.near_, X.pick.data(),
+                             near, X.score.data())
+                 : 0;
+      for (int j = 0; j < nc; ++j) picked[j] = false;
+      for (int q = 0; q < k; ++q)
+        for (int j = 0; j < nc; ++j) picked[j] |= near[q] & (X.pick[q] == Pk(double(j)));
+      m = nc, geoms = X.cand.data();
+    }
+    for (int q = 0; q < m; ++q) {
+      const int g = geoms[q];
+      Mk farm;
       if (cull) {
-        Pk gq;
-        for (int l = 0; l < Pk::N; ++l) gq.v[l] = T(idx[int(X.pick[q][l])]);
-        if (all(gq == Pk(gq[0])))
-          X.gid[S] = int(gq[0]);  // every lane picked the same geom
-        else
-          X.gv[S] = gq;
+        if (none(picked[q])) continue;
+        farm = X.gfar[g] | !picked[q];
+        if (all(farm)) continue;
+      } else {
+        if (!X.need[g]) continue;
+        farm = X.gfar[g];
       }
-      const int g = X.gid[S];
+      X.type[S] = t;
+      X.gid[S] = g;
       Pk* ol = &X.ol[3 * S];
       Pk* rl = &X.rl[3 * S];
-      Mk farm;
-      if (g >= 0) {
-        for (int k = 0; k < 3; ++k) ol[k] = Pk(X.fol[3 * g + k]), rl[k] = X.grl[3 * g + k];
-        X.miss[S] = X.gmiss[g], farm = X.gfar[g];
-        X.live[S] = X.grel[g];
-      } else {
-        for (int k = 0; k < 3; ++k) {
-          ol[k] = gather_lanes(X.fol.data(), 3, X.gv[S], k);
-          rl[k] = pick_lanes(X.grl.data(), 3, X.gv[S], k);
-        }
-        X.miss[S] = pick_masks(X.gmiss.data(), X.gv[S]);
-        farm = pick_masks(X.gfar.data(), X.gv[S]);
-        X.live[S] = !all(farm);
-      }
+      for (int k = 0; k < 3; ++k) ol[k] = Pk(X.fol[3 * g + k]), rl[k] = X.grl[3 * g + k];
+      X.miss[S] = X.gmiss[g] | (cull ? !picked[q] : Mk(false));
       X.far[S] = farm;
-      Pk snf = 0;
-      if (any(farm)) snf = g >= 0 ? X.gsnf[g] : pick_lanes(X.gsnf.data(), 1, X.gv[S], 0);
-      if (!X.live[S]) {  // coverage 0 in every lane: only where a far ray is placed
-        X.s_hit[S] = inf;
-        X.s_n[S] = soft ? snf : Pk(sc.far_);
-        X.dist[S] = soft ? inf : Pk(0);
-        for (int k = 0; k < 4; ++k) X.alb[4 * S + k] = 0;
-        continue;
-      }
       Pk sz[3];
       for (int k = 0; k < 3; ++k) sz[k] = X.param(geo, S, 12 + k);
       const Mk miss = X.miss[S];
@@ -1373,7 +1473,7 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
         closest(t, ol, rl, sz, sc.iters, s_c, dist);
         sn = sel(Finite(s_hit), s_hit, s_c);
         sn = sel(Finite(sn), sn, Pk(sc.far_));
-        if (any(farm)) sn = sel(farm, snf, sn), dist = sel(farm, inf, dist);
+        if (any(farm)) sn = sel(farm, X.gsnf[g], sn), dist = sel(farm, inf, dist);
       }
       // the normal is found only where the surface is shaded (draw_packet's shading loop)
       Pk sp = soft ? sn : sel(Finite(s_hit), s_hit, Pk(sc.far_));
@@ -1382,25 +1482,20 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
       X.s_n[S] = sn;
       X.dist[S] = dist;
       for (int k = 0; k < 4; ++k) X.alb[4 * S + k] = X.param(geo, S, 15 + k);
+      ++S;
     }
   }
   // first hit: segmentation, body, hard depth
-  Pk first = 0, best = X.s_hit[0];
-  Mk any_hit = Finite(X.s_hit[0]);
+  Pk first = 0, best = S ? X.s_hit[0] : inf;
+  Mk any_hit = S ? Finite(X.s_hit[0]) : Mk(false);
   for (int k = 1; k < S; ++k) {
-    if (!X.live[k]) continue;
     Mk up = X.s_hit[k] < best;
     best = sel(up, X.s_hit[k], best), first = sel(up, Pk(double(k)), first);
     any_hit |= Finite(X.s_hit[k]);
   }
-  int live = 0;
   for (int k = 0; k < S; ++k) {
-    live += X.live[k];
     Pk zk;
-    if (!X.live[k]) {
-      zk = X.s_n[k];
-      X.cover[k] = 0;
-    } else if (!soft) {
+    if (!soft) {
       Mk h = Finite(X.s_hit[k]);
       zk = sel(h, X.s_hit[k], Pk(sc.far_));
       X.cover[k] = sel(h, Pk(1), Pk(0));
@@ -1414,33 +1509,33 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scra
     for (int q = 0; q < 3; ++q) X.p[3 * k + q] = O[q] + zk * r[q];
   }
   // The `layers` most covering surfaces not hidden behind a solid one (Renderer._render's
-  // top_k, ties to the lower slot), taken as every live slot in slot order with its coverage
-  // set to 0 in the lanes whose choice leaves it out: a dead slot, or a layer of coverage 0,
-  // adds exactly nothing to the composite or its gradient.
-  int L = 0;
-  for (int s = 0; s < S; ++s) {
-    R.uslot[s] = X.live[s] ? L : -1;
-    if (X.live[s]) R.ulay[L++] = s;
-  }
+  // top_k over all its slots, ties to the lower one; a surface of negligible coverage ranks
+  // below every other), taken as every slot here in order with its coverage set to 0 in the
+  // lanes whose choice leaves it out: a slot left out above, or a layer of coverage 0, adds
+  // exactly nothing to the composite or its gradient; of negligible coverage, nothing that
+  // shows (renderer.negligible_coverage).
+  const int L = S;
+  for (int k = 0; k < S; ++k) R.ulay[k] = R.uslot[k] = k;
   R.any_dropped = false;
-  if (S > sc.layers) {
+  if (sc.slots > sc.layers) {
     Pk solid = inf;
     for (int k = 0; k < S; ++k) solid = sel(X.cover[k] > Pk(0.999), Min(solid, X.z[k]), solid);
+    Mk ranked[64];
     for (int k = 0; k < S; ++k) {
       Mk shown = X.z[k] <= solid + Pk(soft ? T(10) * sc.gamma : T(0));
       X.key[k] = sel(shown, X.cover[k] - Pk(1e-6) * X.z[k] / Pk(sc.far_),
                      Pk(-1) - X.z[k] / Pk(sc.far_));
+      ranked[k] = X.cover[k] >= Pk(sc.negligible);
     }
-    for (int q = 0; q < L; ++q) {
-      int s = R.ulay[q];
+    for (int s = 0; s < S; ++s) {
       // how many slots top_k takes before s (a larger key, or an equal one at a lower index)
       Pk before = 0;
       for (int k = 0; k < S; ++k)
         if (k != s)
-          before += sel((X.key[k] > X.key[s]) | ((X.key[k] == X.key[s]) & Mk(k < s)), Pk(1),
-                        Pk(0));
-      X.kept[q] = before < Pk(double(sc.layers));
-      R.any_dropped = R.any_dropped || !all(X.kept[q]);
+          before += sel(ranked[k] & ((X.key[k] > X.key[s]) | ((X.key[k] == X.key[s]) & Mk(k < s))),
+                        Pk(1), Pk(0));
+      X.kept[s] = ranked[s] & (before < Pk(double(sc.layers)));
+      R.any_dropped = R.any_dropped || !all(X.kept[s]);
     }
   }
   R.S = S, R.L = L, R.first = first, R.first_hit = best, R.any_hit = any_hit;
@@ -1472,12 +1567,12 @@ void mix(const Scene<T>& sc, const T* geo, Scratch<T>& X, const Ray<T>& R) {
     for (int l = 0; l < Pk::N; ++l) slot.v[l] = T(R.ulay[int(win[l])]);
     Pk pw[3], gw;
     for (int q = 0; q < 3; ++q) pw[q] = pick_lanes(X.p.data(), 3, slot, q);
-    for (int l = 0; l < Pk::N; ++l) gw.v[l] = T(X.geom(int(slot[l]), l));
+    for (int l = 0; l < Pk::N; ++l) gw.v[l] = T(X.gid[int(slot[l])]);
     for (int li = 0; li < sc.NL; ++li) {
       if (sc.light[li * kLightStride + 21] == 0) continue;
       Pk l[3], dist;
       sc.light_dir(li, pw, l, dist, nullptr);
-      X.lit[li] = sc.unoccluded(geo, X.frb.data(), pw, l, dist, gw);
+      X.lit[li] = sc.unoccluded(geo, X.frb.data(), pw, l, dist, gw, li);
     }
   }
   for (int k = 0; k < L; ++k) X.wa[k] = X.a[k] * X.alpha[k];
@@ -1508,19 +1603,18 @@ inline void lane_pixels(int64_t b, int i0, int j0, int64_t H, int64_t W, int64_t
 }
 
 template <typename T>
-void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, Scratch<T>& X,
-                 const int64_t* pix, T* rgb, T* depth, int32_t* seg, int32_t* body, T* weights,
-                 T* background) {
+void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, int64_t H,
+                 int64_t W, int64_t b, Scratch<T>& X, const int64_t* pix, T* rgb, T* depth,
+                 int32_t* seg, int32_t* body, T* weights, T* background) {
   using Pk = P<T>;
   Ray<T> R;
-  gather(sc, cam, geo, i0, j0, X, R);
+  gather(sc, cam, geo, i0, j0, H, W, b, X, R);
   mix(sc, geo, X, R);
   const int L = R.L;
   Pk out[3] = {0, 0, 0};
   for (int s = 0; s < R.S; ++s) {
     // a surface that adds nothing here is not shaded: the hard image's hidden ones (weight
     // exactly 0), the soft one's far from their silhouette (coverage under 1e-12)
-    if (!X.live[s]) continue;
     Pk wr = X.of_slot(R, X.wrgb, s);
     auto shown = wr > Pk(1e-12);
     if (none(shown)) continue;
@@ -1539,13 +1633,12 @@ void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
     dep = sel(R.any_hit, R.first_hit, Pk(sc.far_depth));
   }
   const int G = sc.G;
-  // each geom a slot of its own (no culling): every weight is written once, none need zeroing
-  bool every = R.S == G;
-  for (int s = 0; s < R.S && every; ++s) every = X.gid[s] >= 0;
+  // every geom a slot: every weight is written once, none need zeroing
+  const bool every = R.S == G;
   for (int l = 0; l < Pk::N; ++l) {
     int64_t p = pix[l];
     if (p < 0) continue;
-    int g = X.geom(int(R.first[l]), l);
+    int g = X.gid[int(R.first[l])];
     seg[p] = R.any_hit[l] ? sc.gids[g] : -1;
     body[p] = R.any_hit[l] ? sc.bodies[g] : -1;
     for (int q = 0; q < 3; ++q) rgb[3 * p + q] = out[q][l];
@@ -1553,12 +1646,11 @@ void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
     background[p] = X.bg[l];
     if (!every) std::fill(weights + int64_t(G) * p, weights + int64_t(G) * (p + 1), T(0));
   }
-  // a lane's layers hold distinct geoms (culling picks distinct ones), so each weight is one
-  // layer's
+  // each slot a geom of its own
   for (int s = 0; s < R.S; ++s) {
     Pk ws = X.of_slot(R, X.w, s);
     for (int l = 0; l < Pk::N; ++l)
-      if (pix[l] >= 0) weights[int64_t(G) * pix[l] + X.geom(s, l)] = ws[l];
+      if (pix[l] >= 0) weights[int64_t(G) * pix[l] + X.gid[s]] = ws[l];
   }
 }
 
@@ -1817,14 +1909,14 @@ void surface_vjp(const Scene<T>& sc, const T* geo, const Scratch<T>& X, T px, in
 // background
 template <typename T>
 void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
-                     Scratch<T>& X, const int64_t* pix, const P<T>* c_rgb, const P<T>& c_depth,
-                     const T* cw, const P<T>& c_bg) {
+                     int64_t H, int64_t W, int64_t b, Scratch<T>& X, const int64_t* pix,
+                     const P<T>* c_rgb, const P<T>& c_depth, const T* cw, const P<T>& c_bg) {
   using Pk = P<T>;
   using Mk = Mask<T>;
   const bool soft = sc.tau != 0;
   const int G = sc.G;
   Ray<T> R;
-  gather(sc, cam, geo, i0, j0, X, R);
+  gather(sc, cam, geo, i0, j0, H, W, b, X, R);
   mix(sc, geo, X, R);
   const int L = R.L, S = R.S;
   const Pk* r = R.r;
@@ -1839,7 +1931,7 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
     for (int s = 0; s < S; ++s) {
       Pk dw = 0;
       for (int l = 0; l < Pk::N; ++l)
-        if (pix[l] >= 0) dw.v[l] = cw[int64_t(G) * pix[l] + X.geom(s, l)];
+        if (pix[l] >= 0) dw.v[l] = cw[int64_t(G) * pix[l] + X.gid[s]];
       X.d_wrgb_slot[s] = dw;  // (a free slot array, overwritten below)
     }
   }
@@ -1860,7 +1952,6 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
     // A surface's colour matters where it is drawn (wrgb) and, through the derivative of its
     // weight, wherever it covers the pixel (wa): hidden behind an opaque one, its colour is
     // what that one's alpha lets through. (Under 1e-12 either way, nothing is lost.)
-    if (!X.live[s]) continue;
     Pk wa = X.of_slot(R, X.wa, s);
     Mk covers = wa > Pk(1e-12);
     if (none(covers)) continue;
@@ -1943,7 +2034,6 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
   }
   // each surface's inputs
   for (int s = 0; s < S; ++s) {
-    if (!X.live[s]) continue;
     Mk on = ((X.d_hit[s] != Pk(0)) | (X.d_sn[s] != Pk(0)) | (X.d_dist[s] != Pk(0)) |
              X.shaded[s]) & !X.far[s];
     if (none(on)) continue;
@@ -2086,7 +2176,7 @@ ffi::Error Render(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> tg,
           int j0) {
         int64_t pix[P<T>::N];
         lane_pixels<T>(b, i0, j0, H, W, pix);
-        draw_packet(S, c, g, i0, j0, X, pix, rgbp, depp, segp, bodp, wp, bgp);
+        draw_packet(S, c, g, i0, j0, H, W, b, X, pix, rgbp, depp, segp, bodp, wp, bgp);
       },
       [](int, Scratch<T>&) {});
   return ffi::Error::Success();
@@ -2155,7 +2245,7 @@ ffi::Error RenderVjp(ffi::Buffer<DT> cam, ffi::Buffer<DT> geo, ffi::Buffer<DT> t
         }
         if (zero && w_zero) return;  // (a crop's loss, a masked pixel)
         if (X.acc_frame != b) flush(worker, X), X.acc_frame = b;
-        draw_packet_vjp(S, c, g, i0, j0, X, pix, cr, cd, w_zero ? nullptr : cw, cb);
+        draw_packet_vjp(S, c, g, i0, j0, H, W, b, X, pix, cr, cd, w_zero ? nullptr : cw, cb);
       },
       flush);
   T* oc = gcam->typed_data();
