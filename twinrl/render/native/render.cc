@@ -1070,17 +1070,29 @@ struct Scene {
     len = std::sqrt(len);
     for (int k = 0; k < 3; ++k) e[k] = len > 0 ? e[k] / len : 0;
     if (directional) len = 1e300;
+    // the bound for every geom at once (a packet of geoms; `centres`: the frame's per geom)
+    using Pd = P<double>;
+    uint64_t close = 0;  // a bit a geom (G <= 64)
+    for (int g0 = 0; g0 < G; g0 += Pd::N) {
+      Pd along = 0, d2 = 0, c[3];
+      for (int k = 0; k < 3; ++k) {
+        for (int q = 0; q < Pd::N; ++q)
+          c[k].v[q] = g0 + q < G ? double(geo[19 * (g0 + q) + k]) - m[k] : 1e300;
+        along += c[k] * Pd(e[k]);
+      }
+      along = Min(Max(along, Pd(0.0)), Pd(len));
+      for (int k = 0; k < 3; ++k) d2 += (c[k] - along * Pd(e[k])) * (c[k] - along * Pd(e[k]));
+      for (int q = 0; q < Pd::N && g0 + q < G; ++q) {
+        double reach = double(rb[g0 + q]) * 1.001 + 1e-6 + rho + 3e-5;
+        if (d2[q] <= reach * reach * (1 + 1e-6) + 1e-12) close |= uint64_t(1) << (g0 + q);
+      }
+    }
     Mk blocked = false;
     for (int g = 0; g < G; ++g) {
       int t = types[g];
       if (t == 0) continue;  // a plane casts no shadow upwards
+      if (!((close >> g) & 1)) continue;
       const T* gp = geo + 19 * g;
-      double c[3], along = 0, d2 = 0;
-      for (int k = 0; k < 3; ++k) c[k] = double(gp[k]) - m[k], along += c[k] * e[k];
-      along = std::min(std::max(along, 0.0), len);
-      for (int k = 0; k < 3; ++k) d2 += (c[k] - along * e[k]) * (c[k] - along * e[k]);
-      double reach = double(rb[g]) * 1.001 + 1e-6 + rho + 3e-5;
-      if (d2 > reach * reach * (1 + 1e-6) + 1e-12) continue;
       Pk d[3], ol[3], rl[3];
       for (int k = 0; k < 3; ++k) d[k] = o[k] - Pk(gp[k]);
       to_local(d, gp + 3, ol);
