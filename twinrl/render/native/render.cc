@@ -226,10 +226,6 @@ template <typename T, int N> inline Dual<T, N> constant(const Dual<T, N>& x) {
 }
 template <typename T> struct Base { using type = T; };
 template <typename T, int N> struct Base<Dual<T, N>> { using type = T; };
-// the scalar type of a packet or a Dual of packets
-template <typename T> struct Scalar;
-template <typename T> struct Scalar<P<T>> { using type = T; };
-template <typename T, int N> struct Scalar<Dual<T, N>> { using type = typename Scalar<T>::type; };
 
 template <typename T>
 struct K {
@@ -1147,11 +1143,8 @@ template <typename T>
 struct Ray {
   P<T> r[3], jj, ii;  // direction; each lane's pixel column and row
   T fwd[3], px;
-  int S, L;
-  // the composited slots: ulay[k], layer k's slot; uslot[s], slot s's layer or -1 (a dead
-  // slot); any_dropped: some lane leaves some layer out (Scratch::kept)
-  int ulay[64], uslot[64];
-  bool any_dropped;
+  int S;            // surface slots, each composited as a layer (in slot order)
+  bool any_dropped;  // some lane leaves some slot out of its composite (Scratch::kept)
   P<T> first, first_hit;  // the slot of the first hit, its depth
   Mask<T> any_hit;
 };
@@ -1181,7 +1174,7 @@ struct Scratch {
   std::vector<Pk> score, pick, lit;
   std::vector<LightTerms<T>> lights;  // shade_vjp's, NL + 1
   // the reverse pass's cotangents, per layer and per slot
-  std::vector<Pk> d_w, d_zz, d_a, d_wa, d_wrgb, d_wrgb_slot;
+  std::vector<Pk> d_w, d_zz, d_a, d_wa, d_wrgb;
   std::vector<Pk> d_hit, d_sn, d_dist, d_z, d_nl;
   std::vector<Mk> shaded;
   // per geom, per frame: the camera in its frame, that point's squared distance from the
@@ -1203,10 +1196,10 @@ struct Scratch {
   std::vector<Pk> gcam, ggeo;
   int64_t frame = -1, acc_frame = -1;
   Scratch(int slots, int G, int NL) {
-    const size_t S = std::max(std::max(slots, G), 1), L = 64;
+    // slots: a packet's are at most one a geom (a crowded type's picks too)
+    const size_t S = std::max(std::max(slots, G), 1);
     type.resize(S), gid.resize(S);
-    for (auto* v : {&s_hit, &s_n, &dist, &cover, &z, &key, &d_hit, &d_sn, &d_dist, &d_z,
-                    &d_wrgb_slot})
+    for (auto* v : {&s_hit, &s_n, &dist, &cover, &z, &key, &d_hit, &d_sn, &d_dist, &d_z})
       v->resize(S);
     for (auto* v : {&ol, &rl, &p, &pl, &d_nl}) v->resize(3 * S);
     alb.resize(4 * S);
@@ -1214,9 +1207,9 @@ struct Scratch {
     grl.resize(3 * size_t(G)), gsnf.resize(G), gmiss.resize(G), gfar.resize(G);
     need.resize(G), cand.resize(G);
     for (auto* v : {&a, &zz, &alpha, &w, &wa, &wrgb, &d_w, &d_zz, &d_a, &d_wa, &d_wrgb})
-      v->resize(std::max(S, L));
-    kept.resize(std::max(S, L));
-    for (auto* v : {&ahead, &occl, &dahead}) v->resize(std::max(S, L) * std::max(S, L));
+      v->resize(S);
+    kept.resize(S);
+    for (auto* v : {&ahead, &occl, &dahead}) v->resize(S * S);
     score.resize(std::max(S, size_t(64))), pick.resize(64), lit.resize(std::max(NL, 1));
     lights.resize(NL + 1);
     fol.resize(3 * G), foo.resize(G), frb.resize(G);
@@ -1227,14 +1220,6 @@ struct Scratch {
   // slot s's material (specular, shininess, emission)
   void material(const Scene<T>& sc, int s, Pk* mat) const {
     mat[0] = Pk(sc.spec[gid[s]]), mat[1] = Pk(sc.shin[gid[s]]), mat[2] = Pk(sc.emis[gid[s]]);
-  }
-  // per layer k, the per-slot packet array arr (stride, component) at its slot
-  Pk at_layer(const Ray<T>& R, const std::vector<Pk>& arr, int stride, int comp, int k) const {
-    return arr[stride * R.ulay[k] + comp];
-  }
-  // the per-slot packet of a per-layer array (0 for a dead slot)
-  Pk of_slot(const Ray<T>& R, const std::vector<Pk>& per_layer, int s) const {
-    return R.uslot[s] >= 0 ? per_layer[R.uslot[s]] : Pk(0);
   }
   // the reverse pass: v added to field f of slot s's geom's gradient, lane by lane
   void add_geom(int s, int f, const Pk& v) { ggeo[19 * gid[s] + f] += v; }
@@ -1526,8 +1511,6 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, int6
   // lanes whose choice leaves it out: a slot left out above, or a layer of coverage 0, adds
   // exactly nothing to the composite or its gradient; of negligible coverage, nothing that
   // shows (renderer.negligible_coverage).
-  const int L = S;
-  for (int k = 0; k < S; ++k) R.ulay[k] = R.uslot[k] = k;
   R.any_dropped = false;
   if (sc.slots > sc.layers) {
     Pk solid = inf;
@@ -1550,7 +1533,7 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, int6
       R.any_dropped = R.any_dropped || !all(X.kept[s]);
     }
   }
-  R.S = S, R.L = L, R.first = first, R.first_hit = best, R.any_hit = any_hit;
+  R.S = S, R.first = first, R.first_hit = best, R.any_hit = any_hit;
 }
 
 // A packet's composite over its `layers` surfaces: coverage, depth, weights of the depth image
@@ -1559,12 +1542,11 @@ template <typename T>
 void mix(const Scene<T>& sc, const T* geo, Scratch<T>& X, const Ray<T>& R) {
   using Pk = P<T>;
   const bool soft = sc.tau != 0;
-  const int L = R.L;
+  const int L = R.S;
   for (int k = 0; k < L; ++k) {
-    const int s = R.ulay[k];
-    X.a[k] = R.any_dropped ? sel(X.kept[k], X.cover[s], Pk(0)) : X.cover[s];
-    X.zz[k] = X.z[s];
-    X.alpha[k] = X.alb[4 * s + 3];
+    X.a[k] = R.any_dropped ? sel(X.kept[k], X.cover[k], Pk(0)) : X.cover[k];
+    X.zz[k] = X.z[k];
+    X.alpha[k] = X.alb[4 * k + 3];
   }
   depth_order(L, X.a.data(), X.zz.data(), soft, sc.gamma, X.ahead.data());
   composite(L, X.a.data(), X.ahead.data(), X.w.data(), X.bg);
@@ -1575,11 +1557,9 @@ void mix(const Scene<T>& sc, const T* geo, Scratch<T>& X, const Ray<T>& R) {
       auto up = X.w[k] > wb;
       wb = sel(up, X.w[k], wb), win = sel(up, Pk(double(k)), win);
     }
-    Pk slot;
-    for (int l = 0; l < Pk::N; ++l) slot.v[l] = T(R.ulay[int(win[l])]);
     Pk pw[3], gw;
-    for (int q = 0; q < 3; ++q) pw[q] = pick_lanes(X.p.data(), 3, slot, q);
-    for (int l = 0; l < Pk::N; ++l) gw.v[l] = T(X.gid[int(slot[l])]);
+    for (int q = 0; q < 3; ++q) pw[q] = pick_lanes(X.p.data(), 3, win, q);
+    for (int l = 0; l < Pk::N; ++l) gw.v[l] = T(X.gid[int(win[l])]);
     for (int li = 0; li < sc.NL; ++li) {
       if (sc.light[li * kLightStride + 21] == 0) continue;
       Pk l[3], dist;
@@ -1622,12 +1602,12 @@ void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
   Ray<T> R;
   gather(sc, cam, geo, i0, j0, H, W, b, X, R);
   mix(sc, geo, X, R);
-  const int L = R.L;
+  const int L = R.S;
   Pk out[3] = {0, 0, 0};
   for (int s = 0; s < R.S; ++s) {
     // a surface that adds nothing here is not shaded: the hard image's hidden ones (weight
     // exactly 0), the soft one's far from their silhouette (coverage under 1e-12)
-    Pk wr = X.of_slot(R, X.wrgb, s);
+    const Pk& wr = X.wrgb[s];
     auto shown = wr > Pk(1e-12);
     if (none(shown)) continue;
     Pk nl[3], nw[3], n[3], nn, xm[9], col[3], mat[3];
@@ -1660,7 +1640,7 @@ void draw_packet(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0,
   }
   // each slot a geom of its own
   for (int s = 0; s < R.S; ++s) {
-    Pk ws = X.of_slot(R, X.w, s);
+    const Pk& ws = X.w[s];
     for (int l = 0; l < Pk::N; ++l)
       if (pix[l] >= 0) weights[int64_t(G) * pix[l] + X.gid[s]] = ws[l];
   }
@@ -1930,28 +1910,23 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
   Ray<T> R;
   gather(sc, cam, geo, i0, j0, H, W, b, X, R);
   mix(sc, geo, X, R);
-  const int L = R.L, S = R.S;
+  const int L = R.S, S = R.S;
   const Pk* r = R.r;
   // cotangents per layer and per slot
   for (int k = 0; k < S; ++k) {
-    X.d_hit[k] = X.d_sn[k] = X.d_dist[k] = X.d_z[k] = X.d_wrgb_slot[k] = 0;
+    X.d_hit[k] = X.d_sn[k] = X.d_dist[k] = X.d_z[k] = 0;
     X.d_nl[3 * k] = X.d_nl[3 * k + 1] = X.d_nl[3 * k + 2] = 0;
     X.shaded[k] = false;
   }
   Pk d_bg = c_bg;
-  if (cw) {  // the weights' cotangent, read per slot (each lane's geom there)
-    for (int s = 0; s < S; ++s) {
-      Pk dw = 0;
+  for (int k = 0; k < L; ++k) {  // the weights' cotangent at each lane's pixel
+    Pk dw = 0;
+    if (cw)
       for (int l = 0; l < Pk::N; ++l)
-        if (pix[l] >= 0) dw.v[l] = cw[int64_t(G) * pix[l] + X.gid[s]];
-      X.d_wrgb_slot[s] = dw;  // (a free slot array, overwritten below)
-    }
-  }
-  for (int k = 0; k < L; ++k) {
-    X.d_w[k] = cw ? X.at_layer(R, X.d_wrgb_slot, 1, 0, k) : Pk(0);
+        if (pix[l] >= 0) dw.v[l] = cw[int64_t(G) * pix[l] + X.gid[k]];
+    X.d_w[k] = dw;
     X.d_zz[k] = X.d_a[k] = X.d_wa[k] = X.d_wrgb[k] = 0;
   }
-  for (int k = 0; k < S; ++k) X.d_wrgb_slot[k] = 0;
   if (soft) {
     for (int k = 0; k < L; ++k) X.d_w[k] += c_depth * X.zz[k], X.d_zz[k] += c_depth * X.w[k];
     d_bg += c_depth * Pk(sc.far_depth);
@@ -1964,10 +1939,10 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
     // A surface's colour matters where it is drawn (wrgb) and, through the derivative of its
     // weight, wherever it covers the pixel (wa): hidden behind an opaque one, its colour is
     // what that one's alpha lets through. (Under 1e-12 either way, nothing is lost.)
-    Pk wa = X.of_slot(R, X.wa, s);
+    const Pk& wa = X.wa[s];
     Mk covers = wa > Pk(1e-12);
     if (none(covers)) continue;
-    Pk wr = X.of_slot(R, X.wrgb, s);
+    const Pk& wr = X.wrgb[s];
     Mk drawn = covers & (wr > Pk(1e-12));
     Pk nl[3], nw[3], n[3], nn, xm[9], col[3], mat[3];
     surface_normal(sc, geo, X, R, s, nl, nw, n, nn, xm);
@@ -1978,7 +1953,7 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
     Pk dfw[3] = {0, 0, 0};
     shade_vjp(sc, &X.p[3 * s], n, cam, R.fwd, &X.alb[4 * s], mat, X.lit.data(), dcol, dp, dn,
               dos, dfw, dalb, col, X.lights.data());
-    X.d_wrgb_slot[s] = sel(covers, dot3(c_rgb, col), Pk(0));
+    X.d_wrgb[s] = sel(covers, dot3(c_rgb, col), Pk(0));
     if (none(drawn)) continue;
     for (int q = 0; q < 3; ++q) X.add_geom(s, 15 + q, sel(drawn, dalb[q], Pk(0)));
     for (int q = 0; q < 3; ++q) dn[q] = sel(drawn, dn[q], Pk(0));
@@ -1999,7 +1974,6 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
     }
     X.d_z[s] += dot3(dp, r);
   }
-  for (int k = 0; k < L; ++k) X.d_wrgb[k] = X.at_layer(R, X.d_wrgb_slot, 1, 0, k);
   // the composites (the depth image's only where soft: the hard one's weights are constants)
   Pk* ahead = X.ahead.data();
   depth_order(L, X.a.data(), X.zz.data(), soft, sc.gamma, ahead, true);
@@ -2008,7 +1982,7 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
   composite_vjp(L, X.wa.data(), ahead, X.d_wrgb.data(), Pk(0), X.d_wa.data(), dahead,
                 X.occl.data());
   for (int k = 0; k < L; ++k) {
-    X.add_geom(R.ulay[k], 18, X.d_wa[k] * X.a[k]);
+    X.add_geom(k, 18, X.d_wa[k] * X.a[k]);
     X.d_a[k] += X.d_wa[k] * X.alpha[k];
   }
   if (soft) {
@@ -2020,7 +1994,7 @@ void draw_packet_vjp(const Scene<T>& sc, const T* cam, const T* geo, int i0, int
         X.d_zz[g] += dz, X.d_zz[k] -= dz;
       }
     for (int k = 0; k < L; ++k) {
-      const int s = R.ulay[k];
+      const int s = k;
       X.d_z[s] += X.d_zz[k];
       Pk c = X.a[k];
       // masked (outside near..far), or so far in or out that the sigmoid is flat: a derivative
