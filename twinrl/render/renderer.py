@@ -27,14 +27,18 @@ shapes XLA needs); and only the ``layers`` surfaces that show most at a pixel ar
 cost quadratic in their number) and shaded. A scene with at most ``max(per_pixel, cull_above)``
 geoms of each type and ``layers`` geoms in all is drawn exactly as without either; beyond, the
 hard image stays exact and the soft one loses only the coverage of surfaces crowded out of a
-pixel (``bench/render.py``'s sweep measures how much). A ray's first hit is found in closed form
+pixel (``bench/render.py``'s sweep measures how much). Neither rule lets a geom that adds nothing
+to a pixel decide anything there: a culled pick beyond the soft band (it fills one of the
+``per_pixel`` places where fewer geoms are near) covers nothing, and a surface whose coverage the
+dtype cannot resolve (``negligible_coverage``) ranks below every other when the layers are chosen.
+A ray's first hit is found in closed form
 and differentiated implicitly (``primitives.hit_implicit``); a ``jax.vmap``-ed render of more
 (pixel, surface) pairs than ``BATCH_ELEMENTS`` is drawn a chunk of cameras at a time, so that its
 arrays stay in the CPU's caches (``_render_batched``; derivatives go through the whole batch).
-On the CPU a C++ kernel of the same arithmetic draws the images (``twinrl.render.native``: each
-pixel start to finish, built on first use; JAX where there is no compiler, and for meshes), and
-its reverse pass gives their gradients (``jax.grad``, ``jax.vjp``); forward mode (``jax.jvp``,
-``jax.jacfwd``) and second derivatives go through this JAX version.
+On the CPU a C++ kernel of the same arithmetic draws the images (``twinrl.render.native``:
+packets of pixels in SIMD lanes, built on first use; JAX where there is no compiler, and for
+meshes), and its reverse pass gives their gradients (``jax.grad``, ``jax.vjp``); forward mode
+(``jax.jvp``, ``jax.jacfwd``) and second derivatives go through this JAX version.
 
 Everything is a pure function of ``Camera`` and ``Geoms`` pytrees: jit, vmap (batches of cameras
 or scenes) and grad reach the camera pose and intrinsics, geom poses (``geom_xpos``/``geom_xmat``

@@ -1,16 +1,19 @@
 """The renderer's images and their gradients in C++: XLA FFI custom calls on the CPU.
 
 ``Renderer.render`` draws its images with ``render.cc``: the same arithmetic as the JAX
-renderer, each pixel start to finish, the rows split across the cores, where XLA runs the JAX
-version as hundreds of passes over (pixel, surface) arrays. Reverse-mode derivatives
-(``jax.grad``, ``jax.vjp``, ``jax.jacrev``) run its reverse pass: each pixel drawn again and
-differentiated backwards, by hand through compositing and shading and on forward-mode numbers
-through each surface's geometry, into the camera's and the geoms' cotangents. Forward mode
-(``jax.jvp``, ``jax.jacfwd``) and second derivatives go through the JAX version (the render's
-custom JVP, ``twinrl.render.linear``). Scenes with meshes stay in JAX.
+renderer, a packet of pixels at a time (a 4-column tile, one pixel a SIMD lane: 16 float32 or 8
+float64 lanes where the CPU has AVX-512), the frames' tile rows split across the cores, where XLA
+runs the JAX version as hundreds of passes over (pixel, surface) arrays. A geom no ray of a
+16x16 block passes near is left out there, and a surface no lane of a packet needs is neither
+searched, shaded nor differentiated. Reverse-mode derivatives (``jax.grad``, ``jax.vjp``,
+``jax.jacrev``) run its reverse pass: each packet drawn again and differentiated backwards, by
+hand through compositing and shading and on forward-mode numbers through each surface's
+geometry, into the camera's and the geoms' cotangents. Forward mode (``jax.jvp``,
+``jax.jacfwd``) and second derivatives go through the JAX version (the render's custom JVP,
+``twinrl.render.linear``). Scenes with meshes stay in JAX.
 
 The library is compiled on first use with the system's C++ compiler (``$CXX``, else ``g++``,
-``c++`` or ``clang++``; a few seconds, once) into the compilation cache directory
+``c++`` or ``clang++``; about 20 s, once) into the compilation cache directory
 (``$TWINRL_CACHE_DIR/native``; a temporary directory when the cache is off), keyed by the
 source, the compiler, jaxlib and the CPU. Without a compiler, or with
 ``TWINRL_NATIVE_RENDER=0``, every image is drawn in JAX as before; ``status()`` says which and

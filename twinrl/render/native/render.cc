@@ -8,11 +8,14 @@
 // hundreds of passes over (pixel, surface) arrays; here a packet of pixels (a small tile, one
 // pixel a SIMD lane: 16 float32 lanes where the CPU has AVX-512) is drawn start to finish in
 // registers, the frames' tile rows split across the CPU's cores. Every step is written for all
-// lanes at once: a branch of the per-pixel arithmetic is a lane mask and a select, and work that
-// no lane of a packet needs (a geom every ray misses, a surface no pixel shows, a silhouette
-// too far from every pixel) is skipped for the whole packet. What differs between a packet's
-// pixels (the geoms culling picks, the layers each composites) is held per lane. Type-dependent
-// geometry runs per surface slot (one primitive type for all lanes); compositing runs per layer.
+// lanes at once: a branch of the per-pixel arithmetic is a lane mask and a select. Work no lane
+// needs is skipped for the whole packet: a geom that no ray of the packet's 16x16 block passes
+// near (block_geoms), a surface no lane needs (a slot is made only where some lane's ray may hit
+// it, or passes near its silhouette), a surface no pixel shows. Every slot is one geom for all
+// lanes, geometry runs per slot (one primitive type); what differs between a packet's pixels is
+// a lane mask: the crowded types' geoms culling picks (a slot a geom picked by some lane, covering
+// nothing in the others) and the layers each pixel composites (every slot, with its coverage set
+// to 0 in the lanes whose choice of `layers` leaves it out).
 //
 // The reverse pass (RenderVjp) draws each packet again and differentiates it backwards: by hand
 // through the composite and the shading, and through each surface's geometry on forward-mode
@@ -21,8 +24,9 @@
 // mode stays with the JAX version (renderer.py's custom JVP). Meshes are not drawn here (the
 // Python side falls back to JAX).
 //
-// What it skips leaves the image as JAX draws it: a ray that misses a geom's bounding sphere is
-// not intersected with it; a surface is shaded only where it adds to the pixel (weight > 1e-12);
+// What it skips leaves the image as JAX draws it (renderer.negligible_coverage: a surface of
+// coverage under the cut below decides nothing there): a ray that misses a geom's bounding
+// sphere is not intersected with it; a surface is shaded only where it adds to the pixel (weight > 1e-12);
 // a soft silhouette far from a pixel is not searched for: 30 tau pixels in float64 (coverage
 // under 1e-13), 18 tau pixels in float32 (under 1.5e-8, a quarter of float32's resolution at 1).
 // The hard image and shadow rays test every geom, where JAX culls crowded types to the nearest
