@@ -28,6 +28,7 @@ observations; see ``state_from_obs``) or as a list of dicts with ``rgb`` (H, W, 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 from pathlib import Path
@@ -39,7 +40,7 @@ import mujoco
 import numpy as np
 import optax
 
-from twinrl._jaxconfig import exact_matmuls
+from twinrl._jaxconfig import exact_matmuls, image_compiler_options
 from twinrl.real2sim.lm import Linearisation, minimise
 from twinrl.render import Camera, Geoms, Renderer, rotvec_to_quat
 from twinrl.render.camera import quat_mul, quat_to_mat
@@ -312,20 +313,21 @@ def _optimise(loss_fn, params0, cfg: VisualConfig, rng: np.random.Generator, per
     taus = np.geomspace(cfg.tau[0], cfg.tau[1], cfg.steps)
     opt = optax.adam(cfg.lr)
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=image_compiler_options())
     def step(p, s, tau):
         (loss, terms), g = jax.value_and_grad(loss_fn, has_aux=True)(p, tau)
         g = jax.tree_util.tree_map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)
         u, s = opt.update(g, s, p)
         return optax.apply_updates(p, u), s, loss, terms
 
+    final_loss = jax.jit(loss_fn, compiler_options=image_compiler_options())
     best, runs = None, []
     for k in range(cfg.restarts):
         p = params0 if k == 0 else perturb(params0, rng)
         s = opt.init(p)
         for t in range(cfg.steps):
             p, s, loss, terms = step(p, s, taus[t])
-        final, terms = jax.jit(loss_fn)(p, cfg.tau[1])
+        final, terms = final_loss(p, cfg.tau[1])
         final = float(final)
         runs.append({"restart": k, "final_loss": final,
                      **{k2: float(v) for k2, v in terms.items()}})
@@ -433,7 +435,8 @@ def _levenberg_marquardt(res_fn, params: dict, keys: Sequence[str], iters: int,
     def fun(x):
         return res_fn({**params, **unravel(x)})
 
-    f, jac = jax.jit(fun), jax.jit(jax.jacfwd(fun))
+    opts = image_compiler_options()  # no MJX here
+    f, jac = jax.jit(fun, compiler_options=opts), jax.jit(jax.jacfwd(fun), compiler_options=opts)
 
     def linearise(point):  # the point carries its residuals: no re-render to linearise
         x, r = point
