@@ -69,3 +69,38 @@ def test_held_episodes_are_the_tasks_own_rollouts_open_and_closed_loop():
     assert np.abs(noisy.actions - closed.actions).max() > 0.1
     with pytest.raises(ValueError, match="actions or noise, not both"):
         held_episodes(env, observe, act, keys, actions, noise=noise)
+
+
+def test_minibatch_fit_steps_alike_in_one_scan_and_one_call_a_step():
+    # An image spec (a tiny CNN): "python" calls one compiled step at a time, "auto"'s choice for
+    # images (XLA's CPU backend runs a convolution's gradient inside a loop body many times
+    # slower); "scan" compiles them all. The same minibatches and updates either way, and the fit
+    # lowers its loss.
+    from twinrl.learn.common import make_minibatch_fit, make_optimizer, rgb_jitter
+    from twinrl.learn.networks import NetworkConfig, make_network
+
+    spec = {"pixels/c": (8, 8, 4), "state": (3,)}
+    net = make_network(spec, 2, NetworkConfig(hidden=(16,), conv_features=(4,),
+                                              conv_kernels=(3,), conv_strides=(2,), embed=8))
+    params = net.init(jax.random.key(0))
+    rng = np.random.default_rng(0)
+    obs = {"pixels/c": jnp.asarray(rng.uniform(size=(40, 8, 8, 4)), jnp.float32),
+           "state": jnp.asarray(rng.normal(size=(40, 3)), jnp.float32)}
+    targets = jnp.asarray(np.tanh(rng.normal(size=(40, 2))), jnp.float32)
+    weights = jnp.asarray(rng.uniform(0.5, 1.5, size=40), jnp.float32)
+    tx = make_optimizer(1e-2, 1.0)
+    out = {}
+    for loop in ("python", "scan"):
+        fit = make_minibatch_fit(net.apply, tx, 12, 16, rgb_jitter(0.1), loop=loop)
+        out[loop] = fit(params, tx.init(params), obs, targets, 30, jax.random.key(1), weights)
+    auto = make_minibatch_fit(net.apply, tx, 12, 16)
+    assert auto.loop_for(obs) == "python"
+    assert auto.loop_for({"state": obs["state"]}) == "scan"  # vectors: one compiled scan
+    (pa, _, la), (pb, _, lb) = out["python"], out["scan"]
+    assert la.shape == lb.shape == (12,)
+    np.testing.assert_allclose(la, lb, rtol=1e-4, atol=1e-6)
+    for a, b in zip(jax.tree_util.tree_leaves(pa), jax.tree_util.tree_leaves(pb)):
+        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5)
+    assert float(jnp.mean(la[-3:])) < float(la[0])
+    with pytest.raises(ValueError, match="loop must be"):
+        make_minibatch_fit(net.apply, tx, 1, 1, loop="while")

@@ -281,33 +281,68 @@ def regression_loss(apply_fn, params, obs, targets, weights):
 
 
 def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
-                       augment: Callable[[Any, jax.Array], Any] | None = None):
-    """A jitted ``fit(params, opt_state, obs, targets, n, key, weights=None) -> (params,
-    opt_state, losses)``: ``steps`` steps of ``tx`` on ``regression_loss`` over minibatches of
-    ``batch`` rows drawn from the first ``n`` rows of ``obs`` (any pytree, e.g. a dict
-    observation) and ``targets``, weighted by ``weights`` (rows,) if given;
-    ``augment(obs, key)`` transforms each minibatch (``rgb_jitter``). ``losses``: (steps,).
-    The imitation actor's and the sensing Q's fit."""
+                       augment: Callable[[Any, jax.Array], Any] | None = None,
+                       loop: str = "auto"):
+    """``fit(params, opt_state, obs, targets, n, key, weights=None) -> (params, opt_state,
+    losses)``: ``steps`` steps of ``tx`` on ``regression_loss`` over minibatches of ``batch``
+    rows drawn from the first ``n`` rows of ``obs`` (any pytree, e.g. a dict observation) and
+    ``targets``, weighted by ``weights`` (rows,) if given; ``augment(obs, key)`` transforms each
+    minibatch (``rgb_jitter``). ``losses``: (steps,). The imitation actor's and the sensing Q's
+    fit.
+
+    ``loop``: ``"scan"`` runs the steps in one compiled ``lax.scan``; ``"python"`` calls one
+    compiled step ``steps`` times; ``"auto"`` takes ``"python"`` where ``obs`` holds images
+    (a leaf of rank >= 4: rows, height, width, channels) and ``"scan"`` otherwise. XLA's CPU
+    backend runs a convolution's gradient inside a loop body far slower than at the top level
+    (jax-ml/jax#12868): the image actor's step (64x64x5, batch 256, the keypoint CNN, 2 cores)
+    takes 14.8 s inside the scan and 0.46 s called alone (``bench/learn_fit.py``); a vector
+    fit's, 3.2 and 3.4 ms. Both draw
+    the same minibatches (step i uses ``split(key, steps)[i]``)."""
+    if loop not in ("auto", "scan", "python"):
+        raise ValueError(f"loop must be 'auto', 'scan' or 'python', got {loop!r}")
     ones = jnp.ones((batch,))
 
-    def fit(params, opt, obs, targets, n, key, weights=None):
+    def one(p, s, obs, targets, n, k, weights):
+        k_idx, k_aug = (k, None) if augment is None else jax.random.split(k)
+        idx = jax.random.randint(k_idx, (batch,), 0, n)
+        o = jax.tree_util.tree_map(lambda x: x[idx], obs)
+        if augment is not None:
+            o = augment(o, k_aug)
+        w = ones if weights is None else weights[idx]
+        value, g = jax.value_and_grad(regression_loss, argnums=1)(apply_fn, p, o, targets[idx], w)
+        u, s = tx.update(g, s, p)
+        return optax.apply_updates(p, u), s, value
+
+    @jax.jit
+    def scanned(params, opt, obs, targets, n, key, weights=None):
         def body(carry, k):
-            p, s = carry
-            k_idx, k_aug = (k, None) if augment is None else jax.random.split(k)
-            idx = jax.random.randint(k_idx, (batch,), 0, n)
-            o = jax.tree_util.tree_map(lambda x: x[idx], obs)
-            if augment is not None:
-                o = augment(o, k_aug)
-            w = ones if weights is None else weights[idx]
-            value, g = jax.value_and_grad(regression_loss, argnums=1)(apply_fn, p, o,
-                                                                      targets[idx], w)
-            u, s = tx.update(g, s, p)
-            return (optax.apply_updates(p, u), s), value
+            p, s, value = one(*carry, obs, targets, n, k, weights)
+            return (p, s), value
 
         (params, opt), losses = jax.lax.scan(body, (params, opt), jax.random.split(key, steps))
         return params, opt, losses
 
-    return jax.jit(fit)
+    step = jax.jit(one)
+    keys = jax.jit(lambda key: jax.random.split(key, steps))
+
+    def stepwise(params, opt, obs, targets, n, key, weights=None):
+        losses = []
+        for k in keys(key):
+            params, opt, value = step(params, opt, obs, targets, n, k, weights)
+            losses.append(value)
+        return params, opt, jnp.stack(losses) if losses else jnp.zeros((0,))
+
+    def loop_for(obs) -> str:
+        if loop != "auto":
+            return loop
+        return "python" if any(jnp.ndim(x) >= 4 for x in jax.tree_util.tree_leaves(obs)) else "scan"
+
+    def fit(params, opt, obs, targets, n, key, weights=None):
+        run = stepwise if loop_for(obs) == "python" else scanned
+        return run(params, opt, obs, targets, n, key, weights)
+
+    fit.loop_for = loop_for  # which loop a fit on ``obs`` runs
+    return fit
 
 
 def rgb_jitter(amount: float) -> Callable[[Any, jax.Array], Any]:
