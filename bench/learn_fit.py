@@ -28,10 +28,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import twinrl
+import twinrl  # noqa: F401  (before any JAX work: twinrl's XLA settings)
 from twinrl.learn.common import make_minibatch_fit, make_optimizer, rgb_jitter
 from twinrl.learn.networks import NetworkConfig, make_network
-from twinrl.report import print_table, write_json
+from twinrl.report import print_table, run_meta, write_json
 
 SPECS = {"pixels": {"state": (14,), "pixels/mount": (64, 64, 5), "camera": (3,)},
          "state": 40}
@@ -80,25 +80,21 @@ def main(argv=None) -> int:
     rows = []
     for name in args.cases:
         for loop in ("scan", "python"):
-            steps = (args.steps[0] if loop == "scan" else args.steps[1]) if name == "pixels" else 100
+            steps = ((args.steps[0] if loop == "scan" else args.steps[1]) if name == "pixels"
+                     else 100)
             rows.append(case(name, loop, steps, args.batch))
             print(f"  {name} {loop}: {rows[-1]['ms_per_step']:.1f} ms a step", flush=True)
-    speed = {}
-    for name in args.cases:
-        r = {x["loop"]: x["ms_per_step"] for x in rows if x["case"] == name}
-        speed[name] = r["scan"] / r["python"]
+    ms = {(x["case"], x["loop"]): x["ms_per_step"] for x in rows}
+    speed = {n: ms[n, "scan"] / ms[n, "python"] for n in args.cases}
+    probe = {"pixels": {"x": jnp.zeros((1, 1, 1, 1))}, "state": jnp.zeros((1, 1))}
+    chooses = make_minibatch_fit(lambda p, o: o, None, 1, 1).loop_for
     print_table(f"minibatch fit, batch {args.batch}, ms per Adam step ({os.cpu_count()} cores)",
                 ["case", "scan", "one call a step", "scan / calls", "compile s (scan, calls)",
                  "auto takes"],
-                [[n, f"{next(x for x in rows if x['case'] == n and x['loop'] == 'scan')['ms_per_step']:.1f}",
-                  f"{next(x for x in rows if x['case'] == n and x['loop'] == 'python')['ms_per_step']:.1f}",
-                  f"{speed[n]:.1f}x",
+                [[n, f"{ms[n, 'scan']:.1f}", f"{ms[n, 'python']:.1f}", f"{speed[n]:.1f}x",
                   " / ".join(f"{x['compile_s']:.1f}" for x in rows if x["case"] == n),
-                  make_minibatch_fit(lambda p, o: o, None, 1, 1).loop_for(
-                      {"x": jnp.zeros((1, 1, 1, 1))} if n == "pixels" else jnp.zeros((1, 1)))]
-                 for n in args.cases])
-    meta = {"jax": jax.__version__, "twinrl": twinrl.__version__, "device": str(jax.devices()[0]),
-            "cpu_count": os.cpu_count(), "xla_flags": os.environ.get("XLA_FLAGS", "")}
+                  chooses(probe[n])] for n in args.cases])
+    meta = {**run_meta(args), "xla_flags": os.environ.get("XLA_FLAGS", "")}
     path = write_json(args.out / "learn_fit.json", {"meta": meta, "rows": rows,
                                                     "scan_over_calls": speed})
     print(f"wrote {path}")
