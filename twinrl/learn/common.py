@@ -295,8 +295,8 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
     (a leaf of rank >= 4: rows, height, width, channels) and ``"scan"`` otherwise. XLA's CPU
     backend runs a convolution's gradient inside a loop body far slower than at the top level
     (jax-ml/jax#12868): the image actor's step (64x64x5, batch 256, the keypoint CNN, 2 cores)
-    takes 14.8 s inside the scan and 0.46 s called alone (``bench/learn_fit.py``); a vector
-    fit's, 3.2 and 3.4 ms. Both draw
+    takes 9.3 s inside the scan and 0.25 s called alone (``bench/learn_fit.py``); a vector
+    fit's, 1.4 and 1.7 ms. Both draw
     the same minibatches (step i uses ``split(key, steps)[i]``)."""
     if loop not in ("auto", "scan", "python"):
         raise ValueError(f"loop must be 'auto', 'scan' or 'python', got {loop!r}")
