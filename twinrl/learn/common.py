@@ -296,8 +296,8 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
     backend runs a convolution's gradient inside a loop body far slower than at the top level
     (jax-ml/jax#12868): the image actor's step (64x64x5, batch 256, the keypoint CNN, 2 cores)
     takes 9.3 s inside the scan and 0.25 s called alone (``bench/learn_fit.py``); a vector
-    fit's, 1.4 and 1.7 ms. Both draw
-    the same minibatches (step i uses ``split(key, steps)[i]``)."""
+    fit's, 1.4 and 1.7 ms. Both draw the same minibatches (step i uses ``split(key, steps)[i]``).
+    ``fit.loop_for(obs)`` says which loop a fit on ``obs`` runs."""
     if loop not in ("auto", "scan", "python"):
         raise ValueError(f"loop must be 'auto', 'scan' or 'python', got {loop!r}")
     ones = jnp.ones((batch,))
@@ -323,11 +323,10 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
         return params, opt, losses
 
     step = jax.jit(one)
-    keys = jax.jit(lambda key: jax.random.split(key, steps))
 
     def stepwise(params, opt, obs, targets, n, key, weights=None):
         losses = []
-        for k in keys(key):
+        for k in jax.random.split(key, steps):
             params, opt, value = step(params, opt, obs, targets, n, k, weights)
             losses.append(value)
         return params, opt, jnp.stack(losses) if losses else jnp.zeros((0,))
@@ -341,7 +340,7 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
         run = stepwise if loop_for(obs) == "python" else scanned
         return run(params, opt, obs, targets, n, key, weights)
 
-    fit.loop_for = loop_for  # which loop a fit on ``obs`` runs
+    fit.loop_for = loop_for
     return fit
 
 
