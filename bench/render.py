@@ -11,8 +11,10 @@
    Then the floor (``floor``, ``--no-floor`` skips it): the simplest soft image written in JAX
    (spheres, coverage, composite, Lambert), timed alike: what XLA on this machine gives at best.
 2. Geom-count sweep (``--sweep``, default 10 20 40): synthetic arm-like scenes (``sweep_mjcf``: a
-   floor and a chain of capsule, box, cylinder and sphere links, always in the same volume), 64x64,
-   batch 16; the cost of 40 geoms against 10, and how far per-pixel culling and layers move the
+   floor and capsule, box, cylinder and sphere links, ``--sweep-layouts``: ``dense``, a chain
+   always in the same volume, so that more links overlap more; ``tiled``, one link a cell of a
+   grid over the same floor, so that only the count grows), 64x64, batch 16; the cost of 40
+   geoms against 10, and how far per-pixel culling and layers move the
    image from the renderer's without either (hard segmentation agreement; soft RGB: largest and
    mean difference, pixels off by more than 0.01).
 3. Agreement with OpenGL (``mujoco.Renderer``) on every bundled scene: mean |depth difference|,
@@ -75,23 +77,25 @@ SPEED_CAMERAS = {"push": "top", **{t: "mount" for t in ARM_TASKS}}
 TAU = 0.5
 
 
-def sweep_mjcf(n: int, seed: int = 0) -> str:
+SWEEP_LAYOUTS = ("dense", "tiled")
+
+
+def sweep_mjcf(n: int, seed: int = 0, layout: str = "dense") -> str:
     """MJCF of a floor, a light and ``n`` primitive links (capsule, box, cylinder, sphere in
-    turn), 2-3 cm thick and 6-10 cm long, laid along a random walk that stays in the same
-    0.5 m x 0.5 m x 0.3 m volume whatever ``n`` (so more links overlap more, as an arm's do),
-    seen by camera ``top``."""
+    turn), seen by camera ``top``. ``layout="dense"``: links 2-3 cm thick and 6-10 cm long laid
+    along a random walk that stays in the same 0.5 m x 0.5 m x 0.3 m volume whatever ``n`` (so
+    more links overlap more: at 41 geoms a pixel composites about twice the surfaces it does at
+    11). ``layout="tiled"``: the same kind of links, 5-7 cm long, one lying in each cell of a
+    grid over the same 0.5 m x 0.5 m of floor (more links cover more of the image and hardly
+    overlap: a pixel meets about as many surfaces at 41 geoms as at 11, and only the count of
+    geoms in the scene grows)."""
+    if layout not in SWEEP_LAYOUTS:
+        raise ValueError(f"layout must be one of {SWEEP_LAYOUTS}, got {layout!r}")
     rng = np.random.default_rng(seed)
-    p = np.array([0.0, 0.0, 0.15])
-    links = []
     kinds = ["capsule", "box", "cylinder", "sphere"]
-    for i in range(n):
-        d = rng.normal(size=3)
-        d /= np.linalg.norm(d)
-        half = rng.uniform(0.03, 0.05)
-        q = np.clip(p + 2 * half * d, [-0.25, -0.25, 0.03], [0.25, 0.25, 0.3])
-        c, axis = 0.5 * (p + q), q - p
-        axis = axis / max(np.linalg.norm(axis), 1e-9)
-        rad = rng.uniform(0.01, 0.015)
+    links = []
+
+    def link(i, c, axis, rad, half):
         kind = kinds[i % 4]
         size = {"capsule": f"{rad} {half}", "cylinder": f"{rad} {half}",
                 "box": f"{rad} {rad * 1.3} {half}", "sphere": f"{1.6 * rad}"}[kind]
@@ -99,8 +103,31 @@ def sweep_mjcf(n: int, seed: int = 0) -> str:
         links.append(f'<geom name="g{i}" type="{kind}" size="{size}" pos="{c[0]:.4f} '
                      f'{c[1]:.4f} {c[2]:.4f}" zaxis="{axis[0]:.4f} {axis[1]:.4f} {axis[2]:.4f}" '
                      f'rgba="{rgba}"/>')
-        p = q
-    return f"""<mujoco model="sweep{n}">
+
+    if layout == "dense":
+        p = np.array([0.0, 0.0, 0.15])
+        for i in range(n):
+            d = rng.normal(size=3)
+            d /= np.linalg.norm(d)
+            half = rng.uniform(0.03, 0.05)
+            q = np.clip(p + 2 * half * d, [-0.25, -0.25, 0.03], [0.25, 0.25, 0.3])
+            c, axis = 0.5 * (p + q), q - p
+            link(i, c, axis / max(np.linalg.norm(axis), 1e-9), rng.uniform(0.01, 0.015), half)
+            p = q
+    else:
+        cols = int(np.ceil(np.sqrt(n)))
+        rows = int(np.ceil(n / cols))
+        cell = np.array([0.5 / cols, 0.5 / rows])
+        for i in range(n):
+            r, k = divmod(i, cols)
+            centre = np.array([-0.25 + (k + 0.5) * cell[0], -0.25 + (r + 0.5) * cell[1]])
+            half = rng.uniform(0.025, 0.035)
+            rad = rng.uniform(0.01, 0.015)
+            yaw = rng.uniform(0, np.pi)
+            axis = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+            centre = centre + rng.uniform(-0.1, 0.1, 2) * cell
+            link(i, [centre[0], centre[1], 1.7 * rad], axis, rad, half)
+    return f"""<mujoco model="{'sweep' if layout == 'dense' else 'tiled'}{n}">
   <visual><global offwidth="640" offheight="480"/></visual>
   <worldbody>
     <light name="top" pos="0 0 3" dir="0 0 -1"/>
@@ -199,8 +226,9 @@ def _rows(best, scene, S, B, labels, **extra):
 def _load(scene):
     """(model, camera name, data at the scene's state): an arm task's at its ``reset``."""
     qpos = None
-    if scene.startswith("sweep"):
-        m = mujoco.MjModel.from_xml_string(sweep_mjcf(int(scene[5:])))
+    if scene.startswith(("sweep", "tiled")):
+        layout = "dense" if scene.startswith("sweep") else "tiled"
+        m = mujoco.MjModel.from_xml_string(sweep_mjcf(int(scene[5:]), layout=layout))
         cam = "top"
     elif scene in ARM_TASKS:
         from twinrl import envs
@@ -236,11 +264,35 @@ def speed(mods, scenes, sizes=(64, 128), batches=(1, 16), repeats=5):
     return rows
 
 
-def sweep(mods, counts, S=64, B=16, repeats=5):
-    """Frames/s against the number of geoms, and the culled image against the unculled one."""
+def candidates(m, d, cam_name, S, band_px):
+    """Mean count of link geoms (not planes) a pixel must consider, over the pixels with at least
+    one: those whose bounding sphere (``geom_rbound``) the pixel's ray passes within ``band_px``
+    pixels of, at the sphere's depth (the soft silhouette's band; 0: the hard image's rays that
+    may hit). A bound on what the per-pixel work of the scene is, from geometry alone."""
+    cid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, cam_name)
+    pos, rot = d.cam_xpos[cid], d.cam_xmat[cid].reshape(3, 3)
+    f = 2 * np.tan(np.radians(m.cam_fovy[cid]) / 2) / S  # a pixel's width at unit depth
+    u = (np.arange(S) + 0.5 - S / 2) * f
+    x, y = np.meshgrid(u, -u)
+    r = np.stack([x, y, -np.ones_like(x)], -1) @ rot.T
+    r /= np.linalg.norm(r, axis=-1, keepdims=True)
+    links = [g for g in range(m.ngeom) if m.geom_type[g] != mujoco.mjtGeom.mjGEOM_PLANE]
+    c = d.geom_xpos[links] - pos                                   # (G, 3)
+    along = r @ c.T                                                # (S, S, G)
+    dist = np.sqrt(np.maximum(np.sum(c * c, -1) - along ** 2, 0))
+    gap_px = (dist - m.geom_rbound[links]) / (np.maximum(along, 1e-6) * f)
+    n = np.sum(gap_px <= band_px, -1)
+    return float(np.mean(n[n > 0])) if np.any(n > 0) else 0.0
+
+
+def sweep(mods, counts, S=64, B=16, repeats=5, layouts=("dense",)):
+    """Frames/s against the number of geoms (per ``layouts``, ``sweep_mjcf``), and the culled
+    image against the unculled one; ``covered``: the share of pixels whose hard image shows a
+    link rather than the floor; ``candidates_hard`` / ``candidates_soft``: ``candidates``, the
+    links a pixel near them must consider in the hard and the soft image."""
     rows = []
-    for n in counts:
-        scene = f"sweep{n}"
+    for layout, n in [(lay, n) for lay in layouts for n in counts]:
+        scene = f"{'sweep' if layout == 'dense' else 'tiled'}{n}"
         m, cam_name, d = _load(scene)
         print(f"[bench] {scene} ({m.ngeom} geoms) {S}x{S} batch {B} ...", flush=True)
         best = _time_interleaved(_cases(mods, m, d, cam_name, S, B), repeats)
@@ -252,7 +304,11 @@ def sweep(mods, counts, S=64, B=16, repeats=5):
         h1, h2 = culled.render(cam, g), full.render(cam, g)
         s1, s2 = culled.render(cam, g, tau=TAU), full.render(cam, g, tau=TAU)
         diff = np.abs(np.asarray(s1.rgb) - np.asarray(s2.rgb))
-        rows += _rows(best, scene, S, B, list(mods), geoms=int(m.ngeom),
+        seg = np.asarray(h2.segmentation)
+        rows += _rows(best, scene, S, B, list(mods), geoms=int(m.ngeom), layout=layout,
+                      covered=float(np.mean(seg > 0)),
+                      candidates_hard=candidates(m, d, cam_name, S, 0.0),
+                      candidates_soft=candidates(m, d, cam_name, S, 15 * TAU + 2),
                       culled_seg_agreement=float(np.mean(np.asarray(h1.segmentation)
                                                          == np.asarray(h2.segmentation))),
                       culled_soft_rgb_max_diff=float(np.max(diff)),
@@ -523,6 +579,10 @@ def main(argv=None):
                          "sweep are at batch 16")
     ap.add_argument("--sweep", type=int, nargs="*", default=[10, 20, 40],
                     help="link counts of the geom-count sweep (none: skip it)")
+    ap.add_argument("--sweep-layouts", nargs="+", choices=SWEEP_LAYOUTS,
+                    default=list(SWEEP_LAYOUTS),
+                    help="dense: the links in one volume, overlapping more as they grow; tiled: "
+                         "one a cell of a grid over the floor, hardly overlapping")
     ap.add_argument("--baseline", default=None, metavar="REF",
                     help="also time twinrl/render of this git revision, interleaved")
     ap.add_argument("--jax", action="store_true",
@@ -592,20 +652,30 @@ def main(argv=None):
                                ["scene", "mode", "frames/s"],
                                [[r["scene"], r["mode"], r["frames_per_s"]] for r in out["floor"]])
         if args.sweep:
-            out["sweep"] = sweep(mods, args.sweep, repeats=args.repeats)
+            out["sweep"] = sweep(mods, args.sweep, repeats=args.repeats,
+                                 layouts=args.sweep_layouts)
             report.print_table("geom-count sweep (64x64, batch 16)",
-                               ["links", "geoms", "mode", *cols, "culled seg agree",
-                                "soft RGB max diff", "mean diff", "px > 0.01"],
-                               [[r["scene"][5:], r["geoms"], r["mode"], *cells(r),
-                                 r["culled_seg_agreement"], r["culled_soft_rgb_max_diff"],
-                                 r["culled_soft_rgb_mean_diff"], r["culled_soft_pixels_off"]]
-                                for r in out["sweep"]])
-            for mode in ("hard", "forward", "forward+grad"):
-                fps = {r["geoms"]: r["frames_per_s"] for r in out["sweep"] if r["mode"] == mode}
-                if len(fps) > 1:
-                    lo, hi = min(fps), max(fps)
-                    out.setdefault("sweep_cost_ratio", {})[mode] = fps[lo] / fps[hi]
-                    print(f"{mode}: {hi} geoms cost {fps[lo] / fps[hi]:.2f}x of {lo}")
+                               ["layout", "links", "geoms", "covered", "cand. hard / soft",
+                                "mode", *cols,
+                                "culled seg agree", "soft RGB max diff", "mean diff", "px > 0.01"],
+                               [[r["layout"], r["scene"][5:], r["geoms"], r["covered"],
+                                 f"{r['candidates_hard']:.1f} / {r['candidates_soft']:.1f}",
+                                 r["mode"],
+                                 *cells(r), r["culled_seg_agreement"],
+                                 r["culled_soft_rgb_max_diff"], r["culled_soft_rgb_mean_diff"],
+                                 r["culled_soft_pixels_off"]] for r in out["sweep"]])
+            for layout in args.sweep_layouts:
+                for mode in ("hard", "forward", "forward+grad"):
+                    fps = {r["geoms"]: r["frames_per_s"] for r in out["sweep"]
+                           if r["mode"] == mode and r["layout"] == layout}
+                    if len(fps) > 1:
+                        lo, hi = min(fps), max(fps)
+                        ratio = fps[lo] / fps[hi]
+                        # "sweep_cost_ratio" stays the dense layout's (as before the tiled one)
+                        key = ("sweep_cost_ratio" if layout == "dense"
+                               else f"sweep_cost_ratio_{layout}")
+                        out.setdefault(key, {})[mode] = ratio
+                        print(f"{layout} {mode}: {hi} geoms cost {ratio:.2f}x of {lo}")
         out["meta"]["speed_seconds"] = time.perf_counter() - t0
         out["meta"]["load_average_after_speed"] = list(os.getloadavg())
     if not args.no_agreement:
