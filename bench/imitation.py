@@ -61,20 +61,23 @@ def main(argv=None) -> int:
     p.add_argument("--run", metavar="TASK=DIR", help="repeat a loop run's imitation stage")
     p.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2], help="with --run")
     p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                   help="with --run: ImitationConfig fields over the stage's (JSON values)")
+                   help="ImitationConfig fields (JSON values), over the bench's own settings or, "
+                        "with --run, over the stage's")
     args = p.parse_args(argv)
     if args.run:
         return rounds_of_run(args)
+    sets = _sets(args.set)
+    configs = {obs: _config(dict(   # checked before any task's work starts
+        observation=obs, dagger_rounds=args.rounds, dagger_episodes=args.dagger_episodes,
+        relabel_every=args.relabel_every, relabel_iterations=args.relabel_iterations,
+        solved_labels=args.solved_labels, fit_steps=args.fit_steps,
+        eval_episodes=args.episodes), sets) for obs in args.observations}
     rows = []
     for name in args.tasks:
         demos = imitation.load_demonstrations(args.plans / f"{name}_plans.npz")
         env = envs.make(name)
         for obs in args.observations:
-            cfg = imitation.ImitationConfig(
-                observation=obs, dagger_rounds=args.rounds, dagger_episodes=args.dagger_episodes,
-                relabel_every=args.relabel_every, relabel_iterations=args.relabel_iterations,
-                solved_labels=args.solved_labels,
-                fit_steps=args.fit_steps, eval_episodes=args.episodes)
+            cfg = configs[obs]
             say = lambda r, row: print(  # noqa: E731
                 f"[bench] {name} {obs}: round {r}: pairs {int(row['pairs'])}, loss "
                 f"{row['loss']:.4f}, success {row['success']:.2f}, return {row['return']:.1f}, "
@@ -98,6 +101,29 @@ def main(argv=None) -> int:
     return 0
 
 
+def _sets(items) -> dict:
+    """``--set FIELD=VALUE ...`` as {field: JSON value}; a malformed item is a one-line error."""
+    out = {}
+    for kv in items:
+        k, eq, v = kv.partition("=")
+        if not eq or not k:
+            _bad(f"--set takes FIELD=VALUE, got {kv!r}")
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            _bad(f"--set {kv}: the value is not JSON (strings need quotes: {k}='\"...\"')")
+    return out
+
+
+def _config(base: dict, sets: dict):
+    """ImitationConfig of ``base`` with ``sets`` over it; an unknown field or a bad value is a
+    one-line error."""
+    try:
+        return imitation.ImitationConfig.from_dict({**base, **sets})
+    except (TypeError, ValueError) as e:
+        _bad(f"--set: {e}")
+
+
 def _bad(message: str):
     print(f"bench/imitation.py: error: {message}", file=sys.stderr)
     raise SystemExit(2)
@@ -116,9 +142,7 @@ def rounds_of_run(args) -> int:
     rdir = Path(run) / f"round{summary['final']['round']}"
     env = envs.make(task, system=System.load(rdir / "system.json"))
     stage = json.loads((rdir / "actor" / "run.json").read_text())["config"]
-    sets = dict(kv.partition("=")[::2] for kv in args.set)
-    cfg = imitation.ImitationConfig.from_dict(
-        {**stage, "demonstrations": "", **{k: json.loads(v) for k, v in sets.items()}})
+    cfg = _config({**stage, "demonstrations": ""}, _sets(args.set))
     demos = imitation.load_demonstrations(rdir / "plans.npz")
     observe, _ = imitation.make_observer(env, cfg)
     n = int(args.episodes)
