@@ -213,9 +213,34 @@ def test_gradcheck_of_a_model_with_a_massless_mount_runs(tmp_path, capsys):
     mjcf.write_text("""<mujoco><worldbody><body name="mount" pos="0 0 1">
         <body name="link"><joint type="hinge"/><geom size="0.1" pos="0.2 0 0"/></body>
         </body></worldbody></mujoco>""")
-    code, _, _ = run(capsys, "gradcheck", mjcf, "--horizon", "2", "--out", tmp_path / "g")
+    code, out, _ = run(capsys, "gradcheck", mjcf, "--horizon", "2", "--out", tmp_path / "g")
     summary = json.loads((tmp_path / "g" / "summary.json").read_text())
     assert code == 0 and summary["nan_count"] == 0 and summary["failures"] == 0
+    # gravity is unjudged over 2 float32 steps, and not for the forward's roughness: no reason
+    # is given that does not hold
+    assert summary["unjudged"] == ["params.gravity"] and summary["loss_jitter"] >= 0
+    assert "not judged (no resolved entry): params.gravity" in out
+    assert "moved the loss" not in out
+
+
+def test_gradcheck_says_when_the_forwards_roughness_leaves_a_group_unjudged():
+    # a resting flat box (measured: the loss moves 1.9e-10 beyond its gradient on an ulp-sized
+    # move; mass's derivative 1e-4): differences at 1e-6 resolve nothing below ~19
+    from twinrl.physics.gradcheck import GradcheckResult
+
+    def result(loss_jitter):
+        groups = [{"group": "params.mass", "resolved": 0, "inert": False, "max_abs_grad": 1e-4},
+                  {"group": "qvel", "resolved": 2, "inert": False, "max_abs_grad": 3.6}]
+        return GradcheckResult(scene="box", horizon=30, dtype="float64", rtol=1e-4, rows=[],
+                               groups=groups, constrained_steps=24, free_steps=6,
+                               loss_jitter=loss_jitter)
+
+    line = cli.unjudged_line(result(1.9e-10), 1e-6, 1e-4)
+    assert line.startswith("not judged (no resolved entry): params.mass; ") and "\n" not in line
+    assert "moved the loss by 1.9e-10" in line and "below ~1.9e+01" in line
+    # where the roughness would allow the derivative, it is not given as the reason
+    assert cli.unjudged_line(result(1e-17), 1e-6, 1e-4) == (
+        "not judged (no resolved entry): params.mass")
 
 
 def test_gradcheck_of_an_empty_path_says_it_is_empty(tmp_path, capsys):

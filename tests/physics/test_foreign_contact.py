@@ -58,6 +58,9 @@ def test_the_flat_box_passes_gradcheck_on_measured_noise_and_the_unrolled_solve_
         tilt = [x for x in r.rows if x["group"] == "params.armature" and x["index"] in "34"]
         assert all(x["status"] != "resolved" for x in tilt)
         assert max(x["grad_noise"] for x in tilt) > max(abs(x["grad"]) for x in tilt) / 10
+        # the forward's own roughness, reported: an ulp-sized move of the resting box moves its
+        # loss by ~1e-9 beyond the gradient's prediction (a pendulum's: ~1e-15)
+        assert 1e-11 < r.loss_jitter < 1e-6 and r.summary()["loss_jitter"] == r.loss_jitter
         unrolled = gradcheck(Sim.load(FLAT_BOX, gradient="unrolled"), horizon=20,
                              scenario="zero")
     bad = [x for x in unrolled.failures if x["status"] == "resolved"]

@@ -42,7 +42,14 @@ effect the differences see (``rtol max_j |fd_j| max(1, |x_j|) / max(1, |x_i|)``)
 noisier than that fails. Resolved entries are judged as before: a gradient that an ulp-sized
 move changes by more than ``rtol`` of a resolved derivative fails there. (Before this, the flat
 box failed on one or two such entries on every seed, with errors of 3e-8 to 6e-7; the unrolled
-solve's 1.4e6 against 3.4 on the same box still fails, as a resolved entry.)
+solve's 1.4e6 against 3.4 on the same box still fails, as a resolved entry.) The loss's own
+change at the first jittered point, beyond the gradient's first-order prediction, is reported as
+``loss_jitter``: the forward's roughness, which bounds what any difference at ``h`` resolves
+(an entry's quotient carries about ``loss_jitter / h`` of noise, so nothing below ``loss_jitter /
+(0.1 rtol h)`` resolves). A pendulum's is 1e-15; a box resting flat on a plane, 1e-9 (rounding
+decides which corners carry it, and the rollout amplifies that), so there mass, friction and
+gravity, whose derivatives are 1e-5 to 1e-3, stay unjudged at every step up to 1e-4, and
+``twinrl gradcheck`` says so rather than only naming the groups.
 
 Coverage. A check that resolves no entry of a group has judged nothing through it (a friction
 coefficient through a rollout that never slides, say). Each group reports how many entries were
@@ -123,6 +130,10 @@ class GradcheckResult:
     seconds_compile_and_grad: float = 0.0
     scenario: str = ""
     tolerance: float | None = None
+    loss_jitter: float = 0.0
+    """How far the loss moved beyond its gradient's prediction when every input moved by
+    ``JITTER`` of itself ("Measured noise"): the forward's own roughness. Differences at step ``h`` cannot resolve a derivative
+    much below ``loss_jitter / h``."""
 
     @property
     def nan_count(self) -> int:
@@ -163,7 +174,7 @@ class GradcheckResult:
             "resolved": self.count("resolved"), "noise_limited": self.count("noise"),
             "kinks": self.count("kink"), "failures": len(self.failures), "entries": len(self.rows),
             "constrained_steps": self.constrained_steps, "free_steps": self.free_steps,
-            "passed": self.passed, "groups": self.groups, "rows": self.rows,
+            "loss_jitter": self.loss_jitter, "passed": self.passed, "groups": self.groups, "rows": self.rows,
         }
 
 
@@ -353,7 +364,10 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
 
     l0, plus1, minus1 = evaluate(1.0)
     _, plus4, minus4 = evaluate(4.0)
-    _, plus_jit, minus_jit = evaluate(1.0, jitters[0])
+    l_jit, plus_jit, minus_jit = evaluate(1.0, jitters[0])
+    # beyond the first-order change the move itself makes (the gradient is full-length here)
+    loss_jitter = float(abs(l_jit - l0 - g @ (np.asarray(jitters[0], np.float64)
+                                             - np.asarray(x0, np.float64))))
 
     def differences(scale, plus, minus):
         h_i = scale * steps64
@@ -408,4 +422,5 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     return GradcheckResult(
         scene=sim.name, horizon=int(sc.actions.shape[0]), dtype=str(dtype), rtol=rtol, rows=rows,
         groups=group_rows, constrained_steps=int((na > 0).sum()), free_steps=int((na == 0).sum()),
-        seconds_compile_and_grad=seconds, scenario=name, tolerance=tolerance)
+        seconds_compile_and_grad=seconds, scenario=name, tolerance=tolerance,
+        loss_jitter=loss_jitter)
