@@ -133,8 +133,8 @@ class GradcheckResult:
     tolerance: float | None = None
     loss_jitter: float = 0.0
     """How far the loss moved beyond its gradient's prediction when every input moved by
-    ``JITTER`` of itself ("Measured noise"): the forward's own roughness. Differences at step ``h`` cannot resolve a derivative
-    much below ``loss_jitter / h``."""
+    ``JITTER`` of itself ("Measured noise"): the forward's own roughness. Differences at step
+    ``h`` resolve no derivative below about ``loss_jitter / (0.1 rtol h)``."""
 
     @property
     def nan_count(self) -> int:
@@ -175,7 +175,8 @@ class GradcheckResult:
             "resolved": self.count("resolved"), "noise_limited": self.count("noise"),
             "kinks": self.count("kink"), "failures": len(self.failures), "entries": len(self.rows),
             "constrained_steps": self.constrained_steps, "free_steps": self.free_steps,
-            "loss_jitter": self.loss_jitter, "passed": self.passed, "groups": self.groups, "rows": self.rows,
+            "loss_jitter": self.loss_jitter, "passed": self.passed, "groups": self.groups,
+            "rows": self.rows,
         }
 
 
