@@ -47,10 +47,10 @@ change at the first jittered point, beyond the gradient's first-order prediction
 ``loss_jitter``: the forward's roughness, which bounds what any difference at ``h`` resolves
 (an entry's quotient carries about ``loss_jitter / h`` of noise, so nothing below ``loss_jitter /
 (0.1 rtol h)`` resolves). A pendulum's is 1e-15; a box resting flat on a plane, 1e-9 (rounding
-decides which corners carry it, and the rollout amplifies that), so there mass, friction and
-gravity, whose derivatives are 1e-5 to 1e-3, go unjudged at ``h`` = 1e-6 (at 1e-4 gravity's
-horizontal entries resolve, mass and friction still do not), and ``twinrl gradcheck`` says why
-rather than only naming the groups.
+decides which corners carry it, and the rollout amplifies that; stock ``mjx.step`` alike), so
+there mass, friction and gravity, whose derivatives are 1e-5 to 1e-3, go unjudged at ``h`` =
+1e-6 (at 1e-4 gravity's horizontal entries resolve, mass and friction still do not), and
+``twinrl gradcheck`` says why rather than only naming the groups.
 
 Coverage. A check that resolves no entry of a group has judged nothing through it (a friction
 coefficient through a rollout that never slides, say). Each group reports how many entries were
