@@ -136,19 +136,16 @@ def _task_scenes() -> tuple[str, ...]:
     return tuple(n for n, e in TASKS.items() if issubclass(e.env_class, ArmTask))
 
 
-def unjudged_line(r, h: float, rtol: float) -> str:
+def unjudged_line(r) -> str:
     """The line naming a gradcheck's unjudged groups, and why where the forward's own roughness
-    explains it: resolving an entry takes its difference's noise (about ``r.loss_jitter / h``)
-    under a tenth of ``rtol`` of the derivative, so no derivative below ``loss_jitter / h /
-    (0.1 rtol)`` can be resolved (``GradcheckResult.loss_jitter``)."""
+    explains it (``GradcheckResult.unjudged_by_roughness``)."""
     from twinrl.physics.gradcheck import JITTER
 
-    floor = r.loss_jitter / h / (0.1 * rtol)
-    rough = any(g["max_abs_grad"] <= floor for g in r.groups if g["group"] in r.unjudged)
     why = (f"; moving every input by {JITTER:g} of itself moved the loss by "
-           f"{r.loss_jitter:.1e} beyond its gradient, so differences at --step {h:g} resolve no "
-           f"derivative below ~{floor:.1e} (a body resting flat, a contact that switches on "
-           f"rounding: a scenario that moves it, or a larger --step)" if rough else "")
+           f"{r.loss_jitter:.1e} beyond its gradient, so differences at --step {r.step:g} "
+           f"resolve no derivative below ~{r.resolution_floor:.1e} (a body resting flat, a "
+           f"contact that switches on rounding: a scenario that moves it, or a larger --step)"
+           if r.unjudged_by_roughness else "")
     return f"not judged (no resolved entry): {', '.join(r.unjudged)}{why}"
 
 
@@ -220,7 +217,7 @@ def _cmd_gradcheck(args) -> int:
                              f"non-finite {r.nan_count}, failures {len(r.failures)}, "
                              f"{secs:.0f} s")
         if r.unjudged:
-            report.console.print(f"[yellow]{unjudged_line(r, h, rtol)}[/yellow]"
+            report.console.print(f"[yellow]{unjudged_line(r)}[/yellow]"
                                  + ("" if args.strict else " (--strict fails on this)"))
         report.console.print("")
         summ = r.summary() | {"seconds": secs, "passed": ok}

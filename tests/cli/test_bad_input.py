@@ -233,13 +233,13 @@ def test_gradcheck_says_when_the_forwards_roughness_leaves_a_group_unjudged():
                   {"group": "qvel", "resolved": 2, "inert": False, "max_abs_grad": 3.6}]
         return GradcheckResult(scene="box", horizon=30, dtype="float64", rtol=1e-4, rows=[],
                                groups=groups, constrained_steps=24, free_steps=6,
-                               loss_jitter=loss_jitter)
+                               loss_jitter=loss_jitter, step=1e-6)
 
-    line = cli.unjudged_line(result(1.9e-10), 1e-6, 1e-4)
+    line = cli.unjudged_line(result(1.9e-10))
     assert line.startswith("not judged (no resolved entry): params.mass; ") and "\n" not in line
     assert "moved the loss by 1.9e-10" in line and "below ~1.9e+01" in line
     # where the roughness would allow the derivative, it is not given as the reason
-    assert cli.unjudged_line(result(1e-17), 1e-6, 1e-4) == (
+    assert cli.unjudged_line(result(1e-17)) == (
         "not judged (no resolved entry): params.mass")
 
 

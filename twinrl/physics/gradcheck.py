@@ -133,8 +133,23 @@ class GradcheckResult:
     tolerance: float | None = None
     loss_jitter: float = 0.0
     """How far the loss moved beyond its gradient's prediction when every input moved by
-    ``JITTER`` of itself ("Measured noise"): the forward's own roughness. Differences at step
-    ``h`` resolve no derivative below about ``loss_jitter / (0.1 rtol h)``."""
+    ``JITTER`` of itself ("Measured noise"): the forward's own roughness."""
+    step: float = 0.0
+    """The finite-difference step ``h`` (relative to ``max(1, |x|)``)."""
+
+    @property
+    def resolution_floor(self) -> float:
+        """The smallest derivative differences at ``step`` can resolve through the forward's
+        roughness: an entry's quotient carries about ``loss_jitter / step`` of noise, and
+        resolving takes that under a tenth of ``rtol`` of the derivative (module docstring)."""
+        return self.loss_jitter / self.step / (0.1 * self.rtol) if self.step > 0 else 0.0
+
+    @property
+    def unjudged_by_roughness(self) -> list[str]:
+        """The unjudged groups whose largest gradient lies below ``resolution_floor``: those
+        the forward's own roughness explains."""
+        return [g["group"] for g in self.groups if g["group"] in self.unjudged
+                and g["max_abs_grad"] <= self.resolution_floor]
 
     @property
     def nan_count(self) -> int:
@@ -175,8 +190,8 @@ class GradcheckResult:
             "resolved": self.count("resolved"), "noise_limited": self.count("noise"),
             "kinks": self.count("kink"), "failures": len(self.failures), "entries": len(self.rows),
             "constrained_steps": self.constrained_steps, "free_steps": self.free_steps,
-            "loss_jitter": self.loss_jitter, "passed": self.passed, "groups": self.groups,
-            "rows": self.rows,
+            "loss_jitter": self.loss_jitter, "step": self.step, "passed": self.passed,
+            "groups": self.groups, "rows": self.rows,
         }
 
 
@@ -368,8 +383,7 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     _, plus4, minus4 = evaluate(4.0)
     l_jit, plus_jit, minus_jit = evaluate(1.0, jitters[0])
     # beyond the first-order change the move itself makes (the gradient is full-length here)
-    loss_jitter = float(abs(l_jit - l0 - g @ (np.asarray(jitters[0], np.float64)
-                                             - np.asarray(x0, np.float64))))
+    loss_jitter = float(abs(l_jit - l0 - g @ (np.asarray(jitters[0], np.float64) - x0np)))
 
     def differences(scale, plus, minus):
         h_i = scale * steps64
@@ -425,4 +439,4 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
         scene=sim.name, horizon=int(sc.actions.shape[0]), dtype=str(dtype), rtol=rtol, rows=rows,
         groups=group_rows, constrained_steps=int((na > 0).sum()), free_steps=int((na == 0).sum()),
         seconds_compile_and_grad=seconds, scenario=name, tolerance=tolerance,
-        loss_jitter=loss_jitter)
+        loss_jitter=loss_jitter, step=h)
