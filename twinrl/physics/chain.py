@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from twinrl.render.camera import quat_mul, quat_to_mat, rotvec_to_quat
+from twinrl.physics.rotations import quat_mul, quat_to_mat, rotvec_to_quat
 
 __all__ = ["GeomChain"]
 
