@@ -50,12 +50,34 @@ def _is_private(name: str) -> bool:
     return name.startswith("_") and not name.startswith("__")
 
 
+def _private_module_outside(module: str, importer: str | None) -> bool:
+    """Whether ``importer`` (a module of the package, or ``None`` for a file outside it: a test,
+    a benchmark) may not import ``module``: a private module (``twinrl.render._pack``) belongs to
+    the package that holds it."""
+    parts = module.split(".")
+    for i, part in enumerate(parts):
+        if _is_private(part):
+            holder = ".".join(parts[:i])
+            return importer is None or not (importer == holder
+                                            or importer.startswith(holder + "."))
+    return False
+
+
 def _scan(name: str, source: str | None = None) -> tuple[set[str], list[str]]:
     """(modules ``name`` depends on, the private names of other modules it uses); ``source``
     replaces the module's file (for testing the checker)."""
     path = MODULES[name]
     tree = ast.parse(path.read_text() if source is None else source, filename=str(path))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    return _scan_tree(tree, name, package)
+
+
+def _scan_file(path: pathlib.Path) -> list[str]:
+    """The private names of ``twinrl`` a file outside the package (a test, a benchmark) uses."""
+    return _scan_tree(ast.parse(path.read_text(), filename=str(path)), None, "")[1]
+
+
+def _scan_tree(tree: ast.AST, name: str | None, package: str) -> tuple[set[str], list[str]]:
     deps: set[str] = set()
     private: list[str] = []
     aliases: dict[str, str] = {}  # local name -> twinrl module it is bound to
@@ -64,6 +86,8 @@ def _scan(name: str, source: str | None = None) -> tuple[set[str], list[str]]:
             for a in node.names:
                 if a.name.split(".")[0] == "twinrl" and (t := _owner(a.name)):
                     deps.add(t)
+                    if _private_module_outside(t, name):
+                        private.append(f"import {a.name}")
                     if a.asname:
                         aliases[a.asname] = t
         elif isinstance(node, ast.ImportFrom):
@@ -78,8 +102,13 @@ def _scan(name: str, source: str | None = None) -> tuple[set[str], list[str]]:
                 if full in MODULES:
                     deps.add(full)
                     aliases[a.asname or a.name] = full
+                    if _private_module_outside(full, name):
+                        private.append(f"from {base} import {a.name}")
                 else:
                     deps.add(_owner(base))
+                    if _private_module_outside(_owner(base) or "", name):
+                        private.append(f"from {base} import {a.name}")
+                        continue
                     if _is_private(a.name) and _owner(base) != name:
                         private.append(f"from {base} import {a.name}")
         elif isinstance(node, ast.Attribute):
@@ -187,6 +216,89 @@ def test_no_import_cycles_inside_the_package():
 def test_no_module_imports_another_modules_private_names():
     used = {name: private for name, (_, private) in GRAPH.items() if private}
     assert not used, f"private names used across modules: {used}"
+
+
+def test_the_private_name_finder_sees_tests_and_private_modules(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from twinrl import _jaxconfig\n"
+                     "from twinrl.learn.runner import _figures, train_run\n"
+                     "import twinrl.learn.runner as runner\n"
+                     "x = runner._y\n")
+    assert _scan_file(probe) == ["from twinrl import _jaxconfig",
+                                 "from twinrl.learn.runner import _figures", "twinrl.learn.runner._y"]
+    # inside the package a private module belongs to the package that holds it
+    assert not _private_module_outside("twinrl._jaxconfig", "twinrl.render.native")
+    assert not _private_module_outside("twinrl.render._pack", "twinrl.render.renderer")
+    assert _private_module_outside("twinrl.render._pack", "twinrl.envs.base")
+
+
+OUTSIDE = sorted([*(ROOT.parent / "tests").rglob("*.py"), *(ROOT.parent / "bench").rglob("*.py"),
+                  *(ROOT.parent / "examples").rglob("*.py")])
+
+
+def test_no_test_bench_or_example_imports_private_names():
+    # what a user cannot rely on, the tests and benchmarks do not either: a test of a private
+    # helper is a test of an implementation detail that a refactor silently breaks
+    used = {}
+    for path in OUTSIDE:
+        if path.name != "test_structure.py" and (private := _scan_file(path)):
+            used[str(path.relative_to(ROOT.parent))] = private
+    assert OUTSIDE and not used, f"private names of twinrl used outside the package: {used}"
+
+
+MAX_MODULE_LINES = 600
+
+
+def test_no_module_is_over_600_lines():
+    # a module over ~600 lines mixes concerns (split by concern, not in halves)
+    long = {name: n for name, path in MODULES.items()
+            if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+
+
+# The layers, lowest first (docs/architecture.md). A module may import its own layer and the ones
+# below, never one above. The base layer holds what every layer uses: the package itself (its lazy
+# attribute table), the JAX settings and the writers of results (``report``: JSON, tables, plots).
+LAYERS = (
+    ("twinrl", "twinrl._jaxconfig", "twinrl.report"),
+    ("twinrl.physics",),
+    ("twinrl.render",),
+    ("twinrl.envs",),
+    ("twinrl.real",),
+    ("twinrl.real2sim",),
+    ("twinrl.learn",),
+    ("twinrl.sim2real",),
+    ("twinrl.eval", "twinrl.sense"),
+    ("twinrl.loop",),
+    ("twinrl.cli",),
+)
+
+
+def _layer(module: str) -> int:
+    """Index in ``LAYERS`` of the longest entry that is ``module`` or a package holding it."""
+    best, length = None, -1
+    for i, layer in enumerate(LAYERS):
+        for entry in layer:
+            if (module == entry or module.startswith(entry + ".")) and len(entry) > length:
+                best, length = i, len(entry)
+    assert best is not None, f"{module} is in no layer: add it to LAYERS"
+    return best
+
+
+def _upward(edges: dict[str, set[str]]) -> list[str]:
+    return sorted(f"{m} -> {d}" for m, deps in edges.items() for d in deps
+                  if _layer(d) > _layer(m))
+
+
+def test_the_layer_check_finds_an_upward_import():
+    assert _upward({"twinrl.physics.chain": {"twinrl.render.camera", "twinrl.physics.sim"},
+                    "twinrl.cli.run": {"twinrl.loop"}}) == ["twinrl.physics.chain -> twinrl.render.camera"]
+
+
+def test_imports_point_down_the_layers():
+    edges = {name: deps for name, (deps, _) in GRAPH.items()}
+    up = _upward(edges)
+    assert not up, "imports that point up the layers:\n" + "\n".join(up)
 
 
 def test_the_loop_is_a_list_of_stages():
