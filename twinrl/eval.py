@@ -17,12 +17,12 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-__all__ = ["param_errors", "param_error_sets", "sysid_errors", "real_return", "policy_real_return",
+__all__ = ["rebuild_twin", "param_errors", "param_error_sets", "sysid_errors", "real_return", "policy_real_return",
            "oracle_return",
            "visual_errors", "hand_eye_errors", "grasp_errors", "deployed_success"]
 
 
-def _twin(env_name, seed, perturbation=None, secret=None, **kwargs):
+def rebuild_twin(env_name, seed, perturbation=None, secret=None, **kwargs):
     """The real twin ``(env_name, seed)`` in this process: the one a ``TwinClient`` with the same
     ``secret`` and ``perturbation`` talks to."""
     from twinrl.real.twin import make_real
@@ -37,7 +37,7 @@ def _twin(env_name, seed, perturbation=None, secret=None, **kwargs):
 def _truth(env_name, seed, perturbation=None, secret=None):
     """The hidden truth of the real twin ``(env_name, seed)`` (``RealTwin.oracle()``: its true
     parameters, perturbation and model), for evaluation only."""
-    twin = _twin(env_name, seed, perturbation, secret)
+    twin = rebuild_twin(env_name, seed, perturbation, secret)
     try:
         return twin.oracle()
     finally:
@@ -145,7 +145,7 @@ def policy_real_return(env_name, seed, act, episodes, perturbation=None, secret=
     """Mean return of ``act: obs -> action`` over ``episodes`` episodes of a fresh copy of the real
     twin, started from the same states as ``real_return``'s (so two policies compare on equal
     terms), not recorded and not counted."""
-    twin = _twin(env_name, seed, perturbation, secret)
+    twin = rebuild_twin(env_name, seed, perturbation, secret)
     rets = []
     try:
         for e in range(episodes):
@@ -239,7 +239,7 @@ def deployed_success(env_name, seed, deployer, config, perturbation=None, secret
     """``deployer.run`` (``twinrl.sim2real.active.Deployer``) on the real twin in this process,
     nothing recorded: the evaluation episodes of a deployed image actor (e.g. with the fixed
     camera, the baseline the chosen camera must beat)."""
-    twin = _twin(env_name, seed, perturbation, secret, width=size, height=size)
+    twin = rebuild_twin(env_name, seed, perturbation, secret, width=size, height=size)
     try:
         return deployer.run(twin, config, seed=50_000 + int(seed))
     finally:

@@ -120,7 +120,7 @@ def test_the_public_seed_does_not_reproduce_the_hidden_perturbation(served):
 
 def test_evaluation_rebuilds_the_served_twin_from_the_secret(served):
     client, secret, traj, _, _ = served
-    twin = evaluation._twin(TASK, SEED, secret=secret, width=64, height=48)
+    twin = evaluation.rebuild_twin(TASK, SEED, secret=secret, width=64, height=48)
     try:
         np.testing.assert_allclose(_episode(twin), traj, rtol=0, atol=1e-6)
     finally:

@@ -222,10 +222,10 @@ def test_batches_of_cameras_and_scenes_are_drawn_frame_by_frame_alike(scene):
 
 def test_without_a_compiler_or_when_switched_off_jax_draws(monkeypatch, scene):
     monkeypatch.setenv("CXX", "/nonexistent/c++")
-    path, why = native._load.__wrapped__()
+    path, why = native.probe()
     assert path is None and why.startswith("not built"), why
     monkeypatch.setenv("TWINRL_NATIVE_RENDER", "0")
-    assert native._load.__wrapped__() == (None, "off (TWINRL_NATIVE_RENDER)")
+    assert native.probe() == (None, "off (TWINRL_NATIVE_RENDER)")
     # meshes stay in JAX
     mesh = mujoco.MjModel.from_xml_string(
         '<mujoco><asset><mesh name="t" vertex="0 0 0 1 0 0 0 1 0 0 0 1"/></asset><worldbody>'

@@ -101,8 +101,10 @@ def _build(cxx: str) -> Path:
     return out
 
 
-@functools.cache
-def _load() -> tuple[Path | None, str]:
+def probe() -> tuple[Path | None, str]:
+    """Build (or find in the cache) and register the kernel now, ignoring any earlier answer:
+    ``(library path or None, one line saying whether it is on and if not, why)``. Reads
+    ``TWINRL_NATIVE_RENDER`` and ``CXX`` at the call; ``available()`` and friends ask once."""
     flag = os.environ.get("TWINRL_NATIVE_RENDER", "").strip().lower()
     if flag in ("0", "off", "false", "no"):
         return None, "off (TWINRL_NATIVE_RENDER)"
@@ -123,6 +125,9 @@ def _load() -> tuple[Path | None, str]:
     except (OSError, RuntimeError, AttributeError) as e:
         return None, f"not built: {e}"
     return path, f"on ({path})"
+
+
+_load = functools.cache(probe)
 
 
 _OFF: list[bool] = []
