@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-# The format's name in ``meta.json``: "twinrl.real.dataset". Spelled in parts because the structure
-# test reads a string that names a module exactly as an import of that module (an import cycle here).
+# The format's name in meta.json: "twinrl.real.dataset". Spelled in parts because the structure
+# test reads a string naming a module exactly as an import of it (here, an import cycle).
 FORMAT = ".".join(("twinrl", "real", "dataset"))
 VERSION = 1
 META_FILE = "meta.json"
