@@ -64,8 +64,8 @@ from twinrl import report  # noqa: E402
 from twinrl.physics import load_mjcf  # noqa: E402
 from twinrl.physics.scenes import SCENES  # noqa: E402
 from twinrl.render import Camera, Geoms, Renderer, native, quat_to_mat  # noqa: E402
-from twinrl.render import camera as _camera_mod  # noqa: E402
-from twinrl.render import renderer as _renderer_mod  # noqa: E402
+from twinrl.render import camera as camera_module  # noqa: E402
+from twinrl.render import renderer as renderer_module  # noqa: E402
 
 CAMS = {"cartpole": ("front", [0.3, 0.5]), "pendulum": ("front", [0.7]),
         "push": ("top", None), "peg_in_hole": ("front", [0.01, -0.02])}
@@ -140,16 +140,22 @@ def sweep_mjcf(n: int, seed: int = 0, layout: str = "dense") -> str:
 
 def load_baseline(ref: str):
     """``(renderer module, camera module)`` of ``twinrl/render`` at git revision ``ref``, loaded
-    as a package of its own beside the working tree's."""
+    as a package of its own beside the working tree's (every file of ``twinrl/render`` at that
+    revision, its imports of ``twinrl.render`` pointed at the copy)."""
     repo = Path(__file__).resolve().parents[1]
     pkg = "twinrl_render_baseline"
     root = Path(tempfile.mkdtemp(prefix="render_baseline_"))
-    (root / pkg).mkdir()
-    (root / pkg / "__init__.py").write_text("")
-    for name in ("camera", "primitives", "renderer"):
-        src = subprocess.run(["git", "-C", str(repo), "show", f"{ref}:twinrl/render/{name}.py"],
-                             capture_output=True, text=True, check=True).stdout
-        (root / pkg / f"{name}.py").write_text(src.replace("twinrl.render", pkg))
+    files = subprocess.run(["git", "-C", str(repo), "ls-tree", "-r", "--name-only", ref,
+                            "twinrl/render/"], capture_output=True, text=True,
+                           check=True).stdout.split()
+    for name in files:
+        data = subprocess.run(["git", "-C", str(repo), "show", f"{ref}:{name}"],
+                              capture_output=True, check=True).stdout
+        if name.endswith(".py"):
+            data = data.decode().replace("twinrl.render", pkg).encode()
+        dest = root / pkg / Path(name).relative_to("twinrl/render")
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        dest.write_bytes(data)
     sys.path.insert(0, str(root))
     return importlib.import_module(f"{pkg}.renderer"), importlib.import_module(f"{pkg}.camera")
 
@@ -610,9 +616,9 @@ def main(argv=None):
                     "machine": platform.machine(), "load_average": list(os.getloadavg()),
                     "baseline": args.baseline}}
     out["meta"]["native"] = native.status()
-    mods = {"new": (_renderer_mod, _camera_mod)}
+    mods = {"new": (renderer_module, camera_module)}
     if args.jax:
-        mods["jax"] = (_renderer_mod, _camera_mod)
+        mods["jax"] = (renderer_module, camera_module)
     if args.baseline:
         mods["baseline"] = load_baseline(args.baseline)
     cols = (["frames/s"] + (["JAX f/s", "vs JAX"] if args.jax else [])

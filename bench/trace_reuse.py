@@ -76,12 +76,12 @@ def _measure_camera(task: str, size: int, restarts: int, inline: bool) -> dict:
     from twinrl import envs
     from twinrl.learn import sensing
     from twinrl.learn.networks import NetworkConfig, make_network
-    from twinrl.render import renderer
+    from twinrl.render import renderer, scene
 
     if inline:
         from mujoco import mjx
 
-        renderer._kinematics = lambda: mjx.kinematics
+        scene.jitted_kinematics = lambda: mjx.kinematics
         renderer.Renderer.__eq__ = object.__eq__
         renderer.Renderer.__hash__ = object.__hash__
     env = envs.make(task)

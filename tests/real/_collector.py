@@ -6,16 +6,17 @@ number of completed ``add`` calls (flushed, so the count the test reads is never
 dataset).
 
 Every transition is a pure function of (episode id, step), so the test can check each recorded
-transition's content without talking to the collector. Only numpy and the dataset module (loaded
-from its file) are imported: importing the ``twinrl`` package would import jax, and twenty
+transition's content without talking to the collector. Only numpy and the dataset package (loaded
+from its files) are imported: importing the ``twinrl`` package would import jax, and twenty
 start-ups of that would dominate the test.
 """
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import sys
 import time
+import types
 from pathlib import Path
 from typing import Any
 
@@ -56,12 +57,15 @@ def transition(ep: int, t: int) -> dict[str, Any]:
 
 
 def _load_dataset_module():
-    path = Path(__file__).resolve().parents[2] / "twinrl" / "real" / "dataset.py"
-    spec = importlib.util.spec_from_file_location("_twinrl_real_dataset", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up in sys.modules
-    spec.loader.exec_module(module)
-    return module
+    # ``twinrl`` and ``twinrl.real`` stand in as bare packages pointing at their directories, so
+    # importing the dataset package runs its own modules and not the ``twinrl`` package's
+    # ``__init__`` (which imports jax).
+    root = Path(__file__).resolve().parents[2] / "twinrl"
+    for name, path in (("twinrl", root), ("twinrl.real", root / "real")):
+        package = types.ModuleType(name)
+        package.__path__ = [str(path)]
+        sys.modules[name] = package
+    return importlib.import_module("twinrl.real.dataset")
 
 
 def main(argv: list[str]) -> None:

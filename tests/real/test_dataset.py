@@ -241,7 +241,7 @@ def test_reopening_with_different_settings_is_refused(tmp_path, change, field):
 
 
 def test_a_dataset_reads_while_it_is_written(tmp_path, monkeypatch):
-    import twinrl.real.dataset as module
+    from twinrl.real.dataset import reader
 
     path = tmp_path / "ds"
     with open_writer(path) as w:
@@ -249,9 +249,9 @@ def test_a_dataset_reads_while_it_is_written(tmp_path, monkeypatch):
         w.add(**step_args(1, 0))
         ds = read(path)
         assert len(ds) == LENGTHS[0] + 1 and ds.episode_complete.tolist() == [True, False]
-        listing = module._list_chunks(path)
+        listing = reader.list_chunks(path)
     # The writer renamed the chunk closed between a reader's listing and its read.
-    monkeypatch.setattr(module, "_list_chunks", lambda root: listing)
+    monkeypatch.setattr(reader, "list_chunks", lambda root: listing)
     assert len(read(path)) == LENGTHS[0] + 1
 
 

@@ -92,7 +92,7 @@ def test_the_kernel_is_built_here():
 def test_the_kernel_draws_what_jax_draws_in_float64(scene, kind):
     m, d = scene
     R = Renderer.create(m, **RENDERERS[kind])
-    assert R._native_attrs is not None
+    assert R.kernel_attrs is not None
     for tau in (0.0, 0.6):
         with jax.enable_x64(True):
             g = Geoms.from_mujoco(m, d, dtype=jnp.float64)
@@ -230,7 +230,7 @@ def test_without_a_compiler_or_when_switched_off_jax_draws(monkeypatch, scene):
     mesh = mujoco.MjModel.from_xml_string(
         '<mujoco><asset><mesh name="t" vertex="0 0 0 1 0 0 0 1 0 0 0 1"/></asset><worldbody>'
         '<geom type="mesh" mesh="t"/></worldbody></mujoco>')
-    assert Renderer.create(mesh)._native_attrs is None
+    assert Renderer.create(mesh).kernel_attrs is None
     with native.disabled():
         assert not native.available()
     assert native.available()

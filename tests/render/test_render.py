@@ -146,14 +146,13 @@ def test_a_large_vmapped_batch_is_drawn_in_chunks_alike(push, monkeypatch):
     """A batch whose (pixel, surface) pairs exceed ``BATCH_ELEMENTS`` is drawn in JAX a chunk
     of cameras at a time: the same images, and derivatives (reverse and forward mode) still go
     through the whole batch. (Without derivatives the C++ kernel takes any batch whole.)"""
-    from twinrl.render import native
-    from twinrl.render import renderer as renderer_module
+    from twinrl.render import batching, native
 
     m, d = push
     R, g = Renderer.create(m), Geoms.from_mujoco(m, d)
     n = 14  # an image size no other test uses, so the batched render is traced anew here
     assert R.surfaces() == 4 and R.batch_chunk(n, n, 6) == 6
-    monkeypatch.setattr(renderer_module, "BATCH_ELEMENTS", 2 * n * n * 4)
+    monkeypatch.setattr(batching, "BATCH_ELEMENTS", 2 * n * n * 4)
     assert R.batch_chunk(n, n, 6) == 2 and R.batch_chunk(n, n, 5) == 1  # divisors only
     cams = [look_at([0.3 + 0.1 * k, -1.0, 1.0], [0.15, 0, 0], width=n, height=n)
             for k in range(6)]
@@ -317,7 +316,7 @@ def test_vmap_over_cameras_and_scenes(push):
 def test_renderers_of_one_scene_are_equal_and_share_the_compiled_render(push):
     # equal by content, not identity: a second task (or real twin) made from the same MJCF
     # renders through the first one's compiled image instead of tracing and compiling again
-    from twinrl.render import renderer as renderer_module
+    from twinrl.render import batching
 
     m, d = push
     a, b = Renderer.create(m), Renderer.create(load_mjcf("push"))
@@ -326,9 +325,9 @@ def test_renderers_of_one_scene_are_equal_and_share_the_compiled_render(push):
     assert a != Renderer.create(load_mjcf("pendulum")) and a != "a renderer"
     cam, g = look_at([0.3, -1.0, 1.0], [0.15, 0, 0], width=12, height=10), Geoms.from_mujoco(m, d)
     first = a.render(cam, g, tau=0.3)
-    compiled = renderer_module._render_jit._cache_size()
+    compiled = batching.render_jit._cache_size()
     second = b.render(cam, g, tau=0.3)
-    assert renderer_module._render_jit._cache_size() == compiled
+    assert batching.render_jit._cache_size() == compiled
     np.testing.assert_array_equal(first.rgb, second.rgb)
 
 
@@ -441,10 +440,10 @@ def test_culling_keeps_the_image_and_its_gradient_where_geoms_do_not_crowd():
     cam = Camera.from_mujoco(m, d, "c", 64, 64)
     g = Geoms.from_mujoco(m, d)
     culled, full = Renderer.create(m, per_pixel=1, cull_above=0), Renderer.create(m, per_pixel=4)
-    assert culled._culled(3, np.arange(1, 5)) and not full._culled(3, np.arange(1, 5))
+    assert culled.culled(3, np.arange(1, 5)) and not full.culled(3, np.arange(1, 5))
     # by default a type is culled only beyond cull_above (8) geoms: smaller ones are drawn whole
-    assert not Renderer.create(m, per_pixel=1)._culled(3, np.arange(8))
-    assert Renderer.create(m, per_pixel=1)._culled(3, np.arange(9))
+    assert not Renderer.create(m, per_pixel=1).culled(3, np.arange(8))
+    assert Renderer.create(m, per_pixel=1).culled(3, np.arange(9))
     with pytest.raises(ValueError, match="cull_above must be >= 0"):
         Renderer.create(m, cull_above=-1)
     a, b = culled.render(cam, g), full.render(cam, g)

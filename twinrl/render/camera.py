@@ -121,7 +121,9 @@ class Camera:
         """Height (m) of one pixel at unit depth (the inverse of the focal length in pixels)."""
         return 2.0 * jnp.tan(jnp.deg2rad(self.fovy) / 2.0) / self.height
 
-    def _principal(self) -> tuple[jax.Array, jax.Array]:
+    def principal_point(self) -> tuple[jax.Array, jax.Array]:
+        """``(cx, cy)``: the principal point in pixels (the image centre unless ``principal`` is
+        set)."""
         if self.principal is None:
             return (jnp.asarray(self.width / 2.0, self.pos.dtype),
                     jnp.asarray(self.height / 2.0, self.pos.dtype))
@@ -131,7 +133,7 @@ class Camera:
         """``origin`` (3,) and per-pixel directions (H, W, 3) in the world frame, scaled so the
         component along the viewing axis is 1: ``origin + s * dir`` is at depth ``s``."""
         H, W = self.height, self.width
-        px, (cx, cy) = self.pixel_size(), self._principal()
+        px, (cx, cy) = self.pixel_size(), self.principal_point()
         x = (jnp.arange(W, dtype=self.pos.dtype) + 0.5 - cx) * px
         y = (cy - jnp.arange(H, dtype=self.pos.dtype) - 0.5) * px
         x, y = jnp.broadcast_to(x[None, :], (H, W)), jnp.broadcast_to(y[:, None], (H, W))
@@ -143,7 +145,7 @@ class Camera:
         (...,) of world points."""
         p = (points - self.pos) @ self.xmat
         depth = -p[..., 2]
-        px, (cx, cy) = self.pixel_size(), self._principal()
+        px, (cx, cy) = self.pixel_size(), self.principal_point()
         col = cx + p[..., 0] / depth / px
         row = cy - p[..., 1] / depth / px
         return jnp.stack([col, row], -1), depth
@@ -163,7 +165,7 @@ class Camera:
             raise ValueError(f"window: rows {row0}+{step}*[0, {height}) or columns "
                              f"{col0}+{step}*[0, {width}) leave the {self.height}x{self.width} "
                              "image")
-        cx, cy = self._principal()
+        cx, cy = self.principal_point()
         # new pixel c's centre c + 0.5 sits at old col0 + step c + 0.5; focal length / step
         principal = jnp.stack([(cx - col0 - 0.5) / step + 0.5, (cy - row0 - 0.5) / step + 0.5],
                               -1)

@@ -218,10 +218,10 @@ def crowding(model: mujoco.MjModel, **renderer) -> dict | None:
     from twinrl.render import Renderer
 
     R = Renderer.create(model, **renderer)
-    groups = R._groups()
+    groups = R.groups()
     culled = [f"{len(idx)} {mujoco.mjtGeom(int(t)).name.removeprefix('mjGEOM_').lower()}s"
-              for t, idx in groups if R._culled(t, idx)]
-    slots = sum(R.per_pixel if R._culled(t, idx) else len(idx) for t, idx in groups)
+              for t, idx in groups if R.culled(t, idx)]
+    slots = sum(R.per_pixel if R.culled(t, idx) else len(idx) for t, idx in groups)
     if not culled and slots <= R.layers:
         return None
     why = []

@@ -15,6 +15,9 @@ faces inside); cylinders and convex meshes minimise their
 signed distance function along the ray by golden-section search with the minimiser held constant
 (``stop_gradient``): by the envelope theorem the gradient of ``min_s f(s, theta)`` is
 ``df/dtheta`` at the minimiser, so the search itself need not be differentiated.
+
+Shared arithmetic lives in ``_raymath`` and the polyhedra (boxes, meshes) in ``polyhedra``; their
+public functions are importable from here too.
 """
 
 from __future__ import annotations
@@ -24,62 +27,27 @@ import functools
 import jax
 import jax.numpy as jnp
 
-INF = jnp.inf
-_EPS = 1e-12
-
-
-# Reductions over a short last axis (xyz, the faces of a box, the geoms of a scene) are written
-# out element by element: XLA on CPU then fuses them with their neighbours, where a reduce over a
-# minor axis of 3 is a kernel of its own (and slow); the arithmetic is the same.
-def reduce_last(op, x):
-    """``op`` (binary, elementwise) folded over the last axis of ``x``, written out."""
-    out = x[..., 0]
-    for i in range(1, x.shape[-1]):
-        out = op(out, x[..., i])
-    return out
-
-
-def _unrolled(op, reference):
-    """The reduction ``op`` over the last axis written out, with the tangent of ``reference``
-    (the ``jnp`` reduction): the reverse pass then broadcasts one cotangent instead of padding
-    one per element (slices transpose to pads, which XLA on CPU does not fuse well)."""
-
-    @jax.custom_jvp
-    def f(x):
-        return reduce_last(op, x)
-
-    @f.defjvp
-    def _jvp(primals, tangents):
-        return f(primals[0]), jax.jvp(reference, primals, tangents)[1]
-
-    return f
-
-
-sum_last = _unrolled(jnp.add, lambda x: jnp.sum(x, -1))
-max_last = _unrolled(jnp.maximum, lambda x: jnp.max(x, -1))
-min_last = _unrolled(jnp.minimum, lambda x: jnp.min(x, -1))
-prod_last = _unrolled(jnp.multiply, lambda x: jnp.prod(x, -1))
-
-
-def dot(a, b):
-    """Inner product over the last axis (``sum_last(a * b)``)."""
-    return sum_last(a * b)
-
-
-def _safe_sqrt(x):
-    return jnp.sqrt(jnp.where(x > 0, x, 1.0)) * (x > 0)
-
-
-def _safe_div(a, b):
-    e = jnp.asarray(_EPS, jnp.result_type(b))
-    return a / jnp.where(jnp.abs(b) > e, b, jnp.where(b < 0, -e, e))
-
-
-def _first_positive(*cands):
-    s = INF
-    for c in cands:
-        s = jnp.minimum(s, jnp.where(c > 0, c, INF))
-    return s
+from twinrl.render._raymath import (  # noqa: F401 (re-exported: part of this module's API)
+    EPS,
+    INF,
+    dot,
+    first_positive,
+    golden_min,
+    line_segment,
+    max_last,
+    min_last,
+    prod_last,
+    reduce_last,
+    safe_div,
+    safe_sqrt,
+    sum_last,
+)
+from twinrl.render.polyhedra import (  # noqa: F401 (re-exported)
+    box_depth,
+    closest_box,
+    hit_triangles,
+    polyhedral_depth,
+)
 
 
 # ------------------------------------------------------------------ quadrics
@@ -94,16 +62,16 @@ def _line_roots(o, r, rad):
     origin, is the same number computed without the cancellation."""
     A = dot(r, r)
     B = dot(o, r)
-    A = jnp.where(A > _EPS, A, _EPS)
+    A = jnp.where(A > EPS, A, EPS)
     lc = o - (B / A)[..., None] * r
     disc = A * (rad * rad - dot(lc, lc))
-    sq = _safe_sqrt(disc)
+    sq = safe_sqrt(disc)
     return (-B - sq) / A, (-B + sq) / A, disc >= 0
 
 
 def hit_sphere(o, r, size):
     s0, _, ok = _line_roots(o, r, size[..., 0])
-    return jnp.where(ok, _first_positive(s0), INF)
+    return jnp.where(ok, first_positive(s0), INF)
 
 
 def hit_ellipsoid(o, r, size):
@@ -114,8 +82,8 @@ def _hit_tube(o, r, rad, h):
     """Side of a z-aligned cylinder of radius ``rad``, ``|z| <= h``."""
     s0, _, ok = _line_roots(o[..., :2], r[..., :2], rad)
     z = o[..., 2] + s0 * r[..., 2]
-    return jnp.where(ok & (jnp.abs(z) <= h) & (dot(r[..., :2], r[..., :2]) > _EPS),
-                     _first_positive(s0), INF)
+    return jnp.where(ok & (jnp.abs(z) <= h) & (dot(r[..., :2], r[..., :2]) > EPS),
+                     first_positive(s0), INF)
 
 
 def hit_capsule(o, r, size):
@@ -132,16 +100,16 @@ def hit_cylinder(o, r, size):
     side = _hit_tube(o, r, rad, h)
     caps = INF
     for sign in (1.0, -1.0):
-        s = _safe_div(sign * h - o[..., 2], r[..., 2])
+        s = safe_div(sign * h - o[..., 2], r[..., 2])
         p = o + s[..., None] * r
         inside = p[..., 0] ** 2 + p[..., 1] ** 2 <= rad * rad
-        caps = jnp.minimum(caps, jnp.where(inside, _first_positive(s), INF))
+        caps = jnp.minimum(caps, jnp.where(inside, first_positive(s), INF))
     return jnp.minimum(side, caps)
 
 
 def hit_box(o, r, size):
-    t1 = _safe_div(-size - o, r)
-    t2 = _safe_div(size - o, r)
+    t1 = safe_div(-size - o, r)
+    t2 = safe_div(size - o, r)
     tmin = max_last(jnp.minimum(t1, t2))
     tmax = min_last(jnp.maximum(t1, t2))
     return jnp.where((tmin <= tmax) & (tmin > 0), tmin, INF)
@@ -150,7 +118,7 @@ def hit_box(o, r, size):
 def hit_plane(o, r, size):
     """The plane z = 0, seen from its front (+z) side; finite ``|x| <= sx, |y| <= sy`` when its
     sizes are positive (MuJoCo draws a plane of size 0 as infinite)."""
-    s = _safe_div(-o[..., 2], r[..., 2])
+    s = safe_div(-o[..., 2], r[..., 2])
     p = o + s[..., None] * r
     inside = jnp.where(size[..., 0] > 0, jnp.abs(p[..., 0]) <= size[..., 0], True) & jnp.where(
         size[..., 1] > 0, jnp.abs(p[..., 1]) <= size[..., 1], True)
@@ -210,7 +178,7 @@ def _hit_implicit_jvp(gtype, primals, tangents):
     ones = jnp.ones_like(s0)
     slope = jax.jvp(lambda s_: surface_level(gtype, o + s_[..., None] * r, size), (s0,),
                     (ones,))[1]
-    slope = jnp.where(ok & (jnp.abs(slope) > _EPS), slope, -1.0)
+    slope = jnp.where(ok & (jnp.abs(slope) > EPS), slope, -1.0)
     df = jax.jvp(lambda o, r, size: surface_level(gtype, o + s0[..., None] * r, size), primals,
                  tangents)[1]
     return s, jnp.where(ok, -df / slope, 0.0)
@@ -256,30 +224,6 @@ def sdf(gtype: int, p, size):
     raise ValueError(f"no SDF for geom type {gtype}")
 
 
-def golden_min(f, lo, hi, iters: int):
-    """Minimiser of a unimodal ``f`` on ``[lo, hi]`` (elementwise) by golden-section search."""
-    g = 0.6180339887498949
-    c, d = hi - g * (hi - lo), lo + g * (hi - lo)
-    fc, fd = f(c), f(d)
-
-    # The state travels as one stacked array, so that each iteration is one fused kernel (XLA on
-    # CPU gives every output of a loop body a kernel of its own, each recomputing ``f``).
-    def body(_, st):
-        lo, hi, c, d, fc, fd = st
-        left = fc < fd
-        hi = jnp.where(left, d, hi)
-        lo = jnp.where(left, lo, c)
-        nc = jnp.where(left, hi - g * (hi - lo), d)
-        nd = jnp.where(left, c, lo + g * (hi - lo))
-        x = jnp.where(left, nc, nd)
-        fx = f(x)
-        fc, fd = jnp.where(left, fx, fd), jnp.where(left, fc, fx)
-        return jnp.stack([lo, hi, nc, nd, fc, fd])
-
-    st = jax.lax.fori_loop(0, iters, body, jnp.stack([lo, hi, c, d, fc, fd]))
-    return 0.5 * (st[0] + st[1])
-
-
 def _search_bracket(o_, r_, rb):
     """``line_search_sdf``'s interval of ``s``: the ray's stretch across the bounding sphere."""
     rr = dot(r_, r_)
@@ -289,7 +233,8 @@ def _search_bracket(o_, r_, rb):
 
 
 def line_search_sdf(sdf, o, r, size, rbound, iters):
-    """(s*, sdf at s*) along the ray for a convex ``sdf`` of a geom of bounding radius ``rbound``."""
+    """(s*, sdf at s*) along the ray for a convex ``sdf`` of a geom of bounding radius
+    ``rbound``."""
     o_, r_, size_, rb = (jax.lax.stop_gradient(x) for x in (o, r, size, rbound))
     lo, hi = _search_bracket(o_, r_, rb)
     s = golden_min(lambda s: sdf(o_ + s[..., None] * r_, size_), lo, hi, iters)
@@ -311,168 +256,11 @@ def closest_ellipsoid(o, r, size, iters=None):
     return s, d * jnp.mean(size, -1)
 
 
-def line_segment(o, r, a, b):
-    """Closest approach of the line ``o + s r`` to the segment ``[a, b]``: ``(s, distance)``.
-
-    Exact and differentiable: for each point ``a + z (b - a)`` of the segment the best ``s`` is
-    linear in ``z``, so the squared distance is quadratic in ``z``; it is minimised over
-    ``z in [0, 1]``."""
-    rr = dot(r, r)
-    e = b - a
-    s0 = dot(a - o, r) / rr  # best s for z = 0
-    ds = dot(e, r) / rr  # ds/dz
-    u = o + s0[..., None] * r - a  # line point minus segment point at z = 0
-    v = ds[..., None] * r - e  # d(u)/dz
-    z = jnp.clip(-dot(u, v) / jnp.maximum(dot(v, v), _EPS), 0.0, 1.0)
-    p = u + z[..., None] * v
-    return s0 + ds * z, jnp.sqrt(dot(p, p) + 1e-20)
-
-
 def closest_capsule(o, r, size, iters=None):
     rad, h = size[..., 0], size[..., 1]
     ez = jnp.zeros_like(o).at[..., 2].set(1.0) * h[..., None]
     s, d = line_segment(o, r, -ez, ez)
     return s, d - rad
-
-
-def _edges_closest(o, r, a, b):
-    """Closest approach of the line to the nearest of the segments ``a``, ``b`` (..., E, 3)."""
-    s, d = line_segment(o[..., None, :], r[..., None, :], a, b)
-    k = jnp.argmin(d, -1)
-    pick = lambda x: jnp.take_along_axis(x, k[..., None], -1)[..., 0]  # noqa: E731
-    return pick(s), pick(d)
-
-
-def _box_edge_table():
-    """The 12 edges of the box ``[-1, 1]^3`` as NumPy endpoints ``a``, ``b`` (12, 3) each."""
-    import itertools
-
-    import numpy as np
-
-    a, b = [], []
-    for axis in range(3):
-        others = [i for i in range(3) if i != axis]
-        for s1, s2 in itertools.product((-1.0, 1.0), repeat=2):
-            lo = np.zeros(3)
-            lo[others[0]], lo[others[1]], lo[axis] = s1, s2, -1.0
-            hi = lo.copy()
-            hi[axis] = 1.0
-            a.append(lo)
-            b.append(hi)
-    return np.array(a), np.array(b)
-
-
-def polyhedral_depth(m, c, s0):
-    """Deepest point of a ray inside a convex polytope ``max_k (m_k s + c_k) <= 0``.
-
-    ``s0`` (found by search, held constant) locates the minimum of the max of the linear pieces;
-    there two pieces of opposite slope cross, and the crossing is solved exactly, so the value's
-    gradient is right (the envelope theorem does not hold at such a kink). Pieces not in play are
-    ``-inf``. Returns the value ``min_s max_k (m_k s + c_k)`` (negative inside)."""
-    v = m * s0[..., None] + c
-    top2 = jax.lax.top_k(jax.lax.stop_gradient(v), 2)[1]
-    ma, mb = (jnp.take_along_axis(m, top2[..., i:i + 1], -1)[..., 0] for i in (0, 1))
-    ca, cb = (jnp.take_along_axis(c, top2[..., i:i + 1], -1)[..., 0] for i in (0, 1))
-    kink = (ma * mb < 0) & jnp.isfinite(cb)
-    s = jnp.where(kink, (cb - ca) / jnp.where(kink, ma - mb, 1.0), s0)
-    return jnp.where(kink, ma * s + ca, ma * s0 + ca)
-
-
-def _broadcast(*xs):
-    """Arrays broadcast to one shape up front: a small operand (a geom's size) broadcast
-    implicitly in every operation gets one reduction per use in the reverse pass; broadcast once,
-    its cotangents add elementwise and are reduced once."""
-    shape = jnp.broadcast_shapes(*(x.shape for x in xs))
-    return tuple(jnp.broadcast_to(x, shape) for x in xs)
-
-
-def _onehot_pick(x, k, n):
-    """``x[..., k]`` for an integer array ``k`` (``x`` (..., n) or (n,)) as a masked sum: under XLA
-    on CPU it fuses, where ``take_along_axis`` is a gather (and its transpose a scatter)."""
-    return jnp.sum(jnp.where(k[..., None] == jnp.arange(n), x, 0.0), -1)
-
-
-def _box_edges_closest(o, r, size):
-    """``_edges_closest`` over the box's 12 edges (``_box_edge_table`` times ``size``): the nearest edge is found without gradients
-    (per coordinate, with no minor axis of 3 or 12), then only its ``line_segment`` is
-    differentiated: the same values and gradients as differentiating all 12 and picking one,
-    without 12 edges' worth of reverse pass."""
-    o_, r_, h_ = (jax.lax.stop_gradient(x) for x in _broadcast(o, r, size))
-    o_, r_, h_ = ([x[..., i] for i in range(3)] for x in (o_, r_, h_))
-    ta, tb = _box_edge_table()
-    te = tb - ta
-    rr = r_[0] * r_[0] + r_[1] * r_[1] + r_[2] * r_[2]
-    irr = 1.0 / rr
-    ta_, te_ = jnp.asarray(ta, size.dtype), jnp.asarray(te, size.dtype)
-
-    # a loop, not an unrolled chain of selects: XLA on CPU splits a long unrolled chain into
-    # fusions that each recompute most of it
-    def edge(k, best):
-        best_k, best_d = best
-        a = [ta_[k, i] * h_[i] for i in range(3)]
-        e = [te_[k, i] * h_[i] for i in range(3)]
-        s0 = ((a[0] - o_[0]) * r_[0] + (a[1] - o_[1]) * r_[1] + (a[2] - o_[2]) * r_[2]) * irr
-        ds = (e[0] * r_[0] + e[1] * r_[1] + e[2] * r_[2]) * irr
-        u = [o_[i] + s0 * r_[i] - a[i] for i in range(3)]
-        v = [ds * r_[i] - e[i] for i in range(3)]
-        vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
-        uv = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-        z = jnp.clip(-uv / jnp.maximum(vv, _EPS), 0.0, 1.0)
-        d = (u[0] + z * v[0]) ** 2 + (u[1] + z * v[1]) ** 2 + (u[2] + z * v[2]) ** 2
-        better = d < best_d
-        return jnp.where(better, k, best_k), jnp.where(better, d, best_d)
-
-    best_k, _ = jax.lax.fori_loop(0, 12, edge, (jnp.zeros(rr.shape, jnp.int32),
-                                                jnp.full(rr.shape, INF, rr.dtype)))
-    a = ta_[best_k] * size  # a gather from a constant table: nothing to differentiate
-    e = te_[best_k] * size
-    return line_segment(o, r, a, a + e)
-
-
-def box_depth(o, r, size):
-    """Deepest point of the line ``o + s r`` in a box: ``(s, min_s max_i (|o_i + s r_i| -
-    size_i))``, exact (no search).
-
-    Per axis ``|o_i + s r_i| - size_i`` is a rising piece (slope ``|r_i|``) and a falling one;
-    the minimum of their maximum lies where a rising piece ``i`` meets a falling piece ``j``, and
-    its value is the largest of those 9 crossings (a 1-D linear programme is decided by two
-    constraints). The active pair is found without gradients and its crossing then solved
-    differentiably, as in ``polyhedral_depth``; ``s`` is held constant (as a search result
-    would be)."""
-    sg = jnp.where(r >= 0, 1.0, -1.0).astype(r.dtype)
-    A = sg * r  # slopes |r_i|
-    P = sg * o - size  # rising pieces' intercepts
-    Q = -sg * o - size  # falling pieces' intercepts
-    A_, P_, Q_ = ([jax.lax.stop_gradient(x[..., i]) for i in range(3)] for x in (A, P, Q))
-    best_v, best_s, bi, bj = None, None, None, None
-    for i in range(3):
-        for j in range(3):
-            den = A_[i] + A_[j]
-            ok = den > 0
-            den = jnp.where(ok, den, 1.0)
-            v = jnp.where(ok, (A_[i] * Q_[j] + A_[j] * P_[i]) / den, -INF)
-            s = (Q_[j] - P_[i]) / den
-            if best_v is None:
-                best_v, best_s = v, s
-                bi, bj = jnp.zeros(v.shape, jnp.int32), jnp.zeros(v.shape, jnp.int32)
-            else:
-                better = v > best_v
-                best_v, best_s = jnp.where(better, v, best_v), jnp.where(better, s, best_s)
-                bi, bj = jnp.where(better, i, bi), jnp.where(better, j, bj)
-    Ai, Pi = _onehot_pick(A, bi, 3), _onehot_pick(P, bi, 3)
-    Aj, Qj = _onehot_pick(A, bj, 3), _onehot_pick(Q, bj, 3)
-    v = (Ai * Qj + Aj * Pi) / (Ai + Aj)
-    return best_s, v
-
-
-def closest_box(o, r, size, iters=16):
-    """Outside: the nearest edge (a line missing a convex polytope passes closest to one of its
-    edges), exact and differentiable in ``s`` too. Inside: the deepest point of the ray, exact
-    (``box_depth``)."""
-    s_out, d_out = _box_edges_closest(o, r, size)
-    s_in, d_in = box_depth(o, r, size)
-    inside = d_in < 0
-    return jnp.where(inside, s_in, s_out), jnp.where(inside, d_in, d_out)
 
 
 def closest_cylinder(o, r, size, iters=16):
@@ -507,7 +295,7 @@ def closest_cylinder(o, r, size, iters=16):
     q0s, q1s = sg(q0), sg(q1)
     inside = jnp.maximum(q0s, q1s) < 0
     kink = (d0 * d1 < 0) & (jnp.abs(q0s - q1s) <= (jnp.abs(d0) + jnp.abs(d1)) * width)
-    lam = sg(_safe_div(d1, d1 - d0))
+    lam = sg(safe_div(d1, d1 - d0))
     g = jnp.where(kink, lam * q0 + (1.0 - lam) * q1, jnp.where(q1s > q0s, q1, q0))
     # Outside (a ray that misses), ``s`` is also where the renderer puts the surface in depth:
     # its derivative by the implicit function theorem on ``f'(s) = 0`` (one Newton step whose
@@ -516,14 +304,14 @@ def closest_cylinder(o, r, size, iters=16):
     along = lambda t, o_, r_, size_: jax.jvp(
         lambda u: sdf_cylinder(o_ + u[..., None] * r_, size_), (t,), (ones,))[1]
     curve = jax.jvp(lambda t: along(t, sg(o), rs, sg(size)), (s,), (ones,))[1]
-    step = -along(s, o, r, size) / jnp.where(curve > _EPS, sg(curve), 1.0)
-    s_out = jnp.where(~inside & (curve > _EPS), s + step - sg(step), s)
+    step = -along(s, o, r, size) / jnp.where(curve > EPS, sg(curve), 1.0)
+    s_out = jnp.where(~inside & (curve > EPS), s + step - sg(step), s)
     return s_out, jnp.where(inside, sg(d) + g - sg(g), d)
 
 
 def closest_plane(o, r, size, iters=None):
     """Signed distance, within the plane, of the ray's crossing to the rectangle's border."""
-    s = _safe_div(-o[..., 2], r[..., 2])
+    s = safe_div(-o[..., 2], r[..., 2])
     p = o + s[..., None] * r
     front = (o[..., 2] > 0) & (r[..., 2] < 0)
     qx = jnp.abs(p[..., 0]) - size[..., 0]
@@ -624,20 +412,3 @@ PRIMITIVES = {
 }
 GEOM_NAMES = {0: "plane", 1: "hfield", 2: "sphere", 3: "capsule", 4: "ellipsoid",
               5: "cylinder", 6: "box", 7: "mesh", 8: "sdf"}
-
-
-# ------------------------------------------------------------------ triangle meshes (world frame)
-def hit_triangles(o, r, v0, v1, v2):
-    """Moller-Trumbore, double-sided: ``s`` of the ray hitting each triangle (``inf`` if none).
-    ``o`` (3,), ``r`` (..., 1, 3), triangles (T, 3) -> (..., T)."""
-    e1, e2 = v1 - v0, v2 - v0
-    pv = jnp.cross(r, e2)
-    det = dot(e1, pv)
-    inv = 1.0 / jnp.where(jnp.abs(det) > 1e-15, det, 1e-15)
-    tv = o - v0
-    u = dot(tv, pv) * inv
-    qv = jnp.cross(tv, e1)
-    v = dot(r, qv) * inv
-    s = dot(e2, qv) * inv
-    ok = (jnp.abs(det) > 1e-15) & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > 0)
-    return jnp.where(ok, s, INF)

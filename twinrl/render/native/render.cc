@@ -1,6 +1,6 @@
 // The renderer's image and its reverse pass, as XLA FFI custom calls on the CPU.
 //
-// The same arithmetic as twinrl/render/renderer.py's Renderer._render and primitives.py (read
+// The same arithmetic as twinrl/render/image.py's render_jax and primitives.py (read
 // those for the why of each step): rays from a pinhole camera, each drawn primitive's first hit
 // and (soft image) closest approach and normal in its local frame, per-pixel culling of crowded
 // types, the `layers` most covering surfaces, front-to-back compositing with a smooth depth
@@ -21,7 +21,7 @@
 // through the composite and the shading, and through each surface's geometry on forward-mode
 // Dual numbers of packets (the same templates, with JAX's own derivative rules where
 // primitives.py defines them: a search's result held constant, a cylinder's kinks). Forward
-// mode stays with the JAX version (renderer.py's custom JVP). Meshes are not drawn here (the
+// mode stays with the JAX version (batching.py's custom JVP). Meshes are not drawn here (the
 // Python side falls back to JAX).
 //
 // What it skips leaves the image as JAX draws it (renderer.negligible_coverage: a surface of
@@ -962,7 +962,7 @@ struct Scene {
   bool culled(int t, int n) const { return t != 0 && n > std::max(per_pixel, cull_above); }
 
   // The capsule culling bounds each geom of a crowded type by: a segment along its longest
-  // axis (half its half-length) and a radius (Renderer._choose)
+  // axis (half its half-length) and a radius (cast.choose)
   static void capsule(int t, const T* h, T& half, T& rad, int& col) {
     if (t == 2) {
       half = 0, rad = h[0], col = 2;
@@ -979,7 +979,7 @@ struct Scene {
     }
   }
 
-  // Renderer._choose: each lane's per_pixel best geoms among the candidates `cand` (renderer
+  // cast.choose: each lane's per_pixel best geoms among the candidates `cand` (renderer
   // indices, in their group's order: the geoms of one crowded type that a block's rays pass
   // near), as positions in cand (out; m = min(per_pixel, candidates) of them), and whether each
   // pick is near the lane's ray (near: through its capsule or within the soft band): a pick
@@ -1043,7 +1043,7 @@ struct Scene {
     if (spot) *spot = fall;
   }
 
-  // Renderer._unoccluded: 1 where the ray from p to the light meets no geom but the lane's
+  // shading.unoccluded: 1 where the ray from p to the light meets no geom but the lane's
   // `skip`. Every geom is tested (bounding spheres first; rb: the frame's bounding radii), where
   // JAX tests a culled type's `per_pixel` nearest: the same verdict wherever those include the
   // occluder.
@@ -1416,7 +1416,7 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, int6
     }
   }
 
-  // The surface slots some lane needs, in Renderer._render's order of groups: a slot no lane
+  // The surface slots some lane needs, in render_jax's order of groups: a slot no lane
   // needs adds nothing to the image and is left out.
   int S = 0;
   for (const auto& grp : sc.groups) {
@@ -1509,7 +1509,7 @@ void gather(const Scene<T>& sc, const T* cam, const T* geo, int i0, int j0, int6
     X.z[k] = zk;
     for (int q = 0; q < 3; ++q) X.p[3 * k + q] = O[q] + zk * r[q];
   }
-  // The `layers` most covering surfaces not hidden behind a solid one (Renderer._render's
+  // The `layers` most covering surfaces not hidden behind a solid one (render_jax's
   // top_k over all its slots, ties to the lower one; a surface of negligible coverage ranks
   // below every other), taken as every slot here in order with its coverage set to 0 in the
   // lanes whose choice leaves it out: a slot left out above, or a layer of coverage 0, adds
