@@ -130,7 +130,10 @@ def _scan_tree(tree: ast.AST, name: str | None, package: str) -> tuple[set[str],
             if _is_private(attr) and owner != name and f"{owner}.{attr}" not in MODULES:
                 private.append(f"{owner}.{attr}")
         elif (isinstance(node, ast.Constant) and isinstance(node.value, str)
-              and node.value in MODULES and node.value != "twinrl"):
+              and node.value in MODULES and node.value != "twinrl"
+              and not (name or "").startswith(node.value + ".")):
+            # a string naming a package that holds this module is a name (a format's, a
+            # logger's), not a lazy import of it: the module is already inside it
             deps.add(node.value)
     deps.discard(name)
     deps.discard(None)

@@ -17,9 +17,7 @@ from typing import Any
 
 import numpy as np
 
-# The format's name in meta.json: "twinrl.real.dataset". Spelled in parts because the structure
-# test reads a string naming a module exactly as an import of it (here, an import cycle).
-FORMAT = ".".join(("twinrl", "real", "dataset"))
+FORMAT = "twinrl.real.dataset"  # the format's name in meta.json
 VERSION = 1
 META_FILE = "meta.json"
 LOCK_FILE = ".lock"
