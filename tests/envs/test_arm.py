@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from twinrl import envs
-from twinrl.envs.arm import base as arm
+from twinrl.envs.arm import kinematics as arm
 from twinrl.real.perturbation import Perturbation
 from twinrl.real.twin import RealTwin
 
