@@ -290,7 +290,7 @@ class RealTwin(gym.Env):
         """Configure the arm's Cartesian controller with each servo's speed relative to the
         nominal arm's (``ArmTask.calibrate_controller``; None: uncalibrated), as a robot's
         Cartesian interface is configured: from the next step on, the targets it sets are
-        divided joint by joint. The identified twin's value (``System.objects["controller"]``);
+        divided joint by joint. The identified twin's value (``System.controller``);
         ``Deployer.run`` sets it from its task. The twin's true servos are untouched."""
         from twinrl.envs.arm.controller import check_joint_speed
 

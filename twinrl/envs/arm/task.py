@@ -1,9 +1,9 @@
-"""The arm tasks' ``Env``: ``ArmTask`` (the arm of ``panda.xml`` with a task's tool, scene, Cartesian
-controller and camera mount), its ``ArmConfig``, and what the arm tasks' real twins perturb
-(``ARM_PERTURBATIONS``). The task takes an identified ``System`` (the mount's hand-eye offset, the
-tool's grasp, the servos' speeds), drives the arm through its controller, offers initial guesses
-for trajectory optimisation and a gradient-check scenario through tool contact; its image side is
-``perception.ArmPerception``."""
+"""The arm tasks' ``Env``: ``ArmTask`` (the arm of ``panda.xml`` with a task's tool, scene,
+Cartesian controller and camera mount), its ``ArmConfig``, and what the arm tasks' real twins
+perturb (``ARM_PERTURBATIONS``). A task is built from an identified ``System`` (``with_system``:
+the mount's hand-eye offset, the tool's grasp, the servos' speeds), drives the arm through its
+controller, offers initial guesses for trajectory optimisation and a gradient-check scenario
+through tool contact; its image side is ``perception.ArmPerception``."""
 
 from __future__ import annotations
 
@@ -77,25 +77,57 @@ class ArmTask(ArmPerception, Env):
 
     @property
     def sys(self):
-        """As ``Env.sys``; a ``System`` with a ``"mount"`` camera (Real2Sim's fit of frames taken
-        with the mount at its default pose) also sets the mount's hand-eye offset
-        (``CameraMount.with_hand_eye``), so every render and back-projection of this task uses the
-        identified camera."""
+        """As ``Env.sys``. Setting it also changes this task in place by what the system says of
+        the robot, and keeps what an earlier system set where this one says nothing: deprecated
+        for that use -- ``with_system`` returns a new task built from the system alone. (Brax's
+        domain randomisation sets it with traced systems: only their parameters apply.)"""
         return self._sys
 
     @sys.setter
     def sys(self, value) -> None:
         Env.sys.fset(self, value)
-        cam = (getattr(value, "cameras", None) or {}).get("mount")
-        if cam is not None and not isinstance(cam.pos, jax.core.Tracer):
+        self._apply_system(value, reset=False)
+
+    def with_system(self, system) -> "ArmTask":
+        """A copy of this task as ``system`` describes it; this task is untouched. Besides the
+        parameters (``Env.with_system``): a ``"mount"`` camera in ``system.cameras`` (Real2Sim's
+        fit of frames taken with the mount at its default pose) sets the mount's hand-eye offset
+        (``CameraMount.with_hand_eye``), so every render and back-projection uses the identified
+        camera; ``system.tool`` holds the tool at the identified grasp (``set_grasp``);
+        ``system.controller`` calibrates the controller to the identified servos
+        (``calibrate_controller``). What the system leaves out is the task's nominal one (the
+        class's mount, the MJCF's grasp, the nominal controller), whatever this task had: e.g.
+        ``task.with_system(system.replace(controller=None))`` is the task with the nominal
+        controller."""
+        out = super().with_system(system)
+        out._apply_system(system, reset=True)
+        return out
+
+    def _apply_system(self, system, reset: bool) -> None:
+        """Set the mount's hand-eye offset, the tool's grasp and the controller's calibration from
+        ``system``; values it holds as tracers are not applied (inside a trace there is nothing to
+        set). ``reset``: what the system leaves out goes back to the task's nominal."""
+        def concrete(x) -> bool:
+            return not isinstance(x, jax.core.Tracer)
+
+        cam = (getattr(system, "cameras", None) or {}).get("mount")
+        if cam is None:
+            if reset:
+                self.mount = type(self).mount
+        elif concrete(cam.pos):
             self.mount = type(self).mount.with_hand_eye(cam)
-        objects = getattr(value, "objects", None) or {}
-        tool = objects.get("tool")
-        if tool is not None and not isinstance(tool["pos_offset"], jax.core.Tracer):
-            self.set_grasp(tool["pos_offset"], tool["rot_offset"])
-        speed = (objects.get("controller") or {}).get("joint_speed")
-        if speed is not None and not isinstance(speed, jax.core.Tracer):
-            self.calibrate_controller(speed)
+        tool = getattr(system, "tool", None)
+        if tool is None:
+            if reset:
+                self.clear_grasp()
+        elif concrete(tool.pos_offset):
+            self.set_grasp(tool.pos_offset, tool.rot_offset)
+        calibration = getattr(system, "controller", None)
+        if calibration is None:
+            if reset and self.controller.joint_speed is not None:
+                self.calibrate_controller(None)
+        elif concrete(calibration.joint_speed):
+            self.calibrate_controller(calibration.joint_speed)
 
     def servo_speed(self, params) -> np.ndarray:
         """How fast each of the arm's 7 servos moves its joint towards a target step, relative
@@ -120,7 +152,7 @@ class ArmTask(ArmPerception, Env):
         its speed (``CartesianController.joint_speed``), so the tool moves where it is commanded
         on an arm whose servos differ from the MJCF's. The real twin's controller takes the same
         calibration (``RealTwin.calibrate_controller``), as a robot's Cartesian interface is
-        configured; ``System.objects["controller"]["joint_speed"]`` carries it."""
+        configured; ``System.controller`` carries it."""
         self.controller = dataclasses.replace(self.controller,
                                               joint_speed=check_joint_speed(joint_speed))
 
@@ -133,7 +165,7 @@ class ArmTask(ArmPerception, Env):
         """Hold the tool ``pos_offset`` (m, the hand's frame) from where the MJCF puts it, turned
         by ``rot_offset`` (axis-angle, rad, in the tool's frame) -- ``Perturbation``'s
         ``tool_pos_offset`` / ``tool_rot_offset``, as ``visual.fit_body_offset`` identifies them
-        from images (``System.objects["tool"]``). The simulator's ``tool`` body moves (its
+        from images (``System.tool``). The simulator's ``tool`` body moves (its
         contacts, its renders) and so does every tool point the task judges (``tool_pose``: the
         reward, success, the image observation's "tool"); the controller still servos the
         *nominal* tool centre point, as the robot's Cartesian interface does, and ``observe``
@@ -150,6 +182,9 @@ class ArmTask(ArmPerception, Env):
         rot = np.asarray(rot_offset, np.float64).reshape(3)
         if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(rot))):
             raise ValueError(f"set_grasp: non-finite grasp offset {pos}, {rot}")
+        held = self.__dict__.get("_grasp_offsets")
+        if held is not None and np.array_equal(held[0], pos) and np.array_equal(held[1], rot):
+            return  # held so already: the simulator is not rebuilt
         nominal = self.__dict__.setdefault("_nominal_sim", self.sim)
         model = copy.deepcopy(nominal.mj_model)
         tool = model.body("tool").id
@@ -167,7 +202,17 @@ class ArmTask(ArmPerception, Env):
             getattr(model, k)[:] = v
         self.sim = nominal.recompiled(model)
         self.grasp = (pos, np.asarray(quat_to_mat(turn), np.float64))
+        self._grasp_offsets = (pos, rot)
         self.__dict__.pop("renderer", None)
+
+    def clear_grasp(self) -> None:
+        """Hold the tool where the MJCF puts it (undo ``set_grasp``)."""
+        nominal = self.__dict__.pop("_nominal_sim", None)
+        if nominal is not None:
+            self.sim = nominal
+            self.__dict__.pop("renderer", None)
+        self.grasp = None
+        self._grasp_offsets = None
 
     def set_posture(self, q_start) -> None:
         """Hold the controller's null space at ``q_start`` (the task's start posture)."""
