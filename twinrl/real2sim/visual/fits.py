@@ -19,13 +19,15 @@ from twinrl.real2sim.visual.config import VisualConfig
 from twinrl.real2sim.visual.frames import (coarse_frames, nominal_geoms, object_windows,
                                            stack_frames)
 from twinrl.real2sim.visual.losses import (focus_rays, frame_loss, free_space_residuals,
-                                           huber_residual, lowest_z, pixel_subset,
-                                           silhouette_residuals, surface_residuals)
+                                           lowest_z, pixel_subset, silhouette_residuals,
+                                           surface_residuals)
 from twinrl.real2sim.visual.solvers import adam_restarts, levenberg_marquardt
 from twinrl.render import Camera, Geoms, Renderer, rotvec_to_quat
 from twinrl.render.camera import quat_mul, quat_to_mat
+from twinrl.render.pointcloud import huber_residual
 
 
+# ---------------------------------------------------------------------- camera (a)
 def _apply_camera(cam0: Camera, p, local: bool = False) -> Camera:
     """``cam0`` turned by ``p["cam_drot"]`` (in its own frame) and moved by ``p["cam_dpos"]``: in
     the world frame, or with ``local`` in ``cam0``'s own frame (a hand-eye offset)."""
@@ -111,6 +113,7 @@ def fit_camera(model: mujoco.MjModel, frames, cam0: Camera, cfg: VisualConfig = 
                     "rot_offset": np.asarray(p["cam_drot"]), "refine": refine}
 
 
+# ---------------------------------------------------------------------- object (b)
 def geom_id(model: mujoco.MjModel, geom: str | int) -> int:
     """The id of ``geom`` (a name or an id), checked against ``model``."""
     if isinstance(geom, str):
@@ -227,6 +230,7 @@ def fit_object(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
             "refine": refine}
 
 
+# ---------------------------------------------------------------------- a body in its parent (d)
 def body_geoms(model: mujoco.MjModel, body: str | int) -> list[int]:
     """Ids of the geoms of ``body`` and of the bodies under it."""
     bid = model.body(body).id
@@ -362,6 +366,7 @@ def fit_body_offset(model: mujoco.MjModel, frames, camera: Camera, body: str | i
             "runs": runs, "refine": refine}
 
 
+# ---------------------------------------------------------------------- mesh (c)
 def fit_mesh(model: mujoco.MjModel, frames, camera: Camera, geom: str | int,
              cfg: VisualConfig = VisualConfig(), seed: int = 0,
              renderer: Renderer | None = None):
