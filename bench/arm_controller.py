@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl import envs
-from twinrl.envs.arm.base import N_JOINTS
+from twinrl.envs.arm.kinematics import N_JOINTS
 from twinrl.report import print_table, run_meta, write_json
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from twinrl import envs
-from twinrl.envs.arm import base as arm
+from twinrl.envs.arm import kinematics as arm
 from twinrl.real.perturbation import Perturbation
 from twinrl.real.twin import RealTwin
 
@@ -583,7 +583,7 @@ def test_tool_geoms_are_the_tools_and_nothing_else():
 
 
 def test_set_grasp_moves_the_tool_as_the_real_twins_perturbation_does():
-    # The identified grasp (System.objects["tool"]) moves the simulator's tool body exactly as
+    # The identified grasp (System.tool) moves the simulator's tool body exactly as
     # the real twin's hidden Perturbation moves its own, and tool_pose (reward, success, the
     # image observation's "tool") is the controller's tool centre point carried by that body.
     import copy
@@ -722,3 +722,39 @@ def test_a_systems_controller_calibration_configures_the_task(tmp_path):
     step = env.controller(q, a) - q
     plain = envs.make("spatula_flipping").controller(q, a) - q
     np.testing.assert_allclose(step * speed, plain, rtol=1e-4, atol=1e-7)
+
+
+def test_with_system_builds_a_new_task_from_the_system_alone():
+    """``ArmTask.with_system``: a copy as the system describes it (the tool's grasp, the
+    controller's calibration, the mount's hand-eye offset), the task it is called on untouched;
+    what the system leaves out is the task's nominal one, so ``with_system(system.replace(
+    controller=None))`` is the twin with the nominal controller. The ``sys`` setter still applies
+    a system in place."""
+    from twinrl.envs.system import System
+
+    nominal = System.nominal("peg_insertion")
+    speed = np.array([1.0, 0.9, 1.1, 1.3, 1.0, 0.95, 0.8])
+    system = nominal.replace(objects={
+        "tool": {"pos_offset": np.array([0.004, -0.003, 0.003]),
+                 "rot_offset": np.array([-0.05, 0.06, 0.0])},
+        "controller": {"joint_speed": speed}})
+    task = envs.make("peg_insertion")
+    calibrated = task.with_system(system)
+    assert task.sys is None and task.grasp is None and task.controller.joint_speed is None
+    assert calibrated.sys is system and calibrated.controller.joint_speed == tuple(speed)
+    q = jnp.asarray(np.r_[task._q_start, np.zeros(task.sim.nq - 7)], jnp.float32)
+    moved = np.linalg.norm(np.asarray(calibrated.tool_point(q) - task.tool_point(q)))
+    assert calibrated.grasp is not None and moved > 1e-3
+    plain = calibrated.with_system(system.replace(controller=None))
+    assert plain.controller.joint_speed is None and calibrated.controller.joint_speed is not None
+    assert plain.sim is calibrated.sim  # the same grasp: the simulator is not rebuilt
+    back = calibrated.with_system(nominal)
+    assert back.grasp is None and back.controller.joint_speed is None
+    np.testing.assert_array_equal(np.asarray(back.tool_point(q)), np.asarray(task.tool_point(q)))
+    camera = task.mount.camera(jnp.asarray([0.3, -0.2, 0.1]))
+    mounted = task.with_system(nominal.replace(cameras={"mount": camera}))
+    assert any(mounted.mount.pos_offset) and task.mount == type(task).mount
+    assert mounted.with_system(nominal).mount == type(task).mount
+    legacy = envs.make("peg_insertion")
+    legacy.sys = system
+    assert legacy.grasp is not None and legacy.controller.joint_speed == tuple(speed)

@@ -164,3 +164,53 @@ def test_brax_ppo_trains_on_the_delayed_env_unmodified():
     assert len(metrics["return"]) == 2 and np.all(np.isfinite(metrics["return"]))
     a = policy.apply(params, jnp.zeros(env.observation_size))
     assert a.shape == (1,) and bool(jnp.all(jnp.abs(a) <= 1))
+
+
+def test_tool_and_controller_are_typed_and_keep_the_files_layout():
+    # The tool's grasp and the controller's calibration are typed records on a System; on disk
+    # they stay the "objects" entries files have always had, and a System built with such entries
+    # (an older file, or objects=...) reads them as the records.
+    from twinrl.envs.system import ControllerCalibration, ToolGrasp
+
+    nom = System.nominal(TASK)
+    grasp = ToolGrasp(pos_offset=np.array([0.004, -1 / 3, np.pi]), rot_offset=[0.1, 0.0, -0.2])
+    calibration = ControllerCalibration(joint_speed=np.array([1.1, 1 / 7]))
+    s = nom.replace(tool=grasp, controller=calibration,
+                    objects={"ball": {"pos": np.array([0.1, 0.2, 0.3])}})
+    doc = json.loads(json.dumps(s.to_json()))
+    assert sorted(doc["objects"]) == ["ball", "controller", "tool"]
+    assert doc["objects"]["tool"] == {"pos_offset": [0.004, -1 / 3, np.pi],
+                                      "rot_offset": [0.1, 0.0, -0.2]}
+    assert doc["objects"]["controller"] == {"joint_speed": [1.1, 1 / 7]}
+    back = System.from_json(doc)
+    assert isinstance(back.tool, ToolGrasp) and isinstance(back.controller, ControllerCalibration)
+    assert sorted(back.objects) == ["ball"]
+    _leaves_equal(s, back)
+    assert back.to_json() == s.to_json()
+    legacy = nom.replace(objects={"tool": {"pos_offset": [0.004, -1 / 3, np.pi],
+                                           "rot_offset": [0.1, 0.0, -0.2]}})
+    assert legacy.objects is None and isinstance(legacy.tool, ToolGrasp)
+    _leaves_equal(legacy.tool, grasp)
+    assert legacy.to_json()["objects"] == {"tool": doc["objects"]["tool"]}
+    assert nom.to_json()["objects"] is None
+    out = jax.jit(lambda s: jax.tree.map(lambda x: 2 * x, s))(s)  # the records are pytree nodes
+    assert isinstance(out.tool, ToolGrasp)
+    np.testing.assert_allclose(out.controller.joint_speed, 2 * calibration.joint_speed, rtol=1e-6)
+    with pytest.raises(ValueError, match="tool given twice"):
+        s.replace(objects={"tool": doc["objects"]["tool"]})
+    with pytest.raises(ValueError, match="ToolGrasp.pos_offset must be 3 numbers"):
+        ToolGrasp([0.0, 0.0], [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="rot_offset"):
+        nom.replace(tool={"pos_offset": [0.0, 0.0, 0.0]})
+
+
+def test_with_system_returns_a_new_task(identified):
+    bare = envs.make(TASK)
+    new = bare.with_system(identified)
+    assert new is not bare and new.sys is identified and bare.sys is None and bare.params is None
+    np.testing.assert_array_equal(new.params.mass, identified.params.mass)
+    delayed = envs.make(TASK, system=identified)
+    again = delayed.with_system(identified.replace(latency=1))
+    assert isinstance(again, LatencyWrapper) and again.latency == 1 and delayed.latency == 2
+    assert again.env is not delayed.env and delayed.env.sys is identified
+    assert not isinstance(delayed.with_system(identified.replace(latency=0)), LatencyWrapper)

@@ -263,15 +263,16 @@ def test_refinement_from_several_starts_keeps_the_lowest_cost():
     # where the residuals are not finite (x > 5) is skipped, not fatal.
     import jax.numpy as jnp
 
+    from twinrl.real2sim.visual.solvers import levenberg_marquardt
+
     def res(p):
         x = p["x"][0]
         return jnp.stack([x * x - 1.0, 0.3 * (x - 1.0), jnp.where(x > 5.0, jnp.nan, 0.0)])
 
     p0 = {"x": jnp.array([-1.2])}
-    local, info = V._levenberg_marquardt(res, p0, ("x",), 30)
+    local, info = levenberg_marquardt(res, p0, ("x",), 30)
     assert float(local["x"][0]) < -0.9 and info["cost_after"] > 0.1 and "start" not in info
-    best, info = V._levenberg_marquardt(res, p0, ("x",), 30,
-                                        starts=[{"x": jnp.array([0.8])},
-                                                {"x": jnp.array([6.0])}])
+    best, info = levenberg_marquardt(res, p0, ("x",), 30,
+                                     starts=[{"x": jnp.array([0.8])}, {"x": jnp.array([6.0])}])
     assert abs(float(best["x"][0]) - 1.0) < 1e-6 and info["cost_after"] < 1e-12
     assert info["start"] == 1 and info["costs"][0] > 0.1 and info["costs"][2] is None

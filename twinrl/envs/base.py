@@ -22,6 +22,7 @@ from __future__ import annotations
 import abc
 import copy
 import dataclasses
+import types
 from typing import ClassVar, Mapping
 
 import jax
@@ -239,6 +240,19 @@ class Env(brax_base.Env):
         self._sys = value
         if value is not None:
             self.params = value.params
+
+    def with_system(self, system) -> "Env":
+        """A copy of this task that simulates ``system`` (a ``twinrl.envs.system.System``): its
+        ``sys`` and ``params`` are the system's; this task is untouched. The system's action
+        latency is the ``LatencyWrapper``'s (``envs.make``, ``LatencyWrapper.with_system``), not
+        the task's. Tasks that take more from a system extend it (the arm tasks: the camera's
+        hand-eye offset, the tool's grasp, the controller's calibration)."""
+        out = copy.copy(self)
+        for k, v in list(vars(out).items()):  # hooks bound in __init__ (observe): to the copy
+            if isinstance(v, types.MethodType) and v.__self__ is self:
+                setattr(out, k, types.MethodType(v.__func__, out))
+        Env.sys.fset(out, system)
+        return out
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, config={self.config!r})"

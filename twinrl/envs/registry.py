@@ -79,6 +79,6 @@ def make(name: str, *, params: PhysParams | None = None, system: Any = None,
     if system.task is not None and system.task != name:
         raise ValueError(f"system was identified for task {system.task!r}, not {name!r}")
     env = e.env_class(replace_config(e.config(), **overrides), params=system.params, name=name)
-    env.sys = system
+    env = env.with_system(system)
     return LatencyWrapper(env, system.latency) if system.latency else env
 

@@ -7,9 +7,16 @@ A ``System`` holds what Real2Sim identifies about the real robot and scene:
 - ``latency``: the action latency in control steps (static: it sets the shape of the action
   queue), applied by ``twinrl.envs.wrappers.LatencyWrapper``;
 - ``cameras``: named ``twinrl.render.Camera`` poses and intrinsics (optional; visual Real2Sim);
-- ``objects``: per object name, its pose/size/colour arrays (optional; visual Real2Sim); the arm
-  tasks read ``objects["tool"]`` (``pos_offset``, ``rot_offset``: the tool's grasp in the hand,
-  ``visual.fit_body_offset``'s) and move their tool there (``ArmTask.set_grasp``).
+- ``objects``: per object name, its pose/size/colour arrays (optional; visual Real2Sim);
+- ``tool``: the tool's grasp in the hand (``ToolGrasp``: ``pos_offset``, ``rot_offset``,
+  ``visual.fit_body_offset``'s; optional), where the arm tasks move their tool
+  (``ArmTask.with_system``);
+- ``controller``: the Cartesian controller's calibration (``ControllerCalibration``:
+  ``joint_speed``, ``ArmTask.servo_speed`` of the identified parameters; optional).
+
+On disk the tool's grasp and the controller's calibration are the ``objects`` entries ``"tool"``
+and ``"controller"`` (the layout files have always had), and a ``System`` built with such entries
+in ``objects`` takes them as its typed ``tool`` / ``controller``.
 
 ``envs.make(name, system=...)`` builds the simulated task from it, ``to_json``/``from_json`` write
 and read it exactly (float64 values survive the round trip bit for bit), and every policy
@@ -34,7 +41,8 @@ from twinrl.physics.sim import load_mjcf
 from twinrl.render import Camera
 from twinrl.render.camera import mat_to_quat
 
-__all__ = ["System", "SystemFormatError", "randomization_fn", "system_of", "FORMAT", "FILENAME"]
+__all__ = ["System", "SystemFormatError", "ToolGrasp", "ControllerCalibration", "randomization_fn",
+           "system_of", "FORMAT", "FILENAME"]
 
 FORMAT = "twinrl-system-1"
 FILENAME = "system.json"
@@ -43,6 +51,53 @@ FILENAME = "system.json"
 
 class SystemFormatError(ValueError):
     """A ``System`` document that cannot be read (format, missing field, wrong type)."""
+
+
+def _field(record: str, name: str, value, width: int | None):
+    """``value`` as float64 NumPy (a JAX array, or a tracer, kept as it is: a system inside a
+    trace or a batch), its last axis ``width`` long when given."""
+    if not isinstance(value, jax.Array):
+        value = np.asarray(value, np.float64)
+    shape = np.shape(value)
+    if len(shape) == 0 or (width is not None and shape[-1] != width):
+        want = f"{width} numbers" if width is not None else "a vector"
+        raise ValueError(f"{record}.{name} must be {want} (a leading batch axis allowed), got "
+                         f"shape {shape}")
+    return value
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ToolGrasp:
+    """The tool's grasp in the hand, as identified (``visual.fit_body_offset`` of body ``tool``):
+    how far the tool sits from where the MJCF puts it. ``Perturbation``'s ``tool_pos_offset`` /
+    ``tool_rot_offset``; ``ArmTask.set_grasp`` moves the simulator's tool by it."""
+
+    pos_offset: Any
+    """Offset (m, (3,)) of the tool from its nominal position, in the hand's frame."""
+    rot_offset: Any
+    """Turn (axis-angle, rad, (3,)) of the tool from its nominal orientation, in its own frame."""
+
+    def __post_init__(self):
+        for f in ("pos_offset", "rot_offset"):
+            object.__setattr__(self, f, _field("ToolGrasp", f, getattr(self, f), 3))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ControllerCalibration:
+    """The Cartesian controller's calibration to the identified servos
+    (``ArmTask.calibrate_controller``, ``RealTwin.calibrate_controller``)."""
+
+    joint_speed: Any
+    """Per joint, how fast its servo closes a step of its target relative to the nominal arm's
+    (``ArmTask.servo_speed`` of the identified parameters; ``CartesianController.joint_speed``)."""
+
+    def __post_init__(self):
+        object.__setattr__(self, "joint_speed",
+                           _field("ControllerCalibration", "joint_speed", self.joint_speed, None))
+
+
+_RECORDS = {"tool": ToolGrasp, "controller": ControllerCalibration}
+"""The typed fields of a ``System`` and their record types; on disk, ``objects`` entries."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -59,9 +114,14 @@ class System:
     cameras: Mapping[str, Camera] | None = None
     """Named cameras (pose + intrinsics), or None when not identified."""
     objects: Mapping[str, Mapping[str, jax.Array]] | None = None
-    """Per object name, named arrays (e.g. ``pos``, ``quat``, ``size``, ``rgba``), or None. The
-    arm tasks read ``"tool"`` (its grasp: ``pos_offset``, ``rot_offset``) and ``"controller"``
-    (``joint_speed``: the Cartesian controller's calibration, ``ArmTask.calibrate_controller``)."""
+    """Per object name, named arrays (e.g. ``pos``, ``quat``, ``size``, ``rgba``), or None.
+    Entries ``"tool"`` and ``"controller"`` given here become ``tool`` and ``controller``."""
+    tool: ToolGrasp | None = None
+    """The tool's grasp in the hand (a ``ToolGrasp``, or a mapping of its fields), or None: the
+    grasp the MJCF writes."""
+    controller: ControllerCalibration | None = None
+    """The Cartesian controller's calibration (a ``ControllerCalibration``, or a mapping of its
+    fields), or None: the nominal controller."""
 
     def __post_init__(self):
         if not isinstance(self.params, PhysParams):
@@ -79,9 +139,28 @@ class System:
                     raise TypeError(f"System.cameras[{k!r}] must be a render.Camera, got "
                                     f"{type(c).__name__}")
             object.__setattr__(self, "cameras", dict(self.cameras))
-        if self.objects is not None:
-            object.__setattr__(self, "objects",
-                               {str(k): dict(v) for k, v in self.objects.items()})
+        objects = None if self.objects is None else {str(k): dict(v)
+                                                     for k, v in self.objects.items()}
+        for name, record in _RECORDS.items():
+            value = getattr(self, name)
+            if objects is not None and name in objects:
+                if value is not None:
+                    raise ValueError(f"System: {name} given twice, as System.{name} and as "
+                                     f"objects[{name!r}]")
+                value = objects.pop(name)
+                if not objects:  # only typed entries: no objects of its own
+                    objects = None
+            if value is not None and not isinstance(value, record):
+                if not isinstance(value, Mapping):
+                    raise TypeError(f"System.{name} must be a {record.__name__} or a mapping of "
+                                    f"its fields, got {type(value).__name__}")
+                fields = {f.name for f in dataclasses.fields(record)}
+                if set(value) != fields:
+                    raise ValueError(f"System.{name} needs the fields {sorted(fields)}, got "
+                                     f"{sorted(value)}")
+                value = record(**value)
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "objects", objects)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -119,13 +198,23 @@ class System:
                     "width": int(c.width), "height": int(c.height),
                     "principal": None if c.principal is None else _list(c.principal)}
                 for k, c in self.cameras.items()},
-            "objects": None if self.objects is None else {
-                k: {f: _list(v) for f, v in o.items()} for k, o in self.objects.items()},
+            "objects": None if self._stored_objects() is None else {
+                k: {f: _list(v) for f, v in o.items()} for k, o in self._stored_objects().items()},
         }
+
+    def _stored_objects(self) -> dict[str, Mapping[str, Any]] | None:
+        """``objects`` as the document stores it: with the typed records' entries."""
+        typed = {name: {f.name: getattr(getattr(self, name), f.name)
+                        for f in dataclasses.fields(record)}
+                 for name, record in _RECORDS.items() if getattr(self, name) is not None}
+        if self.objects is None and not typed:
+            return None
+        return {**(self.objects or {}), **typed}
 
     @classmethod
     def from_json(cls, doc: Mapping[str, Any]) -> "System":
-        """The ``System`` of a ``to_json`` dict (arrays as float64 NumPy)."""
+        """The ``System`` of a ``to_json`` dict (arrays as float64 NumPy); the ``objects``
+        entries ``"tool"`` and ``"controller"`` become ``tool`` and ``controller``."""
         if not isinstance(doc, Mapping):
             raise SystemFormatError(f"a System document must be a JSON object, got {type(doc).__name__}")
         if doc.get("format") != FORMAT:
@@ -172,7 +261,7 @@ class System:
 
 
 # -------------------------------------------------------------------------------- pytree
-_DATA = ("params", "cameras", "objects")
+_DATA = ("params", "cameras", "objects", "tool", "controller")
 
 
 def _flatten(s: System):
@@ -191,6 +280,27 @@ def _unflatten(aux, leaves) -> System:
 
 
 jax.tree_util.register_pytree_with_keys(System, _flatten, _unflatten)
+
+
+def _register_record(cls) -> None:
+    """``cls`` (a record of arrays) as a pytree whose leaves are its fields; unflattening does not
+    validate (trees of gradients, tangents or batched tracers)."""
+    names = tuple(f.name for f in dataclasses.fields(cls))
+
+    def flatten(r):
+        return [(jax.tree_util.GetAttrKey(k), getattr(r, k)) for k in names], None
+
+    def unflatten(_, leaves):
+        r = object.__new__(cls)
+        for k, v in zip(names, leaves):
+            object.__setattr__(r, k, v)
+        return r
+
+    jax.tree_util.register_pytree_with_keys(cls, flatten, unflatten)
+
+
+for _record in _RECORDS.values():
+    _register_record(_record)
 
 
 # -------------------------------------------------------------------------------- helpers

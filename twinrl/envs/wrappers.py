@@ -62,6 +62,13 @@ class LatencyWrapper(brax_base.Wrapper):
     def sys(self, value):
         self.env.sys = value
 
+    def with_system(self, system):
+        """The wrapped task built from ``system`` (``Env.with_system``), delayed by the system's
+        latency (not wrapped at latency 0), as ``envs.make(name, system=system)`` builds it; this
+        wrapper and its task are untouched."""
+        env = self.env.with_system(system)
+        return LatencyWrapper(env, system.latency) if system.latency else env
+
     def reset(self, rng: jax.Array) -> State:
         state = self.env.reset(rng)
         info = dict(state.info)

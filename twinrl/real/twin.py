@@ -290,9 +290,9 @@ class RealTwin(gym.Env):
         """Configure the arm's Cartesian controller with each servo's speed relative to the
         nominal arm's (``ArmTask.calibrate_controller``; None: uncalibrated), as a robot's
         Cartesian interface is configured: from the next step on, the targets it sets are
-        divided joint by joint. The identified twin's value (``System.objects["controller"]``);
+        divided joint by joint. The identified twin's value (``System.controller``);
         ``Deployer.run`` sets it from its task. The twin's true servos are untouched."""
-        from twinrl.envs.arm.base import check_joint_speed
+        from twinrl.envs.arm.controller import check_joint_speed
 
         if getattr(self.task, "controller", None) is None:
             if joint_speed is None:
@@ -348,7 +348,7 @@ class RealTwin(gym.Env):
         tool = self._tool_body
         if tool < 0 or not hasattr(task, "controller"):
             return float(self._success(q, v))
-        from twinrl.envs.arm.base import forward_kinematics
+        from twinrl.envs.arm.kinematics import forward_kinematics
 
         frames = []
         for model, d in ((self.task.sim.mj_model, self._scratch[0]), (self._model,

@@ -55,8 +55,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.envs.arm.base import (ARM_PERTURBATIONS, ArmConfig, ArmTask, CameraMount,
-                                  CartesianController, ik, solve_ik)
+from twinrl.envs.arm.controller import CartesianController
+from twinrl.envs.arm.kinematics import ik, solve_ik
+from twinrl.envs.arm.mount import CameraMount
+from twinrl.envs.arm.task import ARM_PERTURBATIONS, ArmConfig, ArmTask
 from twinrl.envs.base import small_control, tolerance
 
 __all__ = ["SpatulaFlipping", "SpatulaFlippingConfig"]
