@@ -128,5 +128,3 @@ def cmd(args) -> int:
                          float(np.max(returns))]])
     report.write_json(args.out / "summary.json", summary)
     return 0
-
-

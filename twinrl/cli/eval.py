@@ -36,5 +36,3 @@ def cmd(args) -> int:
     eval_run(args.checkpoint, args.out, real=args.real, episodes=args.episodes, seed=args.seed,
              video=not args.no_video, size=tuple(args.size))
     return 0
-
-

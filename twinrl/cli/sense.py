@@ -50,5 +50,3 @@ def cmd(args) -> int:
                          s["q_chosen"], s["target_pixels_160"]["chosen"]]])
     print(f"wrote {s['files']['plot']} (mount moves {s['steps_to_move']} steps)")
     return 0
-
-

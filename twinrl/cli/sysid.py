@@ -87,26 +87,7 @@ def cmd(args) -> int:
     if args.twin_seed is not None and not args.visual:
         raise UsageError("--twin-seed evaluates a visual fit: use it with --visual")
     if args.visual:
-        from twinrl.real2sim.visual import visual_sysid
-
-        if not data.images:
-            raise UsageError(f"--from {source} holds no images: record with "
-                             f"`twinrl collect --images`")
-        summary = visual_sysid(args.env, data, args.out, seed=args.seed, n_frames=args.frames)
-        if args.twin_seed is not None:
-            from twinrl.eval import visual_errors
-            from twinrl.real.remote import secret_file
-
-            # `twinrl collect` keeps the twin's secret beside the dataset (evaluation only)
-            secret = secret_file(source.parent, args.env, args.twin_seed)
-            summary["evaluation"] = {"twin_seed": args.twin_seed, **visual_errors(
-                args.env, args.twin_seed, summary, secret if secret.exists() else None)}
-            report.print_table(f"evaluation only: errors against real twin seed {args.twin_seed}",
-                               ["error", "value"],
-                               [[k, v] for k, v in summary["evaluation"].items()
-                                if k != "twin_seed"])
-            report.write_json(args.out / "summary.json", summary)
-        return 0
+        return _sysid_visual(args, data, source)
     recorded = (data.meta.get("metadata") or {}).get("observation", "task")
     env = envs.make(args.env, **({"observation": "state"} if recorded == "state" else {}))
     if not env.observes_state:
@@ -114,6 +95,33 @@ def cmd(args) -> int:
                          f"state, so sysid cannot start a simulated window from it; record full "
                          f"states: twinrl collect --env {args.env} --observation state ...")
     _fit_and_report(args, env, data, len(data), source)
+    return 0
+
+
+def _sysid_visual(args, data, source) -> int:
+    """``twinrl sysid --visual``: the camera and the task's object fitted to the dataset's images
+    (``twinrl.real2sim.visual``); with ``--twin-seed``, their errors against the real twin's
+    hidden ones (evaluation only)."""
+    from twinrl import report
+    from twinrl.real2sim.visual import visual_sysid
+
+    if not data.images:
+        raise UsageError(f"--from {source} holds no images: record with "
+                         f"`twinrl collect --images`")
+    summary = visual_sysid(args.env, data, args.out, seed=args.seed, n_frames=args.frames)
+    if args.twin_seed is not None:
+        from twinrl.eval import visual_errors
+        from twinrl.real.remote import secret_file
+
+        # `twinrl collect` keeps the twin's secret beside the dataset (evaluation only)
+        secret = secret_file(source.parent, args.env, args.twin_seed)
+        summary["evaluation"] = {"twin_seed": args.twin_seed, **visual_errors(
+            args.env, args.twin_seed, summary, secret if secret.exists() else None)}
+        report.print_table(f"evaluation only: errors against real twin seed {args.twin_seed}",
+                           ["error", "value"],
+                           [[k, v] for k, v in summary["evaluation"].items()
+                            if k != "twin_seed"])
+        report.write_json(args.out / "summary.json", summary)
     return 0
 
 

@@ -101,5 +101,3 @@ def cmd(args) -> int:
                        [[s["epochs"], f.get("env_steps"), f.get("return"), s["best_return"],
                          f.get("wall_s")]])
     return 0
-
-
