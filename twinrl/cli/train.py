@@ -49,7 +49,7 @@ def add_parser(sub) -> None:
     p.set_defaults(func=cmd)
 
 
-def mjcf_task(args):
+def _mjcf_task(args):
     """``twinrl train --env FILE.xml --reward ...``'s task and its spec (``envs.mjcf``), or
     (None, None) for a registered task name (where the MJCF options are refused)."""
     from twinrl import envs
@@ -87,7 +87,7 @@ def cmd(args) -> int:
     from twinrl import report
     from twinrl.learn.runner import parse_overrides, train_run
 
-    env, spec = mjcf_task(args)
+    env, spec = _mjcf_task(args)
     if env is None:
         check_task(args.env)
     at_least_one(args, "epochs", "steps")
