@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from twinrl.physics import SCENES, Sim
-from twinrl.physics.gradcheck import classify, gradcheck
+from twinrl.physics.gradcheck import classify, combine_summaries, gradcheck
 from twinrl.physics.integrator import tangent_delta, tangent_qpos
 
 # Shorter than `twinrl gradcheck`'s defaults (100; 50 for peg_in_hole) to keep the suite fast, but
@@ -121,3 +121,15 @@ def test_gravity_cancelled_by_gravcomp_is_numerically_inert_and_entries_subset(x
     assert groups["actions"]["entries"] == 3 and groups["actions"]["entries_total"] == 40
     assert groups["params.gravity"]["entries"] == 4  # its 3, all of them, and its scaling
     assert "params.gravity" not in r.unjudged
+
+
+def test_several_scenes_summary_takes_the_worst_and_tags_every_row():
+    a = {"scene": "a", "max_rel_error": 1e-6, "nan_count": 0, "passed": True, "rows": [{"i": 0}]}
+    b = {"scene": "b", "max_rel_error": 3e-5, "nan_count": 2, "passed": False,
+         "rows": [{"i": 0}, {"i": 1}]}
+    s = combine_summaries([a, b])
+    assert s["max_rel_error"] == 3e-5 and s["nan_count"] == 2 and s["passed"] is False
+    assert [sc["scene"] for sc in s["scenes"]] == ["a", "b"]
+    assert all("rows" not in sc for sc in s["scenes"])
+    assert s["rows"] == [{"i": 0, "scene": "a"}, {"i": 0, "scene": "b"}, {"i": 1, "scene": "b"}]
+    assert combine_summaries([a])["passed"] is True

@@ -76,7 +76,7 @@ def test_cli_prints_mujoco_warnings_on_one_line():
 
     before = warnings.formatwarning
     try:
-        cli._one_line_warnings("twinrl gradcheck")
+        cli.one_line_warnings("twinrl gradcheck")
         text = warnings.formatwarning(MuJoCoWarning("x.xml: MuJoCo: old"), MuJoCoWarning,
                                       "sim.py", 61)
         other = warnings.formatwarning(UserWarning("y"), UserWarning, "sim.py", 61)

@@ -125,3 +125,17 @@ def test_sysid_command_on_a_user_mjcf_and_an_npz_log(logs, tmp_path, capsys):
     assert cli.main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "qvel" in err[0] and "(E, T + 1, 2)" in err[0], err
+
+
+def test_a_log_without_an_array_or_no_npz_at_all_is_named(tmp_path):
+    log = tmp_path / "log.npz"
+    np.savez(log, qpos=np.zeros((1, 3, 2)), ctrl=np.zeros((1, 2, 2)))
+    with pytest.raises(ValueError, match=r"^no qvel array \(it has qpos, ctrl\)$"):
+        envs.mjcf.read_log(log)
+    log.write_text("qpos,qvel,ctrl\n")
+    with pytest.raises(ValueError, match=r"^not a readable \.npz"):
+        envs.mjcf.read_log(log)
+    qpos, qvel, ctrl = np.zeros((1, 3, 2)), np.ones((1, 3, 2)), np.zeros((1, 2, 2))
+    np.savez(log, qpos=qpos, qvel=qvel, ctrl=ctrl)
+    for got, want in zip(envs.mjcf.read_log(log), (qpos, qvel, ctrl)):
+        np.testing.assert_array_equal(got, want)

@@ -50,8 +50,8 @@ import numpy as np
 
 from twinrl.envs.base import Env, TaskConfig, replace_config
 
-__all__ = ["MJCFTask", "MJCFConfig", "from_mjcf", "save_mjcf", "load_reward", "from_spec",
-           "task_spec"]
+__all__ = ["MJCFTask", "MJCFConfig", "from_mjcf", "save_mjcf", "read_log", "load_reward",
+           "from_spec", "task_spec"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,6 +152,22 @@ class MJCFTask(Env):
                              f" (one control between each two logged states)")
         obs = np.concatenate([qpos, qvel], axis=-1).astype(np.float32)
         return {"obs": obs[:, :-1], "action": self.ctrl_to_action(ctrl), "next_obs": obs[:, 1:]}
+
+
+def read_log(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(qpos, qvel, ctrl)`` of a robot's log, an ``.npz`` holding those three arrays (shapes:
+    ``MJCFTask.transitions``). Raises ``ValueError`` naming what is wrong: an array missing (and
+    those it has), or a file that is no readable ``.npz``."""
+    try:
+        with np.load(path) as z:
+            names = z.files
+            arrays = {k: z[k] for k in ("qpos", "qvel", "ctrl") if k in names}
+    except (OSError, ValueError) as e:  # not an .npz, a pickled object array, ...
+        raise ValueError(f"not a readable .npz ({e})") from None
+    missing = [k for k in ("qpos", "qvel", "ctrl") if k not in arrays]
+    if missing:
+        raise ValueError(f"no {', '.join(missing)} array (it has {', '.join(names) or 'none'})")
+    return arrays["qpos"], arrays["qvel"], arrays["ctrl"]
 
 
 def save_mjcf(env: MJCFTask, params, path) -> Path:

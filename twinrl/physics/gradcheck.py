@@ -112,7 +112,7 @@ from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, Scenario, scenario as make_scenario
 from twinrl.physics.sim import Sim
 
-__all__ = ["GradcheckResult", "gradcheck", "tangent_qpos"]
+__all__ = ["GradcheckResult", "gradcheck", "combine_summaries", "tangent_qpos"]
 
 JITTER = 1e-13
 """How far, relative to ``max(1, |x|)``, the inputs move to measure the noise (docstring)."""
@@ -194,6 +194,17 @@ class GradcheckResult:
             "groups": self.groups, "rows": self.rows,
         }
 
+
+def combine_summaries(summaries: list[dict[str, Any]]) -> dict[str, Any]:
+    """One summary of several scenes' checks (each ``GradcheckResult.summary()`` with its
+    ``passed`` verdict): each scene's summary without its rows under ``scenes``, the largest
+    relative error, the non-finite count, whether all passed, and every row tagged with its
+    ``scene``."""
+    return {"scenes": [{k: v for k, v in s.items() if k != "rows"} for s in summaries],
+            "max_rel_error": max(s["max_rel_error"] for s in summaries),
+            "nan_count": sum(s["nan_count"] for s in summaries),
+            "passed": all(s["passed"] for s in summaries),
+            "rows": [dict(row, scene=s["scene"]) for s in summaries for row in s["rows"]]}
 
 def _labels(inputs: dict[str, Any], dof_names: list[str]) -> list[tuple[str, str]]:
     """(group, index) per scalar, in the order ``ravel_pytree`` lays them out (leaf order)."""

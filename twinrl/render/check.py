@@ -8,7 +8,8 @@ measures how far they agree: depth where both see the same geom (OpenGL tessella
 so a few mm at silhouettes), the share of pixels with the same geom id, and the RGB's PSNR (our
 shading is OpenGL's fixed-function model without textures or reflections). A model without a
 camera gets MuJoCo's default free view as a fixed camera (``with_view_camera``), so both renderers
-read the very same camera from the model.
+read the very same camera from the model. ``check_mjcf`` does all of it for an MJCF file and
+writes the images.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import mujoco
 import numpy as np
 
 __all__ = ["VIEW", "with_view_camera", "compare", "figure", "gradcheck", "GRAD_RTOL",
-           "crowding"]
+           "crowding", "check_mjcf", "SceneError"]
 
 VIEW = "twinrl_view"
 """Name of the camera ``with_view_camera`` adds."""
@@ -233,3 +234,64 @@ def crowding(model: mujoco.MjModel, **renderer) -> dict | None:
     return {"why": f"this scene has {' and '.join(why)}: the soft image composites each pixel's "
                    "leading surfaces, which switch as geoms move",
             "cull_above": every, "layers": max(R.layers, len(R.geom_ids))}
+
+
+class SceneError(ValueError):
+    """An MJCF ``check_mjcf`` cannot draw: MuJoCo cannot load it, it holds a geom type the
+    renderer lacks, the size exceeds its offscreen buffer, or the camera is not in it."""
+
+
+def check_mjcf(path: str | Path, out: str | Path, width: int, height: int, *,
+               camera: str | None = None, steps: int = 0, with_gradcheck: bool = False,
+               progress=None, **renderer) -> tuple[dict, mujoco.MjModel]:
+    """The MJCF at ``path`` drawn by OpenGL and by ``Renderer`` side by side (``compare``), from
+    ``camera`` (default: the model's first, else MuJoCo's free view, ``with_view_camera``) after
+    ``steps`` physics steps without actuation from its first keyframe (else ``qpos0``); with
+    ``with_gradcheck``, the soft image's gradient against central differences too
+    (``gradcheck``). Writes ``out/compare.png``, ``out/opengl_rgb.png`` and
+    ``out/twinrl_rgb.png``. ``progress(text)`` hears what is being done; ``renderer``:
+    ``Renderer.create``'s settings (``layers``, ``cull_above``).
+
+    Returns ``(summary, model)``: ``{"mjcf", "camera", "size", "steps", "renderer", "figures",
+    "gradcheck", "files"}`` (``gradcheck`` None without the check), and the model drawn (with
+    the added camera where it has one). Raises ``SceneError`` for an MJCF it cannot draw."""
+    import imageio.v2 as imageio
+
+    from twinrl.physics import mujoco_warnings
+
+    path, out, say = Path(path), Path(out), progress or (lambda text: None)
+    try:
+        with mujoco_warnings(str(path)):
+            spec = mujoco.MjSpec.from_file(str(path))
+            model = spec.compile()
+            camera = camera or (model.camera(0).name or 0 if model.ncam else None)
+            if camera is None:
+                model, camera = with_view_camera(spec), VIEW
+    except ValueError as e:  # MuJoCo's parse and compile errors
+        raise SceneError(" ".join(str(e).split())) from None
+    data = mujoco.MjData(model)
+    if model.nkey:
+        mujoco.mj_resetDataKeyframe(model, data, 0)
+    with mujoco_warnings(f"{path}: {steps} steps"):
+        mujoco.mj_step(model, data, nstep=int(steps))
+        mujoco.mj_forward(model, data)
+    out.mkdir(parents=True, exist_ok=True)
+    say(f"rendering {path.name} with OpenGL and twinrl.render...")
+    try:
+        result = compare(model, data, camera, width, height, **renderer)
+    except ValueError as e:  # hfield/SDF geoms (UnsupportedGeomError); size; camera name
+        raise SceneError(str(e)) from None
+    far = float(model.vis.map.zfar * model.stat.extent)
+    files = {"compare": figure(result, far, out / "compare.png", f"{path.name}, camera {camera!r}")}
+    for side in ("opengl", "twinrl"):
+        files[f"{side}_rgb"] = out / f"{side}_rgb.png"
+        imageio.imwrite(files[f"{side}_rgb"], result[side]["rgb"])
+    grads = None
+    if with_gradcheck:
+        say("the soft image's gradient against central differences (float64, 64x48)...")
+        grads = gradcheck(model, data, camera, **renderer)
+    summary = {"mjcf": str(path), "camera": camera if isinstance(camera, str) else int(camera),
+               "size": [width, height], "steps": int(steps), "renderer": renderer,
+               "figures": result["figures"], "gradcheck": grads,
+               "files": {k: str(v) for k, v in files.items()}}
+    return summary, model

@@ -97,6 +97,13 @@ class SysidResult:
                 for n, i, v, s, ok, st in zip(self.names, self.initial, self.values, self.sd,
                                               self.identifiable, self.status)]
 
+    def summary(self) -> dict[str, Any]:
+        """What ``twinrl sysid`` records of the fit in ``summary.json``: ``latency``, ``loss``,
+        ``sim_rollouts``, ``seconds``, ``table`` and every ``params`` field as lists."""
+        return {"latency": self.latency, "loss": self.loss, "sim_rollouts": self.sim_rollouts,
+                "seconds": self.seconds, "table": self.table,
+                "params": {k: v.tolist() for k, v in self.params.as_dict().items()}}
+
 
 def fit(env: Env, data, config: SysidConfig | None = None, rng: jax.Array | None = None,
         progress_fn: Callable[[int, dict], None] | None = None) -> SysidResult:

@@ -1,0 +1,130 @@
+"""``twinrl collect``: record episodes of a task's real twin into a durable dataset
+(``twinrl.real.dataset``), appending to the one already in ``--out``."""
+
+from __future__ import annotations
+
+from twinrl.cli.common import UsageError, add_common, at_least_one, check_task
+
+
+def add_parser(sub) -> None:
+    """The ``collect`` sub-command's parser."""
+    p = sub.add_parser(
+        "collect", help="record episodes of a real twin into a durable dataset",
+        description="Run a policy on a task's real twin and record every transition as it "
+                    "happens (a killed run keeps everything but the transition in flight; run "
+                    "again on the same --out to append more episodes).")
+    p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
+    p.add_argument("--episodes", type=int, required=True, help="episodes to record")
+    p.add_argument("--policy", default="excite", choices=("excite", "random", "zero"),
+                   help="'excite' (default: random levels, each held 3-15 steps, as sysid's "
+                        "excitation: the system travels, so its trajectories and images show it "
+                        "in many states; with --observation state the task's closed-loop "
+                        "excitation where it has one, as push's strokes), 'random' (uniform in "
+                        "the action box every step: it jitters in place) or 'zero'")
+    p.add_argument("--images", action="store_true",
+                   help="also record RGB, depth and segmentation of the default camera")
+    p.add_argument("--size", type=int, nargs=2, default=(64, 64), metavar=("W", "H"),
+                   help="image size with --images (default 64 64)")
+    p.add_argument("--observation", default="task", choices=("task", "state"),
+                   help="what each transition records: 'task' (default: the task's observation, "
+                        "what a policy sees) or 'state' (the full qpos and qvel, as a motion-"
+                        "capture rig gives them): what `twinrl sysid` needs where the task's "
+                        "observation does not determine the state (push)")
+    add_common(p, "runs/collect")
+    p.set_defaults(func=cmd)
+
+
+def cmd(args) -> int:
+    """Record ``--episodes`` episodes of ``--policy`` on the real twin of ``--env``."""
+    import numpy as np
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from twinrl import envs, report
+    from twinrl.real import dataset as ds
+    from twinrl.real.dataset import DatasetWriter
+    from twinrl.real.twin import record_episode
+    from twinrl.real2sim.sysid import excitation_actions
+
+    check_task(args.env)
+    at_least_one(args, "episodes")
+    w, h = args.size
+    # The real twin runs in its own process, as a robot would (twinrl.real.remote); its hidden
+    # perturbation's seed includes a secret salt kept in OUT/eval/, beside the dataset, for
+    # evaluation only (`twinrl sysid --visual --twin-seed` reads it).
+    from twinrl.real.remote import TwinClient, secret_file
+
+    fresh_out = not args.out.exists()
+    full = args.observation == "state"
+    twin = TwinClient(args.env, seed=args.seed, secret=secret_file(args.out, args.env, args.seed),
+                      width=w, height=h, **({"config": {"observation": "state"}} if full else {}))
+    obs, _ = twin.reset(seed=args.seed)
+    act_shape = twin.action_space.shape
+    image_shapes = None
+    if args.images:
+        # Rendered once before the dataset is touched, so a size the renderer refuses fails here
+        # instead of after meta.json has been written claiming that size.
+        from twinrl.real.twin import IMAGE_KINDS
+
+        try:
+            twin.render_images(twin.camera, IMAGE_KINDS)
+        except ValueError as e:
+            twin.close()
+            if fresh_out:  # nothing recorded: leave no directory behind (the twin's secret)
+                import shutil
+
+                shutil.rmtree(args.out, ignore_errors=True)
+            raise UsageError(f"--size {w} {h}: {e}") from None
+        image_shapes = {"rgb": (h, w, 3), "depth": (h, w), "segmentation": (h, w)}
+    dataset_dir = args.out / "dataset"
+    try:
+        writer = DatasetWriter(dataset_dir, env=args.env, obs_shape=obs.shape,
+                               action_shape=act_shape, image_shapes=image_shapes,
+                               obs_dtype=np.float32, action_dtype=np.float32,
+                               metadata={"observation": "state"} if full else None)
+    except (ValueError, OSError, ds.DatasetError) as e:  # another env, a live writer, ...
+        raise UsageError(f"--out {args.out}: {e}") from None
+    # full states are for sysid: the task's own closed-loop excitation where it has one (push:
+    # held random levels rarely touch the box), as sysid.collect's policy="auto"
+    task_excitation = getattr(envs.make(args.env, observation="state"), "excitation_policy",
+                              None) if full else None
+    returns, steps = [], 0
+    first_episode = writer.episode_id
+    columns = [TextColumn("[bold]collect"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("episodes  return {task.fields[ret]}"), TimeElapsedColumn()]
+    try:
+        with writer, Progress(*columns, console=report.console) as bar:
+            task = bar.add_task("collect", total=args.episodes, ret="-")
+            for ep in range(args.episodes):
+                # Each episode's randomness is a function of (--seed, its id in the dataset):
+                # re-running on the same --out appends new episodes, not copies of the first ones.
+                seq = np.random.SeedSequence([args.seed, first_episode + ep])
+                obs, _ = twin.reset(seed=int(seq.generate_state(1)[0]))
+                rng = np.random.default_rng(seq.spawn(1)[0])
+                if args.policy == "excite" and task_excitation is not None:
+                    policy = task_excitation(rng)
+                elif args.policy == "excite":
+                    levels = excitation_actions(rng, twin.episode_length,
+                                                int(np.prod(act_shape)))
+                    policy = lambda o, t: levels[min(t, len(levels) - 1)].reshape(act_shape)  # noqa: E731
+                elif args.policy == "random":
+                    policy = lambda o, t: rng.uniform(-1, 1, act_shape)  # noqa: E731
+                else:
+                    policy = lambda o, t: np.zeros(act_shape)  # noqa: E731
+                ret, n = record_episode(twin, writer, policy, obs, images=args.images)
+                returns.append(ret)
+                steps += n
+                bar.update(task, advance=1, ret=f"{ret:.2f}")
+    except OSError as e:  # disk full, quota, I/O error: what was recorded before stays readable
+        raise UsageError(f"writing {dataset_dir} failed after {len(returns)} complete "
+                         f"episode(s) of this run: {e.strerror or e}; the dataset keeps every "
+                         f"transition recorded before") from None
+    twin.close()
+    summary = {"env": args.env, "policy": args.policy, "seed": args.seed,
+               "episodes": args.episodes, "first_episode_id": first_episode, "steps": steps,
+               "returns": returns, "mean_return": float(np.mean(returns)),
+               "dataset": str(args.out / "dataset")}
+    report.print_table(f"collected {args.env}", ["episodes", "steps", "mean return", "min", "max"],
+                       [[args.episodes, steps, float(np.mean(returns)), float(np.min(returns)),
+                         float(np.max(returns))]])
+    report.write_json(args.out / "summary.json", summary)
+    return 0
