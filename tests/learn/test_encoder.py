@@ -125,12 +125,12 @@ def test_keypoint_head_reports_where_each_channel_peaks(tmp_path):
     """``image_head="keypoints"``: a spatial softmax per channel hands on each channel's expected
     image position, (x, y) in [-1, 1] -- at a sharp peak, the peak's pixel; the network built
     on it round-trips through a checkpoint and its gradient reaches the pixels."""
-    from twinrl.learn.networks import _keypoints
+    from twinrl.learn.networks import keypoints
 
     maps = np.zeros((1, 9, 17, 2), np.float32)
     maps[0, 2, 12, 0] = 50.0  # channel 0 peaks at row 2, column 12
     maps[0, 6, 3, 1] = 50.0   # channel 1 at row 6, column 3
-    kp = np.asarray(_keypoints(jnp.asarray(maps), jnp.zeros(())))
+    kp = np.asarray(keypoints(jnp.asarray(maps), jnp.zeros(())))
     xs, ys = np.linspace(-1, 1, 17), np.linspace(-1, 1, 9)
     np.testing.assert_allclose(kp[0], [xs[12], xs[3], ys[2], ys[6]], atol=1e-4)
     cfg = NetworkConfig(hidden=(16,), conv_features=(4, 8), conv_kernels=(3, 3),

@@ -173,7 +173,7 @@ def test_policy_trained_in_a_system_is_evaluated_in_that_system(tmp_path):
     # the eval env the runner rebuilds is that system; its returns are that system's, and
     # differ from the same policy's in the nominal simulator
     net, params, meta = checkpoint.load_policy(run)
-    rebuilt = runner._env_from_meta(meta, saved)
+    rebuilt = runner.env_from_meta(meta, saved)
     assert rebuilt.latency == 2 and system_of(rebuilt).to_json() == system.to_json()
     key = jax.random.key(4)
     in_system = np.asarray(make_evaluator(envs.make(ENV, system=system), net.apply, 3)(params, key))
@@ -195,7 +195,7 @@ def test_checkpoint_without_a_system_is_evaluated_in_the_nominal_task(full_run, 
 
 
 def test_progress_bar_shows_only_reported_finite_figures():
-    from twinrl.learn.runner import _progress_figures
-    assert _progress_figures({"return": 184.04}) == "return 184.04"  # PPO: no 'grad nan'
-    assert _progress_figures({"return": 1.0, "grad_norm": float("nan")}) == "return 1.00"
-    assert _progress_figures({"return": 2.0, "grad_norm": 0.5}) == "return 2.00  grad 5.00e-01"
+    from twinrl.learn.runner import progress_figures
+    assert progress_figures({"return": 184.04}) == "return 184.04"  # PPO: no 'grad nan'
+    assert progress_figures({"return": 1.0, "grad_norm": float("nan")}) == "return 1.00"
+    assert progress_figures({"return": 2.0, "grad_norm": 0.5}) == "return 2.00  grad 5.00e-01"

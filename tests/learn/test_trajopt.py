@@ -187,11 +187,18 @@ def test_nonfinite_gradient_takes_no_step_and_is_counted(order):
 
 def test_clipping_bounds_and_config_errors():
     rollout_fn, reward_fn = _lq_problem()
-    # a huge step: every candidate leaves [-1, 1] before clipping
+    # a huge step: every candidate leaves [-1, 1] before clipping; from actions of -0.9 the
+    # clipped one (every action at a bound) is better, so the step is taken
     cfg = TrajoptConfig(order=1, step_size=1e3, line_search_steps=2, max_grad_norm=1.0)
-    res = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, cfg))(jnp.zeros((T_LQ, M_LQ)))
-    assert np.abs(np.asarray(res.actions)).max() <= 1.0
-    assert float(res.value) >= float(res.old_value)
+    res = jax.jit(lambda a: improve(rollout_fn, reward_fn, a, cfg))(
+        jnp.full((T_LQ, M_LQ), -0.9))
+    acts = np.asarray(res.actions)
+    assert bool(res.accepted) and float(res.value) > float(res.old_value)
+    np.testing.assert_array_equal(np.abs(acts), 1.0)
+    # its value is the return of the clipped actions it returns (by hand), not the candidate's
+    states = rollout_fn(jnp.asarray(acts))
+    manual = sum(float(reward_fn(states[t], jnp.asarray(acts[t]))) for t in range(T_LQ))
+    np.testing.assert_allclose(float(res.value), manual, rtol=1e-5)
     for bad, word in [(dict(order=3), "order"), (dict(step_size=0.0), "step_size"),
                       (dict(line_search_steps=0), "line_search_steps"),
                       (dict(regularization=-1.0), "regularization"),

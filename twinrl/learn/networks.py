@@ -40,7 +40,8 @@ from twinrl.learn.common import JSONConfig
 
 __all__ = ["NetworkConfig", "Network", "MLP", "Encoder", "EncodedMLP", "ObsSpec", "is_pixels",
            "check_obs_spec", "spec_size", "make_network", "make_policy", "make_value",
-           "ACTIVATIONS", "init_obs_stats", "update_obs_stats", "obs_std", "fold_normaliser"]
+           "ACTIVATIONS", "init_obs_stats", "update_obs_stats", "obs_std", "fold_normaliser",
+           "keypoints"]
 
 ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
     "tanh": jnp.tanh, "relu": jax.nn.relu, "elu": jax.nn.elu, "swish": jax.nn.swish,
@@ -186,7 +187,7 @@ class Encoder(nn.Module):
                 x = jax.nn.relu(nn.Conv(f, (k, k), (st, st), padding="SAME",
                                         name=f"{name}_conv{i}")(x))
             if self.head == "keypoints":
-                x = _keypoints(x, self.param(f"{name}_log_temperature", nn.initializers.zeros,
+                x = keypoints(x, self.param(f"{name}_log_temperature", nn.initializers.zeros,
                                              ()))
             else:
                 x = nn.Dense(self.embed, name=f"{name}_dense")(x.reshape(x.shape[0], -1))
@@ -195,7 +196,7 @@ class Encoder(nn.Module):
         return jnp.concatenate(parts, axis=-1)
 
 
-def _keypoints(x: jax.Array, log_temperature: jax.Array) -> jax.Array:
+def keypoints(x: jax.Array, log_temperature: jax.Array) -> jax.Array:
     """Spatial softmax: ``(B, H, W, C)`` feature maps to ``(B, 2C)`` expected (x, y) image
     coordinates in [-1, 1] of each channel's softmax over the pixels (a learned temperature)."""
     b, h, w, c = x.shape

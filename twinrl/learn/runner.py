@@ -35,7 +35,8 @@ import numpy as np
 from twinrl.learn import tuned
 
 __all__ = ["ALGORITHMS", "Algorithm", "algorithm", "make_config", "parse_overrides", "train_run",
-           "continue_run", "eval_run", "policy_video", "RunError"]
+           "continue_run", "eval_run", "policy_video", "RunError", "progress_figures",
+           "env_from_meta"]
 
 
 class RunError(Exception):
@@ -213,7 +214,7 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
         writer.write(epoch, row)
         finished[0] += 1
         if bar is not None:
-            bar.update(task, completed=finished[0], figures=_progress_figures(row))
+            bar.update(task, completed=finished[0], figures=progress_figures(row))
 
     kwargs = dict(train_kwargs or {})
     kwargs["progress_fn"] = progress_fn
@@ -287,7 +288,7 @@ def _progress_bar(title: str, total: int, enabled: bool):
     return bar, task
 
 
-def _progress_figures(row) -> str:
+def progress_figures(row) -> str:
     """The progress bar's figures: only those the trainer reported and that are finite (PPO
     reports no gradient norm: the bar showed 'grad nan')."""
     out = []
@@ -327,7 +328,7 @@ def _plot_training(path: Path, metrics: dict[str, list[float]], title: str) -> P
 
 
 # ------------------------------------------------------------------------------------ eval
-def _env_from_meta(meta: dict[str, Any], system=None):
+def env_from_meta(meta: dict[str, Any], system=None):
     """The simulator a checkpoint's policy was trained in: its task and config, built from the
     ``system`` it saved (None, for checkpoints without one: the task's nominal simulator)."""
     from twinrl import envs
@@ -364,7 +365,7 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
         raise RunError(f"--episodes must be >= 1, got {episodes}")
     network, params, meta = load_policy(checkpoint)
     saved = load_system(checkpoint)
-    env = _env_from_meta(meta, saved)
+    env = env_from_meta(meta, saved)
     out = Path(out)
     act = jax.jit(network.apply)
     frames: list[np.ndarray] = []

@@ -53,8 +53,9 @@ from twinrl.learn.common import (JSONConfig, MetricLog, held_episodes, make_mini
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 
 __all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
-           "observer", "sensing_data", "q_inputs", "make_q", "q_value", "train", "select_camera",
-           "evaluate_ranking", "q_predictions", "rank_corr_per_state", "load_actor"]
+           "observer", "sensing_data", "q_inputs", "make_q", "fit_q", "q_value", "train",
+           "select_camera", "evaluate_ranking", "q_predictions", "rank_corr_per_state",
+           "load_actor"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,12 +186,16 @@ def make_q(actor: Network, action_size: int, config: SensingConfig) -> Network:
                                                output="linear", layer_norm=True))
 
 
-def _fit(q: Network, params, obs, acts, targets, config: SensingConfig, key):
+def fit_q(q: Network, params, data: SensingData, config: SensingConfig, key: jax.Array):
+    """Regress Q onto ``data``'s targets (``config``'s fit fields; images RGB-jittered):
+    ``(params, losses)``, the minibatches' mean squared error per step."""
+    flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
+    obs, targets = jax.tree_util.tree_map(flat, data.obs), flat(data.targets)
     tx = make_optimizer(config.learning_rate, config.max_grad_norm)
     fit = make_minibatch_fit(q.apply, tx, int(config.fit_steps), int(config.batch_size),
                              rgb_jitter(config.rgb_jitter) if config.rgb_jitter else None)
-    params, _, losses = fit(params, tx.init(params), {**obs, "action": acts}, targets[:, None],
-                            targets.shape[0], key)
+    params, _, losses = fit(params, tx.init(params), {**obs, "action": flat(data.actions)},
+                            targets[:, None], targets.shape[0], key)
     return params, losses
 
 
@@ -273,12 +278,8 @@ def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0
     data = sensing_data(env, actor_net, actor_params, c, keys, coords)
     train_part = SensingData(*(jax.tree_util.tree_map(lambda x: x[:-held], f) for f in data))
     test_part = SensingData(*(jax.tree_util.tree_map(lambda x: x[-held:], f) for f in data))
-    flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
-    obs = jax.tree_util.tree_map(flat, train_part.obs)
     q = make_q(actor_net, env.action_size, c)
-    q_params = q.init(k_init)
-    q_params, losses = _fit(q, q_params, obs, flat(train_part.actions),
-                            flat(train_part.targets), c, k_fit)
+    q_params, losses = fit_q(q, q.init(k_init), train_part, c, k_fit)
     figures = evaluate_ranking(q, q_params, test_part)
     # the camera choice on the held-out start states: does the ascent raise Q above the default?
     choose = jax.jit(lambda s, k: select_camera(env, q, q_params, actor_net, actor_params, s, k,
