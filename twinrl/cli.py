@@ -924,7 +924,7 @@ def _run_parser(sub) -> None:
 
 def _cmd_run(args) -> int:
     from twinrl.loop import LoopConfig, LoopError, run
-    from twinrl.loop_arm import is_arm_task
+    from twinrl.loop.arm import is_arm_task
 
     _check_task(args.env, MJCF_RUN_HINT)
     if is_arm_task(args.env):
@@ -949,7 +949,7 @@ def _run_arm(args) -> int:
     """``twinrl run`` on a manipulation task: the SAM-RL loop (``twinrl.loop_arm``)."""
     from twinrl.learn.runner import RunError, parse_overrides
     from twinrl.loop import LoopError
-    from twinrl import loop_arm
+    from twinrl.loop import arm as loop_arm
 
     for flag, value in (("--algo", args.algo), ("--epochs", args.epochs)):
         if value is not None:

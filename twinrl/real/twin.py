@@ -436,16 +436,12 @@ def record_episode(twin, writer, policy, obs, *, images: bool = False) -> tuple[
     """Run ``policy(obs, t) -> action`` on ``twin`` from ``obs`` (what its last ``reset``
     returned) until the episode ends, recording every transition with ``writer`` (a
     ``twinrl.real.dataset.DatasetWriter``; with ``images``, also the RGB, depth and segmentation
-    of the twin's camera). Returns ``(return, steps)``."""
-    ret, done, t = 0.0, False, 0
-    while not done:
-        a = np.asarray(policy(obs, t), np.float32)
-        nxt, r, term, trunc, info = twin.step(a)
-        frames = twin.render_images(twin.camera, IMAGE_KINDS) if images else None
-        writer.add(obs, a, r, nxt, term, trunc,
-                   info={k: v for k, v in info.items() if np.isscalar(v)}, images=frames)
-        obs, ret, done, t = nxt, ret + float(r), term or trunc, t + 1
-    return ret, t
+    of the twin's camera). Returns ``(return, steps)``. One episode of
+    ``twinrl.real.record.record_episodes``, which resets and seeds the episodes too."""
+    from twinrl.real.record import record_from
+
+    ret, steps, _ = record_from(twin, policy, obs, writer=writer, images=images)
+    return ret, steps
 
 
 # ---------------------------------------------------------------------- episodes to files
