@@ -13,8 +13,8 @@ Every round ``r >= 1`` then runs these stages (``ARM_ROUND``, ``twinrl.loop.Stag
    offset (in the commanded camera's frame) that makes the differentiable renderer's images of
    the recorded states, from each frame's commanded mount pose, match round 0's real frames
    (``twinrl.real2sim.handeye.calibrate_mount``: ``visual.fit_camera`` with a stack of cameras;
-   the tool, whose grasp is not known, left out), kept as the identified ``System``'s ``"mount"`` camera, so every later
-   render and back-projection of the target uses it; then, with that camera, the tool's grasp
+   the tool, whose grasp is not known, left out), kept as the identified ``System``'s
+   ``"mount"`` camera, so every later render and back-projection of the target uses it; then, with that camera, the tool's grasp
    in the hand (``handeye.fit_grasp``; ``ArmLoopConfig.grasp``: by default on the peg and
    the needle, where it was measured to help), kept as the ``System``'s
    ``objects["tool"]``, so the twin's tool, reward and success sit where the real tool does;

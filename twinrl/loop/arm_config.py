@@ -106,9 +106,9 @@ class ArmLoopConfig:
     nominal grasp: 2/5 chosen, 5/10 default)."""
     sysid: bool = True
     """Identify the action latency and the arm's servo dynamics (joint gains and damping) from
-    round 0's transitions (``arm_stages.sysid_config``; 4 min on 2 cores). On needle twin 2 the twin's
-    hidden latency, gains, damping and noise cost the chosen camera 24 points from sim to real
-    (94 -> 70 %); identified (latency right, gains within 0.5-16 %), 90 -> 84 %. The masses
+    round 0's transitions (``arm_stages.sysid_config``; 4 min on 2 cores). On needle twin 2 the
+    twin's hidden latency, gains, damping and noise cost the chosen camera 24 points from sim to
+    real (94 -> 70 %); identified (latency right, gains within 0.5-16 %), 90 -> 84 %. The masses
     are left nominal: the servo-tracked motions barely show them (fitted, link 2's came out
     7x its truth there)."""
     calibrate_controller: bool = True

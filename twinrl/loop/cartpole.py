@@ -1,8 +1,10 @@
-"""The whole loop, Real2Sim -> Learn@Sim -> Sim2Real, in rounds, resumable: ``twinrl run``.
+"""The cartpole family's loop, Real2Sim -> Learn@Sim -> Sim2Real, in rounds, resumable:
+``twinrl run`` on every task whose observation determines its state (cartpole, pendulum, ...).
 
 What a user comes for: hand twinrl a system it cannot see inside (a task's real twin), let it watch
 a few episodes, get back a policy that works on that system. Round 0 records ``K`` episodes with a
-safe exciting open-loop policy (``twinrl.real2sim.sysid.excitation_actions``). Every round ``r >= 1``:
+safe exciting open-loop policy (``twinrl.real2sim.sysid.excitation_actions``). Every round
+``r >= 1``:
 
 1. **sysid** on every real transition recorded so far -> ``PhysParams`` and action latency
    (``twinrl.real2sim.sysid``);

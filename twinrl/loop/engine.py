@@ -95,12 +95,12 @@ class RunContext:
 
 @dataclasses.dataclass(frozen=True)
 class Stage:
-    """One stage of a round. ``make(run, r, rdir, **needs)`` computes the stage's values, saves
-    them under ``rdir`` (a ``RoundDir``), marks ``round<r>/<name>`` done in ``progress.json`` and
-    returns them: the dict of the values named in ``gives``, which later stages take by name
-    (``needs``); a ``make`` that returns None gives what ``load`` reads back. A stage marked done is not run again on ``--resume``: ``load(run, rdir,
-    **needs)`` reads its values back from the files it saved. A stage whose ``enabled(config)``
-    is false gives None for each of its values."""
+    """One stage of a round. ``make(run, r, rdir, **needs)`` computes the stage's values, saves them
+    under ``rdir`` (a ``RoundDir``), marks ``round<r>/<name>`` done in ``progress.json`` and returns
+    them: the dict of the values named in ``gives``, which later stages take by name (``needs``); a
+    ``make`` that returns None gives what ``load`` reads back. A stage marked done is not run again
+    on ``--resume``: ``load(run, rdir, **needs)`` reads its values back from the files it saved. A
+    stage whose ``enabled(config)`` is false gives None for each of its values."""
 
     name: str
     needs: tuple[str, ...]
@@ -130,16 +130,15 @@ class Stage:
 
 @dataclasses.dataclass(frozen=True)
 class Family:
-    """What a task family supplies to the engine.
-
-    ``check_task(env_name, config)`` refuses a task the family cannot run (before any work);
-    ``open(run_dir, env_name, config, seed, perturbation, say)`` returns ``(nominal_env, twin,
-    writer, background)``: the task as the family simulates it, the real twin's client, the
-    dataset writer and an evaluation job run beside the stages (or None); ``record_keys`` are the
-    ``progress.json`` records that make a round's row of the summary (each with its default); ``summarise(run, summary)``
-    adds the family's figures to the summary once the stages are done (evaluation merged in);
-    ``final_video(run, values)`` writes ``final.mp4`` from the last round's values;
-    ``write_outputs(run, summary)`` writes ``summary.json`` and the family's table and plots."""
+    """What a task family supplies to the engine. ``check_task(env_name, config)`` refuses a task
+    the family cannot run (before any work); ``open(run_dir, env_name, config, seed, perturbation,
+    say)`` returns ``(nominal_env, twin, writer, background)``: the task as the family simulates it,
+    the real twin's client, the dataset writer and an evaluation job run beside the stages (or
+    None); ``record_keys`` are the ``progress.json`` records that make a round's row of the summary
+    (each with its default); ``summarise(run, summary)`` adds the family's figures to the summary
+    once the stages are done (evaluation merged in); ``final_video(run, values)`` writes
+    ``final.mp4`` from the last round's values; ``write_outputs(run, summary)`` writes
+    ``summary.json`` and the family's table and plots."""
 
     name: str
     config_class: type

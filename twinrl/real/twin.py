@@ -1,7 +1,7 @@
 """``RealTwin``: a task's stand-in for the physical robot, as a ``gymnasium.Env``.
 
-The loop (ARCHITECTURE.md) needs a "real" system whose dynamics and camera the simulator does not
-know exactly. ``RealTwin`` is the same task (same reset distribution, observation and reward
+The loop (Real2Sim -> Learn@Sim -> Sim2Real, ``twinrl.loop``) needs a "real" system whose dynamics
+and camera the simulator does not know exactly. ``RealTwin`` is the same task (same reset distribution, observation and reward
 functions, from ``twinrl.envs``) run on a *different engine*: the MuJoCo C engine (``mj_step``,
 float64, implicit-fast integration, 50 solver iterations by default) instead of MJX with a
 fixed-iteration solve, with a hidden ``Perturbation`` applied: scaled masses, damping, friction and
