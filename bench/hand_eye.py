@@ -5,8 +5,8 @@ Per task and twin seed: records ``--episodes`` round-0 episodes of the loop's ex
 on the real twin the loop would face (``twinrl run --seed S``: the seed's default salt; the
 dataset is kept in ``OUT/TASK-S-P/`` and reused), seen from ``P`` mount poses
 (``CameraMount.calibration_poses``; ``--poses 1 5``), then fits the mount's offset
-(``twinrl.real2sim.handeye.calibrate_mount``, the loop's settings: ``--frames`` frames, 150 Adam steps, one
-start) with the tool in the fit and without it (``--variants``), and scores each against the
+(``twinrl.real2sim.handeye.calibrate_mount``, the loop's settings: ``--frames`` frames, 150 Adam
+steps, one start) with the tool in the fit and without it (``--variants``), and scores each against the
 twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only). With ``--grasp`` each
 calibration is followed by the loop's identification of the tool's grasp in the hand with that
 camera (``handeye.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre
