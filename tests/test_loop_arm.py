@@ -132,7 +132,7 @@ def killed(tmp_path_factory):
 def test_killed_inside_the_second_deployed_episode(killed):
     _, at_kill, prog = killed
     assert "round1/deploy" not in prog["done"] and "round1/imitation" in prog["done"]
-    assert len(prog["rounds"]["round1"]["deploy_partial"]) == 1
+    assert prog["rounds"]["round1"]["deploy_episodes"] == 1  # the rows: round1/deploy_partial.json
     # round 0's K episodes and one deployed episode complete, the next one cut short
     assert int(np.sum(at_kill.episode_complete)) == K + 1
     assert (K + 1) * T < len(at_kill) < (K + 2) * T

@@ -57,7 +57,6 @@ resets with seed ``seed + i``, so the episodes are those an uninterrupted run wo
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 

@@ -15,8 +15,9 @@ import numpy as np
 from twinrl import eval as evaluation
 from twinrl import report
 from twinrl.loop.arm_config import grasp_on, imitation_settings, task_env
-from twinrl.loop.engine import RunContext, episodes_in, real_steps, seconds_so_far
+from twinrl.loop.engine import RunContext, real_steps, seconds_so_far
 from twinrl.loop.rundir import RoundDir
+from twinrl.loop.shared import EpisodeLog, collect_round0
 
 __all__ = ["collect", "record_round0", "round0_poses", "calibrate", "load_camera",
            "identify_system", "load_system", "nominal_episodes", "uncalibrated", "sysid_config",
@@ -28,15 +29,11 @@ __all__ = ["collect", "record_round0", "round0_poses", "calibrate", "load_camera
 def collect(run: RunContext, r: int, rdir: RoundDir) -> None:
     """Round 0: ``K`` episodes of exciting motions (``record_round0``), recorded with every
     step's frame (those the dataset already holds are not recorded again)."""
-    K = run.K
-    have = episodes_in(run.dir.dataset)
-    run.say(f"[bold]round 0[/]: recording {K - have} exciting episodes with images"
-            f"{f' ({have} already recorded)' if have else ''}")
-    t0 = time.perf_counter()
-    camera_steps = record_round0(run.twin, run.writer, run.nominal_env, run.seed,
-                                 round0_poses(run), range(have, K))
-    run.prog.mark("round0/collect", real_steps=real_steps(run), camera_steps=camera_steps,
-                  seconds={"collect": time.perf_counter() - t0})
+    def episodes(todo):
+        return {"camera_steps": record_round0(run.twin, run.writer, run.nominal_env, run.seed,
+                                              round0_poses(run), todo)}
+
+    collect_round0(run, "exciting episodes with images", episodes)
 
 
 def record_round0(twin, writer, env, seed: int, poses, episodes) -> int:
@@ -378,8 +375,8 @@ def deploy(run: RunContext, r: int, rdir: RoundDir, env, q_rank,
     prog, K, config = run.prog, run.K, run.config
     t0 = time.perf_counter()
     dep = deployer(config, env, rdir, residual_accepted)
-    rows = list(prog.record(r).get("deploy_partial", []))
-    have = len(rows)
+    log = EpisodeLog(run, r, "deploy_partial")
+    rows, have = log.rows, len(log)
     camera = deployed_camera(config, q_rank)
     if camera != config.camera:
         rank = "not scored" if q_rank is None else f"{q_rank:.2f}"
@@ -388,12 +385,8 @@ def deploy(run: RunContext, r: int, rdir: RoundDir, env, q_rank,
     run.say(f"  deploying on the real twin ({K - have} episodes, camera {camera}) ...")
     cfg = DeployConfig(camera=camera, episodes=K)
 
-    def keep(row):
-        rows.append(report.to_jsonable(row))
-        prog.mark(f"round{r}/deploy_partial", deploy_partial=rows)
-
     dep.run(run.twin, cfg, seed=1000 * r + run.seed, start=have, writer=run.writer,
-            on_episode=keep)
+            on_episode=log.add)
     t_eval = time.perf_counter()
     if config.eval_episodes:
         base = evaluation.deployed_success(

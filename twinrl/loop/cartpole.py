@@ -62,11 +62,12 @@ import numpy as np
 
 from twinrl import eval as evaluation
 from twinrl import report
-from twinrl.loop.engine import (Family, Progress, RunContext, Stage, episodes_in, real_steps,
+from twinrl.loop.engine import (Family, RunContext, Stage, episodes_in, real_steps,
                                 seconds_so_far)
 from twinrl.loop.engine import run as run_family
 from twinrl.loop.errors import LoopError
 from twinrl.loop.rundir import RoundDir, RunDir
+from twinrl.loop.shared import EpisodeLog, collect_round0
 
 __all__ = ["LoopConfig", "run", "COLLECT", "ROUND", "FAMILY", "deployed_policy",
            "identified_system"]
@@ -148,20 +149,18 @@ def collect_excitation(run: RunContext, r: int, rdir: RoundDir) -> None:
     come from the seed ``[seed, e]``, its reset from ``[seed, e, 1]``."""
     from twinrl.real2sim import sysid
 
-    K, T = run.K, run.nominal_env.episode_length
-    have = episodes_in(run.dir.dataset)
-    run.say(f"[bold]round 0[/]: recording {K - have} exciting episodes on the real twin"
-            f"{f' ({have} already recorded)' if have else ''}")
+    T = run.nominal_env.episode_length
 
     def policy(e):
         acts = sysid.excitation_actions(np.random.default_rng([run.seed, e]), T,
                                         run.nominal_env.action_size)
         return lambda o, t: acts[min(t, T - 1)]
 
-    t0 = time.perf_counter()
-    record(run, range(have, K), policy, lambda e: np.random.default_rng([run.seed, e, 1]))
-    run.prog.mark("round0/collect", real_steps=real_steps(run), real_return=None,
-                  seconds={"collect": time.perf_counter() - t0})
+    def episodes(todo):
+        record(run, todo, policy, lambda e: np.random.default_rng([run.seed, e, 1]))
+        return {"real_return": None}
+
+    collect_round0(run, "exciting episodes on the real twin", episodes)
 
 
 def fit_system(run: RunContext, r: int, rdir: RoundDir, data) -> dict[str, Any]:
@@ -310,11 +309,11 @@ def deploy(run: RunContext, r: int, rdir: RoundDir, env, hybrid, policy_dir,
     act = deployed_policy(config, env, hybrid, policy_dir, rdir)
     have = episodes_in(run.dir.dataset) - K * r  # K complete episodes per earlier round
     run.say(f"  deploying on the real twin ({K - have} episodes) ...")
-    rets = list(prog.record(r).get("deploy_returns_partial", []))
+    log = EpisodeLog(run, r, "deploy_returns_partial")
     for e in range(max(0, have), K):
-        rets += record(run, [e], lambda e: lambda o, t: act(o),
-                       lambda e: np.random.default_rng([run.seed, r, e]))
-        prog.mark(f"round{r}/deploy_partial", deploy_returns_partial=rets)
+        log.add(*record(run, [e], lambda e: lambda o, t: act(o),
+                        lambda e: np.random.default_rng([run.seed, r, e])))
+    rets = log.rows
     t_eval = time.perf_counter()
     # without an accepted residual the deployed policy is pi_sim (scored once)
     no_adapt = evaluation.real_return(run.env_name, run.seed, policy_dir, config.eval_episodes,

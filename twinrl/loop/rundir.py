@@ -69,6 +69,11 @@ class RoundDir:
             raise LoopError(f"{path}: neither a 'system' nor the older 'params' and 'latency' "
                             f"({type(e).__name__}: {e}); start a new --out") from None
 
+    @property
+    def deploy_log(self) -> Path:
+        """The deployment's finished episodes so far (``twinrl.loop.shared.EpisodeLog``)."""
+        return self.path / "deploy_partial.json"
+
     # -- the cartpole family's artefacts
     @property
     def hybrid(self) -> Path:
