@@ -308,3 +308,59 @@ def test_a_sysid_json_written_before_the_system_still_resumes(tmp_path):
     report.write_json(tmp_path / "sysid.json", {"table": []})
     with pytest.raises(loop.LoopError, match="neither a 'system' nor the older"):
         RoundDir(tmp_path).identified_system("pendulum_swingup")
+
+
+def test_a_stage_hands_on_what_it_made_and_a_resumed_run_what_it_saved(tmp_path):
+    # the engine passes a stage's returned values on; a stage marked done is not run again, its
+    # values are read back from its own files (progress.json only says it is done)
+    import json
+    from types import SimpleNamespace
+
+    from twinrl.loop import LoopError, Progress, RunDir, Stage
+
+    made = []
+
+    def make(run, r, rdir, x):
+        made.append(x)
+        (rdir.path / "y.json").write_text(json.dumps(x + 1))
+        run.prog.mark(f"round{r}/s")
+        return {"y": x + 1}
+
+    def load(run, rdir, **_):
+        return {"y": json.loads((rdir.path / "y.json").read_text())}
+
+    stage = Stage("s", needs=("x",), gives=("y",), make=make, load=load)
+    run = SimpleNamespace(config=None, dir=RunDir(tmp_path),
+                          prog=Progress(tmp_path / "progress.json"))
+    assert stage(run, 1, {"x": 1}) == {"y": 2} and made == [1]
+    run.prog = Progress(tmp_path / "progress.json")  # a resumed run
+    assert stage(run, 1, {"x": 5}) == {"y": 2} and made == [1]
+    assert "y" not in json.loads((tmp_path / "progress.json").read_text())["rounds"].get(
+        "round1", {})
+    off = Stage("t", needs=(), gives=("z",), make=make, enabled=lambda c: False)
+    assert off(run, 1, {}) == {"z": None}
+    wrong = Stage("u", needs=(), gives=("z",), make=lambda run, r, rdir: {"w": 0})
+    with pytest.raises(LoopError, match="declares"):
+        wrong(run, 1, {})
+
+
+def test_a_deployment_killed_by_an_older_twinrl_resumes_from_its_rows(tmp_path):
+    # the deployed episodes' rows live in round<r>/deploy_partial.json; a run an older twinrl
+    # killed kept them in progress.json, where they are read when the file is missing
+    import json
+    from types import SimpleNamespace
+
+    from twinrl.loop import Progress, RunDir
+    from twinrl.loop.shared import EpisodeLog
+
+    prog = Progress(tmp_path / "progress.json")
+    prog.mark("round1/deploy_partial", deploy_returns_partial=[1.5])
+    run = SimpleNamespace(dir=RunDir(tmp_path), prog=prog)
+    log = EpisodeLog(run, 1, "deploy_returns_partial")
+    assert log.rows == [1.5]
+    (tmp_path / "round1").mkdir()
+    log.add(2.5)
+    assert json.loads((tmp_path / "round1" / "deploy_partial.json").read_text()) == {
+        "episodes": [1.5, 2.5]}
+    assert Progress(tmp_path / "progress.json").record(1)["deploy_episodes"] == 2
+    assert EpisodeLog(run, 1, "deploy_returns_partial").rows == [1.5, 2.5]
