@@ -264,7 +264,7 @@ def sense(run: RunContext, r: int, rdir: RoundDir, env) -> dict[str, Any]:
 
 def load_q_rank(run: RunContext, rdir: RoundDir, **_) -> dict[str, Any]:
     """Q's held-out rank correlation, from its training's ``q/summary.json``."""
-    f = rdir.q / "summary.json"
+    f = rdir.q_summary
     final = json.loads(f.read_text()).get("final", {}) if f.exists() else {}
     return {"q_rank": final.get("rank_corr")}
 

@@ -478,7 +478,7 @@ def _add_round_details(rdir: RoundDir, rec: dict[str, Any]) -> None:
     parameter), for the report."""
     import csv
 
-    f = rdir.train / "metrics.csv"
+    f = rdir.train_metrics
     if f.exists():
         rows = list(csv.DictReader(open(f)))
         pick = lambda k: [float(r[k]) for r in rows if r.get(k) not in (None, "")]  # noqa: E731

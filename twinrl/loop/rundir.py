@@ -86,6 +86,11 @@ class RoundDir:
         return self.path / "train"
 
     @property
+    def train_metrics(self) -> Path:
+        """The learner's per-epoch metrics (its learning curve, for the report)."""
+        return self.train / "metrics.csv"
+
+    @property
     def residual(self) -> Path:
         """The residual policy's checkpoint (all zeros when the gate rejected it)."""
         return self.path / "residual"
@@ -116,6 +121,11 @@ class RoundDir:
     def q(self) -> Path:
         """The sensing-aware Q (``twinrl.learn.runner``, algorithm ``sensing``)."""
         return self.path / "q"
+
+    @property
+    def q_summary(self) -> Path:
+        """The Q's training summary (its held-out rank correlation: ``final.rank_corr``)."""
+        return self.q / "summary.json"
 
 
 class RunDir:
