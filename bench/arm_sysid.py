@@ -3,7 +3,7 @@ like the real twin?
 
 Per task and twin seed: record ``--episodes`` episodes of the loop's round-0 excitation (open-loop
 ``sysid.excitation_actions``, the mount at its default pose) on ``make_real(task, seed=s)``, fit
-the loop's parameters (``twinrl.loop_arm._sysid_config``: latency 0-1, the 7 joints' servo
+the loop's parameters (``twinrl.loop.arm.sysid_config``: latency 0-1, the 7 joints' servo
 stiffness and damping), then
 
 1. each parameter's relative error against the twin's hidden truth, beside the nominal's
@@ -34,7 +34,7 @@ import numpy as np
 
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import envs, report
-from twinrl.loop_arm import _sysid_config
+from twinrl.loop.arm import sysid_config
 from twinrl.real import make_real
 from twinrl.real.perturbation import Perturbation
 from twinrl.real2sim import sysid
@@ -92,7 +92,7 @@ def one(name: str, seed: int, episodes: int, starts: int, estimate_start: bool =
     truth = twin.oracle()  # evaluation only
     data = sysid.collect(twin, episodes, seed=3, policy="open_loop")
     t0 = time.perf_counter()
-    config = dataclasses.replace(_sysid_config(), estimate_start=estimate_start)
+    config = dataclasses.replace(sysid_config(), estimate_start=estimate_start)
     if prior_sd is not None:
         config = dataclasses.replace(config, prior_sd=prior_sd)
     res = sysid.fit(envs.make(name), data, config)

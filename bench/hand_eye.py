@@ -5,11 +5,11 @@ Per task and twin seed: records ``--episodes`` round-0 episodes of the loop's ex
 on the real twin the loop would face (``twinrl run --seed S``: the seed's default salt; the
 dataset is kept in ``OUT/TASK-S-P/`` and reused), seen from ``P`` mount poses
 (``CameraMount.calibration_poses``; ``--poses 1 5``), then fits the mount's offset
-(``loop_arm.calibrate_mount``, the loop's settings: ``--frames`` frames, 150 Adam steps, one
-start) with the tool in the fit and without it (``--variants``), and scores each against the
+(``twinrl.real2sim.handeye.calibrate_mount``, the loop's settings: ``--frames`` frames, 150 Adam
+steps, one start) with the tool in the fit and without it (``--variants``), and scores each against the
 twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only). With ``--grasp`` each
 calibration is followed by the loop's identification of the tool's grasp in the hand with that
-camera (``loop_arm.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre
+camera (``handeye.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre
 point's error, mm, against the nominal grasp's); "LM kept" says which refinement won (from Adam's
 result or from the zero offset: ``visual.fit_body_offset``).
 
@@ -43,7 +43,7 @@ VARIANTS = ("tool-out", "tool-in")
 def record(task: str, seed: int, poses: np.ndarray, episodes: int, out: Path):
     """Round 0 of the loop (its excitation, reset seeds and images) on the twin ``twinrl run
     --seed seed`` faces, episode ``e`` seen from ``poses[e % len(poses)]``; kept in ``out``."""
-    from twinrl.loop_arm import record_round0
+    from twinrl.loop.arm import record_round0
     from twinrl.real.dataset import DatasetWriter, read
     from twinrl.real.remote import TwinClient
 
@@ -68,7 +68,7 @@ def record(task: str, seed: int, poses: np.ndarray, episodes: int, out: Path):
 
 
 def run(args) -> list[dict]:
-    from twinrl.loop_arm import calibrate_mount, fit_grasp
+    from twinrl.real2sim.handeye import calibrate_mount, fit_grasp
     from twinrl.real2sim import visual
 
     rows = []

@@ -70,7 +70,7 @@ def load_run(spec: str):
 def make_env(task, rdir, hinge_grid: int = 0, image_size: int | None = None):
     """The task in the round's identified twin, at ``image_size`` (default the run's)."""
     from twinrl.envs.system import System
-    from twinrl.loop_arm import run_env
+    from twinrl.loop.arm import run_env
 
     size = {} if image_size is None else {"image_size": image_size}
     env = run_env(rdir.parent, System.load(rdir / "system.json"), pose_hinge_grid=hinge_grid,

@@ -69,7 +69,7 @@ def load_run(task: str, run: Path):
     env being the task in the round's identified twin and ``config`` Q's ``SensingConfig``."""
     from twinrl.envs.system import System
     from twinrl.learn import sensing
-    from twinrl.loop_arm import run_env
+    from twinrl.loop.arm import run_env
     from twinrl.sense import load_q
 
     summary = json.loads((run / "summary.json").read_text())

@@ -224,7 +224,7 @@ def main(argv=None) -> int:
 def _env(name, system, args):
     """The task in ``system`` (a ``system.json``; None: nominal), as ``--run``'s loop ran it."""
     from twinrl.envs.system import System
-    from twinrl.loop_arm import run_env
+    from twinrl.loop.arm import run_env
 
     system = None if system is None else System.load(system)
     run = getattr(args, "run_dirs", {}).get(name)

@@ -28,6 +28,7 @@ CHILD = textwrap.dedent("""
     import dataclasses, sys, time
     from pathlib import Path
     from twinrl import eval as evaluation, loop
+    from twinrl.loop import cartpole
     from twinrl.learn import runner
     from twinrl.learn.common import MetricLog
     from twinrl.learn.networks import make_policy
@@ -51,7 +52,7 @@ CHILD = textwrap.dedent("""
         note(f"sysid {len(data)}")
         return Result(env)
 
-    real_deployed = loop._deployed_policy
+    real_deployed = cartpole.deployed_policy
 
     def slow_deployed(*a, **k):
         act = real_deployed(*a, **k)
@@ -80,7 +81,7 @@ CHILD = textwrap.dedent("""
 
     sysid.fit = fit
     evaluation.param_errors = lambda *a: {"cart_mass": 0.0}
-    loop._deployed_policy = slow_deployed
+    cartpole.deployed_policy = slow_deployed
     runner.ALGORITHMS["toy"] = runner.Algorithm("__main__", "train", "Config", {}, True)
     config = loop.LoopConfig(rounds=%d, episodes_per_round=%d, algo="toy", epochs=2,
                              model_fraction=0.0, hybrid=False, residual=False, oracle=False,
@@ -211,7 +212,8 @@ def test_the_loops_inputs_hold_no_evaluation_output(runs):
 ORACLE_PARENT = textwrap.dedent("""
     import sys, time
     from twinrl import loop
-    job = loop._OracleProcess(sys.argv[1], 0, sys.argv[2], loop.LoopConfig(), None)
+    from twinrl.loop.oracle import OracleProcess
+    job = OracleProcess(sys.argv[1], 0, sys.argv[2], loop.LoopConfig(), None)
     print(job._proc.pid, flush=True)
     if sys.argv[1] == "cartpole_swingup":
         time.sleep(600)  # killed by the test while the oracle trains
@@ -288,6 +290,7 @@ def test_a_sysid_json_written_before_the_system_still_resumes(tmp_path):
     # rebuilt from them (what the later stages simulate), and a file with neither is refused
     from twinrl import envs, loop
     from twinrl.envs.wrappers import LatencyWrapper
+    from twinrl.loop.rundir import RoundDir
 
     params = envs.make("pendulum_swingup").sim.default_params().scaled(mass=1.3)
     old = {k: np.asarray(v, np.float64).tolist() for k, v in params.as_dict().items()}
@@ -295,7 +298,7 @@ def test_a_sysid_json_written_before_the_system_still_resumes(tmp_path):
 
     report.write_json(tmp_path / "sysid.json", {"latency": 2, "params": old, "table": [],
                                                 "loss": 0.1, "sim_rollouts": 3, "seconds": 1.0})
-    system = loop._identified_system(tmp_path, "pendulum_swingup")
+    system = RoundDir(tmp_path).identified_system("pendulum_swingup")
     assert system.latency == 2 and system.task == "pendulum_swingup"
     for k, v in params.as_dict().items():
         np.testing.assert_array_equal(np.asarray(getattr(system.params, k)),
@@ -304,4 +307,60 @@ def test_a_sysid_json_written_before_the_system_still_resumes(tmp_path):
     assert isinstance(env, LatencyWrapper) and env.sys is system
     report.write_json(tmp_path / "sysid.json", {"table": []})
     with pytest.raises(loop.LoopError, match="neither a 'system' nor the older"):
-        loop._identified_system(tmp_path, "pendulum_swingup")
+        RoundDir(tmp_path).identified_system("pendulum_swingup")
+
+
+def test_a_stage_hands_on_what_it_made_and_a_resumed_run_what_it_saved(tmp_path):
+    # the engine passes a stage's returned values on; a stage marked done is not run again, its
+    # values are read back from its own files (progress.json only says it is done)
+    import json
+    from types import SimpleNamespace
+
+    from twinrl.loop import LoopError, Progress, RunDir, Stage
+
+    made = []
+
+    def make(run, r, rdir, x):
+        made.append(x)
+        (rdir.path / "y.json").write_text(json.dumps(x + 1))
+        run.prog.mark(f"round{r}/s")
+        return {"y": x + 1}
+
+    def load(run, rdir, **_):
+        return {"y": json.loads((rdir.path / "y.json").read_text())}
+
+    stage = Stage("s", needs=("x",), gives=("y",), make=make, load=load)
+    run = SimpleNamespace(config=None, dir=RunDir(tmp_path),
+                          prog=Progress(tmp_path / "progress.json"))
+    assert stage(run, 1, {"x": 1}) == {"y": 2} and made == [1]
+    run.prog = Progress(tmp_path / "progress.json")  # a resumed run
+    assert stage(run, 1, {"x": 5}) == {"y": 2} and made == [1]
+    assert "y" not in json.loads((tmp_path / "progress.json").read_text())["rounds"].get(
+        "round1", {})
+    off = Stage("t", needs=(), gives=("z",), make=make, enabled=lambda c: False)
+    assert off(run, 1, {}) == {"z": None}
+    wrong = Stage("u", needs=(), gives=("z",), make=lambda run, r, rdir: {"w": 0})
+    with pytest.raises(LoopError, match="declares"):
+        wrong(run, 1, {})
+
+
+def test_a_deployment_killed_by_an_older_twinrl_resumes_from_its_rows(tmp_path):
+    # the deployed episodes' rows live in round<r>/deploy_partial.json; a run an older twinrl
+    # killed kept them in progress.json, where they are read when the file is missing
+    import json
+    from types import SimpleNamespace
+
+    from twinrl.loop import Progress, RunDir
+    from twinrl.loop.shared import EpisodeLog
+
+    prog = Progress(tmp_path / "progress.json")
+    prog.mark("round1/deploy_partial", deploy_returns_partial=[1.5])
+    run = SimpleNamespace(dir=RunDir(tmp_path), prog=prog)
+    log = EpisodeLog(run, 1, "deploy_returns_partial")
+    assert log.rows == [1.5]
+    (tmp_path / "round1").mkdir()
+    log.add(2.5)
+    assert json.loads((tmp_path / "round1" / "deploy_partial.json").read_text()) == {
+        "episodes": [1.5, 2.5]}
+    assert Progress(tmp_path / "progress.json").record(1)["deploy_episodes"] == 2
+    assert EpisodeLog(run, 1, "deploy_returns_partial").rows == [1.5, 2.5]

@@ -1,4 +1,4 @@
-"""``twinrl.loop_arm`` (the SAM-RL loop on a manipulation task): a run killed with SIGKILL in the
+"""``twinrl.loop.arm`` (the SAM-RL loop on a manipulation task): a run killed with SIGKILL in the
 middle of a real deployment episode and resumed keeps every real transition and frame it had
 recorded, does not redo finished stages, re-runs the cut episode from its start (the same episode:
 the same reset seed, the same first transitions), and ends with every round's episodes complete.
@@ -31,7 +31,8 @@ CHILD = textwrap.dedent("""
     import sys, time
     from pathlib import Path
     import jax, numpy as np
-    from twinrl import loop, loop_arm, report
+    from twinrl import report
+    from twinrl.loop import arm as loop_arm
     from twinrl.learn import plans
     from twinrl.learn.checkpoint import save_policy
     from twinrl.learn.imitation import ImitationConfig, make_observer
@@ -49,7 +50,7 @@ CHILD = textwrap.dedent("""
         note(f"calibrate {len(data)}")
         env = run.nominal_env
         cam = env.mount.camera(np.asarray(env.mount.default, np.float32), 64, 64)
-        report.write_json(rdir / "calibration.json", {"camera": {
+        report.write_json(rdir.calibration, {"camera": {
             "pos": np.asarray(cam.pos), "quat": np.asarray(cam.quat),
             "fovy": np.asarray(cam.fovy), "width": 64, "height": 64}})
         run.prog.mark(f"round{r}/calibrate")
@@ -57,7 +58,7 @@ CHILD = textwrap.dedent("""
     def plan(run, r, rdir, env):
         note("plan")
         T, m = env.episode_length, env.action_size
-        plans.save(rdir / "plans.npz", {"plans": np.zeros((2, T, m), np.float32),
+        plans.save(rdir.plans, {"plans": np.zeros((2, T, m), np.float32),
                                         "keys": np.zeros((2, 2), np.uint32),
                                         "success": np.ones(2)})
         run.prog.mark(f"round{r}/plan", plan_success=1.0)
@@ -68,7 +69,7 @@ CHILD = textwrap.dedent("""
         _, spec = make_observer(env, cfg)
         net = make_network(spec, env.action_size, NetworkConfig(hidden=(8,), output="tanh"))
         params = net.init(jax.random.key(r))
-        save_policy(rdir / "actor" / "policy", net, params, algo="imitation", env=env.name,
+        save_policy(rdir.actor / "policy", net, params, algo="imitation", env=env.name,
                     config=cfg)
         run.prog.mark(f"round{r}/imitation", sim_success=0.0)
 
@@ -131,7 +132,7 @@ def killed(tmp_path_factory):
 def test_killed_inside_the_second_deployed_episode(killed):
     _, at_kill, prog = killed
     assert "round1/deploy" not in prog["done"] and "round1/imitation" in prog["done"]
-    assert len(prog["rounds"]["round1"]["deploy_partial"]) == 1
+    assert prog["rounds"]["round1"]["deploy_episodes"] == 1  # the rows: round1/deploy_partial.json
     # round 0's K episodes and one deployed episode complete, the next one cut short
     assert int(np.sum(at_kill.episode_complete)) == K + 1
     assert (K + 1) * T < len(at_kill) < (K + 2) * T
@@ -177,7 +178,7 @@ def test_finished_stages_are_not_redone_and_the_summary_counts_the_episodes(kill
 
 def test_bad_settings_fail_with_one_line(tmp_path):
     from twinrl.loop import LoopError
-    from twinrl.loop_arm import make_config
+    from twinrl.loop.arm import make_config
 
     with pytest.raises(LoopError, match="no setting 'cameras'"):
         make_config({"cameras": "x"})
@@ -200,8 +201,8 @@ def test_bad_settings_fail_with_one_line(tmp_path):
 def test_the_grasp_is_identified_by_default_where_it_was_measured_to_help():
     # needle and peg: the fit lands 0.7-3.4 mm from the hidden grasp (nominal: 2-12 mm); the
     # spatula's 2.1-2.4 mm (nominal 4.6-13 mm), and its loops with it and the calibrated
-    # controller planned 45/48 on twins 1 and 2 (README, stop 61)
-    from twinrl.loop_arm import grasp_on, make_config
+    # controller planned 45/48 on twins 1 and 2
+    from twinrl.loop.arm import grasp_on, make_config
 
     c = make_config()
     assert all(grasp_on(c, t) for t in ("needle_threading", "peg_insertion", "spatula_flipping"))
@@ -211,16 +212,11 @@ def test_the_grasp_is_identified_by_default_where_it_was_measured_to_help():
 
 
 def test_qs_choice_is_deployed_only_where_q_ranks_its_held_out_states(tmp_path):
-    from types import SimpleNamespace
+    from twinrl.loop import LoopError
+    from twinrl.loop.arm import deployed_camera, make_config
 
-    from twinrl.loop import LoopError, Progress
-    from twinrl.loop_arm import deployed_camera, make_config
-
-    def camera(rank, **settings):
-        prog = Progress(tmp_path / f"p{len(list(tmp_path.iterdir()))}.json")
-        if rank is not None:
-            prog.mark("round1/sensing", q_rank_corr=rank)
-        return deployed_camera(SimpleNamespace(config=make_config(settings), prog=prog), 1)
+    def camera(rank, **settings):  # the sensing stage's rank correlation, as it gives it
+        return deployed_camera(make_config(settings), rank)
 
     assert camera(0.38) == "selected" and camera(0.2) == "selected"
     assert camera(-0.12) == "default" and camera(None) == "default"
@@ -235,7 +231,7 @@ def test_the_spatula_stage_runs_dagger_unless_told_otherwise():
     # the spatula's target-cloud actor needs four DAgger rounds on solved labels (README); the
     # other tasks clone alone; a --set imitation.FIELD wins over the task's setting
     from twinrl import envs
-    from twinrl.loop_arm import imitation_settings, make_config
+    from twinrl.loop.arm import imitation_settings, make_config
 
     spatula, needle = envs.make("spatula_flipping"), envs.make("needle_threading")
     s = imitation_settings(make_config(), spatula)
@@ -250,8 +246,9 @@ def test_resuming_a_run_recorded_with_other_images_is_one_line(tmp_path):
     """A run whose dataset holds images of another size (one an older twinrl started: the
     needle's went from 64x64 to 128x128) is refused on --resume in one line naming the sizes,
     before any stage runs; the recorded episodes stay as they were."""
-    from twinrl import envs, loop_arm
+    from twinrl import envs
     from twinrl.loop import LoopError
+    from twinrl.loop import arm as loop_arm
     from twinrl.real.dataset import DatasetWriter
 
     out = tmp_path / "run"
@@ -275,11 +272,11 @@ def test_resuming_a_run_recorded_with_other_images_is_one_line(tmp_path):
 
 
 def test_a_runs_env_is_rebuilt_at_the_image_size_it_ran_with(tmp_path):
-    """``loop_arm.run_env`` (what the benches rebuild a run's twin with): the run's
+    """``twinrl.loop.arm.run_env`` (what the benches rebuild a run's twin with): the run's
     ``image_size`` setting, else the task's -- also for a run written before the setting."""
     import json
 
-    from twinrl import loop_arm
+    from twinrl.loop import arm as loop_arm
     from twinrl.report import to_jsonable
 
     config = loop_arm.make_config({"image_size": 96})
@@ -296,7 +293,7 @@ def test_a_run_started_before_a_setting_existed_resumes_at_its_default(tmp_path)
     """``loop.json`` without a setting a later twinrl added (here ``image_size``) resumes when
     the setting is at its default; a setting it names with another value is still refused."""
     from twinrl.loop import LoopError, check_settings
-    from twinrl.loop_arm import make_config
+    from twinrl.loop.arm import make_config
     from twinrl.report import to_jsonable
 
     out = tmp_path / "run"

@@ -1,4 +1,4 @@
-"""The manipulation loop's residual stage (``twinrl.loop_arm``, SAM-RL's residual policy) on short
+"""The manipulation loop's residual stage (``twinrl.loop.arm``, SAM-RL's residual policy) on short
 peg insertion: a ``"pose"`` actor seen from the state (perfect perception, as the model renders
 no images) is the base; the hybrid model is fitted to recorded transitions, the residual trained
 through it and gated by ``residual.accept``; a rejected residual is saved as exactly zero and not
@@ -17,11 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from twinrl import envs, loop_arm
+from twinrl import envs
 from twinrl.envs.system import System
 from twinrl.learn.checkpoint import load_policy, save_policy
 from twinrl.learn.networks import NetworkConfig, make_network
 from twinrl.loop import LoopError, Progress
+from twinrl.loop import arm as loop_arm
+from twinrl.loop.rundir import RoundDir
 from twinrl.sim2real import active, residual
 
 T = 6
@@ -99,8 +101,8 @@ def staged(peg, tmp_path_factory, request):
     """The stage run once with the gate's verdict forced to a rejection (its numbers real)."""
     env, actor, params = peg
     tmp = tmp_path_factory.mktemp("residual")
-    rdir = tmp / "round1"
-    save_policy(rdir / "actor" / "policy", actor, params, algo="imitation", env=env.name)
+    rdir = RoundDir(tmp / "round1")
+    save_policy(rdir.actor / "policy", actor, params, algo="imitation", env=env.name)
     verdicts = []
     real_accept = residual.accept
 
@@ -112,63 +114,70 @@ def staged(peg, tmp_path_factory, request):
     request.addfinalizer(mp.undo)
     mp.setattr(residual, "accept", rejecting)
     run = _run(tmp)
-    loop_arm._residual(run, 1, rdir, env, System.nominal("peg_insertion"), _data(env, bias=0.5))
-    return run, rdir, verdicts
+    given = loop_arm.stages.train_residual(run, 1, rdir, env, System.nominal("peg_insertion"),
+                                           _data(env, bias=0.5))
+    return run, rdir, verdicts, given
 
 
 def test_the_residual_is_trained_through_the_hybrid_model_and_gated(staged):
-    run, rdir, verdicts = staged
+    run, rdir, verdicts, given = staged
     rec = run.prog.record(1)
-    assert (rdir / "hybrid" / "checkpoint.json").exists() and len(verdicts) == 1
+    assert (rdir.hybrid / "checkpoint.json").exists() and len(verdicts) == 1
     v = verdicts[0]
     assert rec["residual_accepted"] is False
+    # the verdict is the stage's value, and a resumed run reads the same one back
+    assert given == {"residual_accepted": False}
+    assert loop_arm.stages.load_residual(run, rdir) == given
     # the model beat the twin on held-out transitions, so the residual was trained at all
     assert rec["hybrid_rmse"] < 0.95 * rec["hybrid_sim_rmse"], rec
     assert rec["residual_model_return"] == pytest.approx([v.before, v.after])
     assert rec["residual_sim_return"] == pytest.approx([v.reference_before, v.reference_after])
     assert np.all(np.isfinite([v.before, v.after, v.reference_before, v.reference_after]))
     assert any("rejected" in s for s in run.said)
-    delta, params, meta = load_policy(rdir / "residual")
+    delta, params, meta = load_policy(rdir.residual)
     # rejected: saved as exactly zero, and the deployment has no residual
     assert all(np.all(np.asarray(x) == 0) for x in jax.tree.leaves(params))
     assert meta["metrics"]["accepted"] == 0.0 and np.isfinite(meta["metrics"]["objective"])
 
 
 def test_only_an_accepted_residual_is_deployed(staged, peg):
-    run, rdir, _ = staged
+    _, rdir, _, given = staged
     env = peg[0]
-    run = SimpleNamespace(**{**vars(run), "config": loop_arm.ArmLoopConfig(camera="default")})
-    assert loop_arm._deployer(run, env, rdir, 1).residual is None
-    run.prog.mark("round1/residual", residual_accepted=True)
-    dep = loop_arm._deployer(run, env, rdir, 1)
+    config = loop_arm.ArmLoopConfig(camera="default")
+    assert loop_arm.deployer(config, env, rdir, given["residual_accepted"]).residual is None
+    dep = loop_arm.deployer(config, env, rdir, True)
     obs = np.asarray(env.reset(jax.random.PRNGKey(0)).obs)
     np.testing.assert_array_equal(dep.residual(obs, np.zeros(3, np.float32)), np.zeros(3))
-    assert loop_arm._deployer(run, env, rdir, 1, residual=False).residual is None
+    assert loop_arm.deployer(config, env, rdir, None).residual is None
 
 
 def test_no_residual_where_the_model_is_no_better_than_the_twin(peg, tmp_path):
     """Transitions of the simulator itself: the hybrid model has nothing to add, so no residual
     is trained (nor deployed), and the stage says why."""
     env, actor, params = peg
-    rdir = tmp_path / "round1"
-    save_policy(rdir / "actor" / "policy", actor, params, algo="imitation", env=env.name)
+    rdir = RoundDir(tmp_path / "round1")
+    save_policy(rdir.actor / "policy", actor, params, algo="imitation", env=env.name)
     run = _run(tmp_path)
-    loop_arm._residual(run, 1, rdir, env, System.nominal("peg_insertion"), _data(env))
+    given = loop_arm.stages.train_residual(run, 1, rdir, env, System.nominal("peg_insertion"),
+                                           _data(env))
     rec = run.prog.record(1)
     assert rec["residual_accepted"] is None and rec["hybrid_rmse"] >= 0.95 * rec["hybrid_sim_rmse"]
+    assert given == {"residual_accepted": None} == loop_arm.stages.load_residual(run, rdir)
     assert "better than the identified twin" in run.said[-1]
-    assert not (rdir / "residual").exists()
+    assert not rdir.residual.exists()
 
 
 def test_an_actor_of_other_features_gets_no_residual(peg, tmp_path):
     env = peg[0]
     target = make_network({"target": (7,), "state": (14,)}, 3, NetworkConfig(hidden=(4,)))
-    save_policy(tmp_path / "round1" / "actor" / "policy", target,
+    rdir = RoundDir(tmp_path / "round1")
+    save_policy(rdir.actor / "policy", target,
                 target.init(jax.random.PRNGKey(0)), algo="imitation", env=env.name)
     run = _run(tmp_path)
-    loop_arm._residual(run, 1, tmp_path / "round1", env, System.nominal("peg_insertion"), None)
-    assert run.prog.record(1)["residual_accepted"] is None
-    assert "no residual policy" in run.said[0] and not (tmp_path / "round1" / "residual").exists()
+    given = loop_arm.stages.train_residual(run, 1, rdir, env, System.nominal("peg_insertion"),
+                                           None)
+    assert run.prog.record(1)["residual_accepted"] is None and given["residual_accepted"] is None
+    assert "no residual policy" in run.said[0] and not rdir.residual.exists()
     with pytest.raises(LoopError, match="residual_policy: ResidualConfig.steps"):
         loop_arm.make_config({"residual_policy.steps": 0})
 

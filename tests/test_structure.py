@@ -1,5 +1,6 @@
-"""The package's shape (ARCHITECTURE.md, "Arrows point down"): no import cycle inside ``twinrl/``,
-no module reaching into another's private names, and ``loop.run`` a short walk over its stages.
+"""The package's shape (its modules import downwards, never in a circle): no import cycle inside
+``twinrl/``, no module reaching into another's private names, and ``loop.run`` a short walk over its
+stages.
 
 How it checks, without importing anything: every ``twinrl/**/*.py`` is parsed with ``ast`` and every
 import statement in it counts, at module level or inside a function (a lazy import is still a
@@ -305,7 +306,7 @@ def test_imports_point_down_the_layers():
 
 
 def test_the_loop_is_a_list_of_stages():
-    # ARCHITECTURE.md: loop.run only walks the stages (each saves and loads its own artefacts)
+    # loop.run only picks a family and walks its stages (each saves and loads its own values)
     tree = ast.parse(MODULES["twinrl.loop"].read_text())
     run = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "run")
     assert run.end_lineno - run.lineno + 1 <= 60

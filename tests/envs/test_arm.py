@@ -571,10 +571,10 @@ def test_calibration_poses_start_at_the_default_and_spread_over_the_workspace():
 
 
 def test_tool_geoms_are_the_tools_and_nothing_else():
-    """``loop_arm.tool_geoms``: what the hand-eye calibration leaves out (the tool, whose grasp
+    """``handeye.tool_geoms``: what the hand-eye calibration leaves out (the tool, whose grasp
     in the hand is not known) -- every geom of body ``tool`` and below it, no arm or scene
     geom."""
-    from twinrl.loop_arm import tool_geoms
+    from twinrl.real2sim.handeye import tool_geoms
 
     for task, names in (("needle_threading", {"thread"}), ("peg_insertion", {"peg"}),
                         ("spatula_flipping", {"handle", "blade", "blade0", "blade1", "blade2"})):

@@ -1,5 +1,5 @@
 """``twinrl run``: the whole loop on a registered task's real twin, the cartpole family's
-(``twinrl.loop``) or, on a manipulation task, the SAM-RL loop (``twinrl.loop_arm``).
+(``twinrl.loop.cartpole``) or, on a manipulation task, the SAM-RL loop (``twinrl.loop.arm``).
 
 Every import of the loops is in ``_loops`` below."""
 
@@ -39,7 +39,7 @@ def add_parser(sub) -> None:
     p.add_argument("--no-oracle", action="store_true",
                    help="skip the oracle policy (evaluation only; saves a training run)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help="manipulation tasks: a setting of the SAM-RL loop (twinrl.loop_arm."
+                   help="manipulation tasks: a setting of the SAM-RL loop (twinrl.loop.arm."
                         "ArmLoopConfig), repeatable, e.g. --set demonstrations=16 --set "
                         "imitation.fit_steps=1000 --set camera=default")
     p.add_argument("--resume", action="store_true", help="continue a killed run in --out")
@@ -48,9 +48,10 @@ def add_parser(sub) -> None:
 
 
 def _loops():
-    """``(twinrl.loop, twinrl.loop_arm)``: the loops this command runs (every import of them is
+    """``(twinrl.loop, twinrl.loop.arm)``: the loops this command runs (every import of them is
     here; imported when the command runs, not when the parser is built)."""
-    from twinrl import loop, loop_arm
+    from twinrl import loop
+    from twinrl.loop import arm as loop_arm
 
     return loop, loop_arm
 

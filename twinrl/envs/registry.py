@@ -4,7 +4,8 @@ A task name maps to an ``Env`` class and its default config (``cartpole_balance`
 ``cartpole_swingup`` share a class and differ in config), in the style of MuJoCo Playground's
 ``default_config()`` plus flat overrides. Configs are frozen dataclasses, so no instance can
 change another's defaults. A task's real twin is ``twinrl.real.make_real(name, seed=...)``: the
-real side sits above ``envs`` (ARCHITECTURE.md's module map), so the registry does not reach it.
+real side sits above ``envs`` in the package's layers (``twinrl.real`` imports ``twinrl.envs``,
+never the reverse), so the registry does not reach it.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ smooth random actions; for others random actions). ``save``/``imitation.load_dem
 write and read ``<task>_plans.npz``: ``actions`` (N, T, m), ``keys`` (N, 2) and ``success`` (N,).
 
 Used by ``bench/manipulation.py`` (the suite's trajopt figures) and by the manipulation loop's
-``plan`` stage (``twinrl.loop_arm``), which plans in the identified twin.
+``plan`` stage (``twinrl.loop.arm``), which plans in the identified twin.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """``RealTwin``: a task's stand-in for the physical robot, as a ``gymnasium.Env``.
 
-The loop (ARCHITECTURE.md) needs a "real" system whose dynamics and camera the simulator does not
-know exactly. ``RealTwin`` is the same task (same reset distribution, observation and reward
+The loop (Real2Sim -> Learn@Sim -> Sim2Real, ``twinrl.loop``) needs a "real" system whose dynamics
+and camera the simulator does not know exactly. ``RealTwin`` is the same task (same reset distribution, observation and reward
 functions, from ``twinrl.envs``) run on a *different engine*: the MuJoCo C engine (``mj_step``,
 float64, implicit-fast integration, 50 solver iterations by default) instead of MJX with a
 fixed-iteration solve, with a hidden ``Perturbation`` applied: scaled masses, damping, friction and
@@ -436,16 +436,12 @@ def record_episode(twin, writer, policy, obs, *, images: bool = False) -> tuple[
     """Run ``policy(obs, t) -> action`` on ``twin`` from ``obs`` (what its last ``reset``
     returned) until the episode ends, recording every transition with ``writer`` (a
     ``twinrl.real.dataset.DatasetWriter``; with ``images``, also the RGB, depth and segmentation
-    of the twin's camera). Returns ``(return, steps)``."""
-    ret, done, t = 0.0, False, 0
-    while not done:
-        a = np.asarray(policy(obs, t), np.float32)
-        nxt, r, term, trunc, info = twin.step(a)
-        frames = twin.render_images(twin.camera, IMAGE_KINDS) if images else None
-        writer.add(obs, a, r, nxt, term, trunc,
-                   info={k: v for k, v in info.items() if np.isscalar(v)}, images=frames)
-        obs, ret, done, t = nxt, ret + float(r), term or trunc, t + 1
-    return ret, t
+    of the twin's camera). Returns ``(return, steps)``. One episode of
+    ``twinrl.real.record.record_episodes``, which resets and seeds the episodes too."""
+    from twinrl.real.record import record_from
+
+    ret, steps, _ = record_from(twin, policy, obs, writer=writer, images=images)
+    return ret, steps
 
 
 # ---------------------------------------------------------------------- episodes to files

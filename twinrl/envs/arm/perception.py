@@ -154,7 +154,7 @@ class ArmPerception:
         observation of the state the measured joints (``obs[:14]``) and the target's true pose
         (``state_from_obs``; at rest, hinges modulo the target's symmetry) give -- what a
         ``"pose"`` actor reads when ``fit_target_pose`` is exact. The residual policy of the
-        manipulation loop is trained through a model on it (``twinrl.loop_arm``), which renders
+        manipulation loop is trained through a model on it (``twinrl.loop.arm``), which renders
         no images. One observation (``obs`` of shape ``(observation_size,)``)."""
         if not self.target_joints:
             raise ValueError(f"{self.name} has no target_joints: no pose estimate")

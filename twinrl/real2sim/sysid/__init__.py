@@ -1,6 +1,6 @@
 """System identification from trajectories: fit ``PhysParams`` and the action latency to a dataset.
 
-Real2Sim, first half (ARCHITECTURE.md, "The loop, as data"; SAM-RL Sec. 4.1, the Hybrid
+Real2Sim, first half (the loop's ``sysid`` stage, ``twinrl.loop``; SAM-RL Sec. 4.1, the Hybrid
 Differentiable Simulation study's "parameter identification"): find the simulator parameters under
 which recorded real transitions are most likely, by gradient-based optimisation *through* the
 simulator.

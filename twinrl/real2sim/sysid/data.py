@@ -16,6 +16,7 @@ import numpy as np
 
 from twinrl.envs.base import Env
 from twinrl.envs.registry import TASKS
+from twinrl.real.record import record_episodes
 
 __all__ = ["excitation_actions", "collect", "Windows", "windows_from_dataset"]
 
@@ -55,7 +56,9 @@ def collect(twin, episodes: int, seed: int = 0, *, steps: int | None = None,
     closed-loop excitation, a callable ``make(rng) -> policy(obs, t) -> action`` (the
     contract of ``excitation_policy``), e.g. one designed for the parameters you identify.
     Returns ``{"obs", "action", "next_obs", "reward"}`` with shapes (E, T, ...); if ``writer``
-    (a ``twinrl.real.dataset.DatasetWriter``) is given, every transition is also recorded there.
+    (a ``twinrl.real.dataset.DatasetWriter``) is given, every transition is also recorded there
+    (``twinrl.real.record.record_episodes``, with each step's scalar ``info``). Episode ``ep``
+    resets with seed ``1000 * seed + ep``; its actions draw from one generator seeded ``seed``.
     """
     if int(episodes) < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -73,27 +76,18 @@ def collect(twin, episodes: int, seed: int = 0, *, steps: int | None = None,
     rng = np.random.default_rng(seed)
     T = int(steps or twin.task.episode_length)
     m = int(twin.action_space.shape[0])
-    out = {k: [] for k in ("obs", "action", "next_obs", "reward")}
-    for ep in range(int(episodes)):
-        obs, _ = twin.reset(seed=int(seed) * 1000 + ep)
-        rows = {k: [] for k in out}
+
+    def make(ep):  # drawn from the one generator, episode after episode
         if closed:
-            act = task_policy(rng)
-        else:
-            acts = excitation_actions(rng, T, m, **excitation)
-            act = lambda o, t, acts=acts: acts[t]  # noqa: E731
-        for t in range(T):
-            a = np.asarray(act(obs, t), np.float32)
-            nxt, r, term, trunc, _ = twin.step(a)
-            if writer is not None:
-                writer.add(obs, a, r, nxt, term, trunc or t == T - 1)
-            for k, v in zip(out, (obs, a, nxt, r)):
-                rows[k].append(v)
-            obs = nxt
-            if term:
-                break
-        for k in out:
-            out[k].append(np.asarray(rows[k]))
+            return task_policy(rng)
+        acts = excitation_actions(rng, T, m, **excitation)
+        return lambda o, t: acts[t]
+
+    recorded = record_episodes(twin, range(int(episodes)), make,
+                               lambda ep: int(seed) * 1000 + ep, writer=writer, steps=T,
+                               keep=True)
+    out = {k: [r.transitions[k] for r in recorded] for k in ("obs", "action", "next_obs",
+                                                              "reward")}
     lengths = {len(x) for x in out["reward"]}
     if len(lengths) != 1:  # an episode terminated early (diverged): keep ragged as a list
         return {k: list(v) for k, v in out.items()}
