@@ -42,7 +42,7 @@ def cmd(args) -> int:
     from twinrl import envs, report
     from twinrl.real import dataset as ds
     from twinrl.real.dataset import DatasetWriter
-    from twinrl.real.twin import record_episode
+    from twinrl.real.record import episode_seeds, record_episodes
     from twinrl.real2sim.sysid import excitation_actions
 
     check_task(args.env)
@@ -91,29 +91,32 @@ def cmd(args) -> int:
     first_episode = writer.episode_id
     columns = [TextColumn("[bold]collect"), BarColumn(), MofNCompleteColumn(),
                TextColumn("episodes  return {task.fields[ret]}"), TimeElapsedColumn()]
+    def policy(e):
+        # Each episode's randomness is a function of (--seed, its id in the dataset): re-running
+        # on the same --out appends new episodes, not copies of the first ones.
+        _, rng = episode_seeds(args.seed, first_episode + e)
+        if args.policy == "excite" and task_excitation is not None:
+            return task_excitation(rng)
+        if args.policy == "excite":
+            levels = excitation_actions(rng, twin.episode_length, int(np.prod(act_shape)))
+            return lambda o, t: levels[min(t, len(levels) - 1)].reshape(act_shape)
+        if args.policy == "random":
+            return lambda o, t: rng.uniform(-1, 1, act_shape)
+        return lambda o, t: np.zeros(act_shape)
+
     try:
         with writer, Progress(*columns, console=report.console) as bar:
             task = bar.add_task("collect", total=args.episodes, ret="-")
-            for ep in range(args.episodes):
-                # Each episode's randomness is a function of (--seed, its id in the dataset):
-                # re-running on the same --out appends new episodes, not copies of the first ones.
-                seq = np.random.SeedSequence([args.seed, first_episode + ep])
-                obs, _ = twin.reset(seed=int(seq.generate_state(1)[0]))
-                rng = np.random.default_rng(seq.spawn(1)[0])
-                if args.policy == "excite" and task_excitation is not None:
-                    policy = task_excitation(rng)
-                elif args.policy == "excite":
-                    levels = excitation_actions(rng, twin.episode_length,
-                                                int(np.prod(act_shape)))
-                    policy = lambda o, t: levels[min(t, len(levels) - 1)].reshape(act_shape)  # noqa: E731
-                elif args.policy == "random":
-                    policy = lambda o, t: rng.uniform(-1, 1, act_shape)  # noqa: E731
-                else:
-                    policy = lambda o, t: np.zeros(act_shape)  # noqa: E731
-                ret, n = record_episode(twin, writer, policy, obs, images=args.images)
-                returns.append(ret)
-                steps += n
-                bar.update(task, advance=1, ret=f"{ret:.2f}")
+
+            def done(rec):
+                nonlocal steps
+                returns.append(rec.ret)
+                steps += rec.steps
+                bar.update(task, advance=1, ret=f"{rec.ret:.2f}")
+
+            record_episodes(twin, range(args.episodes), policy,
+                            lambda e: episode_seeds(args.seed, first_episode + e)[0],
+                            writer=writer, images=args.images, on_episode=done)
     except OSError as e:  # disk full, quota, I/O error: what was recorded before stays readable
         raise UsageError(f"writing {dataset_dir} failed after {len(returns)} complete "
                          f"episode(s) of this run: {e.strerror or e}; the dataset keeps every "

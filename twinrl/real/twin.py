@@ -49,7 +49,7 @@ from twinrl.real.perturbation import Perturbation, rotvec_quat  # noqa: E402
 from twinrl.render.opengl import IMAGE_KINDS, CameraRenderer, render_states  # noqa: E402,F401
 
 __all__ = ["make_real", "RealTwin", "Oracle", "CameraRenderer", "render_episode", "render_states",
-           "record_episode", "IMAGE_KINDS"]
+           "IMAGE_KINDS"]
 
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
@@ -430,18 +430,6 @@ def make_real(name: str, *, seed: int = 0, perturbation: Perturbation | None = N
         as ``config={...}``, engine settings).
     """
     return RealTwin(name, seed=seed, perturbation=perturbation, **kwargs)
-
-
-def record_episode(twin, writer, policy, obs, *, images: bool = False) -> tuple[float, int]:
-    """Run ``policy(obs, t) -> action`` on ``twin`` from ``obs`` (what its last ``reset``
-    returned) until the episode ends, recording every transition with ``writer`` (a
-    ``twinrl.real.dataset.DatasetWriter``; with ``images``, also the RGB, depth and segmentation
-    of the twin's camera). Returns ``(return, steps)``. One episode of
-    ``twinrl.real.record.record_episodes``, which resets and seeds the episodes too."""
-    from twinrl.real.record import record_from
-
-    ret, steps, _ = record_from(twin, policy, obs, writer=writer, images=images)
-    return ret, steps
 
 
 # ---------------------------------------------------------------------- episodes to files
