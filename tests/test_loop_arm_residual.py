@@ -185,15 +185,17 @@ def test_an_actor_of_other_features_gets_no_residual(peg, tmp_path):
 def test_fits_of_real_data_run_it_under_the_controller_that_recorded_it(tmp_path):
     """Round 0 records with the nominal controller, later rounds with the calibrated one: sysid
     and the hybrid model fit round 0's episodes (``nominal_episodes``) under the nominal
-    controller (``uncalibrated``), the twin itself left calibrated."""
-    from twinrl.envs.wrappers import LatencyWrapper
+    controller (the task ``with_system`` of the system without its ``controller``), the twin
+    itself left calibrated."""
+    from twinrl.envs.system import ControllerCalibration, System
 
     speed = (1.0, 0.9, 1.1, 1.2, 1.0, 1.0, 0.8)
-    env = envs.make("peg_insertion")
-    env.calibrate_controller(speed)
-    for e in (env, LatencyWrapper(env, 1)):
-        assert loop_arm.uncalibrated(e).controller.joint_speed is None
-        assert e.controller.joint_speed == speed
+    system = System.nominal("peg_insertion").replace(controller=ControllerCalibration(speed),
+                                                      latency=1)
+    env = envs.make("peg_insertion", system=system)  # the latency's wrapper around the task
+    nominal = env.with_system(system.replace(controller=None))
+    assert nominal.env.controller.joint_speed is None and nominal.latency == 1
+    assert tuple(env.env.controller.joint_speed) == speed
     data = _Data(episode_id=np.repeat(np.arange(6), 3), obs=np.zeros((18, 2)))
     assert len(loop_arm.nominal_episodes(_run(tmp_path), data)) == 4 * 3  # K = 4
     assert len(loop_arm.nominal_episodes(_run(tmp_path, calibrate_controller=False), data)) == 18

@@ -10,7 +10,7 @@ from twinrl.physics.scenes import Scenario
 
 def task_scenes() -> tuple[str, ...]:
     """Tasks whose scene ``gradcheck`` takes by the task's name: the manipulation suite."""
-    from twinrl.envs.arm.base import ArmTask
+    from twinrl.envs.arm.task import ArmTask
     from twinrl.envs.registry import TASKS
 
     return tuple(n for n, e in TASKS.items() if issubclass(e.env_class, ArmTask))

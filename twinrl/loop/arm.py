@@ -17,7 +17,7 @@ Every round ``r >= 1`` then runs these stages (``ARM_ROUND``, ``twinrl.loop.Stag
    ``"mount"`` camera, so every later render and back-projection of the target uses it; then, with that camera, the tool's grasp
    in the hand (``handeye.fit_grasp``; ``ArmLoopConfig.grasp``: by default on the peg and
    the needle, where it was measured to help), kept as the ``System``'s
-   ``objects["tool"]``, so the twin's tool, reward and success sit where the real tool does;
+   ``System.tool``, so the twin's tool, reward and success sit where the real tool does;
 2. **sysid** (``ArmLoopConfig.sysid``): the action latency and the joints' servo gains and
    damping from round 0's transitions (``twinrl.real2sim.sysid``), else the nominal ones;
 3. **plan**: trajectory-optimised demonstrations in the identified twin (``twinrl.learn.plans``);
@@ -68,7 +68,7 @@ from twinrl.loop.arm_config import (GRASP_TASKS, NESTED, TASK_IMITATION, ArmLoop
                                     check_task, grasp_on, imitation_settings, is_arm_task,
                                     make_config, observation, run_env, task_env)
 from twinrl.loop.arm_stages import (deployed_camera, deployer, nominal_episodes, record_round0,
-                                    round0_poses, sysid_config, uncalibrated)
+                                    round0_poses, sysid_config)
 from twinrl.loop.engine import Family, RunContext, Stage
 from twinrl.loop.engine import run as run_family
 from twinrl.loop.errors import LoopError
@@ -77,7 +77,7 @@ from twinrl.real2sim.handeye import calibrate_mount, fit_grasp, tool_geoms
 
 __all__ = ["ArmLoopConfig", "make_config", "run", "ARM_COLLECT", "ARM_ROUND", "FAMILY",
            "is_arm_task", "task_env", "run_env", "grasp_on", "imitation_settings", "observation",
-           "deployed_camera", "deployer", "nominal_episodes", "uncalibrated", "record_round0",
+           "deployed_camera", "deployer", "nominal_episodes", "record_round0",
            "round0_poses", "sysid_config", "calibrate_mount", "fit_grasp", "tool_geoms",
            "GRASP_TASKS", "TASK_IMITATION", "NESTED", "stages"]
 

@@ -92,7 +92,7 @@ class ArmLoopConfig:
     grasp: bool | None = None
     """After the calibration, identify the tool's grasp in the hand from the same frames
     (``visual.fit_body_offset`` on body ``tool``, the calibrated camera held), kept as the
-    ``System``'s ``objects["tool"]`` (``ArmTask.set_grasp``): the twin's tool, its reward and its
+    ``System.tool`` (``ArmTask.set_grasp``): the twin's tool, its reward and its
     success then sit where the real tool does. Needs ``calibrate``. ``None`` (the default): on for
     the tasks where it was measured to help (``GRASP_TASKS``), off elsewhere. Spatula: the
     tool point 2.40 / 2.05 / 2.09 mm off on twins 0-2 against 4.56 / 13.14 / 10.95 nominal;
@@ -113,7 +113,7 @@ class ArmLoopConfig:
     7x its truth there)."""
     calibrate_controller: bool = True
     """Calibrate the Cartesian controller to the identified servos (``ArmTask.servo_speed``,
-    kept as the ``System``'s ``objects["controller"]``) in the identified twin and on the real
+    kept as the ``System.controller``) in the identified twin and on the real
     arm (``RealTwin.calibrate_controller``, set by the deployment) from round 1 on; round 0
     records with the nominal controller, and sysid and the hybrid model fit round 0's episodes
     under it. The controller sets targets a step from the measured joints, so each joint moves
@@ -264,7 +264,7 @@ def is_arm_task(env_name: str) -> bool:
     """Whether ``env_name`` is a manipulation task (an ``ArmTask``): ``twinrl run`` runs this
     loop on it."""
     from twinrl import envs
-    from twinrl.envs.arm.base import ArmTask
+    from twinrl.envs.arm.task import ArmTask
 
     return issubclass(envs.registry.TASKS[env_name].env_class, ArmTask)
 

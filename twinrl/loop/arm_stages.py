@@ -5,7 +5,6 @@ directory and marks itself done; its ``load`` reads those values back on ``--res
 
 from __future__ import annotations
 
-import copy
 import json
 import time
 from typing import Any
@@ -14,13 +13,14 @@ import numpy as np
 
 from twinrl import eval as evaluation
 from twinrl import report
+from twinrl.envs.system import ControllerCalibration, ToolGrasp
 from twinrl.loop.arm_config import grasp_on, imitation_settings, task_env
 from twinrl.loop.engine import RunContext, real_steps, seconds_so_far
 from twinrl.loop.rundir import RoundDir
 from twinrl.loop.shared import EpisodeLog, collect_round0
 
 __all__ = ["collect", "record_round0", "round0_poses", "calibrate", "load_camera",
-           "identify_system", "load_system", "nominal_episodes", "uncalibrated", "sysid_config",
+           "identify_system", "load_system", "nominal_episodes", "sysid_config",
            "plan", "imitate", "sense", "load_q_rank", "train_residual", "load_residual",
            "deployer", "deployed_camera", "deploy"]
 
@@ -141,14 +141,12 @@ def identify_system(run: RunContext, r: int, rdir: RoundDir, data, camera,
             run.nominal_env, res, run.env_name, run.seed, run.perturbation, run.secret))
     if camera is not None:
         system = system.replace(cameras={"mount": camera})
-    objects = {}
     if grasp is not None:
-        objects["tool"] = {k: np.asarray(grasp[k], np.float64)
-                           for k in ("pos_offset", "rot_offset")}
+        system = system.replace(tool=ToolGrasp(np.asarray(grasp["pos_offset"], np.float64),
+                                               np.asarray(grasp["rot_offset"], np.float64)))
     if run.config.sysid and run.config.calibrate_controller:
-        objects["controller"] = {"joint_speed": run.nominal_env.servo_speed(system.params)}
-    if objects:
-        system = system.replace(objects=objects)
+        system = system.replace(controller=ControllerCalibration(
+            run.nominal_env.servo_speed(system.params)))
     system.save(rdir.system)
     run.prog.mark(f"round{r}/sysid", latency=system.latency,
                   seconds=seconds_so_far(run.prog, r, sysid=time.perf_counter() - t0))
@@ -170,21 +168,6 @@ def nominal_episodes(run: RunContext, data):
     return data
 
 
-def uncalibrated(env):
-    """``env`` (an arm task, or a wrapper of one) with the nominal controller: a copy, ``env``
-    itself untouched."""
-    inner = getattr(env, "env", None)
-    if inner is not None:  # a wrapper (the latency's): the same around an uncalibrated task
-        out = copy.copy(env)
-        out.env = uncalibrated(inner)
-        return out
-    if getattr(getattr(env, "controller", None), "joint_speed", None) is None:
-        return env
-    out = copy.copy(env)
-    out.calibrate_controller(None)
-    return out
-
-
 def sysid_config():
     """The arm's sysid: latency 0-1 and the 7 joints' servo gains and damping (what the
     exciting motions show; ``panda.xml`` names joints and servos ``joint1``..``joint7``);
@@ -204,7 +187,7 @@ def sysid_config():
     and twin 2's plans failed with the true parameters as well until the controller was
     calibrated to the servo speeds, which the data do pin; ``bench/arm_sysid.py --prior-sd``
     measures it."""
-    from twinrl.envs.arm.base import N_JOINTS
+    from twinrl.envs.arm.kinematics import N_JOINTS
     from twinrl.real2sim import sysid
 
     names = tuple(f"{f}/joint{i}" for f in ("damping", "gain") for i in range(1, N_JOINTS + 1))
@@ -293,7 +276,7 @@ def train_residual(run: RunContext, r: int, rdir: RoundDir, env, system,
     # rides on the calibrated twin (``make_dynamics``)
     fitted = nominal_episodes(run, data)
     run.say(f"  fitting the hybrid dynamics to {len(fitted)} real transitions ...")
-    fit = hybrid.fit(uncalibrated(env), fitted, latency=system.latency,
+    fit = hybrid.fit(env.with_system(system.replace(controller=None)), fitted, latency=system.latency,
                      rng=jax.random.key(seed))
     hybrid.save(rdir.hybrid, fit)
     errors = {"hybrid_sim_rmse": float(np.mean(fit.metrics["sim_val_rmse"])),
