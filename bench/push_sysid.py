@@ -49,6 +49,7 @@ import numpy as np
 
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import envs, real, report
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 from twinrl.physics.collision import CONTACTS
 from twinrl.real.perturbation import Perturbation
 from twinrl.real2sim import sysid
@@ -409,7 +410,7 @@ def main(argv=None) -> int:
              ["estimator log sd", *sp["estimate_log_sd"]]])
         print(f"the answer's sd: mass {sp['answer_sd'][0]:.1%}, friction "
               f"{sp['answer_sd'][1]:.1%}")
-    print(f"wrote {report.write_json(args.out / 'push_sysid.json', r)}")
+    print(f"wrote {write_result(args.out / 'push_sysid.json', r, args)}")
     return 0
 
 

@@ -51,7 +51,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl import envs
-from twinrl.report import print_table, run_meta, write_json
+from twinrl.report import print_table
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 
 def parse_run(item: str) -> tuple[str, Path]:
@@ -247,7 +248,7 @@ def main(argv=None) -> int:
     rows = []
     for item in args.run:
         rows.append(evaluate(*parse_run(item), args))
-        write_json(args.out / "q_rank.json", {"meta": run_meta(args), "rows": rows})
+        write_result(args.out / "q_rank.json", {"rows": rows}, args)
     print_table(f"Q's ranking of camera poses on {args.states} fresh states x {args.cameras} "
                 f"poses (identified twin)",
                 ["task", "twin", "rank per state (95 %)", "loop's (held-out 1/5)", "pooled",
