@@ -62,9 +62,12 @@ def versions() -> dict[str, str]:
 
 
 def machine() -> dict[str, Any]:
-    """Where a figure was measured: cores, CPU model, platform and JAX's first device."""
+    """Where a figure was measured: cores, CPU model, platform, the load average when the result
+    was written, and JAX's first device."""
     info: dict[str, Any] = {"cores": os.cpu_count(), "cpu_model": cpu_model(),
                             "platform": platform.platform()}
+    if hasattr(os, "getloadavg"):  # other work on the machine slows every timing down
+        info["load_average"] = [round(x, 2) for x in os.getloadavg()]
     try:
         import jax
 

@@ -34,7 +34,8 @@ Prints a table (truth, identified, sd, relative error per parameter) and writes
     python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged --window 1 \
         --recorded-starts --spread 6 --out B       # how far that answer spreads (4 min)
 
-Why the box's fits stop percents off even on noise-free data: ``bench/push_landscape.py``.
+Why the box's fits stop percents off: docs/known-limits.md (the box rocks on its corners, and
+its height, tilt and the pusher-box gap matter below the sensors' noise).
 """
 
 from __future__ import annotations
