@@ -43,9 +43,11 @@ def fmt(x: Any, digits: int = 3) -> str:
     return str(x).replace("|", "\\|")
 
 
-def pct(x: float | None, digits: int = 2) -> str:
-    """A relative error as a signed percentage."""
-    return "–" if x is None else f"{100 * x:+.{digits}f} %"
+def pct(x: float | None, digits: int = 2, signed: bool = True) -> str:
+    """A relative error as a percentage (``signed``: with its sign)."""
+    if x is None:
+        return "–"
+    return f"{100 * x:+.{digits}f} %" if signed else f"{100 * x:.{digits}f} %"
 
 
 def table(header: list[str], rows: list[list[Any]]) -> str:
@@ -80,8 +82,8 @@ def sysid_table(doc: dict) -> str:
     for r in doc["results"]:
         for row in r["anchored"]["rows"]:
             rows.append([r["task"], r["seed"], row["parameter"], row["truth"], row["identified"],
-                         row["sd"], pct(row["rel_err"]), row["covered"], row["status"]])
-    return table(["task", "twin seed", "parameter", "truth", "identified", "sd", "error",
+                         row["sd"], pct(row["rel_err"], signed=False), row["covered"], row["status"]])
+    return table(["task", "twin seed", "parameter", "truth", "identified", "sd", "|error|",
                   "within 3 sd", "sysid says"], rows)
 
 
