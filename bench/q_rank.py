@@ -192,9 +192,11 @@ def score_figures(env, actor, ap, q, qp, cfg, keys, coords, data) -> dict:
     score = np.stack([np.asarray(around(k, c)) for k, c in zip(keys, coords)])  # (S, C)
     target = np.asarray(data.targets)[:, :, 0]
     per_state = sensing.rank_corr_per_state(score[:, :, None], target[:, :, None])
+    # pooled: every (state, pose) pair ranked together, as one "state"
+    pooled = sensing.rank_corr_per_state(score.reshape(1, -1, 1), target.reshape(1, -1, 1))[0]
     return {"score_rank_corr": float(np.mean(per_state)),
             "score_rank_corr_per_state": per_state.tolist(),
-            "score_rank_corr_pooled": float(sensing._rank_corr(score.ravel(), target.ravel()))}
+            "score_rank_corr_pooled": float(pooled)}
 
 
 def _share(flags: np.ndarray) -> float | None:
