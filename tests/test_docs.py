@@ -116,3 +116,9 @@ def test_site_builds_strictly(tmp_path):
                          cwd=ROOT, capture_output=True, text=True, timeout=600,
                          env={**os.environ, "NO_MKDOCS_2_WARNING": "1", "PYTHONPATH": str(ROOT)})
     assert out.returncode == 0, out.stderr[-4000:]
+
+
+def test_readme_links_resolve():
+    text = (ROOT / "README.md").read_text()
+    for target in re.findall(r"\]\(([^)#:]+)(?:#[^)]*)?\)", text):
+        assert (ROOT / target).exists(), f"README.md links to {target}, which does not exist"
