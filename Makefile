@@ -8,7 +8,7 @@ OUT    ?= runs/main
 export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
 export PYTHONUNBUFFERED := 1
 
-.PHONY: run test bench bootstrap clean gradcheck
+.PHONY: run test bench bootstrap clean gradcheck docs
 
 bootstrap: $(STAMP)
 
@@ -39,7 +39,7 @@ gradcheck: $(STAMP)
 # only: code compiled so runs slower (the renderer's 64x64 forward+gradient, one core, with both
 # flags below: 86 -> 30 frames/s). Fusion emitters off is twinrl's default anyway (set on import,
 # twinrl/_jaxconfig.py: with them on, MJX's kinematics inside a rollout's scan takes time
-# exponential in the arm's depth; bench/xla_cpu.py); it also halves compile times.
+# exponential in the arm's depth); it also halves compile times.
 # One LLVM module per executable instead of XLA's default split into parts compiled on parallel
 # threads: with two workers on two cores the threads only contend, and the split's own overhead
 # costs more than it saves (a peg insertion episode's value_and_grad at -O0, 2 cores: compile CPU
@@ -48,6 +48,17 @@ TEST_XLA_FLAGS := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitte
 	--xla_cpu_parallel_codegen_split_count=1
 test: $(STAMP)
 	XLA_FLAGS="$(XLA_FLAGS) $(TEST_XLA_FLAGS)" $(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder
+
+# The documentation site (MkDocs + Material + mkdocstrings, pinned in the `docs` extra) into
+# site/; --strict fails on any broken link or reference. The CLI page is generated from the
+# parser and the benchmarks page from bench/results/*.json (python bench/pages.py).
+DOCS_STAMP := $(VENV)/.docs-installed
+$(DOCS_STAMP): $(STAMP) pyproject.toml
+	$(PY) -m pip install --quiet -c requirements.lock -e '.[docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -d site
 
 bench: $(STAMP)
 	$(PY) bench/physics.py --out bench/results

@@ -34,6 +34,7 @@ import numpy as np
 
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import envs, report
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 from twinrl.loop.arm import sysid_config
 from twinrl.real import make_real
 from twinrl.real.perturbation import Perturbation
@@ -147,7 +148,7 @@ def main(argv=None) -> int:
         + " steps)", ("task", "twin", "nominal", "identified", "truth"),
         [(r["task"], r["seed"], *(" / ".join(f"{100 * x:.2f}" for x in r["tool_gap_m"][k])
                                   for k in ("nominal", "identified", "truth"))) for r in runs])
-    print(f"wrote {report.write_json(args.out / 'arm_sysid.json', {'runs': runs})}")
+    print(f"wrote {write_result(args.out / 'arm_sysid.json', {'runs': runs}, args)}")
     return 0
 
 

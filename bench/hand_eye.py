@@ -34,7 +34,8 @@ import numpy as np
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import envs
 from twinrl import eval as evaluation
-from twinrl.report import print_table, run_meta, write_json
+from twinrl.report import print_table
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 VARIANTS = ("tool-out", "tool-in")
@@ -128,7 +129,7 @@ def main(argv=None) -> int:
         p.error("--poses, --episodes and --frames must be >= 1")
     args.out.mkdir(parents=True, exist_ok=True)
     rows = run(args)
-    write_json(args.out / "hand_eye.json", {"meta": run_meta(args), "rows": rows})
+    write_result(args.out / "hand_eye.json", {"rows": rows}, args)
     print_table("hand-eye calibration against the hidden offset",
                 ["task", "seed", "poses", "tool", "frames", "position (mm)", "rotation (deg)",
                  "uncalibrated", "seconds"],

@@ -36,7 +36,8 @@ import numpy as np
 
 from twinrl import envs
 from twinrl.learn import imitation
-from twinrl.report import print_table, run_meta, write_json
+from twinrl.report import print_table
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 
@@ -90,13 +91,13 @@ def main(argv=None) -> int:
                          "return": m["return"][-1], "pairs": m["pairs"][-1],
                          "labels": sum(m["labels"]), "wall_s": time.perf_counter() - t0,
                          "rounds": m})
-            write_json(args.out / "imitation.json", {"meta": run_meta(args), "rows": rows})
+            write_result(args.out / "imitation.json", {"rows": rows}, args)
     cols = [("task", "task"), ("observation", "observation"), ("demos", "demonstrations"),
             ("success: cloning", "success_cloning"), ("success: DAgger", "success"),
             ("return", "return"), ("expert labels", "labels"), ("wall s", "wall_s")]
     print_table(f"imitation in sim ({args.episodes} fresh starts)", [c for c, _ in cols],
                 [[r[k] for _, k in cols] for r in rows])
-    path = write_json(args.out / "imitation.json", {"meta": run_meta(args), "rows": rows})
+    path = write_result(args.out / "imitation.json", {"rows": rows}, args)
     print(f"wrote {path}")
     return 0
 
@@ -169,7 +170,7 @@ def rounds_of_run(args) -> int:
         print(f"[bench] {task} seed {seed}: stage's starts {np.round(m['success'], 2).tolist()}, "
               f"other starts {np.round(other, 2).tolist()}, kept round {kept} "
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
-        write_json(args.out / "imitation_rounds.json", {"meta": run_meta(args), "rows": rows})
+        write_result(args.out / "imitation_rounds.json", {"rows": rows}, args)
     print_table(f"{task}: the loop's imitation stage ({cfg.eval_episodes} starts choose the round; "
                 f"{n} other starts score it)", ["seed", "stage's starts per round",
                 "other starts per round", "kept round", "kept", "last"],
@@ -178,7 +179,7 @@ def rounds_of_run(args) -> int:
                   r["kept"], r["last"]] for r in rows])
     kept, last = (float(np.mean([r[k] for r in rows])) for k in ("kept", "last"))
     print(f"mean over {len(rows)} seeds, other starts: kept {kept:.3f}, last {last:.3f}")
-    path = write_json(args.out / "imitation_rounds.json", {"meta": run_meta(args), "rows": rows,
+    path = write_result(args.out / "imitation_rounds.json", {"rows": rows,
                                                            "mean_kept": kept, "mean_last": last})
     print(f"wrote {path}")
     return 0

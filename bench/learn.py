@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import platform
 import sys
 import time
 import traceback
@@ -48,6 +47,7 @@ import numpy as np
 from twinrl import envs
 from twinrl.learn import runner
 from twinrl.report import print_table, write_json
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 ALGOS = ("pods", "pods2", "hds", "shac", "ppo", "apg")
 TASKS = ("pendulum_swingup", "cartpole_swingup")
@@ -254,12 +254,9 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     if results:
         plot(results, args.out / "learn.png")
-    meta = {"seeds": args.seeds, "quick": args.quick, "fraction": FRACTION,
-            "platform": jax.devices()[0].platform, "devices": len(jax.devices()),
-            "python": platform.python_version(), "jax": jax.__version__,
-            "twinrl": twinrl.__version__, "argv": sys.argv[1:]}
-    path = write_json(args.out / "learn.json", {"meta": meta, "skipped": skipped,
-                                                "tasks": results})
+    meta = {"fraction": FRACTION, "devices": len(jax.devices())}
+    path = write_result(args.out / "learn.json", {"meta": meta, "skipped": skipped,
+                                                  "tasks": results}, args)
     print(f"wrote {path} and {args.out / 'learn.png'}")
     return 0
 

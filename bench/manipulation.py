@@ -41,7 +41,8 @@ import numpy as np
 from twinrl import envs
 from twinrl.learn import plans as plans_lib
 from twinrl.learn import trajopt
-from twinrl.report import print_table, write_json
+from twinrl.report import print_table
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 
@@ -142,9 +143,8 @@ def replay(env, plans: np.ndarray, keys: np.ndarray, twin_seeds, zero: bool = Fa
 
 
 def _meta(args) -> dict:
-    from twinrl.report import run_meta
 
-    return {**run_meta(), "trajopt": {"order": 1, "step_size": args.step_size,
+    return {"trajopt": {"order": 1, "step_size": args.step_size,
                                       "line_search_steps": 6, "iterations": args.iterations,
                                       "restarts": args.restarts}}
 
@@ -201,7 +201,7 @@ def main(argv=None) -> int:
                 row["replay_success_zero_twin"] = replay(env, plans, keys, [0], zero=True)
                 row["replay_success_real_twins"] = replay(env, plans, keys, range(args.replay))
         rows.append(row)
-        write_json(args.out / "manipulation.json", {"meta": _meta(args), "tasks": rows})  # so far
+        write_result(args.out / "manipulation.json", {"meta": _meta(args), "tasks": rows}, args)
     cols = [("task", "task"), ("compile fwd s", "compile_forward_s"),
             ("compile grad s", "compile_grad_s"), ("fwd 1", "forward_steps_per_s_single"),
             ("fwd vmap16", "forward_steps_per_s_vmap16"), ("grad 1", "grad_steps_per_s_single"),
@@ -213,7 +213,7 @@ def main(argv=None) -> int:
             ("replay: real twins", "replay_success_real_twins")]
     print_table(f"manipulation suite (control steps/s, {jax.devices()[0].platform})",
                 [c for c, _ in cols], [[r.get(k) for _, k in cols] for r in rows])
-    path = write_json(args.out / "manipulation.json", {"meta": _meta(args), "tasks": rows})
+    path = write_result(args.out / "manipulation.json", {"meta": _meta(args), "tasks": rows}, args)
     print(f"wrote {path}")
     return 0
 

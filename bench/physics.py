@@ -25,8 +25,6 @@ Timings are the best of ``--repeats`` calls after a warm-up call. Prints a table
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -40,7 +38,8 @@ import numpy as np
 from twinrl.physics import SCENES, Sim
 from twinrl.physics.collision import CONTACTS
 from twinrl.physics.scenes import scenario
-from twinrl.report import print_table, write_json
+from twinrl.report import print_table
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 T = 100
 
@@ -154,10 +153,7 @@ def main(argv=None) -> int:
                   r["grad_forward_ratio_single"], r["grad_forward_ratio_vmap16"],
                   r["stock_forward_steps_per_s_single"], r["stock_forward_steps_per_s_vmap256"],
                   r["mujoco_c_steps_per_s"]] for r in rows])
-    meta = {"jax": jax.__version__, "mujoco": mujoco.__version__, "twinrl": twinrl.__version__,
-            "device": str(jax.devices()[0]), "machine": platform.machine(),
-            "python": sys.version.split()[0], "cpu_count": __import__("os").cpu_count()}
-    path = write_json(args.out / "physics.json", {"meta": meta, "scenes": rows})
+    path = write_result(args.out / "physics.json", {"scenes": rows}, args)
     print(f"wrote {path}")
     return 0
 

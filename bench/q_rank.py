@@ -51,7 +51,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl import envs
-from twinrl.report import print_table, run_meta, write_json
+from twinrl.report import print_table
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 
 def parse_run(item: str) -> tuple[str, Path]:
@@ -191,9 +192,11 @@ def score_figures(env, actor, ap, q, qp, cfg, keys, coords, data) -> dict:
     score = np.stack([np.asarray(around(k, c)) for k, c in zip(keys, coords)])  # (S, C)
     target = np.asarray(data.targets)[:, :, 0]
     per_state = sensing.rank_corr_per_state(score[:, :, None], target[:, :, None])
+    # pooled: every (state, pose) pair ranked together, as one "state"
+    pooled = sensing.rank_corr_per_state(score.reshape(1, -1, 1), target.reshape(1, -1, 1))[0]
     return {"score_rank_corr": float(np.mean(per_state)),
             "score_rank_corr_per_state": per_state.tolist(),
-            "score_rank_corr_pooled": float(sensing._rank_corr(score.ravel(), target.ravel()))}
+            "score_rank_corr_pooled": float(pooled)}
 
 
 def _share(flags: np.ndarray) -> float | None:
@@ -247,7 +250,7 @@ def main(argv=None) -> int:
     rows = []
     for item in args.run:
         rows.append(evaluate(*parse_run(item), args))
-        write_json(args.out / "q_rank.json", {"meta": run_meta(args), "rows": rows})
+        write_result(args.out / "q_rank.json", {"rows": rows}, args)
     print_table(f"Q's ranking of camera poses on {args.states} fresh states x {args.cameras} "
                 f"poses (identified twin)",
                 ["task", "twin", "rank per state (95 %)", "loop's (held-out 1/5)", "pooled",

@@ -61,6 +61,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from twinrl import report  # noqa: E402
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 from twinrl.physics import load_mjcf  # noqa: E402
 from twinrl.physics.scenes import SCENES  # noqa: E402
 from twinrl.render import Camera, Geoms, Renderer, native, quat_to_mat  # noqa: E402
@@ -714,7 +715,7 @@ def main(argv=None):
                              r["seconds_camera"] + r["seconds_object"]]
                             for r in rows])
         print(f"visual real2sim wall time: {out['visual']['wall_seconds']:.0f} s")
-    path = report.write_json(args.out / "render.json", out)
+    path = write_result(args.out / "render.json", out, args)
     print(f"wrote {path}")
     return 0
 

@@ -38,9 +38,10 @@ import numpy as np
 
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import loop, report
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 from twinrl.real.perturbation import Perturbation
 
-RESULTS = Path(__file__).resolve().parent / "results" / "residual.json"
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def one(task: str, seed: int, offset: float, out_dir: Path, episodes: int, rounds: int) -> dict:
@@ -82,7 +83,7 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             results.append(one(task, seed, args.offset, args.out_dir, args.episodes,
                                args.rounds))
-            report.write_json(args.out, {"results": results})  # durable after every run
+            write_result(args.out / "residual.json", {"results": results}, args)  # after every run
     rows = [[r["task"], r["seed"], r["offset"], r["rounds"], r["before"], r["after"],
              (r["after"] - r["before"]) if None not in (r["after"], r["before"]) else None,
              float(np.mean(r["sim_rmse"])) if r["sim_rmse"] else None,
@@ -93,7 +94,7 @@ def main(argv=None) -> int:
                        ["task", "seed", "offset", "rounds", "real before (pi_sim)",
                         "real after (+delta)", "gain", "sim 1-step RMSE", "hybrid 1-step RMSE",
                         "delta accepted", "wall s"], rows)
-    report.write_json(args.out, {"results": results})
+    write_result(args.out / "residual.json", {"results": results}, args)
     return 0
 
 

@@ -59,7 +59,8 @@ from pathlib import Path
 import numpy as np
 
 from twinrl import envs
-from twinrl.report import print_table, run_meta, write_json
+from twinrl.report import print_table
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 MODES = ("selected", "default", "random", "oracle")
@@ -177,7 +178,7 @@ def main(argv=None) -> int:
         if "real" in args.where:
             rows += run_task(name, actors.get(name), qs.get(name), states.get(name), args,
                              systems.get(name), secrets.get(name), residuals.get(name))
-        write_json(args.out / "sensing.json", _result(args, rows, model_free, sim_rows))
+        write_result(args.out / "sensing.json", _result(args, rows, model_free, sim_rows), args)
         if args.model_free_steps > 0:
             sel = [r["success"] for r in rows if r["task"] == name and r["mode"] == "selected"]
             target = (args.model_free_target if args.model_free_target is not None
@@ -185,7 +186,7 @@ def main(argv=None) -> int:
             for algo in ("td3", "sac"):
                 model_free.append(train_model_free(algo, name, target, args,
                                                    secrets.get(name)))
-                write_json(args.out / "sensing.json", _result(args, rows, model_free, sim_rows))
+                write_result(args.out / "sensing.json", _result(args, rows, model_free, sim_rows), args)
     table = summarise(rows)
     cols = ["task", "mode", "success", "spread (sd over seeds)", "return", "real steps",
             "camera steps", "wall s"]
@@ -215,7 +216,7 @@ def main(argv=None) -> int:
                      "real steps"],
                     [[m["task"], m["algo"], m["target"], m["steps_to_target"] or "not reached",
                       m["best_success"], m["real_steps_trained"]] for m in model_free])
-    path = write_json(args.out / "sensing.json", _result(args, rows, model_free, sim_rows))
+    path = write_result(args.out / "sensing.json", _result(args, rows, model_free, sim_rows), args)
     _plot(args.out / "sensing.png", table, summarise(sim_rows))
     print(f"wrote {path} and {args.out / 'sensing.png'}")
     return 0
@@ -493,7 +494,7 @@ def _plot(path: Path, table: list[dict], sim_table: list[dict] = ()) -> None:
 
 
 def _result(args, rows, model_free, sim_rows=()) -> dict:
-    return {"meta": run_meta(args), "table": summarise(rows), "paired": paired(rows),
+    return {"table": summarise(rows), "paired": paired(rows),
             "rows": rows, "model_free": model_free, "sim_table": summarise(list(sim_rows)),
             "sim_paired": paired(list(sim_rows)), "sim_rows": list(sim_rows)}
 

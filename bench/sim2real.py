@@ -57,9 +57,10 @@ import numpy as np
 
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import envs, report
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 from twinrl.eval import policy_real_return
 
-RESULTS = Path(__file__).resolve().parent / "results" / "sim2real.json"
+RESULTS = Path(__file__).resolve().parent / "results"
 FRACTION = 0.9
 LEARNING_STARTS = 1000
 TD3_NOISE_SD = 0.1
@@ -250,7 +251,7 @@ def main(argv=None) -> int:
                     default=[Path("runs/main/summary.json")],
                     help="summary.json of loop runs, one per task/seed benchmarked")
     ap.add_argument("--out", type=Path, default=RESULTS)
-    ap.add_argument("--plot", type=Path, default=None, help="default: --out with .png")
+    ap.add_argument("--plot", type=Path, default=None, help="default: OUT/sim2real.png")
     args = ap.parse_args(argv)
     import_sbx()  # fail fast, before any training, when the extra is missing
 
@@ -264,7 +265,7 @@ def main(argv=None) -> int:
                 raise SystemExit(f"no --loop-summary for {task} seed {seed} "
                                  f"(have: {sorted(loops)})")
 
-    runs_dir = args.out.with_name(args.out.stem + "_runs")
+    runs_dir = args.out / "sim2real_runs"
     runs: list[dict] = []
     comparisons: list[dict] = []
     out = {"fraction_of_oracle": FRACTION, "max_steps": args.max_steps,
@@ -291,7 +292,7 @@ def main(argv=None) -> int:
                     print(f"  {task} {algo} seed {seed}: kept from {path}")
                 these.append(r)
                 runs.append(r)
-                report.write_json(args.out, out)  # durable after every run
+                write_result(args.out / "sim2real.json", out, args)  # durable after every run
             loop_reach = loop_steps_to_target(loop, target)
             loop_reached = loop_reach["round"] is not None  # else both counts are lower bounds
             comparisons.append({**loop, "target": target, "loop_reach": loop_reach,
@@ -300,7 +301,7 @@ def main(argv=None) -> int:
                                 "ratio_best_to_loop_all_steps": (
                                     ratio(these, loop_reach["all_steps"])
                                     if loop_reached else None)})
-            report.write_json(args.out, out)
+            write_result(args.out / "sim2real.json", out, args)
 
     rows = []
     for c in comparisons:
@@ -334,7 +335,7 @@ def main(argv=None) -> int:
                          fmt_ratio(c["ratio_best_to_loop_all_steps"])]
                         for c in comparisons])
 
-    plot = args.plot or args.out.with_suffix(".png")
+    plot = args.plot or args.out / "sim2real.png"
     for c in comparisons:
         curves = {f"{r['algo']} seed {r['seed']}": ([p["real_steps"] for p in r["curve"]],
                                                     [p["return"] for p in r["curve"]])
@@ -347,7 +348,7 @@ def main(argv=None) -> int:
                            title=f"{c['task']}: model-free on the real twin vs loop",
                            hline=(c["target"], f"{FRACTION:.0%} of oracle"))
         print(f"plot: {path}")
-    print(f"results: {report.write_json(args.out, out)}")
+    print(f"results: {write_result(args.out / 'sim2real.json', out, args)}")
     return 0
 
 

@@ -15,7 +15,7 @@ Per task and seed: record ``--episodes`` episodes of excitation actions on the d
    counting simulated window rollouts (forward, gradient and Jacobian passes all counted):
    rollouts each needs to reach the loss and the worst relative parameter error sysid ends at.
 
-Prints tables (``twinrl.report.print_table``) and writes ``bench/results/sysid.json``.
+Prints tables (``twinrl.report.print_table``) and writes ``OUT/sysid.json`` (``--out OUT``, default ``bench/results``).
 Run: ``.venv/bin/python bench/sysid.py [--tasks cartpole_swingup pendulum_swingup] [--seeds 0 1 2]``
 (``--no-cma``: only part 1, the acceptance tables; part 2 costs minutes per seed).
 """
@@ -30,11 +30,12 @@ import numpy as np
 
 import twinrl  # noqa: F401  (compilation cache)
 from twinrl import envs, real, report
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 from twinrl.real2sim import baselines, sysid
 from twinrl.real2sim.sysid.config import parse_param
 from twinrl.real2sim.sysid.problem import param_value
 
-RESULTS = Path(__file__).resolve().parent / "results" / "sysid.json"
+RESULTS = Path(__file__).resolve().parent / "results"
 # Parameters compared between sysid and CMA-ES (identifiable once the first mass is known).
 COMPARE = {
     "cartpole_swingup": ("mass/pole", "damping/slider", "damping/hinge", "frictionloss/slider",
@@ -124,7 +125,7 @@ def main(argv=None) -> int:
             r = run(task, seed, args.episodes, None if args.no_cma else args.cma_evals)
             r["seconds"] = time.perf_counter() - t
             results.append(r)
-            report.write_json(args.out, {"results": results})  # durable after every seed
+            write_result(args.out / "sysid.json", {"results": results}, args)  # after every seed
             rows = [[row["parameter"], row["truth"], row["identified"], row["sd"], row["rel_err"],
                      "yes" if row["covered"] else "NO", row["status"]]
                     for row in r["anchored"]["rows"]]
@@ -153,7 +154,7 @@ def main(argv=None) -> int:
     if rows:
         report.print_table("sysid vs CMA-ES: window rollouts to the same loss / parameter error",
                            cols, rows)
-    report.write_json(args.out, {"results": results})
+    write_result(args.out / "sysid.json", {"results": results}, args)
     return 0
 
 

@@ -30,7 +30,7 @@ import numpy as np
 import twinrl  # noqa: F401  (before jax: compilation cache, quiet XLA)
 from twinrl import envs, report
 from twinrl.physics import PhysParams
-from twinrl.report import run_meta, write_json
+from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
 
 PANDA = Path(twinrl.__file__).parent / "envs" / "arm" / "panda.xml"
 
@@ -113,11 +113,11 @@ def main(argv=None) -> int:
             for r in sysid.compare_to_truth(res, truth)]
     ok = [abs(r["rel_err"]) for r in rows if r["status"] == "identified"]
     xml = save_mjcf(env, res.params, args.out / "identified.xml")
-    out = {"meta": run_meta(args), "mjcf": args.mjcf, "samples": int(np.prod(ctrl.shape[:2])),
+    out = {"mjcf": args.mjcf, "samples": int(np.prod(ctrl.shape[:2])),
            "noise": list(args.noise),
            "fit_s": fit_s, "rows": rows, "identified_max_rel_err": max(ok) if ok else None,
            "identified_xml": str(xml)}
-    write_json(args.out / "user_mjcf_sysid.json", out)
+    write_result(args.out / "user_mjcf_sysid.json", out, args)
     report.print_table(
         f"sysid of {Path(args.mjcf).name} from {out['samples']} logged samples of MuJoCo C, "
         f"noise sd {args.noise[0]:g} / {args.noise[1]:g} ({fit_s:.0f} s)",

@@ -1,0 +1,323 @@
+"""Render the committed benchmark results (``bench/results/*.json``) into the documentation.
+
+Writes ``docs/benchmarks.md`` (one section per bench: what it measures and how, its table, the
+command that reproduces it, and the machine, commit and date of the result) and the README's
+results table between ``<!-- results:start -->`` and ``<!-- results:end -->``. Every figure on
+those pages comes from the JSON; a bench without a committed result says so, with its command.
+
+    python bench/pages.py           # rewrite the pages from the JSON
+    python bench/pages.py --check   # exit 1 (and say which) if a page differs from what the JSON gives
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "bench" / "results"
+BENCHMARKS_PAGE = ROOT / "docs" / "benchmarks.md"
+README = ROOT / "README.md"
+START, END = "<!-- results:start -->", "<!-- results:end -->"
+
+
+def fmt(x: Any, digits: int = 3) -> str:
+    """A table cell: integers with thousands separators, floats to ``digits`` significant
+    digits, None as a dash."""
+    if x is None:
+        return "–"
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, int):
+        return f"{x:,}"
+    if isinstance(x, float):
+        if x != x:
+            return "nan"
+        if abs(x) >= 10 ** digits:
+            return f"{x:,.0f}"
+        return f"{x:.{digits}g}"
+    return str(x).replace("|", "\\|")
+
+
+def pct(x: float | None, digits: int = 2, signed: bool = True) -> str:
+    """A relative error as a percentage (``signed``: with its sign)."""
+    if x is None:
+        return "–"
+    return f"{100 * x:+.{digits}f} %" if signed else f"{100 * x:.{digits}f} %"
+
+
+def table(header: list[str], rows: list[list[Any]]) -> str:
+    """A Markdown table; cells already strings are kept, others go through ``fmt``."""
+    cell = lambda v: v if isinstance(v, str) else fmt(v)  # noqa: E731
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+# ---- one renderer per bench: the result's JSON -> (a Markdown table, headline rows) ----------
+
+def physics_table(doc: dict) -> str:
+    rows = [[r["scene"], r["gradient"], r["contacts"], f"{fmt(r['compile_forward_s'])} / "
+             f"{fmt(r['compile_grad_s'])}", r["forward_steps_per_s_single"],
+             r["forward_steps_per_s_vmap256"], r["grad_steps_per_s_single"],
+             r["grad_steps_per_s_vmap16"], r["stock_forward_steps_per_s_vmap256"],
+             r["mujoco_c_steps_per_s"]] for r in doc["scenes"]]
+    return table(["scene", "gradient", "contacts", "compile fwd / grad (s)", "fwd, 1 env",
+                  "fwd, vmap 256", "grad, 1 env", "grad, vmap 16", "stock MJX fwd, vmap 256",
+                  "MuJoCo C, 1 thread"], rows)
+
+
+def physics_headline(doc: dict) -> list[list[str]]:
+    return [[f"physics: {r['scene']}", "env-steps/s, forward vmap 256 / gradient vmap 16",
+             f"{fmt(r['forward_steps_per_s_vmap256'])} / {fmt(r['grad_steps_per_s_vmap16'])}"]
+            for r in doc["scenes"] if r["gradient"] == "implicit" and r["contacts"] == "mjx"]
+
+
+def sysid_table(doc: dict) -> str:
+    rows = []
+    for r in doc["results"]:
+        for row in r["anchored"]["rows"]:
+            rows.append([r["task"], r["seed"], row["parameter"], row["truth"], row["identified"],
+                         row["sd"], pct(row["rel_err"], signed=False), row["covered"], row["status"]])
+    return table(["task", "twin seed", "parameter", "truth", "identified", "sd", "|error|",
+                  "within 3 sd", "sysid says"], rows)
+
+
+def sysid_headline(doc: dict) -> list[list[str]]:
+    out = []
+    for r in doc["results"]:
+        errs = [abs(x["rel_err"]) for x in r["anchored"]["rows"]
+                if x["status"] == "identified" and x["rel_err"] is not None]
+        if errs:
+            out.append([f"sysid: {r['task']}, twin {r['seed']}",
+                        f"largest error of {len(errs)} identified parameters "
+                        f"({r['episodes']} episodes)", f"{100 * max(errs):.2f} %"])
+    return out
+
+
+def user_mjcf_table(doc: dict) -> str:
+    rows = [[r["parameter"], r["truth"], pct(r["nominal_rel_err"], 1), pct(r["rel_err"], 3),
+             r["status"]] for r in doc["rows"]]
+    return (f"{doc['samples']} logged samples, observation noise sd {doc['noise'][0]:g} rad / "
+            f"{doc['noise'][1]:g} rad/s; the fit took {doc['fit_s']:.0f} s.\n\n"
+            + table(["parameter", "truth", "nominal error", "identified error", "sysid says"],
+                    rows))
+
+
+def user_mjcf_headline(doc: dict) -> list[list[str]]:
+    n = sum(r["status"] == "identified" for r in doc["rows"])
+    err = doc.get("identified_max_rel_err")
+    return [["sysid of your MJCF (the Panda, MuJoCo C logs)",
+             f"largest error of {n} identified masses and damping",
+             "–" if err is None else f"{100 * err:.2f} %"]]
+
+
+def generic_table(doc: dict) -> str:
+    """Any result: the first list of flat records it holds, as a table of its scalar fields."""
+    for key, value in doc.items():
+        if key != "meta" and isinstance(value, list) and value and isinstance(value[0], dict):
+            cols = [k for k, v in value[0].items() if isinstance(v, (int, float, str, bool))
+                    or v is None]
+            return table(cols, [[r.get(c) for c in cols] for r in value])
+    return "(no table in this result)"
+
+
+@dataclass(frozen=True)
+class Bench:
+    """A bench's section: its script, title, method paragraph, the command that reproduces the
+    reference result, and how its JSON becomes a table and headline rows (README)."""
+    name: str
+    title: str
+    method: str
+    command: str
+    render: Callable[[dict], str] = generic_table
+    headline: Callable[[dict], list[list[str]]] = field(default=lambda doc: [])
+
+
+BENCHES = [
+    Bench("physics", "Physics throughput",
+          "T = 100-step open-loop rollouts of each bundled scene, float32: compile seconds of the "
+          "forward rollout and of its gradient, forward env-steps/s for one environment and "
+          "vmap 256, forward+backward env-steps/s of the rollout loss's gradient w.r.t. the "
+          "actions (one environment, vmap 16; a gradient's steps count once), the same "
+          "forward through stock `mjx.step`, and MuJoCo C's `mj_step` on one thread. Best of "
+          "`--repeats` timings after a warm-up. On a GPU, wide batches step several times "
+          "faster than on a CPU while one environment runs far slower (small kernels are "
+          "launch-bound), so the trainers that differentiate a few rollouts at a time are "
+          "faster on the CPU.",
+          "python bench/physics.py --out bench/results", physics_table, physics_headline),
+    Bench("render", "Differentiable rendering",
+          "Frames/s of `twinrl.render` at 64x64 and 128x128, batch 1 and 16: the hard image, the "
+          "soft image forward, and forward + gradient w.r.t. the camera and every geom's pose, "
+          "size and colour, on push and the arm scenes from their mount cameras; then the "
+          "image observations of the arm tasks, a geom-count sweep, and the agreement of depth "
+          "and segmentation with MuJoCo's OpenGL. `--visual` adds visual Real2Sim on push "
+          "(hidden camera offsets 3-4 cm / 5-6 deg; the box moved, resized and recoloured).",
+          "python bench/render.py --out bench/results"),
+    Bench("sysid", "System identification on the real twins",
+          "Per task and twin seed: exciting episodes recorded on the default real twin, then "
+          "`sysid.fit` with the default parameter set, start states estimated, the latency "
+          "chosen, and the first body's mass known (weighed; without it the common scale of "
+          "masses, gains, damping and friction is a flat direction, which sysid reports). Each "
+          "parameter against the twin's hidden truth (evaluation only), with the fit's sd and "
+          "whether the error lies within 3 sd. Without `--no-cma` the bench also runs CMA-ES "
+          "on the same objective and counts the rollouts each needs.",
+          "python bench/sysid.py --out bench/results", sysid_table, sysid_headline),
+    Bench("user_mjcf_sysid", "Real2Sim on your own MJCF",
+          "The \"robot\" is MuJoCo C running twinrl's Panda MJCF with every body's mass scaled "
+          "by a factor in [0.85, 1.2] and every joint's damping by one in [0.6, 1.6]; episodes "
+          "hold random controls and log qpos, qvel and ctrl as a robot's logger would. "
+          "`sysid.fit(env, env.transitions(...))` fits every mass and damping from the "
+          "nominal MJCF; the base, welded to the world, is reported not identifiable.",
+          "python bench/user_mjcf_sysid.py --out bench/results", user_mjcf_table,
+          user_mjcf_headline),
+    Bench("push_sysid", "Push: box mass and friction",
+          "Push's box mass and friction from its real twin observed in full states, case by "
+          "case: the whole hidden perturbation or parts of it, the contact rule, the loss, the "
+          "start, staged fits, and indirect inference (`--indirect R`). See "
+          "[known limits](known-limits.md) for where it stands.",
+          "python bench/push_sysid.py --contacts mujoco --iterations 12 --loss l2 --staged "
+          "--recorded-starts --indirect 6 --out bench/results"),
+    Bench("learn", "Learn@Sim trainers",
+          "`pods`, `pods2`, `hds`, `shac` and Brax `ppo`/`apg` on `pendulum_swingup` and "
+          "`cartpole_swingup` in simulation, over seeds: final return, wall-clock seconds "
+          "(compile included) and env steps to 90 % of the best final return, and whether "
+          "each run solved the task (an evaluation return of at least 130 of 250, with the "
+          "mean of the last 10 evaluations at least 130 too).",
+          "python bench/learn.py --out bench/results"),
+    Bench("sim2real", "Model-free on the real twin",
+          "Real-twin steps that sbx-rl's SAC and TD3, trained directly on a loop run's real "
+          "twin, need to reach 90 % of the oracle, against the loop's few real steps. Needs "
+          "the `bench` extra in a separate environment.",
+          "python bench/sim2real.py --out bench/results"),
+    Bench("residual", "Residual adaptation",
+          "The loop on a real twin with an effect sysid cannot model (a constant actuator "
+          "offset): the real return of the policy learned in the identified simulator, before "
+          "and after the residual policy trained through the hybrid model.",
+          "python bench/residual.py --out bench/results"),
+    Bench("manipulation", "The manipulation suite",
+          "Per arm task: compile seconds, forward and gradient env-steps/s (single and vmap "
+          "16), the target's visibility over the camera mount's workspace, trajectory "
+          "optimisation's success from the privileged state over random starts, and the "
+          "optimised plans replayed open loop on the real twins.",
+          "python bench/manipulation.py --out bench/results"),
+    Bench("imitation", "Imitation of trajectory optimisation",
+          "Success of the state actor and of the image actor in the simulator after behaviour "
+          "cloning and DAgger rounds, on fresh starts, from the plans of the manipulation bench.",
+          "python bench/imitation.py --plans bench/results --out bench/results"),
+    Bench("arm_sysid", "The arm loop's sysid",
+          "The SAM-RL loop's identification (latency, servo stiffness and damping) judged by "
+          "what it is for: each parameter's error against the hidden truth, and the tool "
+          "point's gap to the real twin when the identified twin replays the same actions.",
+          "python bench/arm_sysid.py --out bench/results"),
+    Bench("hand_eye", "Hand-eye calibration",
+          "The arm loop's camera-mount calibration by visual Real2Sim against the hidden "
+          "offset, with the tool in the fit and left out, from one mount pose or several; "
+          "`--grasp` adds the tool's grasp in the hand.",
+          "python bench/hand_eye.py --out bench/results"),
+    Bench("q_rank", "Ranking camera poses",
+          "How well a loop's sensing-aware Q ranks camera poses on fresh states of its "
+          "identified twin (Spearman's correlation per state across poses, with a bootstrap "
+          "interval), and how often the ascent through the renderer raises Q above the "
+          "default pose. Needs a `twinrl run` output directory.",
+          "python bench/q_rank.py --run needle_threading=runs/needle --out bench/results"),
+    Bench("sensing", "Active sensing on the real twins",
+          "A loop's image actor deployed on its own hidden real twin with the camera Q "
+          "selects, the default camera and a random one, against the state-based oracle and "
+          "model-free SAC/TD3 (SAM-RL's Table I comparison), over 50 starts per mode.",
+          "python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle "
+          "--episodes 50 --modes selected default --out bench/results"),
+]
+
+
+def provenance(meta: dict) -> str:
+    """One line: machine, commit, date and versions of a result."""
+    m = meta.get("machine", {})
+    v = meta.get("versions", {})
+    commit = meta.get("commit", "unknown")[:10] + (" (with local changes)" if meta.get("dirty")
+                                                    else "")
+    load = m.get("load_average")
+    load_s = f", load average {load[0]:.1f} at the end" if load else ""
+    return (f"{m.get('cores', '?')} cores ({m.get('cpu_model', '?')}; {m.get('device', '?')}"
+            f"{load_s}), commit `{commit}`, {meta.get('date', '?')}, jax {v.get('jax', '?')}, "
+            f"mujoco {v.get('mujoco', '?')}")
+
+
+def load_results(results: Path = RESULTS) -> dict[str, dict]:
+    """Every ``NAME.json`` of ``results`` by name."""
+    return {p.stem: json.loads(p.read_text()) for p in sorted(results.glob("*.json"))}
+
+
+def benchmarks_page(docs: dict[str, dict]) -> str:
+    """The benchmarks page's Markdown."""
+    out = ["# Benchmarks", "",
+           "<!-- generated by bench/pages.py from bench/results/*.json: edit those, not this -->",
+           "",
+           "Every figure on this page comes from a result file committed in `bench/results/` "
+           "and was written by the bench itself, with the command, commit, machine and date "
+           "given under its table. `python bench/pages.py` regenerates this page and the "
+           "README's table; the tests fail when they differ from the JSON. Timings depend on "
+           "the machine and on what else runs on it (the load average is recorded).", ""]
+    for b in BENCHES:
+        out += [f"## {b.title} {{#{b.name.replace('_', '-')}}}", "", b.method, ""]
+        doc = docs.get(b.name)
+        if doc is None:
+            out += ["No committed result yet. Reproduce with:", "", "```sh", b.command, "```",
+                    ""]
+            continue
+        meta = doc.get("meta", {})
+        out += [b.render(doc), "", "Reproduce with:", "", "```sh",
+                meta.get("command", b.command), "```", "", f"Measured on {provenance(meta)}.",
+                ""]
+    return "\n".join(out).rstrip() + "\n"
+
+
+def readme_table(docs: dict[str, dict]) -> str:
+    """The README's headline results, between its markers."""
+    rows = []
+    for b in BENCHES:
+        if b.name in docs:
+            anchor = b.name.replace("_", "-")
+            rows += [[*r, f"[{b.name}](docs/benchmarks.md#{anchor})"]
+                     for r in b.headline(docs[b.name])]
+    if not rows:
+        return "No committed benchmark results yet."
+    return table(["benchmark", "figure", "value", "details"], rows)
+
+
+def with_readme_table(readme: str, docs: dict[str, dict]) -> str:
+    """``readme`` with the text between the results markers replaced."""
+    if START not in readme or END not in readme:
+        raise SystemExit(f"README.md has no {START} ... {END} markers")
+    head, rest = readme.split(START, 1)
+    _, tail = rest.split(END, 1)
+    return f"{head}{START}\n{readme_table(docs)}\n{END}{tail}"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true",
+                    help="write nothing; exit 1 if a page is out of date with the JSON")
+    ap.add_argument("--results", type=Path, default=RESULTS)
+    args = ap.parse_args(argv)
+    docs = load_results(args.results)
+    wanted = {BENCHMARKS_PAGE: benchmarks_page(docs),
+              README: with_readme_table(README.read_text(), docs)}
+    stale = [p for p, text in wanted.items() if not p.exists() or p.read_text() != text]
+    if args.check:
+        for p in stale:
+            print(f"{p.relative_to(ROOT)} is out of date with bench/results/*.json: run "
+                  f"python bench/pages.py", file=sys.stderr)
+        return 1 if stale else 0
+    for p in stale:
+        p.write_text(wanted[p])
+        print(f"wrote {p.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
