@@ -38,7 +38,7 @@ gradcheck: $(STAMP)
 # tests/learn/test_trajopt.py, cold cache: 363 s -> 200 s) and the suite is compile-bound. Suite
 # only: code compiled so runs slower (the renderer's 64x64 forward+gradient, one core, with both
 # flags below: 86 -> 30 frames/s). Fusion emitters off is twinrl's default anyway (set on import,
-# twinrl/_jaxconfig.py: with them on, MJX's kinematics inside a rollout's scan takes time
+# twinrl/jaxconfig.py: with them on, MJX's kinematics inside a rollout's scan takes time
 # exponential in the arm's depth); it also halves compile times.
 # One LLVM module per executable instead of XLA's default split into parts compiled on parallel
 # threads: with two workers on two cores the threads only contend, and the split's own overhead

@@ -40,7 +40,7 @@ import time
 import traceback
 from pathlib import Path
 
-import twinrl  # noqa: F401  (before jax: XLA's cache-load log lines stay hidden, _jaxconfig)
+import twinrl  # noqa: F401  (before jax: XLA's cache-load log lines stay hidden, jaxconfig)
 import jax
 import numpy as np
 

@@ -29,7 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-import twinrl  # noqa: F401  (before jax: XLA's cache-load log lines stay hidden, _jaxconfig)
+import twinrl  # noqa: F401  (before jax: XLA's cache-load log lines stay hidden, jaxconfig)
 import jax
 import jax.numpy as jnp
 import mujoco

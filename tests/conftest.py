@@ -1,7 +1,7 @@
 """Shared test settings.
 
 JAX compiles dominate the suite's time: fixtures that build simulators and jitted functions are
-module-scoped, and the persistent compilation cache (``twinrl._jaxconfig``) is on.
+module-scoped, and the persistent compilation cache (``twinrl.jaxconfig``) is on.
 """
 
 import os

@@ -81,7 +81,7 @@ def test_jits_without_mjx_get_the_fusion_emitters_back_only_where_twinrl_turned_
     import os
 
     code = ("import twinrl, jax, jax.numpy as jnp\n"
-            "from twinrl._jaxconfig import image_compiler_options as o\n"
+            "from twinrl.jaxconfig import image_compiler_options as o\n"
             "f = jax.jit(lambda x: jax.nn.logsumexp(x, 1), compiler_options=o())\n"
             "assert abs(float(f(jnp.zeros((3, 4)))[0]) - float(jnp.log(4.0))) < 1e-6\n"
             "print(o())\n")

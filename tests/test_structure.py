@@ -13,7 +13,7 @@ of that graph with more than one module.
 
 A private name is one with a single leading underscore. Importing one from another module
 (``from twinrl.x import _f``) or reading one off a module (``x._f`` where ``x`` is bound to a
-``twinrl`` module) counts; a private *module* (``twinrl._jaxconfig``) may be imported anywhere in
+``twinrl`` module) counts; a private *module* (``twinrl.render._raymath``) may be imported anywhere in
 the package that holds it.
 """
 
@@ -224,14 +224,14 @@ def test_no_module_imports_another_modules_private_names():
 
 def test_the_private_name_finder_sees_tests_and_private_modules(tmp_path):
     probe = tmp_path / "probe.py"
-    probe.write_text("from twinrl import _jaxconfig\n"
+    probe.write_text("from twinrl.real.dataset import _format\n"
                      "from twinrl.learn.runner import _figures, train_run\n"
                      "import twinrl.learn.runner as runner\n"
                      "x = runner._y\n")
-    assert _scan_file(probe) == ["from twinrl import _jaxconfig",
+    assert _scan_file(probe) == ["from twinrl.real.dataset import _format",
                                  "from twinrl.learn.runner import _figures", "twinrl.learn.runner._y"]
     # inside the package a private module belongs to the package that holds it
-    assert not _private_module_outside("twinrl._jaxconfig", "twinrl.render.native")
+    assert not _private_module_outside("twinrl.real.dataset._format", "twinrl.real.dataset.reader")
     assert not _private_module_outside("twinrl.render._pack", "twinrl.render.renderer")
     assert _private_module_outside("twinrl.render._pack", "twinrl.envs.base")
 
@@ -264,7 +264,7 @@ def test_no_module_is_over_600_lines():
 # below, never one above. The base layer holds what every layer uses: the package itself (its lazy
 # attribute table), the JAX settings and the writers of results (``report``: JSON, tables, plots).
 LAYERS = (
-    ("twinrl", "twinrl._jaxconfig", "twinrl.report"),
+    ("twinrl", "twinrl.jaxconfig", "twinrl.report"),
     ("twinrl.physics",),
     ("twinrl.render",),
     ("twinrl.envs",),

@@ -1,6 +1,6 @@
 """twinrl: robot learning through differentiable digital twins (Real2Sim -> Learn@Sim -> Sim2Real).
 
-``import twinrl`` applies the JAX settings (``twinrl._jaxconfig``) and gives every sub-package as
+``import twinrl`` applies the JAX settings (``twinrl.jaxconfig``) and gives every sub-package as
 an attribute (``twinrl.envs``, ``twinrl.physics``, ...), imported on first use (PEP 562), so a
 command that needs only the physics does not pay for the learners' imports.
 
@@ -14,11 +14,11 @@ would print on every ``make``).
 
 import importlib
 
-from twinrl import _jaxconfig
+from twinrl import jaxconfig
 
-_jaxconfig.set_cpu_flags()
-_jaxconfig.enable_compilation_cache()
-_jaxconfig.import_mjx_quietly()
+jaxconfig.set_cpu_flags()
+jaxconfig.enable_compilation_cache()
+jaxconfig.import_mjx_quietly()
 
 __version__ = "0.1.0"
 

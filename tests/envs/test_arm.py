@@ -492,7 +492,7 @@ def test_target_pose_fit_uses_a_subset_of_many_target_pixels(made):
 
 def test_the_pose_fits_hinge_grid_finds_a_heading_the_local_restarts_miss(made):
     """``fit_target_pose(hinge_grid=K)`` (``ArmConfig.pose_hinge_grid``): a needle view (found
-    by ``bench/pose_views.py``'s draw) where the local restarts stop 0.16 rad off the eye's
+    by ``bench/pose_views.py`` (in git history)'s draw) where the local restarts stop 0.16 rad off the eye's
     heading at a 0.5 mm RMS residual; the hinge grid's starts reach the exact fit (heading to
     1e-3 rad, a residual under 0.01 mm)."""
     from twinrl.learn.imitation import ImitationConfig, episode_coords

@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run ``twinrl ARGV`` (default ``sys.argv[1:]``); returns the exit status: 0, 1 for a check
     that ran and failed, 2 for bad input (one line on stderr), 130 when interrupted."""
     args = build_parser().parse_args(argv)
-    from twinrl import _jaxconfig
+    from twinrl import jaxconfig
     from twinrl.learn.checkpoint import CheckpointError
     from twinrl.learn.imitation import DemonstrationError
     from twinrl.learn.runner import RunError
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     from twinrl.real.dataset import DatasetError
 
     if args.verbose:
-        _jaxconfig.set_verbose()
+        jaxconfig.set_verbose()
     one_line_warnings(f"twinrl {args.command}")
     try:
         return args.func(args)

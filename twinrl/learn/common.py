@@ -295,7 +295,7 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
     (a leaf of rank >= 4: rows, height, width, channels) and ``"scan"`` otherwise. XLA's CPU
     backend runs a convolution's gradient inside a loop body far slower than at the top level
     (jax-ml/jax#12868): the image actor's step (64x64x5, batch 256, the keypoint CNN, 2 cores)
-    takes 9.3 s inside the scan and 0.25 s called alone (``bench/learn_fit.py``); a vector
+    takes 9.3 s inside the scan and 0.25 s called alone (``bench/learn_fit.py`` (in git history)); a vector
     fit's, 1.4 and 1.7 ms. Both draw the same minibatches (step i uses ``split(key, steps)[i]``).
     ``fit.loop_for(obs)`` says which loop a fit on ``obs`` runs."""
     if loop not in ("auto", "scan", "python"):

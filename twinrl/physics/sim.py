@@ -263,7 +263,7 @@ class Sim:
 # One physics step as a jitted function of (model, data): inside an outer trace it is a call whose
 # jaxpr JAX traces once per process (per shapes and static arguments) and whose derivatives and
 # batched forms it caches too, instead of retracing the step -- thousands of operations -- in
-# every function that steps a scene. Measured (``bench/trace_reuse.py``, peg insertion, 8 steps):
+# every function that steps a scene. Measured (``bench/trace_reuse.py`` (in git history), peg insertion, 8 steps):
 # a second vmapped rollout gradient traced in 3.1 s instead of 14.6 s. The model's arrays are
 # arguments (its NumPy fields are static metadata of the ``mjx.Model`` pytree).
 _step = jax.jit(integrator.step, static_argnums=(2, 3, 4))

@@ -22,7 +22,7 @@ frame, axis and inertia is read from the model it is given, so identified parame
 
 Each stage equals stock's on every field it writes, forward and gradient
 (``tests/physics/test_smooth.py``, float64: a model with every joint type, nesting, rotated
-frames, off-centre anchors, mocap bodies and sites, and the Panda); ``bench/trace.py`` measures
+frames, off-centre anchors, mocap bodies and sites, and the Panda); ``bench/trace.py`` (in git history) measures
 the equations and trace times of both and an arm episode gradient's lower/compile/run with each.
 """
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from twinrl._jaxconfig import exact_matmuls
+from twinrl.jaxconfig import exact_matmuls
 from twinrl.render.camera import Camera
 
 __all__ = ["depth_to_points", "chamfer", "sinkhorn_emd", "subsample"]

@@ -61,7 +61,7 @@ import jax
 import mujoco
 import numpy as np
 
-from twinrl._jaxconfig import exact_matmuls
+from twinrl.jaxconfig import exact_matmuls
 from twinrl.render import batching, cast, kernel, shading
 from twinrl.render.batching import BATCH_ELEMENTS
 from twinrl.render.camera import Camera

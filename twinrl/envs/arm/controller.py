@@ -54,7 +54,7 @@ class CartesianController:
     is divided by it, so the tool moves as commanded whatever the servos (None: the nominal
     arm's, all ones). The targets are set from the measured joints, so a servo 30 % faster
     than nominal moves its joint 30 % further per step and bends the commanded direction
-    (``bench/arm_controller.py``)."""
+    (``bench/arm_controller.py`` (in git history))."""
 
     @property
     def action_size(self) -> int:

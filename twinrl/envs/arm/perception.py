@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl._jaxconfig import exact_matmuls
+from twinrl.jaxconfig import exact_matmuls
 from twinrl.envs.arm.kinematics import N_JOINTS
 
 
@@ -188,7 +188,7 @@ class ArmPerception:
         ``with_residual``: return ``(pose, rms)``, the fit's weighted RMS signed distance (m; 0
         where no target pixel shows). ``hinge_grid`` K > 1: also start from the hinges turned
         together to K - 1 more angles spread over their period, each alone and with each slide
-        moved by +-2.5 cm (a global search; ``bench/pose_views.py`` measures what it buys)."""
+        moved by +-2.5 cm (a global search; ``bench/pose_views.py`` (in git history) measures what it buys)."""
         from twinrl.render import Geoms, primitives
         from twinrl.render.pointcloud import depth_to_points, huber_residual
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from twinrl._jaxconfig import exact_matmuls
+from twinrl.jaxconfig import exact_matmuls
 from twinrl.real2sim.visual.config import VisualConfig
 from twinrl.real2sim.visual.frames import (coarse_frames, nominal_geoms, object_windows,
                                            stack_frames)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from twinrl._jaxconfig import image_compiler_options
+from twinrl.jaxconfig import image_compiler_options
 from twinrl.real2sim.lm import Linearisation, minimise
 from twinrl.real2sim.visual.config import VisualConfig
 

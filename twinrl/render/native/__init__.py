@@ -66,7 +66,7 @@ def _cpu_key() -> str:
 
 
 def _directory() -> Path:
-    from twinrl._jaxconfig import cache_dir
+    from twinrl.jaxconfig import cache_dir
 
     base = cache_dir()
     if base is not None:

@@ -21,7 +21,7 @@ XLA's CPU fusion emitters (on by default in the pinned jaxlib) compile MJX's kin
 per-body transforms, into code whose run time grows exponentially with the kinematic tree's depth:
 ``smooth.kinematics`` of a 9-link chain of hinges with rotated frames takes 1,068 ms per call
 with them and 0.59 ms without; inside an episode's scan, a physics step of the Panda tasks
-15.6-16.6 ms against 0.07-0.15 ms (measured on 2 cores, ``bench/xla_cpu.py``).
+15.6-16.6 ms against 0.07-0.15 ms (measured on 2 cores, ``bench/xla_cpu.py`` (in git history)).
 ``set_cpu_flags()`` therefore adds ``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` on
 import, unless the user's ``XLA_FLAGS`` already sets that flag or ``TWINRL_XLA_FLAGS=off``. XLA
 reads the variable when JAX starts its first backend, so a process that ran JAX computations
