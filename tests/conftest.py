@@ -34,7 +34,7 @@ def x64():
 # get faster or slower: re-rank them from a run's junit XML (per file: the sum of its tests).
 _LONG_FIRST = ("learn/test_sensing.py", "physics/test_foreign_cylinder.py",
                "cli/test_train_cli.py", "envs/test_envs.py", "learn/test_pods.py",
-               "envs/test_arm.py", "cli/test_cli.py", "envs/test_ppo.py",
+               "envs/test_arm.py", "cli/test_cli.py", "test_docs.py", "envs/test_ppo.py",
                "learn/test_imitation.py", "test_loop_arm_residual.py",
                "physics/test_foreign_drops.py", "physics/test_gradcheck.py",
                "physics/test_foreign_contact.py", "render/test_render.py",
