@@ -272,14 +272,8 @@ class Renderer:
     # ------------------------------------------------------------------ ray casting
     def cast(self, o, r, geoms: Geoms, *, soft: bool = False, iters: int | None = None,
              normal_tau=None):
-        """Intersect rays ``o + s r`` (o (..., 3) or (3,), r (..., 3)) with every drawn geom.
-
-        Returns ``s_hit`` (..., G) (inf: no hit), and with ``soft`` also ``s_near`` (..., G) (the
-        hit, else the closest approach), ``dist`` (..., G) signed distance (m) of the ray to the
-        geom's boundary and unit world ``normal`` (..., G, 3) at ``o + s_near r``, blended
-        across edges over ``normal_tau * s_near`` metres (``normal_tau`` (...,): metres per unit
-        depth; None: hard).
-        """
+        """Intersect rays ``o + s r`` with every drawn geom: ``twinrl.render.cast.cast`` of this
+        renderer (its returns and arguments are described there)."""
         return cast.cast(self, o, r, geoms, soft=soft, iters=iters, normal_tau=normal_tau)
 
     def sdf(self, points: jax.Array, geoms: Geoms) -> jax.Array:
