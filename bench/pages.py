@@ -60,6 +60,21 @@ def table(header: list[str], rows: list[list[Any]]) -> str:
 
 # ---- one renderer per bench: the result's JSON -> (a Markdown table, headline rows) ----------
 
+def loop_table(doc: dict) -> str:
+    rows = [[r["env"], r["seed"], r["real_steps"], r["real_return"], r["oracle_return"],
+             pct(r["fraction_of_oracle"], 1, signed=False), pct(r["largest_param_error"], 2,
+                                                               signed=False),
+             r["residual_accepted"], r["wall_s"]] for r in doc["runs"]]
+    return table(["task", "twin seed", "real steps", "real return", "oracle return",
+                  "of the oracle", "largest parameter error", "residual kept", "wall (s)"], rows)
+
+
+def loop_headline(doc: dict) -> list[list[str]]:
+    return [[f"the loop (`make run`): {r['env']}, twin {r['seed']}",
+             f"real return / oracle's, from {r['real_steps']:,} real steps, {r['wall_s'] / 60:.1f} min",
+             pct(r["fraction_of_oracle"], 1, signed=False)] for r in doc["runs"]]
+
+
 def physics_table(doc: dict) -> str:
     rows = [[r["scene"], r["gradient"], r["contacts"], f"{fmt(r['compile_forward_s'])} / "
              f"{fmt(r['compile_grad_s'])}", r["forward_steps_per_s_single"],
@@ -139,6 +154,13 @@ class Bench:
 
 
 BENCHES = [
+    Bench("loop", "The whole loop",
+          "`twinrl run` as `make run` runs it, in a fresh process: exciting episodes recorded on "
+          "the real twin, sysid, the hybrid model, Brax PPO in the identified simulator, the "
+          "residual gate and deployment; the final policy's return on the real twin against an "
+          "oracle trained on the hidden truth (evaluation only), the real steps it took, and "
+          "the command's wall-clock time, compilation included.",
+          "python bench/loop.py --out bench/results", loop_table, loop_headline),
     Bench("physics", "Physics throughput",
           "T = 100-step open-loop rollouts of each bundled scene, float32: compile seconds of the "
           "forward rollout and of its gradient, forward env-steps/s for one environment and "
