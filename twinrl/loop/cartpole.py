@@ -374,7 +374,7 @@ def open_twin(rd: RunDir, env_name: str, config: LoopConfig, seed: int, perturba
     oracle_job = None
     if config.oracle and config.oracle_in_background:
         say("training the oracle (evaluation only) in the background")
-        oracle_job = OracleProcess(env_name, seed, rd.oracle, config, perturbation,
+        oracle_job = OracleProcess(env_name, seed, rd.oracle_policy, config, perturbation,
                                    secret=rd.secret)
     obs0, _ = twin.reset(seed=seed)
     writer = DatasetWriter(rd.dataset, env=env_name, obs_shape=obs0.shape,
@@ -393,8 +393,9 @@ def summarise(run: RunContext, summary: dict) -> None:
             run.say("waiting for the oracle's training ...")
         oracle_return = run.background.result()
     elif config.oracle:
-        oracle_return = evaluation.oracle_return(run.env_name, run.seed, run.dir.oracle, config,
-                                                 run.progress, run.perturbation, run.secret)
+        oracle_return = evaluation.oracle_return(run.env_name, run.seed, run.dir.oracle_policy,
+                                                 config, run.progress, run.perturbation,
+                                                 run.secret)
     for rec in summary["rounds"]:
         rec["oracle_return"] = oracle_return
     summary["final"]["oracle_return"] = oracle_return

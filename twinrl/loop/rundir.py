@@ -164,7 +164,7 @@ class RunDir:
         return self.eval / "evaluation.json"
 
     @property
-    def oracle(self) -> Path:
+    def oracle_policy(self) -> Path:
         return self.eval / "oracle"
 
     @property
