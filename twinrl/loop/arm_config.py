@@ -161,7 +161,7 @@ class ArmLoopConfig:
     """Width and height (pixels) of the mount camera's images, recorded, simulated and deployed;
     ``None``: the task's (``ArmConfig.image_size``). The needle at 128 instead of its 64: the
     image actor 74-86 % from random views where 64 gave 50-75 %, and the default camera then
-    solves 88-100 % of real starts (docs/manipulation_loop.md, "The needle at 128x128")."""
+    solves 88-100 % of real starts (measured on needle twins 0 and 1)."""
 
     def __post_init__(self):
         for name in ("rounds", "episodes_per_round", "calibration_frames", "calibration_steps",

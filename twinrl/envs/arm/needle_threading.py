@@ -71,8 +71,8 @@ class NeedleThreadingConfig(ArmConfig):
     real twins. At 128 (``twinrl run --set image_size=128``) the fit is wrong from 9-13 % of
     random views and the loop's image actor solves 74-86 % of 50 random-view starts where 64
     gave 50-75 %, but the default camera then solves 88-100 % of real starts and the choice has
-    little left to win (twins 0 / 1: chosen 94 / 100 %, default 100 / 100 %; stop 67, docs/
-    manipulation_loop.md). 64 keeps the task one where seeing is the problem."""
+    little left to win (twins 0 / 1: chosen 94 / 100 %, default 100 / 100 %). 64 keeps the task
+    one where seeing is the problem."""
     eye_x: tuple[float, float] = (0.45, 0.6)
     """Range (m) of the eye centre's x at reset."""
     eye_y: tuple[float, float] = (0.0, 0.1)

@@ -135,8 +135,7 @@ class ArmTask(ArmPerception, Env):
         ``params`` (``PhysParams``, e.g. sysid's) over the nominal values'. The arm's controller
         sets targets a step from the *measured* joints, so in steady motion a joint covers that
         step times ``gain / damping`` per second: the quantity the exciting motions pin down
-        (spatula twin 2: each joint's within 6 %, where gain and damping apart were 17-44 % off;
-        README, stop 61)."""
+        (spatula twin 2: each joint's within 6 %, where gain and damping apart were 17-44 % off)."""
         def speed(p):
             gain = np.asarray(p.gain, np.float64)[:N_JOINTS]
             kv = -np.asarray(p.bias, np.float64)[:N_JOINTS, 2]

@@ -4,7 +4,7 @@ A fit that starts its shooting windows from recorded states is biased when those
 (errors in variables): on ``push``, one-step windows from the real twin's states put the box's
 mass 30 % high and its friction 24 % low at 1 mm of noise, 130 % / 63 % at 3.3 mm, because a
 contact that opens or closes on a tenth of a millimetre turns the start's noise into a force.
-No choice of residual removed it (``docs/push_sysid.md``). Indirect inference (Gourieroux,
+No choice of residual removed it (docs/known-limits.md). Indirect inference (Gourieroux,
 Monfort & Renault 1993; Smith 1993) does not need an unbiased estimator, only one whose
 distribution the simulator can reproduce: run the same estimator on data *simulated* at candidate
 parameters, with the same excitation, the same sensor noise and the same number of episodes, and
