@@ -25,7 +25,12 @@ __all__ = ["load_q", "sense"]
 def load_q(path) -> tuple[Network, object, dict]:
     """Q ``(network, params, meta)`` from a ``twinrl train --algo sensing`` run (or its
     ``policy/``); a one-line error for any other checkpoint."""
-    from twinrl.learn.checkpoint import load_policy
+    from twinrl.learn.checkpoint import KINDS, load_policy, read_meta
+
+    where, meta = read_meta(path)
+    if meta["kind"] != "sensing_q":
+        raise SensingError(f"{where} is {KINDS[meta['kind']]}, not a sensing-aware Q; train one "
+                           f"with twinrl train --algo sensing --set actor=DIR")
     net, params, meta = load_policy(path)
     if meta.get("algo") != "sensing" or not isinstance(net.obs_spec, dict) \
             or "action" not in net.obs_spec:
@@ -86,7 +91,7 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     iio.imwrite(out / "views.png", (np.concatenate([small[0], gap, small[1]], axis=1)
                                     * 255).clip(0, 255).astype(np.uint8))
     summary = {
-        "env": env_name, "seed": int(seed), "checkpoint": str(checkpoint),
+        "kind": "sense", "env": env_name, "seed": int(seed), "checkpoint": str(checkpoint),
         "chosen_coords": chosen.tolist(),
         "chosen_pose": dict(zip(("azimuth_rad", "elevation_rad", "distance_m"),
                                 sph(chosen).tolist())),

@@ -20,7 +20,8 @@ def add_parser(sub) -> None:
                     "summary.json (the chosen pose, Q, steps the mount needs to get there).")
     p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
     p.add_argument("--checkpoint", required=True, type=Path,
-                   help="a `twinrl train --algo sensing` run (or its policy/)")
+                   help="a `twinrl train --algo sensing` run (or its policy/), or a `twinrl run` "
+                        "of a manipulation task (its last round's q/) or one of its rounds")
     p.add_argument("--restarts", type=int, default=None,
                    help="ascents from the default and random poses (default: Q's config)")
     p.add_argument("--steps", type=int, default=None, help="Adam steps per ascent")
@@ -37,8 +38,9 @@ def cmd(args) -> int:
     at_least_one(args, "restarts", "steps")
     if not args.checkpoint.exists():
         raise UsageError(f"checkpoint {args.checkpoint} does not exist")
+    checkpoint = _q_dir(args.checkpoint)
     with report.console.status("choosing the camera pose ...") as status:
-        s = sense(args.env, args.checkpoint, args.out, seed=args.seed, restarts=args.restarts,
+        s = sense(args.env, checkpoint, args.out, seed=args.seed, restarts=args.restarts,
                   steps=args.steps, progress=status.update)
     p = s["chosen_pose"]
     report.print_table(f"sense {args.env} (start state seed {args.seed})",
@@ -50,3 +52,21 @@ def cmd(args) -> int:
                          s["q_chosen"], s["target_pixels_160"]["chosen"]]])
     print(f"wrote {s['files']['plot']} (mount moves {s['steps_to_move']} steps)")
     return 0
+
+
+def _q_dir(path: Path) -> Path:
+    """The sensing-aware Q ``--checkpoint`` names: itself, or a run's (last) round's ``q/``; any
+    other checkpoint refused in one line naming the command that takes it."""
+    from twinrl.learn.checkpoint import CheckpointError
+    from twinrl.loop.checkpoints import arm_run, latest_round, require
+
+    found = require(path, "sense", ("sensing_q", "run", "round"))
+    if found.kind in ("run", "round"):
+        if not arm_run(found):
+            require(found.path, "sense", ())  # refused: a cartpole run has no Q
+        rdir = found.round if found.kind == "round" else latest_round(found.run)
+        if rdir is None or not (rdir.q / "policy" / "checkpoint.json").exists():
+            raise CheckpointError(f"{found.path}: no sensing-aware Q trained there yet "
+                                  f"(round<r>/q/)")
+        return rdir.q
+    return found.path

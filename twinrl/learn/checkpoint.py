@@ -2,9 +2,10 @@
 
 **Policy checkpoint** (``save_policy`` / ``load_policy``), a directory::
 
-    checkpoint.json   format, network (kind, in/out sizes, NetworkConfig, and the observation
-                      spec when it is a dict of keys to shapes), algo, env name and its
-                      config overrides, the trainer's config, final metrics
+    checkpoint.json   format, what it is (``kind``, one of ``KINDS``), network (kind, in/out
+                      sizes, NetworkConfig, and the observation spec when it is a dict of keys
+                      to shapes), algo, env name and its config overrides, the trainer's
+                      config, final metrics
     system.json       the ``twinrl.envs.System`` the policy was trained in (parameters, action
                       latency, ...): evaluation rebuilds exactly that simulator (``load_system``)
     params/           orbax StandardCheckpointer tree of the network parameters
@@ -36,12 +37,26 @@ from twinrl.learn.networks import Network, NetworkConfig, make_network
 from twinrl.report import to_jsonable
 
 __all__ = ["save_policy", "load_policy", "load_system", "register_network_kind",
-           "TrainStateCheckpointer", "CheckpointError", "FORMAT"]
+           "TrainStateCheckpointer", "CheckpointError", "FORMAT", "KINDS", "checkpoint_kind",
+           "read_meta"]
 
 FORMAT = "twinrl-policy-1"
 SYSTEM_FILE = "system.json"
 
 _BUILDERS: dict[str, Callable[[dict[str, Any]], Network]] = {}
+
+KINDS = {
+    "policy": "a policy on the task's observation vector (twinrl train: pods, hds, shac, ppo, "
+              "apg, or imitation with observation=state)",
+    "image_actor": "an arm task's actor that sees the mount camera (twinrl train --algo "
+                   "imitation, or a run's round<r>/actor)",
+    "sensing_q": "a sensing-aware Q that scores camera poses (twinrl train --algo sensing, or a "
+                 "run's round<r>/q)",
+    "residual": "a residual policy: a correction of another policy's action (a run's "
+                "round<r>/residual)",
+    "hybrid_residual": "a learned residual dynamics model (a run's round<r>/hybrid)",
+}
+"""What a policy checkpoint holds (``checkpoint.json``'s ``kind``), described in words."""
 
 
 class CheckpointError(Exception):
@@ -80,7 +95,9 @@ def save_policy(path: str | Path, policy: Network, params: Any, *, system: Any =
 
     ``meta`` (algo, env, env_config, config, metrics, ...) goes into ``checkpoint.json`` after
     conversion to JSON (dataclasses become dicts, arrays lists, non-finite floats null);
-    ``system`` (a ``twinrl.envs.System``) into ``system.json``, exactly.
+    ``system`` (a ``twinrl.envs.System``) into ``system.json``, exactly. ``kind`` (one of
+    ``KINDS``) says what the checkpoint holds; without it, ``checkpoint_kind`` tells from the
+    algorithm and the network's observation.
     """
     import orbax.checkpoint as ocp
 
@@ -97,6 +114,7 @@ def save_policy(path: str | Path, policy: Network, params: Any, *, system: Any =
     elif (path / SYSTEM_FILE).exists():
         (path / SYSTEM_FILE).unlink()      # a replaced checkpoint keeps no stale system
     doc = {"format": FORMAT, "network": network_spec(policy), **to_jsonable(meta)}
+    doc["kind"] = checkpoint_kind(doc)
     tmp = path / "checkpoint.json.tmp"
     tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))
     tmp.replace(path / "checkpoint.json")
@@ -107,19 +125,8 @@ def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
     """``(network, params, meta)`` from a policy checkpoint written by ``save_policy``."""
     import orbax.checkpoint as ocp
 
-    path = _policy_dir(path)   # a training run's output directory holds the policy under policy/
+    path, meta = read_meta(path)  # a training run's directory holds it under policy/
     meta_file = path / "checkpoint.json"
-    if not meta_file.exists():
-        raise CheckpointError(f"{path}: no checkpoint.json (not a twinrl policy checkpoint)")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise CheckpointError(f"{meta_file}: not valid JSON ({e})") from None
-    if not isinstance(meta, dict):
-        raise CheckpointError(f"{meta_file}: holds a JSON {type(meta).__name__}, expected an "
-                              f"object with format, network, env, ...")
-    if meta.get("format") != FORMAT:
-        raise CheckpointError(f"{meta_file}: format {meta.get('format')!r}, expected {FORMAT!r}")
     spec = meta.get("network")
     if not isinstance(spec, dict):
         raise CheckpointError(f"{meta_file}: no 'network' object (kind, in/out sizes, config); "
@@ -143,6 +150,48 @@ def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
     template = jax.eval_shape(network.init, jax.random.key(0))
     params = ocp.StandardCheckpointer().restore(path / "params", template)
     return network, params, meta
+
+
+def checkpoint_kind(meta: dict[str, Any]) -> str:
+    """What a policy checkpoint holds, one of ``KINDS``, from its ``checkpoint.json``: its
+    ``kind`` when it names one, else (a checkpoint written before kinds were recorded) its
+    algorithm's: ``sensing`` a Q, a network that reads a dict observation an image actor, any
+    other a policy."""
+    kind = meta.get("kind")
+    if kind is not None:
+        if kind not in KINDS:
+            raise CheckpointError(f"checkpoint kind {kind!r} is not one of {', '.join(KINDS)}")
+        return kind
+    if meta.get("algo") == "sensing":
+        return "sensing_q"
+    network = meta.get("network")
+    if isinstance(network, dict) and network.get("obs_spec") is not None:
+        return "image_actor"
+    return "policy"
+
+
+def read_meta(path: str | Path) -> tuple[Path, dict[str, Any]]:
+    """``(directory, checkpoint.json)`` of the policy checkpoint at ``path`` (or a training
+    run's directory holding it under ``policy/``), its ``kind`` filled in (``checkpoint_kind``),
+    without restoring its parameters; a ``CheckpointError`` in one line if there is none."""
+    path = _policy_dir(path)
+    meta_file = path / "checkpoint.json"
+    if not meta_file.exists():
+        raise CheckpointError(f"{path}: no checkpoint.json (not a twinrl policy checkpoint)")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"{meta_file}: not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{meta_file}: holds a JSON {type(meta).__name__}, expected an "
+                              f"object with format, network, env, ...")
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{meta_file}: format {meta.get('format')!r}, expected {FORMAT!r}")
+    try:
+        meta["kind"] = checkpoint_kind(meta)
+    except CheckpointError as e:
+        raise CheckpointError(f"{meta_file}: {e}") from None
+    return path, meta
 
 
 def _policy_dir(path: str | Path) -> Path:

@@ -2,7 +2,8 @@
 
 A **training run** directory holds::
 
-    run.json          algo, env, seed and the full trainer config (what --resume must match)
+    run.json          "kind": "train", algo, env, seed and the full trainer config (what
+                      --resume must match)
     metrics.csv       one row per epoch (flushed as it goes); tb/ TensorBoard events
     train_state/      orbax steps of the whole trainer state (resumable trainers only)
     policy/           the returned policy's checkpoint (``twinrl.learn.checkpoint``)
@@ -166,7 +167,7 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
                            f"{env.episode_length}; --set horizon=... or rollout_length=...)"
                            ) from None
     out = Path(out)
-    run_doc = {"algo": algo, "env": env_name, "seed": int(seed),
+    run_doc = {"kind": "train", "algo": algo, "env": env_name, "seed": int(seed),
                "config": report.to_jsonable(config), "config_class": type(config).__name__}
     if env_spec is not None:
         run_doc["mjcf"] = env_spec
@@ -180,9 +181,11 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
             raise RunError(f"{out} already holds a training run ({previous.get('algo')} on "
                            f"{previous.get('env')}); pass --resume to continue it or choose a new "
                            f"--out")
-        if previous != report.to_jsonable(run_doc):
-            diff = sorted(k for k in set(previous) | set(run_doc)
-                          if previous.get(k) != report.to_jsonable(run_doc).get(k))
+        now = report.to_jsonable(run_doc)
+        # "kind" says what the directory is; a run started before it was recorded resumes
+        diff = sorted(k for k in (set(previous) | set(now)) - {"kind"}
+                      if previous.get(k) != now.get(k))
+        if diff:
             raise RunError(f"--resume: {run_file} was started with different settings "
                            f"({', '.join(diff)}); resume with the same --algo/--env/--seed/--set")
     elif resume and (out / "policy").exists():
@@ -384,7 +387,8 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
     if video and frames:
         files["video"] = str(report.write_video(out / f"{'real' if real else 'sim'}.mp4", frames,
                                                 fps=1.0 / env.dt))
-    summary = {"checkpoint": str(checkpoint), "env": meta["env"], "algo": meta.get("algo"),
+    summary = {"kind": "eval", "checkpoint": str(checkpoint), "env": meta["env"],
+               "algo": meta.get("algo"),
                "where": "real twin" if real else "sim", "seed": int(seed),
                "episodes": int(episodes), "returns": returns,
                "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)),

@@ -115,8 +115,12 @@ class SensingError(ValueError):
 def load_actor(path) -> tuple[Network, object, dict]:
     """The image actor ``(network, params, meta)`` from a policy checkpoint; a one-line error if
     it is not an image actor of an arm task."""
-    from twinrl.learn.checkpoint import load_policy
+    from twinrl.learn.checkpoint import KINDS, load_policy, read_meta
 
+    where, meta = read_meta(path)
+    if meta["kind"] != "image_actor":
+        raise SensingError(f"{where} is {KINDS[meta['kind']]}, not an image actor; train one "
+                           f"with --algo imitation --set observation=pixels (or pose)")
     net, params, meta = load_policy(path)
     if not isinstance(net.obs_spec, dict) or not {"pixels/mount", "target", "estimate"} & set(
             net.obs_spec):

@@ -241,17 +241,19 @@ def plot_success(path: Path, summary: dict) -> None:
 
 
 class FilmedTwin:
-    """A twin client that keeps, after every step, the mount's frame beside the scene's
-    ``overview`` camera (each scaled up 3 times)."""
+    """A twin client that keeps, after every step while ``film`` is true, the mount's frame
+    beside the scene's ``overview`` camera (each scaled up 3 times)."""
 
-    def __init__(self, twin):
-        self._twin, self.frames = twin, []
+    def __init__(self, twin, film: bool = True):
+        self._twin, self.frames, self.film = twin, [], film
 
     def __getattr__(self, name):
         return getattr(self._twin, name)
 
     def step(self, action):
         out = self._twin.step(action)
+        if not self.film:
+            return out
         views = [self._twin.render_images(c, ("rgb",))["rgb"] for c in ("mount", "overview")]
         self.frames.append(np.concatenate([np.repeat(np.repeat(v, 3, 0), 3, 1) for v in views],
                                           1))

@@ -189,7 +189,8 @@ def check_settings(family: Family, env_name: str, out: Path, config, seed: int,
     # The perturbation (a custom twin's) is not a setting the loop may read back: the twin's
     # server keeps it with the salt in eval/twin.json and refuses a resume with another one.
     rd = RunDir(out)
-    settings = {"env": env_name, "seed": int(seed), "config": report.to_jsonable(config)}
+    settings = {"kind": "run", "env": env_name, "seed": int(seed),
+                "config": report.to_jsonable(config)}
     if rd.settings.exists():
         previous = json.loads(rd.settings.read_text())
         if not resume:
@@ -211,6 +212,7 @@ def check_settings(family: Family, env_name: str, out: Path, config, seed: int,
 def _with_defaults(previous: dict, config) -> dict:
     """``loop.json``'s settings with a setting it does not name (one a later twinrl added) at
     its default: a run started before the setting existed ran as its default does, and resumes."""
+    previous = {"kind": "run", **previous}  # runs before "kind" was recorded resume too
     saved = previous.get("config")
     if not isinstance(saved, dict):
         return previous

@@ -2,13 +2,14 @@
 
 Layout (``OUT/``)::
 
-    loop.json            the run's settings (task, seed, config); a resume must match them
+    loop.json            "kind": "run" and the run's settings (task, seed, config); a resume
+                         must match them
     progress.json        the finished stages and the per-round records (records only: no stage
                          reads a decision back from it)
     dataset/             every real transition, recorded as it happens (``twinrl.real.dataset``)
     eval/                evaluation only, never read by a stage: the twin's secret (twin.json),
                          the evaluation records (evaluation.json), the oracle's training (oracle/)
-    round<r>/            round r's artefacts (``RoundDir``)
+    round<r>/            round r's artefacts (``RoundDir``; ``round.json`` says what it is)
     summary.json, final.mp4, report.md, returns.png, success.png    the outputs
 
 The identified ``System`` of a round is ``round<r>/system.json`` in both loops. The cartpole
@@ -37,7 +38,22 @@ class RoundDir:
         return f"RoundDir({str(self.path)!r})"
 
     def make(self) -> None:
+        """Create the round's directory with ``round.json``, which says what it is."""
         self.path.mkdir(parents=True, exist_ok=True)
+        if not self.record.exists():
+            from twinrl.report import write_json
+
+            write_json(self.record, {"kind": "round", "round": self.number})
+
+    @property
+    def record(self) -> Path:
+        """``round.json``: what the directory is (``twinrl.loop.checkpoints``)."""
+        return self.path / "round.json"
+
+    @property
+    def number(self) -> int:
+        """The round's number ``r`` (``round<r>``)."""
+        return int(self.path.name.removeprefix("round"))
 
     # -- the identified system
     @property
