@@ -49,7 +49,7 @@ def cmd(args) -> int:
     """Evaluate ``--checkpoint``."""
     from twinrl import report
     from twinrl.learn.runner import eval_run
-    from twinrl.loop.checkpoints import arm_run, latest_round, require
+    from twinrl.loop.checkpoints import arm_run, require, round_of
 
     if not args.checkpoint.exists():
         raise UsageError(f"checkpoint {args.checkpoint} does not exist")
@@ -73,7 +73,7 @@ def cmd(args) -> int:
                          f"{found.describe()}")
     checkpoint = found.path
     if found.kind in ("run", "round"):  # the cartpole family: the round's learned policy
-        rdir = found.round if found.kind == "round" else latest_round(found.run)
+        rdir = round_of(found)
         if rdir is None:
             raise UsageError(f"{found.path}: the run has no round with a trained policy yet")
         checkpoint = rdir.train
@@ -84,7 +84,7 @@ def cmd(args) -> int:
 
 def _has_q(found) -> bool:
     """Whether a Q sits where ``eval_actor`` looks for one (the round's, or the run's last)."""
-    from twinrl.loop.checkpoints import latest_round
+    from twinrl.loop.checkpoints import round_of
 
-    rdir = latest_round(found.run) if found.kind == "run" else found.round
+    rdir = round_of(found)
     return rdir is not None and (rdir.q / "policy" / "checkpoint.json").exists()

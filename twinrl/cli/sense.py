@@ -32,13 +32,14 @@ def add_parser(sub) -> None:
 def cmd(args) -> int:
     """Choose the camera pose for the start state reset(``--seed``)."""
     from twinrl import report
+    from twinrl.loop.checkpoints import sensing_q
     from twinrl.sense import sense
 
     check_task(args.env)
     at_least_one(args, "restarts", "steps")
     if not args.checkpoint.exists():
         raise UsageError(f"checkpoint {args.checkpoint} does not exist")
-    checkpoint = _q_dir(args.checkpoint)
+    checkpoint = sensing_q(args.checkpoint)
     with report.console.status("choosing the camera pose ...") as status:
         s = sense(args.env, checkpoint, args.out, seed=args.seed, restarts=args.restarts,
                   steps=args.steps, progress=status.update)
@@ -53,20 +54,3 @@ def cmd(args) -> int:
     print(f"wrote {s['files']['plot']} (mount moves {s['steps_to_move']} steps)")
     return 0
 
-
-def _q_dir(path: Path) -> Path:
-    """The sensing-aware Q ``--checkpoint`` names: itself, or a run's (last) round's ``q/``; any
-    other checkpoint refused in one line naming the command that takes it."""
-    from twinrl.learn.checkpoint import CheckpointError
-    from twinrl.loop.checkpoints import arm_run, latest_round, require
-
-    found = require(path, "sense", ("sensing_q", "run", "round"))
-    if found.kind in ("run", "round"):
-        if not arm_run(found):
-            require(found.path, "sense", ())  # refused: a cartpole run has no Q
-        rdir = found.round if found.kind == "round" else latest_round(found.run)
-        if rdir is None or not (rdir.q / "policy" / "checkpoint.json").exists():
-            raise CheckpointError(f"{found.path}: no sensing-aware Q trained there yet "
-                                  f"(round<r>/q/)")
-        return rdir.q
-    return found.path

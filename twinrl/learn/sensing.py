@@ -122,10 +122,6 @@ def load_actor(path) -> tuple[Network, object, dict]:
         raise SensingError(f"{where} is {KINDS[meta['kind']]}, not an image actor; train one "
                            f"with --algo imitation --set observation=pixels (or pose)")
     net, params, meta = load_policy(path)
-    if not isinstance(net.obs_spec, dict) or not {"pixels/mount", "target", "estimate"} & set(
-            net.obs_spec):
-        raise SensingError(f"{path}: not an image actor (its observation is {net.obs_spec!r}); "
-                         f"train one with --algo imitation --set observation=pixels")
     return net, params, meta
 
 

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.learn.checkpoint import CheckpointError
-from twinrl.loop.checkpoints import Found, latest_round
+from twinrl.loop.checkpoints import Found, round_of
 
 __all__ = ["CAMERAS", "eval_actor", "wilson_interval"]
 
@@ -53,9 +53,8 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 
 def _actor_dir(found: Found) -> tuple[Path, Any]:
     """The actor's checkpoint and its round (None outside a ``twinrl run``)."""
-    rdir = found.round
+    rdir = round_of(found)
     if found.kind == "run":
-        rdir = latest_round(found.run)
         if rdir is None:
             raise CheckpointError(f"{found.path}: the run has no round with a trained actor yet")
     if found.kind in ("run", "round"):

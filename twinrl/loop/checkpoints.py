@@ -21,7 +21,8 @@ from typing import Any
 from twinrl.learn.checkpoint import KINDS, CheckpointError, read_meta
 from twinrl.loop.rundir import RoundDir, RunDir
 
-__all__ = ["DIRECTORY_KINDS", "Found", "describe", "require", "latest_round", "arm_run"]
+__all__ = ["DIRECTORY_KINDS", "Found", "describe", "require", "latest_round", "arm_run",
+           "round_of", "sensing_q"]
 
 DIRECTORY_KINDS = {
     "run": "a `twinrl run` output directory",
@@ -94,7 +95,7 @@ def describe(path: str | Path) -> Found:
         raise CheckpointError(f"{path} is a file; twinrl's checkpoints are directories")
     if (path / "checkpoint.json").is_file() or (path / "policy" / "checkpoint.json").is_file():
         policy, meta = read_meta(path)  # a training run's directory: its policy/
-        home = policy.parent if (policy.parent / "run.json").is_file() else policy
+        home = policy.parent if policy.name == "policy" else policy  # a training run's
         where = _round_of(home.parent)
         return Found(meta["kind"], policy, meta, *(where or (None, None)), given=path)
     if (run := _run_of(path)) is not None:
@@ -167,3 +168,24 @@ def require(path: str | Path, command: str, kinds: tuple[str, ...]) -> Found:
         return found
     raise CheckpointError(f"{found.given or found.path} is {found.describe()}, which "
                           f"`twinrl {command}` does not take; {_hint(found, command)}")
+
+
+def round_of(found: Found) -> RoundDir | None:
+    """The round ``found`` is, or belongs to (a run: its last with a deployed policy)."""
+    return latest_round(found.run) if found.kind == "run" else found.round
+
+
+def sensing_q(path: str | Path, command: str = "sense") -> Path:
+    """The sensing-aware Q ``path`` names: itself (or a ``twinrl train --algo sensing`` run's
+    policy), or the ``q/`` of a manipulation run's round (a run: its last round); any other
+    directory refused in one line naming the command that takes it."""
+    found = require(path, command, ("sensing_q", "run", "round"))
+    if found.kind == "sensing_q":
+        return found.path
+    if not arm_run(found):
+        require(found.path, command, ())  # refused: a cartpole-family run has no Q
+    rdir = round_of(found)
+    if rdir is None or not (rdir.q / "policy" / "checkpoint.json").is_file():
+        raise CheckpointError(f"{found.path}: no sensing-aware Q trained there yet "
+                              f"(round<r>/q/)")
+    return rdir.q
