@@ -192,3 +192,26 @@ def test_eval_deploys_an_image_actor(dirs, tmp_path, capsys, real):
     # --camera chosen needs a Q: none beside a lone actor
     assert main(argv[:4] + ["chosen", "--no-video", "--out", str(tmp_path / "q")]) == 2
     assert "--camera chosen needs a sensing-aware Q" in capsys.readouterr().err
+
+
+def test_eval_of_a_cartpole_family_round_deploys_its_accepted_residual(dirs, tmp_path):
+    # pi_sim and an accepted residual, as the cartpole loop leaves them in round<r>/
+    run = tmp_path / "run"
+    r1 = run / "round1"
+    r1.mkdir(parents=True)
+    (run / "loop.json").write_text(json.dumps({"kind": "run", "env": "pendulum_swingup",
+                                               "seed": 0, "config": {}}))
+    (run / "progress.json").write_text(json.dumps({"done": [], "rounds": {}}))
+    shutil.copytree(dirs["train"], r1 / "train")
+    pend = envs.make("pendulum_swingup")
+    n, m = int(pend.observation_size), pend.action_size
+    _save(r1 / "residual", n + m, m, kind="residual", metrics={"accepted": True})
+    got = {}
+    for flags in ([], ["--no-residual"]):
+        out = tmp_path / f"out{len(flags)}"
+        assert main(["eval", "--checkpoint", str(run), "--episodes", "2", "--no-video",
+                     "--out", str(out)] + flags) == 0
+        s = json.loads((out / "summary.json").read_text())
+        got[s["residual"]] = s["returns"]
+    assert set(got) == {True, False}
+    assert not np.allclose(got[True], got[False])  # the correction changes what it does

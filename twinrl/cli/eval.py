@@ -36,7 +36,7 @@ def add_parser(sub) -> None:
     p.add_argument("--q", type=Path, default=None,
                    help="the sensing-aware Q for --camera chosen (default: the round's q/)")
     p.add_argument("--no-residual", action="store_true",
-                   help="an actor of a run's round: leave out the round's accepted residual")
+                   help="a run's round: leave out the round's accepted residual policy")
     p.add_argument("--no-video", action="store_true", help="skip the video")
     p.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"),
                    help="video size of a state policy (default 320 240); an actor's video is "
@@ -67,19 +67,36 @@ def cmd(args) -> int:
                        video=not args.no_video, say=status.update)
         return 0
     given = [f for f, on in (("--camera", args.camera), ("--q", args.q),
-                             ("--no-residual", args.no_residual)) if on]
+                             ("--no-residual", args.no_residual and found.kind not in (
+                                 "run", "round"))) if on]
     if given:
         raise UsageError(f"{', '.join(given)}: for an arm task's image actor; {found.path} is "
                          f"{found.describe()}")
-    checkpoint = found.path
-    if found.kind in ("run", "round"):  # the cartpole family: the round's learned policy
+    checkpoint, policy = found.path, None
+    if found.kind in ("run", "round"):  # the cartpole family: the round's deployed policy
         rdir = round_of(found)
         if rdir is None:
             raise UsageError(f"{found.path}: the run has no round with a trained policy yet")
         checkpoint = rdir.train
+        policy = _with_residual(rdir) if not args.no_residual else None
     eval_run(checkpoint, args.out, real=args.real, episodes=args.episodes, seed=args.seed,
-             video=not args.no_video, size=tuple(args.size))
+             video=not args.no_video, size=tuple(args.size), policy=policy,
+             residual=policy is not None)
     return 0
+
+
+def _with_residual(rdir):
+    """A cartpole-family round's deployed policy, pi_sim plus its accepted residual, as
+    ``(apply, params)``; None where the round has none or its gate rejected it."""
+    from twinrl.learn.checkpoint import load_policy
+    from twinrl.sim2real.residual import ResidualPolicy
+
+    metrics = rdir.residual_metrics()
+    if not (metrics and metrics.get("accepted")):
+        return None
+    base, base_params, _ = load_policy(rdir.train)
+    delta, res_params, _ = load_policy(rdir.residual)
+    return ResidualPolicy(base, base_params, delta).act, res_params
 
 
 def _has_q(found) -> bool:

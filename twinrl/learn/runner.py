@@ -357,9 +357,12 @@ def env_from_meta(meta: dict[str, Any], system=None):
 
 def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, episodes: int = 5,
              seed: int = 0, video: bool = True, size: tuple[int, int] = (320, 240),
-             progress: bool = True) -> dict[str, Any]:
+             progress: bool = True, policy: tuple[Callable, Any] | None = None,
+             residual: bool = False) -> dict[str, Any]:
     """Evaluate a policy checkpoint in the simulator or (``real``) its real twin; write
-    ``summary.json`` and an MP4 of the first episode. Returns the summary."""
+    ``summary.json`` and an MP4 of the first episode. Returns the summary. ``policy``: an
+    ``(apply, params)`` acting in the checkpoint's stead on its task and system (e.g. the policy
+    plus a residual correction: ``residual`` says so in the summary)."""
     from twinrl import report
     from twinrl.envs.system import system_of
     from twinrl.learn.checkpoint import load_policy, load_system
@@ -370,7 +373,8 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
     saved = load_system(checkpoint)
     env = env_from_meta(meta, saved)
     out = Path(out)
-    act = jax.jit(network.apply)
+    apply, params = policy if policy is not None else (network.apply, params)
+    act = jax.jit(apply)
     frames: list[np.ndarray] = []
     if real:
         returns = _eval_real(env, env if meta.get("mjcf") else meta["env"], act, params,
@@ -378,7 +382,7 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
     else:
         from twinrl.learn.common import make_evaluator
 
-        returns = np.asarray(make_evaluator(env, network.apply, episodes)(
+        returns = np.asarray(make_evaluator(env, apply, episodes)(
             params, jax.random.key(seed)), float).tolist()
         if video:
             frames = _sim_frames(env, act, params,
@@ -390,7 +394,7 @@ def eval_run(checkpoint: str | Path, out: str | Path, *, real: bool = False, epi
     summary = {"kind": "eval", "checkpoint": str(checkpoint), "env": meta["env"],
                "algo": meta.get("algo"),
                "where": "real twin" if real else "sim", "seed": int(seed),
-               "episodes": int(episodes), "returns": returns,
+               "episodes": int(episodes), "residual": bool(residual), "returns": returns,
                "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)),
                "system": {"from": "checkpoint" if saved is not None else "nominal (none saved)",
                           **system_of(env).to_json()},
