@@ -61,10 +61,9 @@ def cmd(args) -> int:
         from twinrl.loop.actor_eval import eval_actor
 
         camera = args.camera or ("chosen" if args.q is not None or _has_q(found) else "default")
-        with report.console.status("evaluating ...") as status:
-            eval_actor(found, args.out, real=args.real, episodes=args.episodes, seed=args.seed,
-                       camera=camera, q=args.q, residual=not args.no_residual,
-                       video=not args.no_video, say=status.update)
+        eval_actor(found, args.out, real=args.real, episodes=args.episodes, seed=args.seed,
+                   camera=camera, q=args.q, residual=not args.no_residual,
+                   video=not args.no_video, say=report.console.print)
         return 0
     given = [f for f, on in (("--camera", args.camera), ("--q", args.q),
                              ("--no-residual", args.no_residual and found.kind not in (
