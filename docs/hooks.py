@@ -1,4 +1,5 @@
-"""MkDocs hooks: the command-line reference is generated from ``twinrl.cli.build_parser()``.
+"""MkDocs hooks: the command-line reference is generated from ``twinrl.cli.build_parser()``,
+and the table of checkpoint kinds from ``twinrl.loop.checkpoints``.
 
 A page whose source holds the marker ``<!-- cli-reference -->`` gets, in its place, one section
 per ``twinrl`` subcommand: its description and a table of its arguments, walked from the argparse
@@ -10,6 +11,7 @@ from __future__ import annotations
 import argparse
 
 MARKER = "<!-- cli-reference -->"
+KINDS_MARKER = "<!-- checkpoint-kinds -->"
 
 
 def _escape(text: str) -> str:
@@ -70,7 +72,22 @@ def _escape_block(text: str) -> str:
     return text.replace("<", "&lt;")
 
 
+def kinds_markdown() -> str:
+    """The table of what twinrl's directories hold (``twinrl.loop.checkpoints``): kind, what it
+    is, the file that says so, and the commands that take it."""
+    from twinrl.learn.checkpoint import KINDS
+    from twinrl.loop.checkpoints import DIRECTORY_KINDS, RECORDED_IN, TAKES
+
+    rows = ["| kind | what it is | said by | taken by |", "|---|---|---|---|"]
+    for kind, what in {**KINDS, **DIRECTORY_KINDS}.items():
+        takers = ", ".join(f"`twinrl {c}`" for c, kinds in TAKES.items() if kind in kinds)
+        rows.append(f"| `{kind}` | {_escape(what)} | `{RECORDED_IN[kind]}` | {takers or '—'} |")
+    return "\n".join(rows)
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
+    if KINDS_MARKER in markdown:
+        markdown = markdown.replace(KINDS_MARKER, kinds_markdown())
     if MARKER not in markdown:
         return markdown
     from twinrl.cli import build_parser

@@ -1,5 +1,6 @@
 """Every kind of directory twinrl writes, given to every command that reads checkpoints
-(``twinrl eval``, ``twinrl sense``, ``twinrl train --algo sensing --set actor=``): accepted, or
+(``twinrl eval``, ``twinrl sense``, ``twinrl train --algo sensing --set actor=``; and ``twinrl
+sysid --from``, which takes a dataset or a run): accepted, or
 refused with exit 2 and one line naming what it is and the command that takes it.
 
 The checkpoints are tiny (networks of 4 units) but real: written by ``save_policy``, the dataset
@@ -135,6 +136,9 @@ REFUSED = [
     ("actor", "sensing_q", "not an image actor"),
     ("actor", "residual", "not an image actor"),
     ("actor", "hybrid_residual", "not an image actor"),
+    ("sysid", "image_actor", "twinrl eval --checkpoint"),
+    ("sysid", "sensing_q", "twinrl sense --env peg_insertion"),
+    ("sysid", "sense", "holds no checkpoint"),
 ]
 
 
@@ -143,6 +147,8 @@ def _argv(command, path, out):
         return ["eval", "--checkpoint", str(path), "--out", str(out), "--episodes", "1"]
     if command == "sense":
         return ["sense", "--env", ARM, "--checkpoint", str(path), "--out", str(out)]
+    if command == "sysid":
+        return ["sysid", "--env", ARM, "--from", str(path), "--out", str(out)]
     return ["train", "--env", ARM, "--algo", "sensing", "--set", f'actor="{path}"', "--out",
             str(out)]
 

@@ -8,11 +8,6 @@ from pathlib import Path
 
 from twinrl.cli.common import UsageError, add_common, at_least_one, check_size
 
-TAKES = ("policy", "image_actor", "run", "round")
-"""What ``--checkpoint`` may be (``twinrl.loop.checkpoints``); any other kind is refused in one
-line naming the command that takes it."""
-
-
 def add_parser(sub) -> None:
     """The ``eval`` sub-command's parser."""
     p = sub.add_parser(
@@ -49,13 +44,13 @@ def cmd(args) -> int:
     """Evaluate ``--checkpoint``."""
     from twinrl import report
     from twinrl.learn.runner import eval_run
-    from twinrl.loop.checkpoints import arm_run, require, round_of
+    from twinrl.loop.checkpoints import TAKES, arm_run, require, round_of
 
     if not args.checkpoint.exists():
         raise UsageError(f"checkpoint {args.checkpoint} does not exist")
     at_least_one(args, "episodes")
     check_size(args.size)
-    found = require(args.checkpoint, "eval", TAKES)
+    found = require(args.checkpoint, "eval", TAKES["eval"])
     actor = found.kind == "image_actor" or (found.kind in ("run", "round") and arm_run(found))
     if actor:
         from twinrl.loop.actor_eval import eval_actor

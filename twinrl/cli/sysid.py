@@ -72,6 +72,14 @@ def cmd(args) -> int:
     if not (source / "meta.json").exists() and (source / "dataset" / "meta.json").exists():
         source = source / "dataset"
     if not (source / "meta.json").exists():
+        if source.is_dir():  # a checkpoint or another output: say what it is, who takes it
+            from twinrl.learn.checkpoint import CheckpointError
+            from twinrl.loop.checkpoints import TAKES, require
+
+            try:
+                require(source, "sysid --from", TAKES["sysid --from"])
+            except CheckpointError as e:
+                raise UsageError(str(e)) from None
         raise UsageError(f"--from {args.source}: no dataset there (no meta.json)")
     try:
         data = ds.read(source, strict=False)

@@ -21,7 +21,7 @@ from typing import Any
 from twinrl.learn.checkpoint import KINDS, CheckpointError, read_meta
 from twinrl.loop.rundir import RoundDir, RunDir
 
-__all__ = ["DIRECTORY_KINDS", "Found", "describe", "require", "latest_round", "arm_run",
+__all__ = ["DIRECTORY_KINDS", "RECORDED_IN", "TAKES", "Found", "describe", "require", "latest_round", "arm_run",
            "round_of", "sensing_q"]
 
 DIRECTORY_KINDS = {
@@ -32,6 +32,19 @@ DIRECTORY_KINDS = {
     "dataset": "a recorded dataset of real transitions",
 }
 """The kinds of directory that are not a policy checkpoint themselves."""
+
+RECORDED_IN = {"policy": "checkpoint.json", "image_actor": "checkpoint.json",
+               "sensing_q": "checkpoint.json", "residual": "checkpoint.json",
+               "hybrid_residual": "checkpoint.json", "run": "loop.json", "round": "round.json",
+               "sense": "summary.json", "eval": "summary.json", "dataset": "meta.json"}
+"""The file whose ``kind`` (or, for a dataset, whose presence) says what a directory is."""
+
+TAKES = {"eval": ("policy", "image_actor", "run", "round"),
+         "sense": ("sensing_q", "run", "round"),
+         "train --algo sensing --set actor=": ("image_actor",),
+         "sysid --from": ("dataset", "run")}
+"""The kinds each command that reads checkpoints takes (a ``twinrl train`` run directory counts
+as the kind of its ``policy/``); every other kind is refused in one line (``require``)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,7 +192,7 @@ def sensing_q(path: str | Path, command: str = "sense") -> Path:
     """The sensing-aware Q ``path`` names: itself (or a ``twinrl train --algo sensing`` run's
     policy), or the ``q/`` of a manipulation run's round (a run: its last round); any other
     directory refused in one line naming the command that takes it."""
-    found = require(path, command, ("sensing_q", "run", "round"))
+    found = require(path, command, TAKES["sense"])
     if found.kind == "sensing_q":
         return found.path
     if not arm_run(found):
