@@ -83,6 +83,8 @@ CHILD = textwrap.dedent("""
         act = self._act
         def slow(p, o):
             time.sleep(0.01)
+            with open(out.parent / "acts.log", "a") as f:  # the parent times its kill by it
+                f.write("a")
             return act(p, o)
         self._act = slow
     active.Deployer.__init__ = slow_init
@@ -114,11 +116,15 @@ def killed(tmp_path_factory):
     out.parent.joinpath("x").mkdir()
     p = _child(out, "fresh")
     deadline = time.time() + 600
-    # wait for the first deployed episode to be recorded: the second is then under way
+    acts = out.parent / "acts.log"
+    # wait for the first deployed episode to be recorded, then for the second to have acted a
+    # few steps (each act is logged before its step): a fixed sleep missed it on a loaded machine
     while time.time() < deadline and "round1/deploy_partial" not in _progress(out)["done"]:
         assert p.poll() is None, p.communicate()[0]
         time.sleep(0.02)
-    time.sleep(0.3)
+    while time.time() < deadline and (acts.stat().st_size if acts.exists() else 0) < T + 4:
+        assert p.poll() is None, p.communicate()[0]
+        time.sleep(0.01)
     os.kill(p.pid, signal.SIGKILL)
     p.wait()
     at_kill = ds.read(out / "dataset")
