@@ -256,6 +256,14 @@ BENCHES = [
 ]
 
 
+def committed_command(command: str) -> str:
+    """The command as it reproduces the committed file: its ``--out DIR`` written ``--out
+    bench/results`` (a result measured into a scratch directory and then committed)."""
+    import re
+
+    return re.sub(r"--out(=|\s+)\S+", "--out bench/results", command)
+
+
 def provenance(meta: dict) -> str:
     """One line: machine, commit, date and versions of a result."""
     m = meta.get("machine", {})
@@ -293,8 +301,8 @@ def benchmarks_page(docs: dict[str, dict]) -> str:
             continue
         meta = doc.get("meta", {})
         out += [b.render(doc), "", "Reproduce with:", "", "```sh",
-                meta.get("command", b.command), "```", "", f"Measured on {provenance(meta)}.",
-                ""]
+                committed_command(meta.get("command", b.command)), "```", "",
+                f"Measured on {provenance(meta)}.", ""]
     return "\n".join(out).rstrip() + "\n"
 
 
