@@ -19,6 +19,9 @@ changes the normal.) The search is a heuristic with discrete choices (its line s
 argmin over 10 step sizes), so such a contact is piecewise smooth: ``twinrl gradcheck`` reports
 entries whose perturbation switches a choice as kinks.
 
+A height field against a cylinder or an ellipsoid, which MJX lacks, is ``twinrl.physics.hfield``'s
+(added to MJX's own table too, so ``mjx.put_model`` accepts such a model).
+
 Every other pair type is stock MJX's collision function, through the same driver loop
 (``collision`` mirrors ``mujoco.mjx._src.collision_driver.collision`` with this table);
 ``fwd_position`` mirrors ``mujoco.mjx._src.forward.fwd_position`` with this ``collision``.
@@ -50,28 +53,12 @@ from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src.types import GeomType
 
+from twinrl.physics import hfield as _hfield
 from twinrl.physics import smooth as _tree
+from twinrl.physics._shapes import cylinder_sdf
 
 __all__ = ["collision", "fwd_position", "cylinder_sdf", "plane_box_mujoco", "check_contacts",
-           "REFINED", "CONTACTS"]
-
-
-def _safe_norm(x: jax.Array) -> jax.Array:
-    """|x| with finite first and second derivatives at 0 (double where)."""
-    sq = jnp.sum(x * x)
-    zero = sq == 0.0
-    return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, sq)))
-
-
-def cylinder_sdf(pos: jax.Array, size: jax.Array) -> jax.Array:
-    """Signed distance to a cylinder of radius ``size[0]``, half-height ``size[1]`` along z.
-
-    The same function as MJX's ``_cylinder``, written so that reverse mode of its gradient
-    (the contact normal) stays finite on the axis and inside the shape."""
-    a0 = _safe_norm(pos[:2]) - size[0]
-    a1 = jnp.abs(pos[2]) - size[1]
-    outside = _safe_norm(jnp.stack([jnp.maximum(a0, 0.0), jnp.maximum(a1, 0.0)]))
-    return jnp.minimum(jnp.maximum(a0, a1), 0.0) + outside
+           "REFINED", "ADDED", "CONTACTS"]
 
 
 # The cylinder pairs, as stock MJX builds them (same starting points, same search), with the
@@ -126,6 +113,15 @@ def plane_box_mujoco(plane, box):
 _REPLACED = {_sdf.sphere_cylinder: _sphere_cylinder, _sdf.capsule_cylinder: _capsule_cylinder,
              _sdf.ellipsoid_cylinder: _ellipsoid_cylinder,
              _sdf.cylinder_cylinder: _cylinder_cylinder}
+# The pairs MJX has no function for (a height field and a cylinder or an ellipsoid:
+# ``twinrl.physics.hfield``) join MJX's own table, not only this module's: ``mjx.put_model``
+# checks every colliding pair against it and ``make_condim`` (``mjx.make_data``) sizes the
+# contact arrays from its functions' ``ncon``. Only missing keys are added, so stock MJX's
+# functions and results are unchanged; stock ``mjx.step`` then runs the new pairs too.
+for _types, _f in _hfield.FUNCTIONS.items():
+    _driver._COLLISION_FUNC.setdefault(_types, _f)
+ADDED = tuple(_hfield.FUNCTIONS)
+"""Geom-type pairs MJX 3.17 lacks, collided by ``twinrl.physics.hfield``."""
 _FUNCTIONS = {types: _REPLACED.get(f, f) for types, f in _driver._COLLISION_FUNC.items()}
 REFINED = tuple(types for types, f in _driver._COLLISION_FUNC.items() if f in _REPLACED)
 """Geom-type pairs collided with ``cylinder_sdf`` instead of MJX's ``_cylinder``."""

@@ -1,0 +1,179 @@
+"""Height-field contacts MJX 3.17 lacks: a cylinder or an ellipsoid on a height field.
+
+MJX (pinned mujoco-mjx 3.17.0) collides a height field with a sphere, a capsule, a box or a
+convex mesh (``collision_convex.hfield_*``: the geom against each triangular prism of a static
+sub-grid); a cylinder or an ellipsoid on a height field has no function there, and
+``mjx.put_model`` refuses the model. This module adds the two, registered in twinrl's collision
+table (``twinrl.physics.collision``), differentiable, with MuJoCo C's contacts as the reference
+for the forward.
+
+MuJoCo C (``mjc_ConvexHField``) runs a convex penetration test (GJK/EPA) of the geom against
+every prism under its bounding box -- each grid cell is two triangles, each the top of a prism
+down to the field's base -- one contact per penetrated prism (up to ``mjMAXCONPAIR``), then sets
+the normal of a smooth geom to its surface normal at the contact (``mjc_fixNormal``). A prism
+penetrated through its top face gives the deepest point of the geom along the face's normal;
+one poked by a ridge gives a contact about the poking vertex. The same two kinds here, in a
+fixed-size form for JAX:
+
+- face contacts: for each triangle of the sub-grid (the static sub-grid MJX's driver sizes from
+  the geom's bounding radius and the grid step: ``FunctionKey.subgrid_size``), the geom's
+  deepest points along the triangle's normal (its support points; a cylinder: the deepest point
+  of each cap's rim and the two at +-120 degrees on that rim, a tripod that keeps a cylinder
+  standing on its end stable, as MJX's ``plane_cylinder``). A point counts for the triangle
+  whose footprint (its x-y projection) holds it -- the cells and their two triangles partition
+  the plane, so each point counts once. Distance: the point's height over the triangle's plane;
+  normal: the triangle's; position: halfway into the penetration.
+- vertex contacts: each grid vertex of the sub-grid against the geom's SDF (``_shapes``):
+  distance the SDF, normal minus its gradient (the geom's surface normal, as C sets it).
+
+Of these, the ``NCON`` deepest (``lax.top_k`` on the distance) are the pair's contacts; the
+others are dropped, the way MJX's own height-field functions keep 4 of their per-prism contacts.
+Four, because a resting geom needs at most three points of support (a cylinder on its end: the
+rim's tripod; on its side: the two ends of its lowest line) and one more covers the next
+triangle or vertex as the geom slides across a crease; MuJoCo C's contacts of one geom in one
+prism's face are one point, so more would repeat them. Contacts not penetrating stay in the set
+with their positive distance (inactive beyond the margin, as every MJX contact).
+
+Differentiability: the support points and SDFs have finite first and second derivatives (square
+roots guarded at 0); which triangle holds a point, and which candidates are the deepest, are
+discrete choices, so a contact crossing a grid line or trading places with another is piecewise
+smooth (``twinrl gradcheck`` reports entries whose perturbation switches a choice as kinks).
+
+Not covered: a ridge *edge* pressing into the side of a geom between two vertices (seen through
+the faces and vertices around it only), the field's outer side walls (C's prisms have them: a
+geom hitting the field from the side), and margin/gap (``mjx.put_model`` refuses a margin on a
+height field pair).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from mujoco.mjx._src import collision_convex as _convex
+from mujoco.mjx._src import math as _math
+from mujoco.mjx._src.types import GeomType
+
+from twinrl.physics._shapes import cylinder_sdf, ellipsoid_sdf, safe_norm
+
+__all__ = ["hfield_cylinder", "hfield_ellipsoid", "FUNCTIONS", "NCON"]
+
+NCON = 4
+"""Contacts per height-field pair (the deepest of the candidates; module docstring)."""
+
+_NONE = 1.0  # distance of a candidate that is not a contact (beyond any margin MJX allows here)
+
+
+def _ellipsoid_support(pos, mat, size, n):
+    """(1, 3) the deepest point of an ellipsoid along ``-n`` (all in the field's frame)."""
+    u = mat.T @ -n
+    # |size * u| >= min(size) > 0: the plain norm is safe
+    return (pos + mat @ (size * size * u / jnp.linalg.norm(size * u)))[None]
+
+
+_C120, _S120 = -0.5, 0.75 ** 0.5
+
+
+def _cylinder_support(pos, mat, size, n):
+    """(6, 3) for each cap, the deepest point of its rim along ``-n`` and the two rim points
+    at +-120 degrees from it (the field's frame)."""
+    u = mat.T @ -n
+    norm = safe_norm(u[:2])
+    flat = norm < 1e-9  # axis along n: every rim point is as deep; take the cylinder's x
+    radial = jnp.where(flat, jnp.array([1.0, 0.0]), u[:2] / jnp.where(flat, 1.0, norm))
+    x, y = radial
+    dirs = jnp.array([[x, y], [_C120 * x - _S120 * y, _S120 * x + _C120 * y],
+                      [_C120 * x + _S120 * y, -_S120 * x + _C120 * y]]) * size[0]
+    caps = jnp.array([1.0, -1.0]) * size[1]
+    local = jnp.concatenate([jnp.concatenate([dirs, jnp.full((3, 1), z)], axis=1)
+                             for z in (caps[0], caps[1])])
+    return pos + local @ mat.T
+
+
+def _sub_grid(h, pos, rbound, subgrid_size):
+    """Vertices (nx + 1, ny + 1, 3) of the static sub-grid under a geom at ``pos`` (field
+    frame; ``[i, j]``: column ``cmin + i``, row ``rmin + j``), whether each vertex and each cell
+    lies in the field, the cells' lower corners and the grid steps."""
+    nx, ny = subgrid_size
+    dx = 2.0 * h.size[0] / (h.ncol - 1)
+    dy = 2.0 * h.size[1] / (h.nrow - 1)
+    cmin = jnp.floor((pos[0] - rbound + h.size[0]) / dx).astype(jnp.int32)
+    rmin = jnp.floor((pos[1] - rbound + h.size[1]) / dy).astype(jnp.int32)
+    c = cmin + jnp.arange(nx + 1)
+    r = rmin + jnp.arange(ny + 1)
+    cc, rr = jnp.meshgrid(c, r, indexing="ij")
+    z = h.data[jnp.clip(cc, 0, h.ncol - 1), jnp.clip(rr, 0, h.nrow - 1)] * h.size[2]
+    vert = jnp.stack([dx * cc - h.size[0], dy * rr - h.size[1], z], axis=-1)
+    vert_in = (cc >= 0) & (cc <= h.ncol - 1) & (rr >= 0) & (rr <= h.nrow - 1)
+    cell_in = ((cc >= 0) & (cc <= h.ncol - 2) & (rr >= 0) & (rr <= h.nrow - 2))[:nx, :ny]
+    return vert, vert_in, cell_in, dx, dy
+
+
+def _face_contacts(vert, cell_in, dx, dy, support):
+    """Candidates of every triangle of the sub-grid: ``support(n)`` points (k, 3) of the geom
+    along each triangle's normal ``n``, kept where the triangle's footprint holds them."""
+    v00, v10 = vert[:-1, :-1], vert[1:, :-1]
+    v01, v11 = vert[:-1, 1:], vert[1:, 1:]
+    # the two triangles of a cell, split along its (c, r)-(c+1, r+1) diagonal as MuJoCo does
+    n1 = jnp.cross(v11 - v00, v01 - v00)  # (c, r), (c+1, r+1), (c, r+1): above the diagonal
+    n2 = jnp.cross(v10 - v00, v11 - v00)  # (c, r), (c+1, r), (c+1, r+1): below it
+    n = jnp.stack([n1, n2], axis=2)  # (nx, ny, 2, 3); z = dx dy > 0: never zero
+    n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+    pts = jax.vmap(support)(n.reshape(-1, 3))  # (T, k, 3)
+    T, k = pts.shape[:2]
+    pts = pts.reshape(n.shape[:3] + (k, 3))
+    corner = v00[:, :, None, None, :]
+    dist = jnp.sum((pts - corner) * n[:, :, :, None, :], axis=-1)  # (nx, ny, 2, k)
+    u = (pts[..., 0] - corner[..., 0]) / dx
+    v = (pts[..., 1] - corner[..., 1]) / dy
+    in_cell = (u >= 0.0) & (u < 1.0) & (v >= 0.0) & (v < 1.0)
+    upper = jnp.array([True, False])[None, None, :, None]
+    held = in_cell & jnp.where(upper, u <= v, u > v) & cell_in[:, :, None, None]
+    normal = jnp.broadcast_to(n[:, :, :, None, :], pts.shape)
+    pos = pts - 0.5 * dist[..., None] * normal
+    dist = jnp.where(held, dist, _NONE)
+    return dist.reshape(-1), pos.reshape(-1, 3), normal.reshape(-1, 3)
+
+
+def _vertex_contacts(vert, vert_in, pos, mat, size, sdf):
+    """Candidates of every vertex of the sub-grid: the geom's SDF there, its surface normal."""
+    p = vert.reshape(-1, 3)
+    local = (p - pos) @ mat  # mat.T @ (p - pos) for each row
+    dist, grad = jax.vmap(jax.value_and_grad(sdf), in_axes=(0, None))(local, size)
+    g = grad @ mat.T
+    gn = safe_norm(g, axis=-1)[:, None]
+    g = g / jnp.where(gn > 0.0, gn, 1.0)
+    dist = jnp.where(vert_in.reshape(-1), dist, _NONE)
+    return dist, p - 0.5 * dist[:, None] * g, -g
+
+
+def _collide(h, obj, rbound, subgrid_size, support, sdf):
+    """The pair's ``NCON`` deepest candidates in the world frame (module docstring)."""
+    pos = h.mat.T @ (obj.pos - h.pos)
+    mat = h.mat.T @ obj.mat
+    vert, vert_in, cell_in, dx, dy = _sub_grid(h, pos, rbound, subgrid_size)
+    face = _face_contacts(vert, cell_in, dx, dy, lambda n: support(pos, mat, obj.size, n))
+    vertex = _vertex_contacts(vert, vert_in, pos, mat, obj.size, sdf)
+    dist, p, n = (jnp.concatenate(x) for x in zip(face, vertex))
+    _, idx = jax.lax.top_k(-dist, NCON)
+    dist, p, n = dist[idx], p[idx], n[idx]
+    p = p @ h.mat.T + h.pos
+    n = n @ h.mat.T
+    return dist, p, jax.vmap(_math.make_frame)(n)
+
+
+@_convex.collider(ncon=NCON)
+def hfield_ellipsoid(h, e, subgrid_size):
+    """Contacts of a height field and an ellipsoid (module docstring)."""
+    return _collide(h, e, jnp.max(e.size), subgrid_size, _ellipsoid_support, ellipsoid_sdf)
+
+
+@_convex.collider(ncon=NCON)
+def hfield_cylinder(h, c, subgrid_size):
+    """Contacts of a height field and a cylinder (module docstring)."""
+    rbound = jnp.sqrt(c.size[0] ** 2 + c.size[1] ** 2)
+    return _collide(h, c, rbound, subgrid_size, _cylinder_support, cylinder_sdf)
+
+
+FUNCTIONS = {(GeomType.HFIELD, GeomType.ELLIPSOID): hfield_ellipsoid,
+             (GeomType.HFIELD, GeomType.CYLINDER): hfield_cylinder}
+"""Geom-type pairs this module collides, MJX's driver's keys (height field first)."""
