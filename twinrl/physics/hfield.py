@@ -146,14 +146,34 @@ def _vertex_contacts(vert, vert_in, pos, mat, size, sdf):
     return dist, p - 0.5 * dist[:, None] * g, -g
 
 
-def _collide(h, obj, rbound, subgrid_size, support, sdf):
+def _edge_contacts(vert, cell_in, pos, mat, size, metric, sdf):
+    """Candidates of every grid edge of the sub-grid (each cell's edges along x, along y and its
+    diagonal): the edge's point closest to the geom's centre in the geom's ``metric`` (a
+    point's local coordinates divided by ``metric``: the ellipsoid's semi-axes, the cylinder's
+    radius and half-height), where a ridge edge pokes deepest into the geom, then its SDF
+    there as for a vertex. An edge whose closest point is an end is left to the vertex."""
+    a = jnp.broadcast_to(vert[:-1, :-1], vert[1:, 1:].shape)
+    b = jnp.stack([vert[1:, :-1], vert[:-1, 1:], vert[1:, 1:]], axis=2)  # (nx, ny, 3, 3)
+    a = jnp.broadcast_to(a[:, :, None, :], b.shape).reshape(-1, 3)
+    b = b.reshape(-1, 3)
+    la = ((a - pos) @ mat) / metric
+    lab = ((b - a) @ mat) / metric
+    t = -jnp.sum(la * lab, axis=-1) / jnp.sum(lab * lab, axis=-1)  # |lab| > 0: a grid step
+    inner = (t > 0.0) & (t < 1.0)
+    p = a + jnp.clip(t, 0.0, 1.0)[:, None] * (b - a)
+    held = inner & jnp.repeat(cell_in.reshape(-1), 3)
+    return _vertex_contacts(p, held, pos, mat, size, sdf)
+
+
+def _collide(h, obj, rbound, subgrid_size, support, sdf, metric):
     """The pair's ``NCON`` deepest candidates in the world frame (module docstring)."""
     pos = h.mat.T @ (obj.pos - h.pos)
     mat = h.mat.T @ obj.mat
     vert, vert_in, cell_in, dx, dy = _sub_grid(h, pos, rbound, subgrid_size)
     face = _face_contacts(vert, cell_in, dx, dy, lambda n: support(pos, mat, obj.size, n))
     vertex = _vertex_contacts(vert, vert_in, pos, mat, obj.size, sdf)
-    dist, p, n = (jnp.concatenate(x) for x in zip(face, vertex))
+    edge = _edge_contacts(vert, cell_in, pos, mat, obj.size, metric, sdf)
+    dist, p, n = (jnp.concatenate(x) for x in zip(face, vertex, edge))
     _, idx = jax.lax.top_k(-dist, NCON)
     dist, p, n = dist[idx], p[idx], n[idx]
     p = p @ h.mat.T + h.pos
@@ -164,14 +184,16 @@ def _collide(h, obj, rbound, subgrid_size, support, sdf):
 @_convex.collider(ncon=NCON)
 def hfield_ellipsoid(h, e, subgrid_size):
     """Contacts of a height field and an ellipsoid (module docstring)."""
-    return _collide(h, e, jnp.max(e.size), subgrid_size, _ellipsoid_support, ellipsoid_sdf)
+    return _collide(h, e, jnp.max(e.size), subgrid_size, _ellipsoid_support, ellipsoid_sdf,
+                    e.size)
 
 
 @_convex.collider(ncon=NCON)
 def hfield_cylinder(h, c, subgrid_size):
     """Contacts of a height field and a cylinder (module docstring)."""
     rbound = jnp.sqrt(c.size[0] ** 2 + c.size[1] ** 2)
-    return _collide(h, c, rbound, subgrid_size, _cylinder_support, cylinder_sdf)
+    return _collide(h, c, rbound, subgrid_size, _cylinder_support, cylinder_sdf,
+                    c.size[jnp.array([0, 0, 1])])
 
 
 FUNCTIONS = {(GeomType.HFIELD, GeomType.ELLIPSOID): hfield_ellipsoid,
