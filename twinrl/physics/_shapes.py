@@ -39,3 +39,20 @@ def ellipsoid_sdf(pos: jax.Array, size: jax.Array) -> jax.Array:
     k1 = safe_norm(pos / (size * size))
     small = k1 < 1e-12
     return jnp.where(small, -jnp.min(size), k0 * (k0 - 1.0) / jnp.where(small, 1.0, k1))
+
+
+def sphere_sdf(pos: jax.Array, size: jax.Array) -> jax.Array:
+    """Signed distance to a sphere of radius ``size[0]``."""
+    return safe_norm(pos) - size[0]
+
+
+def capsule_sdf(pos: jax.Array, size: jax.Array) -> jax.Array:
+    """Signed distance to a capsule of radius ``size[0]``, half-length ``size[1]`` along z."""
+    axis = jnp.clip(pos[2], -size[1], size[1])
+    return safe_norm(pos - jnp.array([0.0, 0.0, 1.0]) * axis) - size[0]
+
+
+def box_sdf(pos: jax.Array, size: jax.Array) -> jax.Array:
+    """Signed distance to a box of half-sizes ``size``."""
+    q = jnp.abs(pos) - size
+    return safe_norm(jnp.maximum(q, 0.0)) + jnp.minimum(jnp.max(q), 0.0)

@@ -118,11 +118,15 @@ _REPLACED = {_sdf.sphere_cylinder: _sphere_cylinder, _sdf.capsule_cylinder: _cap
 # checks every colliding pair against it and ``make_condim`` (``mjx.make_data``) sizes the
 # contact arrays from its functions' ``ncon``. Only missing keys are added, so stock MJX's
 # functions and results are unchanged; stock ``mjx.step`` then runs the new pairs too.
-for _types, _f in _hfield.FUNCTIONS.items():
-    _driver._COLLISION_FUNC.setdefault(_types, _f)
-ADDED = tuple(_hfield.FUNCTIONS)
+ADDED = tuple(t for t in _hfield.FUNCTIONS if t not in _driver._COLLISION_FUNC)
 """Geom-type pairs MJX 3.17 lacks, collided by ``twinrl.physics.hfield``."""
-_FUNCTIONS = {types: _REPLACED.get(f, f) for types, f in _driver._COLLISION_FUNC.items()}
+for _types in ADDED:
+    _driver._COLLISION_FUNC[_types] = _hfield.FUNCTIONS[_types]
+# MJX sizes every pair's contacts from its own table's ``ncon`` (``make_condim``): a function
+# here replacing one of MJX's must return as many
+assert all(_driver._COLLISION_FUNC[t].ncon == f.ncon for t, f in _hfield.FUNCTIONS.items())
+_FUNCTIONS = {**{types: _REPLACED.get(f, f) for types, f in _driver._COLLISION_FUNC.items()},
+              **_hfield.FUNCTIONS}
 REFINED = tuple(types for types, f in _driver._COLLISION_FUNC.items() if f in _REPLACED)
 """Geom-type pairs collided with ``cylinder_sdf`` instead of MJX's ``_cylinder``."""
 _RULES = {"mjx": _FUNCTIONS,

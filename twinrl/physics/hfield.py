@@ -53,14 +53,35 @@ from mujoco.mjx._src import collision_convex as _convex
 from mujoco.mjx._src import math as _math
 from mujoco.mjx._src.types import GeomType
 
-from twinrl.physics._shapes import cylinder_sdf, ellipsoid_sdf, safe_norm
+from twinrl.physics._shapes import (box_sdf, capsule_sdf, cylinder_sdf, ellipsoid_sdf, safe_norm,
+                                    sphere_sdf)
 
-__all__ = ["hfield_cylinder", "hfield_ellipsoid", "FUNCTIONS", "NCON"]
+__all__ = ["hfield_sphere", "hfield_capsule", "hfield_box", "hfield_cylinder", "hfield_ellipsoid",
+           "FUNCTIONS", "NCON"]
 
 NCON = 4
 """Contacts per height-field pair (the deepest of the candidates; module docstring)."""
 
 _NONE = 1.0  # distance of a candidate that is not a contact (beyond any margin MJX allows here)
+
+
+def _sphere_support(pos, mat, size, n):
+    """(1, 3) the deepest point of a sphere along ``-n`` (all in the field's frame)."""
+    return (pos - size[0] * n)[None]
+
+
+def _capsule_support(pos, mat, size, n):
+    """(2, 3) the deepest point of each end sphere of a capsule along ``-n``."""
+    ends = jnp.array([1.0, -1.0])[:, None] * (size[1] * mat[:, 2])
+    return pos + ends - size[0] * n
+
+
+_CORNERS = jnp.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+
+
+def _box_support(pos, mat, size, n):
+    """(8, 3) the corners of a box (the deepest, along any direction, is one of them)."""
+    return pos + (_CORNERS * size) @ mat.T
 
 
 def _ellipsoid_support(pos, mat, size, n):
@@ -196,6 +217,31 @@ def hfield_cylinder(h, c, subgrid_size):
                     c.size[jnp.array([0, 0, 1])])
 
 
-FUNCTIONS = {(GeomType.HFIELD, GeomType.ELLIPSOID): hfield_ellipsoid,
+@_convex.collider(ncon=NCON)
+def hfield_sphere(h, s, subgrid_size):
+    """Contacts of a height field and a sphere (module docstring)."""
+    return _collide(h, s, s.size[0], subgrid_size, _sphere_support, sphere_sdf,
+                    s.size[jnp.array([0, 0, 0])])
+
+
+@_convex.collider(ncon=NCON)
+def hfield_capsule(h, c, subgrid_size):
+    """Contacts of a height field and a capsule (module docstring)."""
+    return _collide(h, c, c.size[0] + c.size[1], subgrid_size, _capsule_support, capsule_sdf,
+                    jnp.array([1.0, 1.0, 0.0]) * c.size[0] + jnp.array([0.0, 0.0, 1.0]) * (
+                        c.size[0] + c.size[1]))
+
+
+@_convex.collider(ncon=NCON)
+def hfield_box(h, b, subgrid_size):
+    """Contacts of a height field and a box (module docstring)."""
+    return _collide(h, b, jnp.linalg.norm(b.size), subgrid_size, _box_support, box_sdf,
+                    b.size)
+
+
+FUNCTIONS = {(GeomType.HFIELD, GeomType.SPHERE): hfield_sphere,
+             (GeomType.HFIELD, GeomType.CAPSULE): hfield_capsule,
+             (GeomType.HFIELD, GeomType.BOX): hfield_box,
+             (GeomType.HFIELD, GeomType.ELLIPSOID): hfield_ellipsoid,
              (GeomType.HFIELD, GeomType.CYLINDER): hfield_cylinder}
 """Geom-type pairs this module collides, MJX's driver's keys (height field first)."""
