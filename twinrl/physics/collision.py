@@ -19,8 +19,9 @@ changes the normal.) The search is a heuristic with discrete choices (its line s
 argmin over 10 step sizes), so such a contact is piecewise smooth: ``twinrl gradcheck`` reports
 entries whose perturbation switches a choice as kinks.
 
-A height field against a cylinder or an ellipsoid, which MJX lacks, is ``twinrl.physics.hfield``'s
-(added to MJX's own table too, so ``mjx.put_model`` accepts such a model).
+A height field against a sphere, a capsule, a box, a cylinder or an ellipsoid is
+``twinrl.physics.hfield``'s; the last two, which MJX lacks, join MJX's own table too, so
+``mjx.put_model`` accepts such a model.
 
 Every other pair type is stock MJX's collision function, through the same driver loop
 (``collision`` mirrors ``mujoco.mjx._src.collision_driver.collision`` with this table);

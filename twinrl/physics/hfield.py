@@ -1,48 +1,64 @@
-"""Height-field contacts MJX 3.17 lacks: a cylinder or an ellipsoid on a height field.
+"""Height-field contacts: a sphere, a capsule, a box, a cylinder or an ellipsoid on a height field.
 
 MJX (pinned mujoco-mjx 3.17.0) collides a height field with a sphere, a capsule, a box or a
 convex mesh (``collision_convex.hfield_*``: the geom against each triangular prism of a static
-sub-grid); a cylinder or an ellipsoid on a height field has no function there, and
-``mjx.put_model`` refuses the model. This module adds the two, registered in twinrl's collision
-table (``twinrl.physics.collision``), differentiable, with MuJoCo C's contacts as the reference
-for the forward.
+sub-grid, 4 contacts kept among those within 1 mm of the deepest); a cylinder or an ellipsoid
+on a height field has no function there, and ``mjx.put_model`` refuses the model. This module
+collides all five primitives, differentiable, with MuJoCo C's contacts as the reference for the
+forward; ``twinrl.physics.collision`` uses it for these pairs (MJX's mesh function stays).
+MJX's own sphere, capsule and box functions differentiate to finite values, but on a scene of
+the three sliding down the test field (``tests/physics/foreign/hfield_primitives.xml``) every
+friction entry of ``twinrl gradcheck`` was a kink (its 1 mm selection window switching), so
+``--strict`` failed; with these, the same check passes.
 
 MuJoCo C (``mjc_ConvexHField``) runs a convex penetration test (GJK/EPA) of the geom against
 every prism under its bounding box -- each grid cell is two triangles, each the top of a prism
 down to the field's base -- one contact per penetrated prism (up to ``mjMAXCONPAIR``), then sets
 the normal of a smooth geom to its surface normal at the contact (``mjc_fixNormal``). A prism
 penetrated through its top face gives the deepest point of the geom along the face's normal;
-one poked by a ridge gives a contact about the poking vertex. The same two kinds here, in a
-fixed-size form for JAX:
+one poked by a ridge gives a contact about the poking vertex or edge. The same three kinds
+here, in a fixed-size form for JAX, over the static sub-grid MJX's driver sizes from the geom's
+bounding radius and the grid step (``FunctionKey.subgrid_size``):
 
-- face contacts: for each triangle of the sub-grid (the static sub-grid MJX's driver sizes from
-  the geom's bounding radius and the grid step: ``FunctionKey.subgrid_size``), the geom's
-  deepest points along the triangle's normal (its support points; a cylinder: the deepest point
-  of each cap's rim and the two at +-120 degrees on that rim, a tripod that keeps a cylinder
-  standing on its end stable, as MJX's ``plane_cylinder``). A point counts for the triangle
-  whose footprint (its x-y projection) holds it -- the cells and their two triangles partition
-  the plane, so each point counts once. Distance: the point's height over the triangle's plane;
-  normal: the triangle's; position: halfway into the penetration.
-- vertex contacts: each grid vertex of the sub-grid against the geom's SDF (``_shapes``):
-  distance the SDF, normal minus its gradient (the geom's surface normal, as C sets it).
+- face contacts: for each triangle, the geom's deepest points along the triangle's normal (its
+  support points: a sphere's one, a capsule's end spheres' two, a box's corners; an ellipsoid's
+  one; a cylinder: the deepest point of each cap's rim and the two at +-120 degrees on that
+  rim, a tripod that keeps a cylinder standing on its end stable, as MJX's ``plane_cylinder``).
+  A point counts for the triangle whose footprint (its x-y projection) holds it -- the cells
+  and their two triangles partition the plane, so each point counts once. Distance: the point's
+  height over the triangle's plane; normal: the triangle's; position: halfway into the
+  penetration.
+- vertex contacts: each grid vertex against the geom's SDF (``_shapes``): distance the SDF,
+  normal minus its gradient (the geom's surface normal, as C sets it).
+- edge contacts: each cell's three edges (along x, along y, the diagonal) at the edge's point
+  closest to the geom's centre in the geom's own proportions (local coordinates divided by its
+  half-sizes), then as a vertex. Without them a cylinder landing flat across a ridge edge sank
+  7 mm into it, and MuJoCo C's 6 mm contact there was missing.
 
-Of these, the ``NCON`` deepest (``lax.top_k`` on the distance) are the pair's contacts; the
-others are dropped, the way MJX's own height-field functions keep 4 of their per-prism contacts.
-Four, because a resting geom needs at most three points of support (a cylinder on its end: the
-rim's tripod; on its side: the two ends of its lowest line) and one more covers the next
-triangle or vertex as the geom slides across a crease; MuJoCo C's contacts of one geom in one
-prism's face are one point, so more would repeat them. Contacts not penetrating stay in the set
-with their positive distance (inactive beyond the margin, as every MJX contact).
+Of these, the ``NCON`` deepest (``lax.top_k`` on the distance) are the pair's contacts (MJX's
+driver sizes a height-field pair's contacts from its table's 4, which this keeps). Four is
+enough for a resting geom: at most three points support it (a cylinder on its end: the rim's
+tripod; on its side: the two ends of its lowest line; a box: its lowest face's corners) and one
+more covers the next triangle or edge as it slides across a crease. Contacts not penetrating
+stay in the set with their positive distance (inactive beyond the margin, as every MJX contact).
+
+Agreement with MuJoCo C (``tests/physics/test_hfield.py``): where C's contact is a prism's face
+(the geom's deepest point inside one triangle's footprint), distance, position and normal agree
+to EPA's tolerance (1e-6 m, 1e-4 m, 0.01 degree). Elsewhere the two differ by construction: C
+makes one contact per penetrated prism, repeating a poking vertex in each of its up to 6
+prisms, and takes a prism's penetration alone, so a box corner near a prism's side escapes
+sideways by less than its depth under the face (1.8 mm less, where this module gives the
+depth under the face); an edge contact here lies at the point closest to the centre, C's where
+the edge pokes deepest.
 
 Differentiability: the support points and SDFs have finite first and second derivatives (square
 roots guarded at 0); which triangle holds a point, and which candidates are the deepest, are
 discrete choices, so a contact crossing a grid line or trading places with another is piecewise
 smooth (``twinrl gradcheck`` reports entries whose perturbation switches a choice as kinks).
 
-Not covered: a ridge *edge* pressing into the side of a geom between two vertices (seen through
-the faces and vertices around it only), the field's outer side walls (C's prisms have them: a
-geom hitting the field from the side), and margin/gap (``mjx.put_model`` refuses a margin on a
-height field pair).
+Not covered: the field's outer side walls (C's prisms have them: a geom hitting the field from
+the side), a convex mesh (MJX's ``hfield_convex`` stays), margin/gap (``mjx.put_model`` refuses
+a margin on a height-field pair).
 """
 
 from __future__ import annotations
