@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from pathlib import Path
 from typing import Callable, NamedTuple
 
@@ -22,7 +23,7 @@ import numpy as np
 from mujoco import mjx
 
 from twinrl.physics import collision, gradients, integrator, solver
-from twinrl.physics.mjwarn import mujoco_warnings
+from twinrl.physics.mjwarn import MuJoCoWarning, mujoco_warnings
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, scene_path
 
@@ -64,10 +65,25 @@ def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
         raise MJCFError(f"malformed MJCF {path}: {_first_line(e)}") from None
 
 
+# Options MJX refuses that only report, changing nothing the simulation computes: the model is
+# simulated with them off, said once (a ``MuJoCoWarning``). Options that change the dynamics
+# (override of contact parameters, exact diagonal) stay refused.
+_REPORTING = {int(mujoco.mjtEnableBit.mjENBL_ENERGY): "energy (mjENBL_ENERGY)",
+              int(mujoco.mjtEnableBit.mjENBL_FWDINV): "fwdinv (mjENBL_FWDINV)"}
+
+
 def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
     """``mjx.put_model``, with what MJX cannot simulate (a geom pair without a collision
     function, an integrator, cone or solver it lacks, flex, some contact sensors) as one
-    ``MJCFError`` naming the model and, for a collision pair, its geoms."""
+    ``MJCFError`` naming the model and, for a collision pair, its geoms. A flag that only
+    reports (energy, fwdinv) is turned off for MJX with a warning; ``mj_model`` keeps it."""
+    flags = int(mj_model.opt.enableflags)
+    off = [what for bit, what in _REPORTING.items() if flags & bit]
+    if off:
+        warnings.warn(f"{name}: MJX (mujoco {mujoco.__version__}) does not implement the "
+                      f"reporting flag{'s' if len(off) > 1 else ''} {', '.join(off)}: simulated "
+                      "without it (it changes no state)", MuJoCoWarning, stacklevel=2)
+        mj_model.opt.enableflags = flags & ~sum(_REPORTING)
     try:
         return mjx.put_model(mj_model)
     except NotImplementedError as e:
@@ -83,6 +99,8 @@ def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
         said = "not implemented" in msg or "not supported" in msg
         raise MJCFError(f"{name}: MJX (mujoco {mujoco.__version__}) cannot simulate this "
                         f"model: {msg if said else msg + ' is not implemented there'}") from None
+    finally:
+        mj_model.opt.enableflags = flags
 
 
 def _unsupported_pairs(m: mujoco.MjModel) -> list[str]:
