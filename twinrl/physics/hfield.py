@@ -75,62 +75,16 @@ from mujoco.mjx._src import collision_convex as _convex
 from mujoco.mjx._src import math as _math
 from mujoco.mjx._src.types import GeomType
 
-from twinrl.physics._shapes import (box_sdf, capsule_sdf, cylinder_sdf, ellipsoid_sdf, safe_norm,
-                                    sphere_sdf)
+from twinrl.physics._shapes import (NO_CONTACT, box_sdf, box_support, capsule_sdf,
+                                    capsule_support, cylinder_sdf, cylinder_support, edge_points,
+                                    ellipsoid_sdf, ellipsoid_support, sdf_contacts, sphere_sdf,
+                                    sphere_support)
 
 __all__ = ["hfield_sphere", "hfield_capsule", "hfield_box", "hfield_cylinder", "hfield_ellipsoid",
            "FUNCTIONS", "NCON"]
 
 NCON = 4
 """Contacts per height-field pair (the deepest of the candidates; module docstring)."""
-
-_NONE = 1.0  # distance of a candidate that is not a contact (beyond any margin MJX allows here)
-
-
-def _sphere_support(pos, mat, size, n):
-    """(1, 3) the deepest point of a sphere along ``-n`` (all in the field's frame)."""
-    return (pos - size[0] * n)[None]
-
-
-def _capsule_support(pos, mat, size, n):
-    """(2, 3) the deepest point of each end sphere of a capsule along ``-n``."""
-    ends = jnp.array([1.0, -1.0])[:, None] * (size[1] * mat[:, 2])
-    return pos + ends - size[0] * n
-
-
-_CORNERS = jnp.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
-
-
-def _box_support(pos, mat, size, n):
-    """(8, 3) the corners of a box (the deepest, along any direction, is one of them)."""
-    return pos + (_CORNERS * size) @ mat.T
-
-
-def _ellipsoid_support(pos, mat, size, n):
-    """(1, 3) the deepest point of an ellipsoid along ``-n`` (all in the field's frame)."""
-    u = mat.T @ -n
-    # |size * u| >= min(size) > 0: the plain norm is safe
-    return (pos + mat @ (size * size * u / jnp.linalg.norm(size * u)))[None]
-
-
-_C120, _S120 = -0.5, 0.75 ** 0.5
-
-
-def _cylinder_support(pos, mat, size, n):
-    """(6, 3) for each cap, the deepest point of its rim along ``-n`` and the two rim points
-    at +-120 degrees from it (the field's frame)."""
-    u = mat.T @ -n
-    norm = safe_norm(u[:2])
-    flat = norm < 1e-9  # axis along n: every rim point is as deep; take the cylinder's x
-    radial = jnp.where(flat, jnp.array([1.0, 0.0]), u[:2] / jnp.where(flat, 1.0, norm))
-    x, y = radial
-    dirs = jnp.array([[x, y], [_C120 * x - _S120 * y, _S120 * x + _C120 * y],
-                      [_C120 * x + _S120 * y, -_S120 * x + _C120 * y]]) * size[0]
-    caps = jnp.array([1.0, -1.0]) * size[1]
-    local = jnp.concatenate([jnp.concatenate([dirs, jnp.full((3, 1), z)], axis=1)
-                             for z in (caps[0], caps[1])])
-    return pos + local @ mat.T
-
 
 def _sub_grid(h, pos, rbound, subgrid_size):
     """Vertices (nx + 1, ny + 1, 3) of the static sub-grid under a geom at ``pos`` (field
@@ -173,39 +127,25 @@ def _face_contacts(vert, cell_in, dx, dy, support):
     held = in_cell & jnp.where(upper, u <= v, u > v) & cell_in[:, :, None, None]
     normal = jnp.broadcast_to(n[:, :, :, None, :], pts.shape)
     pos = pts - 0.5 * dist[..., None] * normal
-    dist = jnp.where(held, dist, _NONE)
+    dist = jnp.where(held, dist, NO_CONTACT)
     return dist.reshape(-1), pos.reshape(-1, 3), normal.reshape(-1, 3)
 
 
-def _vertex_contacts(vert, vert_in, pos, mat, size, sdf):
-    """Candidates of every vertex of the sub-grid: the geom's SDF there, its surface normal."""
-    p = vert.reshape(-1, 3)
-    local = (p - pos) @ mat  # mat.T @ (p - pos) for each row
-    dist, grad = jax.vmap(jax.value_and_grad(sdf), in_axes=(0, None))(local, size)
-    g = grad @ mat.T
-    gn = safe_norm(g, axis=-1)[:, None]
-    g = g / jnp.where(gn > 0.0, gn, 1.0)
-    dist = jnp.where(vert_in.reshape(-1), dist, _NONE)
-    return dist, p - 0.5 * dist[:, None] * g, -g
-
-
-def _edge_contacts(vert, cell_in, pos, mat, size, metric, sdf):
-    """Candidates of every grid edge of the sub-grid (each cell's edges along x, along y and its
-    diagonal): the edge's point closest to the geom's centre in the geom's ``metric`` (a
-    point's local coordinates divided by ``metric``: the ellipsoid's semi-axes, the cylinder's
-    radius and half-height), where a ridge edge pokes deepest into the geom, then its SDF
-    there as for a vertex. An edge whose closest point is an end is left to the vertex."""
+def _edge_points(vert, cell_in, pos, mat, metric):
+    """Points (E, 3) of every grid edge of the sub-grid (each cell's edges along x, along y and
+    its diagonal) closest to the geom (``_shapes.edge_points``), and whether each counts."""
     a = jnp.broadcast_to(vert[:-1, :-1], vert[1:, 1:].shape)
     b = jnp.stack([vert[1:, :-1], vert[:-1, 1:], vert[1:, 1:]], axis=2)  # (nx, ny, 3, 3)
     a = jnp.broadcast_to(a[:, :, None, :], b.shape).reshape(-1, 3)
-    b = b.reshape(-1, 3)
-    la = ((a - pos) @ mat) / metric
-    lab = ((b - a) @ mat) / metric
-    t = -jnp.sum(la * lab, axis=-1) / jnp.sum(lab * lab, axis=-1)  # |lab| > 0: a grid step
-    inner = (t > 0.0) & (t < 1.0)
-    p = a + jnp.clip(t, 0.0, 1.0)[:, None] * (b - a)
-    held = inner & jnp.repeat(cell_in.reshape(-1), 3)
-    return _vertex_contacts(p, held, pos, mat, size, sdf)
+    p, inner = edge_points(a, b.reshape(-1, 3), pos, mat, metric)
+    return p, inner & jnp.repeat(cell_in.reshape(-1), 3)
+
+
+def _point_contacts(points, valid, pos, mat, size, sdf):
+    """Candidates of points of the field (vertices, edge points): the geom's SDF there, the
+    normal minus the geom's surface normal (the field is geom 1)."""
+    dist, p, g = sdf_contacts(points, pos, mat, size, sdf)
+    return jnp.where(valid, dist, NO_CONTACT), p, -g
 
 
 def _collide(h, obj, rbound, subgrid_size, support, sdf, metric):
@@ -214,8 +154,9 @@ def _collide(h, obj, rbound, subgrid_size, support, sdf, metric):
     mat = h.mat.T @ obj.mat
     vert, vert_in, cell_in, dx, dy = _sub_grid(h, pos, rbound, subgrid_size)
     face = _face_contacts(vert, cell_in, dx, dy, lambda n: support(pos, mat, obj.size, n))
-    vertex = _vertex_contacts(vert, vert_in, pos, mat, obj.size, sdf)
-    edge = _edge_contacts(vert, cell_in, pos, mat, obj.size, metric, sdf)
+    vertex = _point_contacts(vert.reshape(-1, 3), vert_in.reshape(-1), pos, mat, obj.size, sdf)
+    edge = _point_contacts(*_edge_points(vert, cell_in, pos, mat, metric), pos, mat, obj.size,
+                           sdf)
     dist, p, n = (jnp.concatenate(x) for x in zip(face, vertex, edge))
     _, idx = jax.lax.top_k(-dist, NCON)
     dist, p, n = dist[idx], p[idx], n[idx]
@@ -227,7 +168,7 @@ def _collide(h, obj, rbound, subgrid_size, support, sdf, metric):
 @_convex.collider(ncon=NCON)
 def hfield_ellipsoid(h, e, subgrid_size):
     """Contacts of a height field and an ellipsoid (module docstring)."""
-    return _collide(h, e, jnp.max(e.size), subgrid_size, _ellipsoid_support, ellipsoid_sdf,
+    return _collide(h, e, jnp.max(e.size), subgrid_size, ellipsoid_support, ellipsoid_sdf,
                     e.size)
 
 
@@ -235,21 +176,21 @@ def hfield_ellipsoid(h, e, subgrid_size):
 def hfield_cylinder(h, c, subgrid_size):
     """Contacts of a height field and a cylinder (module docstring)."""
     rbound = jnp.sqrt(c.size[0] ** 2 + c.size[1] ** 2)
-    return _collide(h, c, rbound, subgrid_size, _cylinder_support, cylinder_sdf,
+    return _collide(h, c, rbound, subgrid_size, cylinder_support, cylinder_sdf,
                     c.size[jnp.array([0, 0, 1])])
 
 
 @_convex.collider(ncon=NCON)
 def hfield_sphere(h, s, subgrid_size):
     """Contacts of a height field and a sphere (module docstring)."""
-    return _collide(h, s, s.size[0], subgrid_size, _sphere_support, sphere_sdf,
+    return _collide(h, s, s.size[0], subgrid_size, sphere_support, sphere_sdf,
                     s.size[jnp.array([0, 0, 0])])
 
 
 @_convex.collider(ncon=NCON)
 def hfield_capsule(h, c, subgrid_size):
     """Contacts of a height field and a capsule (module docstring)."""
-    return _collide(h, c, c.size[0] + c.size[1], subgrid_size, _capsule_support, capsule_sdf,
+    return _collide(h, c, c.size[0] + c.size[1], subgrid_size, capsule_support, capsule_sdf,
                     jnp.array([1.0, 1.0, 0.0]) * c.size[0] + jnp.array([0.0, 0.0, 1.0]) * (
                         c.size[0] + c.size[1]))
 
@@ -257,7 +198,7 @@ def hfield_capsule(h, c, subgrid_size):
 @_convex.collider(ncon=NCON)
 def hfield_box(h, b, subgrid_size):
     """Contacts of a height field and a box (module docstring)."""
-    return _collide(h, b, jnp.linalg.norm(b.size), subgrid_size, _box_support, box_sdf,
+    return _collide(h, b, jnp.linalg.norm(b.size), subgrid_size, box_support, box_sdf,
                     b.size)
 
 
