@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from mujoco import mjx
 
 from tests.physics._foreign import FOREIGN, check_foreign_scene
+from tests.physics._placer import Placer, angle, nearest
 from twinrl.physics import Sim, collision
 from twinrl.physics.sim import put_model
 
@@ -23,55 +23,6 @@ def test_pairs_mjx_lacks_are_accepted():
     assert {int(b) for _, b in collision.ADDED} == {int(mujoco.mjtGeom.mjGEOM_ELLIPSOID),
                                                   int(mujoco.mjtGeom.mjGEOM_CYLINDER)}
     put_model(mujoco.MjModel.from_xml_path(str(DROPS)), "hfield_drops")
-
-
-class _Placer:
-    """Places one body of a scene (the others out of reach, above the field) so that MuJoCo C's
-    deepest contact with the field is 2 mm deep, then returns C's contacts of that body and
-    twinrl's (float64) at the same state."""
-
-    def __init__(self, path):
-        self.sim = Sim.load(path)
-        self.m = self.sim.mj_model
-        self.d = mujoco.MjData(self.m)
-        self.fwd = jax.jit(lambda d: collision.fwd_position(self.sim.model, d))
-
-    def __call__(self, body, xy, euler, depth=0.002):
-        m, d = self.m, self.d
-        d.qpos[:] = m.qpos0
-        for b in range(1, m.nbody):  # every free body high above the field
-            d.qpos[m.jnt_qposadr[m.body_jntadr[b]]:][:3] = [0.0, 0.0, 3.0 + b]
-        adr = m.jnt_qposadr[m.body_jntadr[m.body(body).id]]
-        mujoco.mju_euler2Quat(d.qpos[adr + 3:adr + 7], np.radians(euler), "xyz")
-        lo, hi = -0.5, 1.0
-        for _ in range(60):  # bisection on the height: C's deepest contact at -depth
-            d.qpos[adr:adr + 3] = [*xy, 0.5 * (lo + hi)]
-            mujoco.mj_forward(m, d)
-            if min([d.contact[i].dist for i in range(d.ncon)], default=1.0) < -depth:
-                lo = 0.5 * (lo + hi)
-            else:
-                hi = 0.5 * (lo + hi)
-        d.qpos[adr:adr + 3] = [*xy, hi]
-        mujoco.mj_forward(m, d)
-        g = m.geom(body).id
-        theirs = [(c.dist, c.pos.copy(), c.frame[:3].copy()) for c in d.contact[:d.ncon]
-                  if c.geom2 == g]
-        c = self.fwd(mjx.put_data(m, d))._impl.contact
-        mine = np.asarray(c.geom)[:, 1] == g
-        ours = (np.asarray(c.dist)[mine], np.asarray(c.pos)[mine],
-                np.asarray(c.frame)[mine, 0])
-        return theirs, ours
-
-
-def _nearest(ours, pos):
-    """Our contact nearest to ``pos``: (dist, position error, normal of ours)."""
-    dist, p, n = ours
-    j = int(np.argmin(np.linalg.norm(p - pos, axis=1)))
-    return dist[j], float(np.linalg.norm(p[j] - pos)), n[j]
-
-
-def _angle(a, b):
-    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
 
 
 # (scene, body, xy, euler): each geom's deepest point inside one triangle of the field, where C
@@ -99,7 +50,7 @@ VERTEX = [(DROPS, "egg", (0.8, -0.02), (0, 0, 0)),
 
 @pytest.fixture(scope="module")
 def placers(x64):
-    return {DROPS: _Placer(DROPS), PRIMITIVES: _Placer(PRIMITIVES)}
+    return {DROPS: Placer(DROPS), PRIMITIVES: Placer(PRIMITIVES)}
 
 
 @pytest.mark.parametrize("case", FACE + VERTEX, ids=lambda c: f"{c[1]}{c[2]}")
@@ -110,12 +61,12 @@ def test_contacts_agree_with_mujoco(placers, case):
     if case in FACE:
         assert len(theirs) == 1
     for dist, pos, normal in theirs:
-        our_dist, dpos, our_normal = _nearest(ours, pos)
+        our_dist, dpos, our_normal = nearest(ours, pos)
         # C's EPA stops at a tolerance of 1e-6 on a smooth geom's rounded surface
         assert abs(our_dist - dist) <= 2e-6, (dist, our_dist)
         assert dpos <= 5e-4, dpos
         # a vertex's normal: C's ray projection onto the ellipsoid vs the gradient of its SDF here
-        assert _angle(our_normal, normal) <= (0.05 if case in FACE else 1.0)
+        assert angle(our_normal, normal) <= (0.05 if case in FACE else 1.0)
     # and none of ours is deeper than C's deepest (ours may add points along a ridge's edges,
     # shallower, where C repeats the vertex)
     assert abs(ours[0].min() - min(dist for dist, _, _ in theirs)) <= 2e-6

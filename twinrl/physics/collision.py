@@ -20,8 +20,9 @@ argmin over 10 step sizes), so such a contact is piecewise smooth: ``twinrl grad
 entries whose perturbation switches a choice as kinks.
 
 A height field against a sphere, a capsule, a box, a cylinder or an ellipsoid is
-``twinrl.physics.hfield``'s; the last two, which MJX lacks, join MJX's own table too, so
-``mjx.put_model`` accepts such a model.
+``twinrl.physics.hfield``'s, a box against an ellipsoid or a cylinder ``twinrl.physics.boxes``'s;
+the pairs among these that MJX lacks join MJX's own table too, so ``mjx.put_model`` accepts
+such a model.
 
 Every other pair type is stock MJX's collision function, through the same driver loop
 (``collision`` mirrors ``mujoco.mjx._src.collision_driver.collision`` with this table);
@@ -54,6 +55,7 @@ from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src.types import GeomType
 
+from twinrl.physics import boxes as _boxes
 from twinrl.physics import hfield as _hfield
 from twinrl.physics import smooth as _tree
 from twinrl.physics._shapes import cylinder_sdf
@@ -114,20 +116,22 @@ def plane_box_mujoco(plane, box):
 _REPLACED = {_sdf.sphere_cylinder: _sphere_cylinder, _sdf.capsule_cylinder: _capsule_cylinder,
              _sdf.ellipsoid_cylinder: _ellipsoid_cylinder,
              _sdf.cylinder_cylinder: _cylinder_cylinder}
+_OURS = {**_hfield.FUNCTIONS, **_boxes.FUNCTIONS}
 # The pairs MJX has no function for (a height field and a cylinder or an ellipsoid:
-# ``twinrl.physics.hfield``) join MJX's own table, not only this module's: ``mjx.put_model``
-# checks every colliding pair against it and ``make_condim`` (``mjx.make_data``) sizes the
-# contact arrays from its functions' ``ncon``. Only missing keys are added, so stock MJX's
-# functions and results are unchanged; stock ``mjx.step`` then runs the new pairs too.
-ADDED = tuple(t for t in _hfield.FUNCTIONS if t not in _driver._COLLISION_FUNC)
-"""Geom-type pairs MJX 3.17 lacks, collided by ``twinrl.physics.hfield``."""
+# ``twinrl.physics.hfield``; a box and an ellipsoid or a cylinder: ``twinrl.physics.boxes``)
+# join MJX's own table, not only this module's: ``mjx.put_model`` checks every colliding pair
+# against it and ``make_condim`` (``mjx.make_data``) sizes the contact arrays from its
+# functions' ``ncon``. Only missing keys are added, so stock MJX's functions and results are
+# unchanged; stock ``mjx.step`` then runs the new pairs too.
+ADDED = tuple(t for t in _OURS if t not in _driver._COLLISION_FUNC)
+"""Geom-type pairs MJX 3.17 lacks, collided by ``twinrl.physics.hfield`` and ``boxes``."""
 for _types in ADDED:
-    _driver._COLLISION_FUNC[_types] = _hfield.FUNCTIONS[_types]
+    _driver._COLLISION_FUNC[_types] = _OURS[_types]
 # MJX sizes every pair's contacts from its own table's ``ncon`` (``make_condim``): a function
 # here replacing one of MJX's must return as many
-assert all(_driver._COLLISION_FUNC[t].ncon == f.ncon for t, f in _hfield.FUNCTIONS.items())
+assert all(_driver._COLLISION_FUNC[t].ncon == f.ncon for t, f in _OURS.items())
 _FUNCTIONS = {**{types: _REPLACED.get(f, f) for types, f in _driver._COLLISION_FUNC.items()},
-              **_hfield.FUNCTIONS}
+              **_OURS}
 REFINED = tuple(types for types, f in _driver._COLLISION_FUNC.items() if f in _REPLACED)
 """Geom-type pairs collided with ``cylinder_sdf`` instead of MJX's ``_cylinder``."""
 _RULES = {"mjx": _FUNCTIONS,
