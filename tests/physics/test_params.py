@@ -128,19 +128,21 @@ def test_an_empty_mjcf_path_says_so():
 
 
 def test_a_geom_pair_mjx_cannot_collide_is_one_line_naming_the_geoms():
-    """MJX 3.17 has no cylinder-box collision: its ``put_model`` raises NotImplementedError,
-    which a user's scene should meet as one MJCFError naming the geoms, not a traceback."""
+    """MJX 3.17 has no cylinder-mesh collision (nor twinrl): its ``put_model`` raises
+    NotImplementedError, which a user's scene should meet as one MJCFError naming the geoms,
+    not a traceback."""
     from twinrl.physics import MJCFError
 
-    xml = """<mujoco><worldbody><geom name="floor" type="plane" size="1 1 0.1"/>
-        <body name="base" pos="0 0 0.03"><freejoint/><geom name="slab" type="box"
-          size="0.1 0.1 0.03"/></body>
+    xml = """<mujoco><asset><mesh name="tet" vertex="0 0 0  0.2 0 0  0 0.2 0  0 0 0.06"/></asset>
+        <worldbody><geom name="floor" type="plane" size="1 1 0.1"/>
+        <body name="base" pos="0 0 0.03"><freejoint/><geom name="slab" type="mesh"
+          mesh="tet"/></body>
         <body name="can" pos="0 0 0.12"><freejoint/><geom type="cylinder" size="0.03 0.04"/>
         </body></worldbody></mujoco>"""
     with pytest.raises(NotImplementedError):  # the stock call's behaviour this wraps
         mjx.put_model(mujoco.MjModel.from_xml_string(xml))
     with pytest.raises(MJCFError, match=r"^mjcf: MJX \(mujoco [\d.]+\) has no collision function "
-                                        r"for cylinder #2 of body 'can' x box 'slab': ") as e:
+                                        r"for cylinder #2 of body 'can' x mesh 'slab': ") as e:
         Sim.load(xml)
     assert "\n" not in str(e.value)
     with pytest.raises(MJCFError,

@@ -86,10 +86,11 @@ __all__ = ["hfield_sphere", "hfield_capsule", "hfield_box", "hfield_cylinder", "
 NCON = 4
 """Contacts per height-field pair (the deepest of the candidates; module docstring)."""
 
+
 def _sub_grid(h, pos, rbound, subgrid_size):
     """Vertices (nx + 1, ny + 1, 3) of the static sub-grid under a geom at ``pos`` (field
-    frame; ``[i, j]``: column ``cmin + i``, row ``rmin + j``), whether each vertex and each cell
-    lies in the field, the cells' lower corners and the grid steps."""
+    frame; ``[i, j]``: column ``cmin + i``, row ``rmin + j``), whether each vertex (nx + 1,
+    ny + 1) and each cell (nx, ny) lies in the field, and the grid steps."""
     nx, ny = subgrid_size
     dx = 2.0 * h.size[0] / (h.ncol - 1)
     dy = 2.0 * h.size[1] / (h.nrow - 1)
