@@ -1,5 +1,5 @@
 """Contacts of one geom placed against MuJoCo C's: shared by the tests of ``twinrl.physics.hfield``
-and ``twinrl.physics.boxes``."""
+and ``twinrl.physics.polytopes``."""
 
 import jax
 import mujoco

@@ -1,9 +1,9 @@
-"""Signed distance functions of the smooth primitives, with finite first and second derivatives.
+"""Signed distance functions and support points of the primitives, with finite first and second
+derivatives, and the contact candidates built on them.
 
 Shared by the collision modules (``collision``: the cylinder pairs MJX searches on SDFs;
-``hfield`` and ``boxes``: a field's or a box's faces against each primitive's support points,
-their vertices and edges against its SDF). The normal of a contact
-is an SDF's gradient, so reverse mode through a contact differentiates the SDF twice: every
+``hfield`` and ``polytopes``: a field's or a polytope's faces against a primitive's support
+points, their vertices and edges against its SDF). The normal of a contact is an SDF's gradient, so reverse mode through a contact differentiates the SDF twice: every
 square root here is guarded at 0 (a double ``where``), where the plain one's derivative is
 ``inf`` and gives NaN.
 """

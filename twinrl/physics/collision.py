@@ -20,9 +20,9 @@ argmin over 10 step sizes), so such a contact is piecewise smooth: ``twinrl grad
 entries whose perturbation switches a choice as kinks.
 
 A height field against a sphere, a capsule, a box, a cylinder or an ellipsoid is
-``twinrl.physics.hfield``'s, a box against an ellipsoid or a cylinder ``twinrl.physics.boxes``'s;
-the pairs among these that MJX lacks join MJX's own table too, so ``mjx.put_model`` accepts
-such a model.
+``twinrl.physics.hfield``'s, an ellipsoid or a cylinder against a box or a convex mesh
+``twinrl.physics.polytopes``'; the pairs among these that MJX lacks join MJX's own table too,
+so ``mjx.put_model`` accepts such a model.
 
 Every other pair type is stock MJX's collision function, through the same driver loop
 (``collision`` mirrors ``mujoco.mjx._src.collision_driver.collision`` with this table);
@@ -55,8 +55,8 @@ from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src.types import GeomType
 
-from twinrl.physics import boxes as _boxes
 from twinrl.physics import hfield as _hfield
+from twinrl.physics import polytopes as _polytopes
 from twinrl.physics import smooth as _tree
 from twinrl.physics._shapes import cylinder_sdf
 
@@ -116,15 +116,16 @@ def plane_box_mujoco(plane, box):
 _REPLACED = {_sdf.sphere_cylinder: _sphere_cylinder, _sdf.capsule_cylinder: _capsule_cylinder,
              _sdf.ellipsoid_cylinder: _ellipsoid_cylinder,
              _sdf.cylinder_cylinder: _cylinder_cylinder}
-_OURS = {**_hfield.FUNCTIONS, **_boxes.FUNCTIONS}
+_OURS = {**_hfield.FUNCTIONS, **_polytopes.FUNCTIONS}
 # The pairs MJX has no function for (a height field and a cylinder or an ellipsoid:
-# ``twinrl.physics.hfield``; a box and an ellipsoid or a cylinder: ``twinrl.physics.boxes``)
+# ``twinrl.physics.hfield``; an ellipsoid or a cylinder and a box or a convex mesh:
+# ``twinrl.physics.polytopes``)
 # join MJX's own table, not only this module's: ``mjx.put_model`` checks every colliding pair
 # against it and ``make_condim`` (``mjx.make_data``) sizes the contact arrays from its
 # functions' ``ncon``. Only missing keys are added, so stock MJX's functions and results are
 # unchanged; stock ``mjx.step`` then runs the new pairs too.
 ADDED = tuple(t for t in _OURS if t not in _driver._COLLISION_FUNC)
-"""Geom-type pairs MJX 3.17 lacks, collided by ``twinrl.physics.hfield`` and ``boxes``."""
+"""Geom-type pairs MJX 3.17 lacks, collided by ``twinrl.physics.hfield`` and ``polytopes``."""
 for _types in ADDED:
     _driver._COLLISION_FUNC[_types] = _OURS[_types]
 # MJX sizes every pair's contacts from its own table's ``ncon`` (``make_condim``): a function
