@@ -93,8 +93,8 @@ def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
             more = f" and {len(pairs) - 3} more" if len(pairs) > 3 else ""
             raise MJCFError(f"{name}: MJX (mujoco {mujoco.__version__}) has no collision "
                             f"function for {'; '.join(pairs[:3])}{more}: give one of the geoms "
-                            "a type it pairs with (e.g. a capsule or a convex mesh for a "
-                            "cylinder), or exclude the pair (contype/conaffinity, or "
+                            "a type it pairs with (e.g. a box or a convex mesh for a moving "
+                            "height field), or exclude the pair (contype/conaffinity, or "
                             "<contact><exclude>)") from None
         said = "not implemented" in msg or "not supported" in msg
         raise MJCFError(f"{name}: MJX (mujoco {mujoco.__version__}) cannot simulate this "
