@@ -20,14 +20,15 @@ argmin over 10 step sizes), so such a contact is piecewise smooth: ``twinrl grad
 entries whose perturbation switches a choice as kinks.
 
 A height field against a sphere, a capsule, a box, a cylinder or an ellipsoid is
-``twinrl.physics.hfield``'s, an ellipsoid or a cylinder against a box or a convex mesh
+``twinrl.physics.hfield``'s (MJX's own sphere, capsule and box functions there give friction
+gradients that are all kinks), an ellipsoid or a cylinder against a box or a convex mesh
 ``twinrl.physics.polytopes``'; the pairs among these that MJX lacks join MJX's own table too,
-so ``mjx.put_model`` accepts such a model.
+so ``mjx.put_model`` accepts such a model. Their forward is checked against MuJoCo C's.
 
 Every other pair type is stock MJX's collision function, through the same driver loop
 (``collision`` mirrors ``mujoco.mjx._src.collision_driver.collision`` with this table);
 ``fwd_position`` mirrors ``mujoco.mjx._src.forward.fwd_position`` with this ``collision``.
-Forward results equal stock MJX's (tested).
+Forward results equal stock MJX's on those pairs (tested).
 
 Contact rules (``CONTACTS``; ``Sim(contacts=...)``). ``"mjx"`` (default) is the above. ``"mujoco"``
 replaces MJX's one rule that differs from MuJoCo C's: a box on a plane. MJX (``plane_convex``)

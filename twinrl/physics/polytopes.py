@@ -20,21 +20,23 @@ polytope's frame (MJX's ``ConvexInfo``: vertices, faces as padded polygons, face
 No contact is deeper than the least of the faces' overlaps (moving the geom out through a face
 by its overlap there separates the two); a candidate deeper than that is dropped. The ``NCON``
 deepest are the pair's contacts: one where C makes its one (the deepest), more where a flat
-face of the geom rests on a face (a cylinder's end: its rim's tripod), so
-that it rests as on a plane instead of rocking on one point. Differentiable as ``hfield``
-(finite first and second derivatives; which face holds a point and which candidates are the
-deepest are discrete choices: kinks).
+face of the geom rests on a face (a cylinder's end: its rim's tripod), so that it rests as on
+a plane instead of rocking on one point. Differentiable as ``hfield`` (finite first and second
+derivatives; which face holds a point and which candidates are the deepest are discrete
+choices: kinks).
 
-Agreement with MuJoCo C (``tests/physics/test_polytopes.py``, placed 2 mm deep): on a face, on an
-edge and on a corner the deepest distance within 1e-6 m and positions within 2.5e-4 m; normals
-within 1e-4 degree on a face, 2.1 degrees on an edge or a corner (C's is the geom's at the
-midpoint of the penetration, an ellipsoid's by ray projection; ours the SDF's gradient at the
-box's point); on a convex mesh (a wedge) as on a box's face. Dropped together onto a box
-landing on a plane (0.3 s, the box's plane contacts as C makes them: ``contacts="mujoco"``),
-or onto a wedge's slope, sliding, positions stay within 0.4 mm of C's. Not covered: a geom whose centre is inside the box (deeper than its own
-half-size: no face candidate); a flat cylinder overhanging an edge, tilted, where neither C (1.9
-mm along the face, for a part inside the box 3.8 cm wide and 1.8 cm high) nor the edge's point
-here (11 mm) is the least translation that separates them.
+Agreement with MuJoCo C (``tests/physics/test_polytopes.py``, placed 2 mm deep): on a face, an
+edge or a corner of a box, and on a convex mesh (a wedge), the deepest distance within 1e-6 m
+and positions within 2.5e-4 m; normals within 1e-4 degree on a face, 2.1 degrees on an edge or
+a corner (C's is the geom's at the midpoint of the penetration, an ellipsoid's by ray
+projection; ours the SDF's gradient at the polytope's point). Dropped onto a box landing on a
+plane (0.3 s, the box's plane contacts as C makes them: ``contacts="mujoco"``), or onto a
+wedge's slope, sliding, positions stay within 0.4 mm of C's.
+
+Not covered: a geom whose centre is inside the polytope (deeper than its own half-size: no face
+candidate); a flat cylinder overhanging an edge, tilted, where neither C (1.9 mm along the
+face, for a part inside the box 3.8 cm wide and 1.8 cm high) nor the edge's point here (11 mm)
+is the least translation that separates them.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ __all__ = ["ellipsoid_polytope", "cylinder_polytope", "FUNCTIONS", "NCON"]
 
 NCON = 4
 """Contacts per pair (the deepest of the candidates)."""
+
 
 def _face_contacts(pos, mat, gsize, poly, support):
     """Candidates of the polytope's faces (module docstring), its frame; and each face's
