@@ -62,6 +62,10 @@ roots guarded at 0); which triangle holds a point, and which candidates are the 
 discrete choices, so a contact crossing a grid line or trading places with another is piecewise
 smooth (``twinrl gradcheck`` reports entries whose perturbation switches a choice as kinks).
 
+Cost: the candidates grow with the sub-grid, the cells under the geom's bounding sphere (a
+geom 10 grid steps across: ~100 cells, ~1,000 candidates), as MJX's own height-field functions'
+prisms do.
+
 Not covered: the field's outer side walls (C's prisms have them: a geom hitting the field from
 the side), a convex mesh (MJX's ``hfield_convex`` stays), margin/gap (``mjx.put_model`` refuses
 a margin on a height-field pair).
