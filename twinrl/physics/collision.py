@@ -20,8 +20,8 @@ argmin over 10 step sizes), so such a contact is piecewise smooth: ``twinrl grad
 entries whose perturbation switches a choice as kinks.
 
 A height field against a sphere, a capsule, a box, a cylinder or an ellipsoid is
-``twinrl.physics.hfield``'s (MJX's own sphere, capsule and box functions there give friction
-gradients that are all kinks), an ellipsoid or a cylinder against a box or a convex mesh
+``twinrl.physics.hfield``'s (MJX's own sphere, capsule and box functions there differentiate to
+wrong values: relative errors up to 1.5 against finite differences), an ellipsoid or a cylinder against a box or a convex mesh
 ``twinrl.physics.polytopes``'; the pairs among these that MJX lacks join MJX's own table too,
 so ``mjx.put_model`` accepts such a model. Their forward is checked against MuJoCo C's.
 

@@ -6,10 +6,11 @@ sub-grid, 4 contacts kept among those within 1 mm of the deepest); a cylinder or
 on a height field has no function there, and ``mjx.put_model`` refuses the model. This module
 collides all five primitives, differentiable, with MuJoCo C's contacts as the reference for the
 forward; ``twinrl.physics.collision`` uses it for these pairs (MJX's mesh function stays).
-MJX's own sphere, capsule and box functions differentiate to finite values, but on a scene of
-the three sliding down the test field (``tests/physics/foreign/hfield_primitives.xml``) every
-friction entry of ``twinrl gradcheck`` was a kink (its 1 mm selection window switching), so
-``--strict`` failed; with these, the same check passes.
+MJX's own sphere, capsule and box functions differentiate to finite values, but wrong ones: on a
+scene of the three landing on the test field and sliding down it
+(``tests/physics/foreign/hfield_primitives.xml``, float64, 30 steps) ``twinrl gradcheck`` failed
+16 of 103 entries (relative error up to 1.5) and resolved 38; with these functions it fails none
+(largest relative error 7e-6) and resolves 73.
 
 MuJoCo C (``mjc_ConvexHField``) runs a convex penetration test (GJK/EPA) of the geom against
 every prism under its bounding box -- each grid cell is two triangles, each the top of a prism
