@@ -43,7 +43,9 @@ class Placer:
         mujoco.mj_forward(m, d)
         theirs = [(c.dist, c.pos.copy(), c.frame[:3].copy()) for c in d.contact[:d.ncon]
                   if g in c.geom]
-        c = self.fwd(mjx.put_data(m, d))._impl.contact
+        with collision.mjx_pairs():  # put_data sizes contacts by MJX's table
+            data = mjx.put_data(m, d)
+        c = self.fwd(data)._impl.contact
         mine = np.any(np.asarray(c.geom) == g, axis=1)
         ours = (np.asarray(c.dist)[mine], np.asarray(c.pos)[mine],
                 np.asarray(c.frame)[mine, 0])

@@ -26,6 +26,21 @@ def test_pairs_mjx_lacks_are_accepted():
     put_model(mujoco.MjModel.from_xml_path(str(DROPS)), "hfield_drops")
 
 
+def test_stock_mjx_is_left_as_it_was():
+    # twinrl lends MJX's table the pairs it lacks only while it calls put_model / make_data:
+    # after a Sim of such a model is built and stepped, stock MJX still refuses the model
+    from mujoco import mjx
+    from mujoco.mjx._src import collision_driver
+
+    before = dict(collision_driver._COLLISION_FUNC)
+    sim = Sim.load(DROPS)
+    sim.step(sim.init(), np.zeros(sim.nu))
+    assert collision_driver._COLLISION_FUNC == before
+    assert not set(collision.ADDED) & set(before)
+    with pytest.raises(NotImplementedError, match="collisions not implemented"):
+        mjx.put_model(mujoco.MjModel.from_xml_path(str(DROPS)))
+
+
 # (scene, body, xy, euler): each geom's deepest point inside one triangle of the field, where C
 # makes one contact, through the prism's top face
 FACE = [(PRIMITIVES, "ball", (-0.3, -0.25), (0, 0, 0)),

@@ -21,9 +21,11 @@ entries whose perturbation switches a choice as kinks.
 
 A height field against a sphere, a capsule, a box, a cylinder or an ellipsoid is
 ``twinrl.physics.hfield``'s (MJX's own sphere, capsule and box functions there differentiate to
-wrong values: relative errors up to 1.5 against finite differences), an ellipsoid or a cylinder against a box or a convex mesh
-``twinrl.physics.polytopes``'; the pairs among these that MJX lacks join MJX's own table too,
-so ``mjx.put_model`` accepts such a model. Their forward is checked against MuJoCo C's.
+wrong values: relative errors up to 1.5 against finite differences), an ellipsoid or a
+cylinder against a box or a convex mesh ``twinrl.physics.polytopes``'; for the pairs among these that MJX lacks, ``mjx_pairs`` lends
+MJX's own table their functions while ``Sim`` calls ``mjx.put_model`` and ``mjx.make_data``
+(which check and size contacts by it), and takes them back after: stock MJX is left as it was.
+Their forward is checked against MuJoCo C's.
 
 Every other pair type is stock MJX's collision function, through the same driver loop
 (``collision`` mirrors ``mujoco.mjx._src.collision_driver.collision`` with this table);
@@ -44,6 +46,7 @@ missed the box's velocity by up to 0.15 m/s (90th percentile 4e-3), this rule by
 
 from __future__ import annotations
 
+import contextlib
 import functools
 
 import jax
@@ -62,7 +65,7 @@ from twinrl.physics import smooth as _tree
 from twinrl.physics._shapes import cylinder_sdf
 
 __all__ = ["collision", "fwd_position", "cylinder_sdf", "plane_box_mujoco", "check_contacts",
-           "REFINED", "ADDED", "CONTACTS"]
+           "REFINED", "ADDED", "CONTACTS", "mjx_pairs", "has_function"]
 
 
 # The cylinder pairs, as stock MJX builds them (same starting points, same search), with the
@@ -118,20 +121,11 @@ _REPLACED = {_sdf.sphere_cylinder: _sphere_cylinder, _sdf.capsule_cylinder: _cap
              _sdf.ellipsoid_cylinder: _ellipsoid_cylinder,
              _sdf.cylinder_cylinder: _cylinder_cylinder}
 _OURS = {**_hfield.FUNCTIONS, **_polytopes.FUNCTIONS}
-# The pairs MJX has no function for (a height field and a cylinder or an ellipsoid:
-# ``twinrl.physics.hfield``; an ellipsoid or a cylinder and a box or a convex mesh:
-# ``twinrl.physics.polytopes``)
-# join MJX's own table, not only this module's: ``mjx.put_model`` checks every colliding pair
-# against it and ``make_condim`` (``mjx.make_data``) sizes the contact arrays from its
-# functions' ``ncon``. Only missing keys are added, so stock MJX's functions and results are
-# unchanged; stock ``mjx.step`` then runs the new pairs too.
 ADDED = tuple(t for t in _OURS if t not in _driver._COLLISION_FUNC)
 """Geom-type pairs MJX 3.17 lacks, collided by ``twinrl.physics.hfield`` and ``polytopes``."""
-for _types in ADDED:
-    _driver._COLLISION_FUNC[_types] = _OURS[_types]
-# MJX sizes every pair's contacts from its own table's ``ncon`` (``make_condim``): a function
-# here replacing one of MJX's must return as many
-assert all(_driver._COLLISION_FUNC[t].ncon == f.ncon for t, f in _OURS.items())
+# MJX sizes a pair's contacts from its own table's ``ncon`` (``make_condim``): a function here
+# replacing one of MJX's must return as many
+assert all(_driver._COLLISION_FUNC[t].ncon == f.ncon for t, f in _OURS.items() if t not in ADDED)
 _FUNCTIONS = {**{types: _REPLACED.get(f, f) for types, f in _driver._COLLISION_FUNC.items()},
               **_OURS}
 REFINED = tuple(types for types, f in _driver._COLLISION_FUNC.items() if f in _REPLACED)
@@ -140,6 +134,28 @@ _RULES = {"mjx": _FUNCTIONS,
           "mujoco": {**_FUNCTIONS, (GeomType.PLANE, GeomType.BOX): plane_box_mujoco}}
 CONTACTS = tuple(_RULES)
 """Contact rules: ``"mjx"`` (stock MJX's colliders) and ``"mujoco"`` (MuJoCo C's box on a plane)."""
+
+
+@contextlib.contextmanager
+def mjx_pairs():
+    """MJX's own collision table with the pairs it lacks (``ADDED``), for the duration of a call
+    into MJX that consults it -- ``mjx.put_model`` (it refuses a model with a pair missing there)
+    and ``mjx.make_data`` (it sizes each pair's contacts from its function's ``ncon``) -- and
+    exactly as before afterwards: importing or using twinrl leaves stock MJX as it was (tested).
+    ``collision`` itself runs this module's table and needs none of it."""
+    added = [t for t in ADDED if t not in _driver._COLLISION_FUNC]
+    for t in added:
+        _driver._COLLISION_FUNC[t] = _OURS[t]
+    try:
+        yield
+    finally:
+        for t in added:
+            _driver._COLLISION_FUNC.pop(t, None)
+
+
+def has_function(t1, t2) -> bool:
+    """Whether twinrl collides geom types ``t1`` x ``t2`` (MJX's pairs and ``ADDED``)."""
+    return (t1, t2) in _FUNCTIONS
 
 
 def check_contacts(contacts: str) -> str:

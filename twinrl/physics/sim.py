@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
+from mujoco.mjx._src.types import GeomType
 
 from twinrl.physics import collision, gradients, integrator, solver
 from twinrl.physics.mjwarn import MuJoCoWarning, mujoco_warnings
@@ -85,7 +86,8 @@ def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
                       "without it (it changes no state)", MuJoCoWarning, stacklevel=2)
         mj_model.opt.enableflags = flags & ~sum(_REPORTING)
     try:
-        return mjx.put_model(mj_model)
+        with collision.mjx_pairs():  # the pairs MJX lacks, collided by twinrl's functions
+            return mjx.put_model(mj_model)
     except NotImplementedError as e:
         msg = _first_line(e)
         if "collisions not implemented" in msg:
@@ -104,12 +106,12 @@ def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
 
 
 def _unsupported_pairs(m: mujoco.MjModel) -> list[str]:
-    """``"cylinder 'a' x box 'b'"`` for each colliding geom pair MJX has no function for (its
-    own pair filter; empty if that internal API differs)."""
+    """``"cylinder 'a' x box 'b'"`` for each colliding geom pair twinrl has no function for
+    (MJX's pair filter; empty if that internal API differs)."""
     try:
         from mujoco.mjx._src import collision_driver as cd
         pairs = [(g1, g2) for g1, g2, _ in cd.geom_pairs(m)
-                 if not cd.has_collision_fn(*m.geom_type[[g1, g2]])]
+                 if not collision.has_function(*(GeomType(int(t)) for t in m.geom_type[[g1, g2]]))]
     except Exception:  # noqa: BLE001  (only the message's detail depends on it)
         return []
 
@@ -223,7 +225,8 @@ class Sim:
     # ------------------------------------------------------------------ state
     def init(self, qpos=None, qvel=None) -> mjx.Data:
         """A fresh ``mjx.Data`` at ``qpos``/``qvel`` (default: the model's ``qpos0``, rest)."""
-        d = mjx.make_data(self.model)
+        with collision.mjx_pairs():  # MJX sizes the contacts of every pair by its table
+            d = mjx.make_data(self.model)
         if qpos is not None:
             d = d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype).reshape(self.nq))
         if qvel is not None:
