@@ -43,7 +43,8 @@ _LONG_FIRST = ("learn/test_sensing.py", "physics/test_foreign_cylinder.py",
                "envs/test_system.py", "learn/test_trajopt.py", "real/test_twin.py", "test_loop.py",
                "learn/test_sensing_deploy.py", "learn/test_hds.py", "learn/test_shac.py",
                "test_loop_arm.py", "physics/test_foreign_arm.py", "learn/test_runner.py",
-               "cli/test_bad_input.py", "physics/test_contacts_mujoco.py", "physics/test_chain.py")
+               "cli/test_bad_input.py", "physics/test_contacts_mujoco.py", "physics/test_chain.py",
+               "physics/test_polytopes.py", "physics/test_hfield.py")
 
 
 def pytest_collection_modifyitems(items):

@@ -128,25 +128,30 @@ def test_an_empty_mjcf_path_says_so():
 
 
 def test_a_geom_pair_mjx_cannot_collide_is_one_line_naming_the_geoms():
-    """MJX 3.17 has no cylinder-box collision: its ``put_model`` raises NotImplementedError,
-    which a user's scene should meet as one MJCFError naming the geoms, not a traceback."""
+    """MJX 3.17 has no collision of two height fields (nor twinrl): its ``put_model`` raises
+    NotImplementedError, which a user's scene should meet as one MJCFError naming the geoms,
+    not a traceback."""
     from twinrl.physics import MJCFError
 
-    xml = """<mujoco><worldbody><geom name="floor" type="plane" size="1 1 0.1"/>
-        <body name="base" pos="0 0 0.03"><freejoint/><geom name="slab" type="box"
-          size="0.1 0.1 0.03"/></body>
+    xml = """<mujoco><asset><hfield name="h" nrow="2" ncol="2" size="0.1 0.1 0.02 0.01"
+          elevation="0 0 0 0"/></asset>
+        <worldbody><geom name="floor" type="plane" size="1 1 0.1"/>
+        <geom name="ground" type="hfield" hfield="h" pos="0.5 0 0"/>
+        <body name="tile" pos="0 0 0.03"><freejoint/><geom type="hfield" hfield="h" mass="1"/>
+        </body>
         <body name="can" pos="0 0 0.12"><freejoint/><geom type="cylinder" size="0.03 0.04"/>
         </body></worldbody></mujoco>"""
     with pytest.raises(NotImplementedError):  # the stock call's behaviour this wraps
         mjx.put_model(mujoco.MjModel.from_xml_string(xml))
     with pytest.raises(MJCFError, match=r"^mjcf: MJX \(mujoco [\d.]+\) has no collision function "
-                                        r"for cylinder #2 of body 'can' x box 'slab': ") as e:
+                                        r"for hfield 'ground' x hfield #2 of body 'tile': ") as e:
         Sim.load(xml)
     assert "\n" not in str(e.value)
     with pytest.raises(MJCFError,
                        match=r"cannot simulate this model: .*PGS is not implemented there$"):
         Sim.load(xml.replace("<mujoco>", "<mujoco><option solver='PGS'/>")
-                 .replace('type="cylinder"', 'type="capsule"'))
+                 .replace('<geom type="hfield" hfield="h" mass="1"/>',
+                          '<geom type="box" size="0.1 0.1 0.01"/>'))
 
 
 def test_to_mjmodel_writes_what_apply_writes_into_mjx():

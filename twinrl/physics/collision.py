@@ -19,10 +19,18 @@ changes the normal.) The search is a heuristic with discrete choices (its line s
 argmin over 10 step sizes), so such a contact is piecewise smooth: ``twinrl gradcheck`` reports
 entries whose perturbation switches a choice as kinks.
 
+A height field against a sphere, a capsule, a box, a cylinder or an ellipsoid is
+``twinrl.physics.hfield``'s (MJX's own sphere, capsule and box functions there differentiate to
+wrong values: relative errors up to 1.5 against finite differences), an ellipsoid or a
+cylinder against a box or a convex mesh ``twinrl.physics.polytopes``'; for the pairs among these that MJX lacks, ``mjx_pairs`` lends
+MJX's own table their functions while ``Sim`` calls ``mjx.put_model`` and ``mjx.make_data``
+(which check and size contacts by it), and takes them back after: stock MJX is left as it was.
+Their forward is checked against MuJoCo C's.
+
 Every other pair type is stock MJX's collision function, through the same driver loop
 (``collision`` mirrors ``mujoco.mjx._src.collision_driver.collision`` with this table);
 ``fwd_position`` mirrors ``mujoco.mjx._src.forward.fwd_position`` with this ``collision``.
-Forward results equal stock MJX's (tested).
+Forward results equal stock MJX's on those pairs (tested).
 
 Contact rules (``CONTACTS``; ``Sim(contacts=...)``). ``"mjx"`` (default) is the above. ``"mujoco"``
 replaces MJX's one rule that differs from MuJoCo C's: a box on a plane. MJX (``plane_convex``)
@@ -38,6 +46,7 @@ missed the box's velocity by up to 0.15 m/s (90th percentile 4e-3), this rule by
 
 from __future__ import annotations
 
+import contextlib
 import functools
 
 import jax
@@ -50,28 +59,13 @@ from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src.types import GeomType
 
+from twinrl.physics import hfield as _hfield
+from twinrl.physics import polytopes as _polytopes
 from twinrl.physics import smooth as _tree
+from twinrl.physics._shapes import cylinder_sdf
 
 __all__ = ["collision", "fwd_position", "cylinder_sdf", "plane_box_mujoco", "check_contacts",
-           "REFINED", "CONTACTS"]
-
-
-def _safe_norm(x: jax.Array) -> jax.Array:
-    """|x| with finite first and second derivatives at 0 (double where)."""
-    sq = jnp.sum(x * x)
-    zero = sq == 0.0
-    return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, sq)))
-
-
-def cylinder_sdf(pos: jax.Array, size: jax.Array) -> jax.Array:
-    """Signed distance to a cylinder of radius ``size[0]``, half-height ``size[1]`` along z.
-
-    The same function as MJX's ``_cylinder``, written so that reverse mode of its gradient
-    (the contact normal) stays finite on the axis and inside the shape."""
-    a0 = _safe_norm(pos[:2]) - size[0]
-    a1 = jnp.abs(pos[2]) - size[1]
-    outside = _safe_norm(jnp.stack([jnp.maximum(a0, 0.0), jnp.maximum(a1, 0.0)]))
-    return jnp.minimum(jnp.maximum(a0, a1), 0.0) + outside
+           "REFINED", "ADDED", "CONTACTS", "mjx_pairs", "has_function"]
 
 
 # The cylinder pairs, as stock MJX builds them (same starting points, same search), with the
@@ -126,13 +120,42 @@ def plane_box_mujoco(plane, box):
 _REPLACED = {_sdf.sphere_cylinder: _sphere_cylinder, _sdf.capsule_cylinder: _capsule_cylinder,
              _sdf.ellipsoid_cylinder: _ellipsoid_cylinder,
              _sdf.cylinder_cylinder: _cylinder_cylinder}
-_FUNCTIONS = {types: _REPLACED.get(f, f) for types, f in _driver._COLLISION_FUNC.items()}
+_OURS = {**_hfield.FUNCTIONS, **_polytopes.FUNCTIONS}
+ADDED = tuple(t for t in _OURS if t not in _driver._COLLISION_FUNC)
+"""Geom-type pairs MJX 3.17 lacks, collided by ``twinrl.physics.hfield`` and ``polytopes``."""
+# MJX sizes a pair's contacts from its own table's ``ncon`` (``make_condim``): a function here
+# replacing one of MJX's must return as many
+assert all(_driver._COLLISION_FUNC[t].ncon == f.ncon for t, f in _OURS.items() if t not in ADDED)
+_FUNCTIONS = {**{types: _REPLACED.get(f, f) for types, f in _driver._COLLISION_FUNC.items()},
+              **_OURS}
 REFINED = tuple(types for types, f in _driver._COLLISION_FUNC.items() if f in _REPLACED)
 """Geom-type pairs collided with ``cylinder_sdf`` instead of MJX's ``_cylinder``."""
 _RULES = {"mjx": _FUNCTIONS,
           "mujoco": {**_FUNCTIONS, (GeomType.PLANE, GeomType.BOX): plane_box_mujoco}}
 CONTACTS = tuple(_RULES)
 """Contact rules: ``"mjx"`` (stock MJX's colliders) and ``"mujoco"`` (MuJoCo C's box on a plane)."""
+
+
+@contextlib.contextmanager
+def mjx_pairs():
+    """MJX's own collision table with the pairs it lacks (``ADDED``), for the duration of a call
+    into MJX that consults it -- ``mjx.put_model`` (it refuses a model with a pair missing there)
+    and ``mjx.make_data`` (it sizes each pair's contacts from its function's ``ncon``) -- and
+    exactly as before afterwards: importing or using twinrl leaves stock MJX as it was (tested).
+    ``collision`` itself runs this module's table and needs none of it."""
+    added = [t for t in ADDED if t not in _driver._COLLISION_FUNC]
+    for t in added:
+        _driver._COLLISION_FUNC[t] = _OURS[t]
+    try:
+        yield
+    finally:
+        for t in added:
+            _driver._COLLISION_FUNC.pop(t, None)
+
+
+def has_function(t1, t2) -> bool:
+    """Whether twinrl collides geom types ``t1`` x ``t2`` (MJX's pairs and ``ADDED``)."""
+    return (t1, t2) in _FUNCTIONS
 
 
 def check_contacts(contacts: str) -> str:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from pathlib import Path
 from typing import Callable, NamedTuple
 
@@ -20,9 +21,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
+from mujoco.mjx._src.types import GeomType
 
 from twinrl.physics import collision, gradients, integrator, solver
-from twinrl.physics.mjwarn import mujoco_warnings
+from twinrl.physics.mjwarn import MuJoCoWarning, mujoco_warnings
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, scene_path
 
@@ -64,12 +66,28 @@ def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
         raise MJCFError(f"malformed MJCF {path}: {_first_line(e)}") from None
 
 
+# Options MJX refuses that only report, changing nothing the simulation computes: the model is
+# simulated with them off, said once (a ``MuJoCoWarning``). Options that change the dynamics
+# (override of contact parameters, exact diagonal) stay refused.
+_REPORTING = {int(mujoco.mjtEnableBit.mjENBL_ENERGY): "energy (mjENBL_ENERGY)",
+              int(mujoco.mjtEnableBit.mjENBL_FWDINV): "fwdinv (mjENBL_FWDINV)"}
+
+
 def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
     """``mjx.put_model``, with what MJX cannot simulate (a geom pair without a collision
     function, an integrator, cone or solver it lacks, flex, some contact sensors) as one
-    ``MJCFError`` naming the model and, for a collision pair, its geoms."""
+    ``MJCFError`` naming the model and, for a collision pair, its geoms. A flag that only
+    reports (energy, fwdinv) is turned off for MJX with a warning; ``mj_model`` keeps it."""
+    flags = int(mj_model.opt.enableflags)
+    off = [what for bit, what in _REPORTING.items() if flags & bit]
+    if off:
+        warnings.warn(f"{name}: MJX (mujoco {mujoco.__version__}) does not implement the "
+                      f"reporting flag{'s' if len(off) > 1 else ''} {', '.join(off)}: simulated "
+                      "without it (it changes no state)", MuJoCoWarning, stacklevel=2)
+        mj_model.opt.enableflags = flags & ~sum(_REPORTING)
     try:
-        return mjx.put_model(mj_model)
+        with collision.mjx_pairs():  # the pairs MJX lacks, collided by twinrl's functions
+            return mjx.put_model(mj_model)
     except NotImplementedError as e:
         msg = _first_line(e)
         if "collisions not implemented" in msg:
@@ -77,21 +95,23 @@ def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
             more = f" and {len(pairs) - 3} more" if len(pairs) > 3 else ""
             raise MJCFError(f"{name}: MJX (mujoco {mujoco.__version__}) has no collision "
                             f"function for {'; '.join(pairs[:3])}{more}: give one of the geoms "
-                            "a type it pairs with (e.g. a capsule or a convex mesh for a "
-                            "cylinder), or exclude the pair (contype/conaffinity, or "
+                            "a type it pairs with (e.g. a box or a convex mesh for a moving "
+                            "height field), or exclude the pair (contype/conaffinity, or "
                             "<contact><exclude>)") from None
         said = "not implemented" in msg or "not supported" in msg
         raise MJCFError(f"{name}: MJX (mujoco {mujoco.__version__}) cannot simulate this "
                         f"model: {msg if said else msg + ' is not implemented there'}") from None
+    finally:
+        mj_model.opt.enableflags = flags
 
 
 def _unsupported_pairs(m: mujoco.MjModel) -> list[str]:
-    """``"cylinder 'a' x box 'b'"`` for each colliding geom pair MJX has no function for (its
-    own pair filter; empty if that internal API differs)."""
+    """``"cylinder 'a' x box 'b'"`` for each colliding geom pair twinrl has no function for
+    (MJX's pair filter; empty if that internal API differs)."""
     try:
         from mujoco.mjx._src import collision_driver as cd
         pairs = [(g1, g2) for g1, g2, _ in cd.geom_pairs(m)
-                 if not cd.has_collision_fn(*m.geom_type[[g1, g2]])]
+                 if not collision.has_function(*(GeomType(int(t)) for t in m.geom_type[[g1, g2]]))]
     except Exception:  # noqa: BLE001  (only the message's detail depends on it)
         return []
 
@@ -205,7 +225,8 @@ class Sim:
     # ------------------------------------------------------------------ state
     def init(self, qpos=None, qvel=None) -> mjx.Data:
         """A fresh ``mjx.Data`` at ``qpos``/``qvel`` (default: the model's ``qpos0``, rest)."""
-        d = mjx.make_data(self.model)
+        with collision.mjx_pairs():  # MJX sizes the contacts of every pair by its table
+            d = mjx.make_data(self.model)
         if qpos is not None:
             d = d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype).reshape(self.nq))
         if qvel is not None:
