@@ -61,3 +61,18 @@ def nearest(ours, pos):
 
 def angle(a, b):
     return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+
+
+def positions_against_mujoco(sim, T):
+    """``(ours, theirs, traj)``: every free body's position over ``T`` unactuated steps of
+    ``sim`` (a rollout from ``sim.init()``) and of MuJoCo C from the same start, (T, bodies, 3)."""
+    import jax.numpy as jnp
+
+    m, d = sim.mj_model, mujoco.MjData(sim.mj_model)
+    theirs = []
+    for _ in range(T):
+        mujoco.mj_step(m, d)
+        theirs.append(d.qpos.copy())
+    theirs = np.array(theirs).reshape(T, -1, 7)[:, :, :3]
+    _, traj = jax.jit(lambda d: sim.rollout(d, jnp.zeros((T, 0))))(sim.init())
+    return np.asarray(traj.qpos).reshape(T, -1, 7)[:, :, :3], theirs, traj

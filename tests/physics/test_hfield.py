@@ -2,14 +2,12 @@
 a cylinder on a non-flat height field, against MuJoCo C's contacts and trajectory, and through
 ``gradcheck --strict`` (float64)."""
 
-import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
 
 from tests.physics._foreign import FOREIGN, check_foreign_scene
-from tests.physics._placer import Placer, angle, nearest
+from tests.physics._placer import Placer, angle, nearest, positions_against_mujoco
 from twinrl.physics import Sim, collision
 from twinrl.physics.sim import put_model
 
@@ -93,15 +91,8 @@ def test_trajectory_follows_mujoco(x64, path):
     # dropped tilted onto the slopes, landing (~step 20) and sliding or rolling down them: C makes
     # one contact per prism and twinrl at most 4 per geom, so the two part slowly once sliding
     sim = Sim.load(path)
-    m, d = sim.mj_model, mujoco.MjData(sim.mj_model)
     T = 60
-    theirs = []
-    for _ in range(T):
-        mujoco.mj_step(m, d)
-        theirs.append(d.qpos.copy())
-    theirs = np.array(theirs).reshape(T, -1, 7)[:, :, :3]
-    _, traj = jax.jit(lambda d: sim.rollout(d, jnp.zeros((T, 0))))(sim.init())
-    ours = np.asarray(traj.qpos).reshape(T, -1, 7)[:, :, :3]
+    ours, theirs, traj = positions_against_mujoco(sim, T)
     err = np.linalg.norm(ours - theirs, axis=-1)  # (T, bodies)
     assert float(np.asarray(traj.n_active)[-1]) >= 3  # every body on the field
     assert err[:10].max() <= 1e-6  # free fall

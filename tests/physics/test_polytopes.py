@@ -2,14 +2,12 @@
 MJX 3.17 lacks): contacts and trajectory against MuJoCo C's, and ``gradcheck --strict``
 (float64)."""
 
-import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
 
 from tests.physics._foreign import FOREIGN, check_foreign_scene
-from tests.physics._placer import Placer, angle, nearest
+from tests.physics._placer import Placer, angle, nearest, positions_against_mujoco
 from twinrl.physics import Sim, collision
 
 PADS = FOREIGN / "box_pads.xml"  # a box on a plane; an ellipsoid pad and two cylinders on it
@@ -76,15 +74,8 @@ def test_trajectory_follows_mujoco(x64, path):
     # the box lands on the plane and the pads on it (first contact ~ step 10), then rest; the
     # pads land on the wedge's slope
     sim = Sim.load(path, contacts="mujoco")  # a box on the plane as C makes it
-    m, d = sim.mj_model, mujoco.MjData(sim.mj_model)
     T = 60
-    theirs = []
-    for _ in range(T):
-        mujoco.mj_step(m, d)
-        theirs.append(d.qpos.copy())
-    theirs = np.array(theirs).reshape(T, -1, 7)[:, :, :3]
-    _, traj = jax.jit(lambda d: sim.rollout(d, jnp.zeros((T, 0))))(sim.init())
-    ours = np.asarray(traj.qpos).reshape(T, -1, 7)[:, :, :3]
+    ours, theirs, traj = positions_against_mujoco(sim, T)
     err = np.linalg.norm(ours - theirs, axis=-1)
     assert float(np.asarray(traj.n_active)[-1]) >= (10 if path == PADS else 3)
     # measured: box 2e-7 m, pad 1.3e-5, cylinders 2.3e-4 and 3.7e-4 (C: one contact per pair, a
