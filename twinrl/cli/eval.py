@@ -8,6 +8,7 @@ from pathlib import Path
 
 from twinrl.cli.common import UsageError, add_common, at_least_one, check_size
 
+
 def add_parser(sub) -> None:
     """The ``eval`` sub-command's parser."""
     p = sub.add_parser(
@@ -44,7 +45,7 @@ def cmd(args) -> int:
     """Evaluate ``--checkpoint``."""
     from twinrl import report
     from twinrl.learn.runner import eval_run
-    from twinrl.loop.checkpoints import TAKES, arm_run, require, round_of
+    from twinrl.loop.checkpoints import TAKES, arm_run, require, round_of, round_q
 
     if not args.checkpoint.exists():
         raise UsageError(f"checkpoint {args.checkpoint} does not exist")
@@ -55,7 +56,8 @@ def cmd(args) -> int:
     if actor:
         from twinrl.loop.actor_eval import eval_actor
 
-        camera = args.camera or ("chosen" if args.q is not None or _has_q(found) else "default")
+        has_q = args.q is not None or round_q(found) is not None
+        camera = args.camera or ("chosen" if has_q else "default")
         eval_actor(found, args.out, real=args.real, episodes=args.episodes, seed=args.seed,
                    camera=camera, q=args.q, residual=not args.no_residual,
                    video=not args.no_video, say=report.console.print)
@@ -92,10 +94,3 @@ def _with_residual(rdir):
     delta, res_params, _ = load_policy(rdir.residual)
     return ResidualPolicy(base, base_params, delta).act, res_params
 
-
-def _has_q(found) -> bool:
-    """Whether a Q sits where ``eval_actor`` looks for one (the round's, or the run's last)."""
-    from twinrl.loop.checkpoints import round_of
-
-    rdir = round_of(found)
-    return rdir is not None and (rdir.q / "policy" / "checkpoint.json").exists()

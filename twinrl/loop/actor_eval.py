@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.learn.checkpoint import CheckpointError
-from twinrl.loop.checkpoints import Found, round_of
+from twinrl.loop.checkpoints import Found, round_of, round_q
 
 __all__ = ["CAMERAS", "eval_actor", "wilson_interval"]
 
@@ -83,7 +83,7 @@ def eval_actor(found: Found, out: str | Path, *, real: bool = False, episodes: i
     system = rdir.identified_system(meta["env"]) if rdir is not None and rdir.system.exists() \
         else load_system(actor_dir)
     env = env_from_meta(meta, system)
-    q_dir = Path(q) if q is not None else (rdir.q if rdir is not None else None)
+    q_dir = Path(q) if q is not None else round_q(found)
     q_net = q_params = sensing = None
     if camera == "chosen":
         if q_dir is None or not q_dir.exists():

@@ -21,8 +21,8 @@ from typing import Any
 from twinrl.learn.checkpoint import KINDS, CheckpointError, read_meta
 from twinrl.loop.rundir import RoundDir, RunDir
 
-__all__ = ["DIRECTORY_KINDS", "RECORDED_IN", "TAKES", "Found", "describe", "require", "latest_round", "arm_run",
-           "round_of", "sensing_q"]
+__all__ = ["DIRECTORY_KINDS", "RECORDED_IN", "TAKES", "Found", "describe", "require",
+           "latest_round", "arm_run", "round_of", "round_q", "sensing_q"]
 
 DIRECTORY_KINDS = {
     "run": "a `twinrl run` output directory",
@@ -197,8 +197,16 @@ def sensing_q(path: str | Path, command: str = "sense") -> Path:
         return found.path
     if not arm_run(found):
         require(found.path, command, ())  # refused: a cartpole-family run has no Q
-    rdir = round_of(found)
-    if rdir is None or not (rdir.q / "policy" / "checkpoint.json").is_file():
+    q = round_q(found)
+    if q is None:
         raise CheckpointError(f"{found.path}: no sensing-aware Q trained there yet "
                               f"(round<r>/q/)")
-    return rdir.q
+    return q
+
+
+def round_q(found: Found) -> Path | None:
+    """The trained sensing-aware Q of the round ``found`` is or belongs to (a run: its last
+    round), or None."""
+    rdir = round_of(found)
+    return rdir.q if rdir is not None and (rdir.q / "policy" / "checkpoint.json").is_file() \
+        else None
