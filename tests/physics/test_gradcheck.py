@@ -45,6 +45,38 @@ def test_classify_catches_wrong_gradients_and_kinks():
     assert list(ok) == [True, False, True, False, True]
 
 
+def test_classify_leaves_differences_outside_the_models_range_unjudged():
+    # a non-finite difference (the step left the model's valid range) is "outside": not judged;
+    # a non-finite gradient still fails
+    fd = np.array([np.nan, 1.0, np.nan])
+    status, ok, _, _ = classify(np.array([2.0, 1.0, np.nan]), fd, fd, fd, fd,
+                                np.full(3, 1e-10), rtol=1e-4)
+    assert list(status) == ["outside", "resolved", "outside"]
+    assert list(ok) == [True, True, False]
+
+
+def test_a_step_below_a_tiny_inertia_is_shrunk_not_failed(x64, tmp_path):
+    # A fin of 1e-7 inertia without armature (the Control Suite's fish): an armature step of
+    # 4e-6 below zero leaves the mass matrix indefinite and the loss NaN. Such entries are
+    # differenced again with a smaller step instead of failing the check.
+    path = tmp_path / "fin.xml"
+    path.write_text(
+        '<mujoco><option timestep="0.004" gravity="0 0 0"/><worldbody><body>'
+        '<joint name="big" type="hinge" axis="0 0 1" damping="0.01"/>'
+        '<geom type="box" size="0.1 0.05 0.02" mass="0.5"/>'
+        '<body pos="0.1 0 0"><joint name="fin" type="hinge" axis="1 0 0" damping="2e-5"/>'
+        '<inertial pos="0 0 0" mass="1e-4" diaginertia="1e-7 1e-7 1e-7"/></body>'
+        '</body></worldbody><actuator><motor joint="big" gear="0.01"/>'
+        '<motor joint="fin" gear="1e-5"/></actuator></mujoco>')
+    with jax.enable_x64(True):
+        sim = Sim.load(path)
+        r = gradcheck(sim, horizon=10)
+    assert r.nan_count == 0 and r.failures == [], r.failures[:3]
+    fin = next(x for x in r.rows if x["group"] == "params.armature" and x["index"] == "1")
+    # judged at a smaller step: resolved, with its large gradient (the fin's inertia is tiny)
+    assert fin["status"] == "resolved" and abs(fin["grad"]) > 1e3 and fin["rel_err"] < 1e-6
+
+
 def test_tangent_delta_inverts_tangent_qpos_with_a_finite_jacobian_at_zero(x64):
     """sysid estimates window starts in these coordinates and weighs their offset from the
     recorded state: the offset must be the step that was taken, and differentiable at 0."""

@@ -153,6 +153,11 @@ def _print_result(r, name: str, rtol: float, secs: float, strict: bool) -> None:
                          f"(tol {rtol:g}) over {r.count('resolved')} resolved entries, "
                          f"non-finite {r.nan_count}, failures {len(r.failures)}, "
                          f"{secs:.0f} s")
+    if r.count("outside"):
+        names = ", ".join(f'{x["group"]}[{x["index"]}]' for x in r.rows
+                          if x["status"] == "outside")
+        report.console.print(f"[yellow]not judged (differences leave the model's valid range "
+                             f"even at a 10^10 times smaller step): {names}[/yellow]")
     if r.unjudged:
         report.console.print(f"[yellow]{unjudged_line(r)}[/yellow]"
                              + ("" if strict else " (--strict fails on this)"))

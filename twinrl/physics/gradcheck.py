@@ -67,6 +67,14 @@ Cost. Each checked entry costs four rollouts (two step sizes, both signs); ``ent
 entries checked per group (a seeded random subset, reported; the gradient is still computed in
 full), so a large model's check can judge every group at a fraction of the cost.
 
+Range. A step can leave the range where the model is defined: the Control Suite's fish has fin
+bodies of 1e-7 inertia and no armature, so an armature step of 1e-6 below zero makes the mass
+matrix indefinite and the loss NaN. An entry whose differences are non-finite is differenced again
+with its step shrunk 100,000-fold, at most twice (within 4h of where the model breaks the loss is
+curved on the scale of h, and a 1,000-fold smaller step still left the fin's one-sided differences
+apart by 1e-3, a "kink"; 100,000-fold resolves it to 1.4e-9). One still non-finite is *outside*:
+reported, not judged (its gradient must still be finite).
+
 Ties. MuJoCo gives a contact the larger of its two geoms' friction coefficients. Where they are
 equal -- every geom of a model that sets one default friction, e.g. Gymnasium's half_cheetah --
 each coefficient alone is at a kink of that max: lowering it changes nothing, raising it raises the
@@ -188,7 +196,8 @@ class GradcheckResult:
             "max_rel_error": self.max_rel_error, "nan_count": self.nan_count,
             "unjudged": self.unjudged, "passed_strict": self.passed_strict,
             "resolved": self.count("resolved"), "noise_limited": self.count("noise"),
-            "kinks": self.count("kink"), "failures": len(self.failures), "entries": len(self.rows),
+            "kinks": self.count("kink"), "outside": self.count("outside"),
+            "failures": len(self.failures), "entries": len(self.rows),
             "constrained_steps": self.constrained_steps, "free_steps": self.free_steps,
             "loss_jitter": self.loss_jitter, "step": self.step, "passed": self.passed,
             "groups": self.groups, "rows": self.rows,
@@ -237,7 +246,8 @@ def _dof_names(mj_model) -> list[str]:
 
 def classify(g, fd1, fd4, fwd, bwd, rounding, rtol, fd_noise=0.0, g_noise=0.0,
              g_noise_cap=np.inf):
-    """Status ("kink" | "resolved" | "noise") and verdict of each entry (module docstring).
+    """Status ("kink" | "resolved" | "noise" | "outside") and verdict of each entry (module
+    docstring).
 
     Args are arrays over entries: reverse-mode gradient ``g``; central differences at ``h`` and
     ``4h``; forward and backward one-sided differences at ``h``; rounding bound; tolerance; the
@@ -257,9 +267,11 @@ def classify(g, fd1, fd4, fwd, bwd, rounding, rtol, fd_noise=0.0, g_noise=0.0,
     resolved = ~one_sided_kink & (spread + noise <= 0.1 * rtol * np.abs(fd1))
     kink = ~resolved & ((spread > np.maximum(1e-6 * np.abs(fd1), 10 * rounding))
                         | one_sided_kink)
-    status = np.where(kink, "kink", np.where(resolved, "resolved", "noise"))
+    outside = ~(np.isfinite(fd1) & np.isfinite(fd4))  # module docstring, "Range"
+    status = np.where(outside, "outside", np.where(kink, "kink", np.where(
+        resolved, "resolved", "noise")))
     noise_ok = (err <= 10 * (spread + noise + g_noise)) & (g_noise <= g_noise_cap)
-    ok = np.where(kink, True, np.where(resolved, rel <= rtol, noise_ok))
+    ok = np.where(kink | outside, True, np.where(resolved, rel <= rtol, noise_ok))
     return status, ok & np.isfinite(g), rel, err
 
 
@@ -376,22 +388,32 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     n = chosen.size
     D = jnp.asarray(np.array([d for _, d in dirs]).reshape(len(dirs), x0np.size), dtype)
     k = len(dirs)
-    steps = (h * jnp.maximum(1.0, jnp.abs(x0)))[chosen]
     eye = jax.nn.one_hot(chosen, x0np.size, dtype=dtype)  # the chosen rows of the identity
     batched = jax.jit(jax.vmap(lambda x: loss(x)[0]))
-    steps64 = np.concatenate([np.asarray(steps, np.float64), np.full(k, h)])
+    # each entry's step (then each group direction's); shrunk below where a difference left
+    # the model's valid range
+    steps64 = np.concatenate([h * np.maximum(1.0, np.abs(x0np[chosen])), np.full(k, h)])
 
     def evaluate(scale, x=x0):
         # one batch shape for every call (x rides along as row 0): a single compile
+        st = jnp.asarray(scale * steps64, dtype)
         out = np.asarray(batched(jnp.concatenate([
-            x[None], x + scale * steps[:, None] * eye, x - scale * steps[:, None] * eye,
-            x + scale * h * D, x - scale * h * D])), np.float64)
+            x[None], x + st[:n, None] * eye, x - st[:n, None] * eye,
+            x + st[n:, None] * D, x - st[n:, None] * D])), np.float64)
         plus = np.concatenate([out[1:n + 1], out[2 * n + 1:2 * n + 1 + k]])
         minus = np.concatenate([out[n + 1:2 * n + 1], out[2 * n + 1 + k:]])
         return out[0], plus, minus
 
-    l0, plus1, minus1 = evaluate(1.0)
-    _, plus4, minus4 = evaluate(4.0)
+    # "Range": a step that leaves the model's valid range (armature below zero on a body of
+    # 1e-7 inertia, where the step is ten times the value) makes the loss non-finite there;
+    # such entries are differenced again with their step shrunk 100,000-fold, at most twice.
+    for attempt in range(3):
+        l0, plus1, minus1 = evaluate(1.0)
+        _, plus4, minus4 = evaluate(4.0)
+        outside = ~np.isfinite(np.stack([plus1, minus1, plus4, minus4])).all(axis=0)
+        if not outside.any() or attempt == 2:
+            break
+        steps64 = np.where(outside, steps64 / 1e5, steps64)
     l_jit, plus_jit, minus_jit = evaluate(1.0, jitters[0])
     # beyond the first-order change the move itself makes (the gradient is full-length here)
     loss_jitter = float(abs(l_jit - l0 - g @ (np.asarray(jitters[0], np.float64) - x0np)))
@@ -441,9 +463,11 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
             "resolved": len(res), "inert": inert,
             "noise_limited": sum(r["status"] == "noise" for r in rs),
             "kinks": sum(r["status"] == "kink" for r in rs),
+            "outside": sum(r["status"] == "outside" for r in rs),
             "max_abs_grad": float(max(abs(r["grad"]) for r in rs)),
             "max_rel_err": float(max((r["rel_err"] for r in res), default=0.0)),
-            "max_abs_err": float(max((r["abs_err"] for r in rs if r["status"] != "kink"),
+            "max_abs_err": float(max((r["abs_err"] for r in rs
+                                      if r["status"] not in ("kink", "outside")),
                                      default=0.0)),
             "failures": sum(not r["ok"] for r in rs),
             "nonfinite": sum(int(not np.isfinite(r["grad"])) for r in rs),
