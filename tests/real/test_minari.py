@@ -104,6 +104,18 @@ def test_round_trip_loses_nothing(tmp_path, minari_root):
     assert not any(w in text for w in ("perturb", "secret", "salt"))
 
 
+def test_round_trip_of_any_env_shape_and_dtype(tmp_path):
+    with DatasetWriter(tmp_path / "ds", env="my_robot", obs_shape=(2, 3), action_shape=2,
+                       obs_dtype=np.int32, action_dtype=np.float64, sync="none") as w:
+        for t in range(3):
+            w.add(np.full((2, 3), t), [0.5 * t, -t], t, np.full((2, 3), t + 1), False, t == 2)
+    original = read(tmp_path / "ds")
+    to_minari(original, "robot-v0")
+    assert_same(original, read_minari("robot-v0"))
+    with pytest.raises(DatasetMismatch, match="recorded on 'my_robot', not 'push'"):
+        read_minari("robot-v0", task="push")
+
+
 def test_a_name_is_written_once_and_a_missing_one_lists_the_local_ones(tmp_path):
     data = recorded(tmp_path / "ds", images=False)
     to_minari(tmp_path / "ds", "mine-v2")

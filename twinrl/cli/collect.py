@@ -157,9 +157,9 @@ def cmd(args) -> int:
 
 def _from_minari(args) -> dict:
     """``--from minari:NAME``: ``--out``'s dataset started from the Minari dataset (imported unless
-    a run before did), after checking that what this run records continues it: the same task,
-    observation, images and, for a dataset twinrl exported, real twin. Returns what was imported
-    and the dtypes to continue with."""
+    a run before did). When this run records episodes, checks first that they continue it: the
+    same task, observation, images and, for a dataset twinrl exported, real twin. Returns what
+    was imported and the dtypes to continue with."""
     import json
 
     from twinrl.real import dataset as ds
@@ -170,6 +170,7 @@ def _from_minari(args) -> dict:
         raise UsageError(f"--from {args.source}: --from takes minari:NAME (a Minari dataset; "
                          f"`twinrl export` writes one)")
     dataset_dir = args.out / "dataset"
+    data = None
     try:
         full, _ = find_dataset(args.source, args.minari_root)
         source = f"{PREFIX}{full}"
@@ -178,35 +179,45 @@ def _from_minari(args) -> dict:
             if (meta.get("metadata") or {}).get("source") != source:
                 raise UsageError(f"--out {args.out} holds a dataset not imported from {source}; "
                                  f"import into a new --out")
-            return {"from": source, "kept": True, "obs_dtype": meta["obs_dtype"],
-                    "action_dtype": meta["action_dtype"]}
-        data = read_minari(args.source, root=args.minari_root, task=args.env)
+        else:
+            data = read_minari(args.source, root=args.minari_root, task=args.env)
+            meta = data.meta
         ours = export_metadata(args.source, args.minari_root) or {}
     except (ds.DatasetError, ValueError, KeyError) as e:  # missing, unreadable, does not fit
         raise UsageError(f"--from {args.source}: {e}") from None
-    seeds = ours.get("twin_seeds") or []
+    if args.episodes > 0:
+        _check_continues(args, source, meta, ours.get("twin_seeds") or [])
+    out = {"from": source, "kept": data is None, "obs_dtype": meta["obs_dtype"],
+           "action_dtype": meta["action_dtype"]}
+    if data is not None:
+        try:
+            import_minari(args.source, dataset_dir, task=args.env, root=args.minari_root,
+                          data=data)
+        except (ds.DatasetError, ValueError, OSError) as e:
+            raise UsageError(f"--out {args.out}: {e}") from None
+        out |= {"episodes": data.num_episodes, "steps": len(data)}
+    return out
+
+
+def _check_continues(args, source: str, meta: dict, seeds: list[int]) -> None:
+    """One line where the episodes this run would record do not continue the imported dataset
+    (``meta``: its meta.json): another real twin, observation or set of images."""
     if seeds and args.seed not in seeds:
         raise UsageError(f"--from {source} was recorded on real twin seed "
                          f"{', '.join(map(str, seeds))}; continue it on the same twin: "
                          f"--seed {seeds[0]}")
-    kind = (data.meta.get("metadata") or {}).get("observation", "task")
+    kind = (meta.get("metadata") or {}).get("observation", "task")
     if kind != args.observation:
         raise UsageError(f"--from {source} records the {kind} observation; collect with "
                          f"--observation {kind}")
     w, h = args.size
     wanted = {"rgb": [h, w, 3], "depth": [h, w], "segmentation": [h, w]} if args.images else {}
-    have = data.meta["image_shapes"]
+    have = meta["image_shapes"]
     if have != wanted:
         if not have:
             why = "holds no images: collect without --images"
         elif not args.images:
-            why = f"holds images {have}: collect with --images --size W H to match them"
+            why = f"holds images {have}: collect with --images and the --size W H of them"
         else:
             why = f"holds images {have}, not {wanted}: collect with the --size that matches"
         raise UsageError(f"--from {source} {why}")
-    try:
-        import_minari(args.source, dataset_dir, task=args.env, root=args.minari_root, data=data)
-    except (ds.DatasetError, ValueError, OSError) as e:
-        raise UsageError(f"--out {args.out}: {e}") from None
-    return {"from": source, "kept": False, "episodes": data.num_episodes, "steps": len(data),
-            "obs_dtype": data.meta["obs_dtype"], "action_dtype": data.meta["action_dtype"]}

@@ -325,9 +325,10 @@ def read_minari(name: str, *, root: str | os.PathLike[str] | None = None,
                 task: str | None = None) -> Dataset:
     """The local Minari dataset ``name`` as a twinrl ``Dataset`` (see the module docstring).
 
-    ``task``: the twinrl task it must fit (default: the task a twinrl export recorded); a
-    dataset twinrl wrote for another task, or spaces that do not fit, raise ``DatasetMismatch``
-    with a one-line reason; a missing dataset ``DatasetError`` listing the local ones.
+    ``task``: the twinrl task it must be of (twinrl's own export: default the one it recorded)
+    or fit (anyone else's: required); a dataset twinrl wrote for another task, or spaces that do
+    not fit, raise ``DatasetMismatch`` with a one-line reason; a missing dataset
+    ``DatasetError`` listing the local ones.
     """
     minari = _minari()
     full, path = find_dataset(name, root)
@@ -341,11 +342,12 @@ def read_minari(name: str, *, root: str | os.PathLike[str] | None = None,
     recorded = ours["task"] if ours else None
     if task is not None and recorded is not None and task != recorded:
         raise DatasetMismatch(f"{where} was recorded on {recorded!r}, not {task!r}", "env")
-    task = task or recorded
-    if task is None:
+    if ours is None and task is None:
         raise DatasetMismatch(f"{where} was not written by twinrl, so it names no twinrl task: "
                               f"give the task it fits (--env)", "env")
-    kind = fit_task(task, mds.observation_space, mds.action_space, where)
+    # twinrl's own export says what it holds (any env, even one no task registers); anyone
+    # else's must fit the task
+    kind = None if ours else fit_task(task, mds.observation_space, mds.action_space, where)
     obs_dtype = check_real_dtype("observation dtype", mds.observation_space.dtype)
     act_dtype = check_real_dtype("action dtype", mds.action_space.dtype)
     if ours:
