@@ -11,14 +11,14 @@ import json
 import re
 
 import gymnasium as gym
+import minari  # the `minari` extra is part of `dev`: `make test` always has it
 import numpy as np
 import pytest
 
 from twinrl import cli
 from twinrl.real.dataset import DatasetError, DatasetMismatch, DatasetWriter, read
-from twinrl.real.dataset.minari import find_dataset, import_minari, read_minari, to_minari
-
-minari = pytest.importorskip("minari")  # the `minari` extra, in `dev`: CI always has it
+from twinrl.real.dataset.minari import (MinariUnavailable, find_dataset, import_minari,
+                                        read_minari, to_minari)
 
 TASK = "pendulum_swingup"  # observation (4,), full state (2,), action (1,) in [-1, 1]
 IMAGES = {"rgb": (4, 5, 3), "depth": (4, 5), "segmentation": (4, 5), "rgb/wrist": (2, 3, 3)}
@@ -121,7 +121,8 @@ def test_a_name_is_written_once_and_a_missing_one_lists_the_local_ones(tmp_path)
     to_minari(tmp_path / "ds", "mine-v2")
     with pytest.raises(DatasetError, match="'mine-v2' already exists"):
         to_minari(data, "mine-v2")
-    with pytest.raises(DatasetError, match=r"no Minari dataset 'other-v0' .*local datasets: mine-v2"):
+    with pytest.raises(DatasetError,
+                       match=r"no Minari dataset 'other-v0' .*local datasets: mine-v2"):
         read_minari("other")
     with pytest.raises(DatasetError, match="not a Minari dataset id"):
         to_minari(data, "bad name!")
@@ -288,3 +289,14 @@ def test_cli_bad_minari_input_is_one_line_and_exit_2(tmp_path, capsys, args, fra
     code, _, err = run(capsys, *(a.format(tmp=tmp_path) for a in args))
     assert code == 2
     one_line(err, *fragments)
+
+
+def test_without_the_extra_the_error_names_it(tmp_path, capsys, monkeypatch):
+    recorded(tmp_path / "ds", images=False)
+    monkeypatch.setitem(__import__("sys").modules, "minari", None)  # `import minari` fails
+    with pytest.raises(ImportError, match=r"pip install 'twinrl\[minari\]'"):
+        read_minari("anything")
+    code, _, err = run(capsys, "export", tmp_path / "ds", "--to", "minari", "x-v0")
+    assert code == 2
+    one_line(err, "twinrl export: error: Minari datasets need the `minari` extra")
+    assert issubclass(MinariUnavailable, DatasetError)
