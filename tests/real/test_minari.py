@@ -127,6 +127,8 @@ def test_a_name_is_written_once_and_a_missing_one_lists_the_local_ones(tmp_path)
     with pytest.raises(DatasetError, match="not a Minari dataset id"):
         to_minari(data, "bad name!")
     assert find_dataset("mine")[0] == "mine-v2"
+    to_minari(data, "mine-v10")
+    assert find_dataset("minari:mine")[0] == "mine-v10"  # the highest version, by number
 
 
 class Toy(gym.Env):

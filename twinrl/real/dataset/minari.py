@@ -129,9 +129,10 @@ def find_dataset(name: str, root: str | os.PathLike[str] | None = None) -> tuple
     name = str(name).removeprefix(PREFIX)
     full = dataset_id(name)
     if _ID_RE.fullmatch(name)["v"] is None:
-        versions = [i for i in _local_ids(base) if i.rsplit("-v", 1)[0] == name]
+        versions = {int(m[1]): i for i in _local_ids(base)
+                    if (m := re.fullmatch(rf"{re.escape(name)}-v(\d+)", i))}
         if versions:
-            full = max(versions, key=lambda i: int(i.rsplit("-v", 1)[1]))
+            full = versions[max(versions)]
     data = base / full / "data"
     if not (data / "metadata.json").is_file():
         have = _local_ids(base)
