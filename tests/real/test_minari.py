@@ -302,3 +302,17 @@ def test_without_the_extra_the_error_names_it(tmp_path, capsys, monkeypatch):
     assert code == 2
     one_line(err, "twinrl export: error: Minari datasets need the `minari` extra")
     assert issubclass(MinariUnavailable, DatasetError)
+
+
+def test_the_public_twin_seed_comes_from_a_collect_or_run_directory(tmp_path):
+    from twinrl.cli.export import twin_seeds
+
+    (tmp_path / "collect" / "eval").mkdir(parents=True)
+    for seed in (5, 2):
+        (tmp_path / "collect" / "eval" / f"twin-{TASK}-seed{seed}.json").write_text("{}")
+    (tmp_path / "collect" / "eval" / "twin-push-seed9.json").write_text("{}")
+    assert twin_seeds(tmp_path / "collect", TASK) == [2, 5]
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "loop.json").write_text(json.dumps({"kind": "run", "seed": 4}))
+    assert twin_seeds(tmp_path / "run", TASK) == [4]
+    assert twin_seeds(tmp_path / "nothing", TASK) == []
