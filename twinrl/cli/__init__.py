@@ -5,8 +5,8 @@ Each sub-command has ``--help``, ``--seed`` and ``--out DIR``; those that produc
 malformed MJCF, an unknown scene) gets one clear line on stderr and exit status 2; a check that
 runs and fails exits 1.
 
-One module per command (``envs``, ``collect``, ``render``, ``gradcheck``, ``run``, ``sysid``,
-``train``, ``eval``, ``sense``), each with its parser (``add_parser``) and a thin ``cmd(args)``
+One module per command (``envs``, ``collect``, ``export``, ``render``, ``gradcheck``, ``run``,
+``sysid``, ``train``, ``eval``, ``sense``), each with its parser (``add_parser``) and a thin ``cmd(args)``
 that checks the arguments, calls the library and prints; ``common`` holds what they share.
 """
 
@@ -15,13 +15,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from twinrl.cli import collect, envs, eval, gradcheck, render, run, sense, sysid, train
+from twinrl.cli import collect, envs, eval, export, gradcheck, render, run, sense, sysid, train
 from twinrl.cli.common import UsageError, one_line_warnings
 from twinrl.cli.gradcheck import unjudged_line
 
 __all__ = ["main", "build_parser", "UsageError", "unjudged_line", "one_line_warnings"]
 
-COMMANDS = (envs, collect, render, gradcheck, run, sysid, train, eval, sense)
+COMMANDS = (envs, collect, export, render, gradcheck, run, sysid, train, eval, sense)
 """The command modules, in the order ``twinrl --help`` lists them."""
 
 

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from twinrl.cli.common import UsageError, add_common, at_least_one, check_task, is_mjcf
+from twinrl.cli.export import add_minari_root
 
 
 def add_parser(sub) -> None:
@@ -26,7 +27,9 @@ def add_parser(sub) -> None:
                         "(`twinrl.envs.from_mjcf`: its full state observed; --from then takes "
                         "an .npz log)")
     p.add_argument("--from", dest="source", required=True, type=Path,
-                   help="dataset directory (`twinrl collect --out DIR` writes DIR/dataset); with "
+                   help="dataset directory (`twinrl collect --out DIR` writes DIR/dataset), or "
+                        "minari:NAME, a Minari dataset (`twinrl export` writes one; anyone "
+                        "else's whose spaces fit --env; see --minari-root); with "
                         "an MJCF, an .npz with qpos (E, T+1, nq), qvel (E, T+1, nv) and the "
                         "controls sent between them ctrl (E, T, nu), in the actuators' units, "
                         "sampled every --frame-skip physics steps")
@@ -53,14 +56,14 @@ def add_parser(sub) -> None:
                    help="evaluation only, with --visual: the seed of the real twin the dataset "
                         "was recorded on (`collect --seed`); adds the errors against its hidden "
                         "camera and object to summary.json")
+    add_minari_root(p)
     add_common(p, "runs/sysid")
     p.set_defaults(func=cmd)
 
 
 def cmd(args) -> int:
     """Identify ``--env`` from ``--from``: a task from its dataset, an MJCF from its log."""
-    from twinrl import envs, report
-    from twinrl.real import dataset as ds
+    from twinrl import envs
 
     if is_mjcf(args.env):
         return _sysid_mjcf(args)
@@ -68,6 +71,43 @@ def cmd(args) -> int:
     if args.frame_skip is not None:
         raise UsageError("--frame-skip is for an MJCF's log; a task's dataset is sampled at the "
                          "task's own control period")
+    if str(args.source).startswith("minari:"):
+        data, source = _read_minari(args)
+    else:
+        data, source = _read_dataset(args)
+    if data.meta.get("env") not in (None, args.env):
+        raise UsageError(f"--from {source} was recorded on {data.meta.get('env')!r}, "
+                         f"not {args.env!r}")
+    if args.twin_seed is not None and not args.visual:
+        raise UsageError("--twin-seed evaluates a visual fit: use it with --visual")
+    if args.visual:
+        return _sysid_visual(args, data, source)
+    recorded = (data.meta.get("metadata") or {}).get("observation", "task")
+    env = envs.make(args.env, **({"observation": "state"} if recorded == "state" else {}))
+    if not env.observes_state:
+        raise UsageError(f"--from {source}: {args.env}'s observation does not determine its "
+                         f"state, so sysid cannot start a simulated window from it; record full "
+                         f"states: twinrl collect --env {args.env} --observation state ...")
+    _fit_and_report(args, env, data, len(data), source)
+    return 0
+
+
+def _read_minari(args):
+    """``--from minari:NAME``: the Minari dataset as a twinrl ``Dataset``, and where it is."""
+    from twinrl.real import dataset as ds
+    from twinrl.real.dataset.minari import read_minari
+
+    try:
+        data = read_minari(str(args.source), root=args.minari_root, task=args.env)
+    except (ds.DatasetError, ValueError) as e:  # missing, unreadable, spaces that do not fit
+        raise UsageError(f"--from {args.source}: {e}") from None
+    return data, data.path
+
+
+def _read_dataset(args):
+    """``--from DIR``: the dataset in DIR (or DIR/dataset), read past damage with a warning."""
+    from twinrl.real import dataset as ds
+
     source = args.source
     if not (source / "meta.json").exists() and (source / "dataset" / "meta.json").exists():
         source = source / "dataset"
@@ -89,21 +129,7 @@ def cmd(args) -> int:
         more = f" (and {len(data.problems) - 1} more)" if len(data.problems) > 1 else ""
         print(f"twinrl sysid: warning: dataset damaged, using its {len(data)} intact "
               f"transitions: {data.problems[0]}{more}", file=sys.stderr)
-    if data.meta.get("env") not in (None, args.env):
-        raise UsageError(f"--from {source} was recorded on {data.meta.get('env')!r}, "
-                         f"not {args.env!r}")
-    if args.twin_seed is not None and not args.visual:
-        raise UsageError("--twin-seed evaluates a visual fit: use it with --visual")
-    if args.visual:
-        return _sysid_visual(args, data, source)
-    recorded = (data.meta.get("metadata") or {}).get("observation", "task")
-    env = envs.make(args.env, **({"observation": "state"} if recorded == "state" else {}))
-    if not env.observes_state:
-        raise UsageError(f"--from {source}: {args.env}'s observation does not determine its "
-                         f"state, so sysid cannot start a simulated window from it; record full "
-                         f"states: twinrl collect --env {args.env} --observation state ...")
-    _fit_and_report(args, env, data, len(data), source)
-    return 0
+    return data, source
 
 
 def _sysid_visual(args, data, source) -> int:

@@ -57,6 +57,8 @@ Modules
 ``writer`` (``DatasetWriter``: durable appends, locking, resuming), ``reader`` (``read``,
 ``Dataset``, ``Episode``), ``_format`` (names, magics, the record codec and chunk scan both share)
 and ``_checks`` (the errors, and the checks of a writer's inputs and of ``meta.json``).
+``minari`` converts both ways to Minari's datasets (``to_minari``, ``read_minari``; the optional
+``minari`` extra, imported only when used).
 """
 
 from twinrl.real.dataset._checks import DatasetError, DatasetMismatch
