@@ -40,6 +40,9 @@ def test_gradcheck_command_on_a_user_mjcf_path(tmp_path):
     assert {"group", "index", "grad", "fd", "rel_err", "status"} <= set(summary["rows"][0])
     assert "PASS" in out.stdout and "max rel err" in out.stdout
     assert "Failed to import warp" not in out.stdout
+    # a check of more than a few seconds says what it is doing: tracing, compiling, differencing
+    assert "push [" in out.stdout and "tracing the gradient of a 20-step rollout" in out.stdout
+    assert "differencing" in out.stdout and "rollouts in batches of" in out.stdout
     # --rtol 0 is a usage error (it used to mean the default tolerance)
     bad = twinrl("gradcheck", str(tmp_path / "push.xml"), "--rtol", "0")
     assert bad.returncode == 2 and "--rtol must be > 0" in bad.stderr

@@ -50,7 +50,7 @@ def at_least_one(args, *flags: str) -> None:
     for flag in flags:
         v = getattr(args, flag)
         if v is not None and v < 1:
-            raise UsageError(f"--{flag} must be >= 1, got {v}")
+            raise UsageError(f"--{flag.replace('_', '-')} must be >= 1, got {v}")
 
 
 def check_size(size) -> None:

@@ -43,6 +43,14 @@ def add_parser(sub) -> None:
     p.add_argument("--contacts", default="mjx", choices=("mjx", "mujoco"),
                    help="collision rules: stock MJX's (default) or MuJoCo C's box on a plane "
                         "(every lower corner touches; MJX keeps those within 1 mm of the deepest)")
+    p.add_argument("--max-geom-pairs", type=int, default=None, metavar="K",
+                   help="keep, of each collision function's geom pairs (planes and height "
+                        "fields excepted), the K nearest by bounding sphere (MJX's own "
+                        "max_geom_pairs; MJX has no broad phase and otherwise evaluates every "
+                        "candidate pair every step); default: the MJCF's <numeric>, else all")
+    p.add_argument("--max-contact-points", type=int, default=None, metavar="P",
+                   help="keep the P deepest contacts of each contact dimension (MJX's own "
+                        "max_contact_points); default: the MJCF's <numeric>, else all")
     p.add_argument("--settle", type=int, default=0, metavar="N",
                    help="run N physics steps (MuJoCo C, no actuation) before the check, so it "
                         "starts where the model has come to rest, e.g. a walker on the ground")
@@ -96,22 +104,28 @@ def cmd(args) -> int:
     if not h > 0:
         raise UsageError(f"--step must be > 0, got {args.step}")
     # fail fast on bad input: every target loads before the first check runs
+    at_least_one(args, "max_geom_pairs", "max_contact_points")
     loaded = [load_target(t, horizon=args.horizon, seed=args.seed,
                           scenario=args.scenario is None, iterations=args.iterations,
-                          gradient=args.gradient, contacts=args.contacts) for t in targets]
+                          gradient=args.gradient, contacts=args.contacts,
+                          max_geom_pairs=args.max_geom_pairs,
+                          max_contact_points=args.max_contact_points) for t in targets]
     if not args.x64:
         report.console.print("[yellow]float32: finite differences are coarse; use --x64 for the "
                              "real check[/yellow]")
     results = []
     for sim, scenario in loaded:
         t0 = time.perf_counter()
-        with report.console.status(f"{sim.name}: compiling and differencing the rollout..."):
-            try:
-                r = gradcheck(sim, horizon=args.horizon, h=h, rtol=rtol, seed=args.seed,
-                              scenario=args.scenario if scenario is None else scenario,
-                              tolerance=tolerance, settle=args.settle, entries=args.entries)
-            except ValueError as e:
-                raise UsageError(f"{sim.name}: {e}") from None
+        progress = _Progress(sim.name)
+        try:
+            r = gradcheck(sim, horizon=args.horizon, h=h, rtol=rtol, seed=args.seed,
+                          scenario=args.scenario if scenario is None else scenario,
+                          tolerance=tolerance, settle=args.settle, entries=args.entries,
+                          progress=progress)
+        except ValueError as e:
+            raise UsageError(f"{sim.name}: {e}") from None
+        finally:
+            progress.close()
         secs = time.perf_counter() - t0
         _print_result(r, sim.name, rtol, secs, args.strict)
         summ = r.summary() | {"seconds": secs, "passed": r.passed_strict if args.strict
@@ -130,6 +144,48 @@ def cmd(args) -> int:
     path = report.write_json(args.out / "summary.json", summary)
     report.console.print(f"wrote {path}")
     return 0 if all(s["passed"] for s in results) else 1
+
+
+QUIET_FOR = 2.0
+"""Seconds a check runs before its progress lines are printed (``_Progress``)."""
+
+
+class _Progress:
+    """A ``gradcheck`` progress callback: dim lines with the time since the check began, held
+    back for its first ``QUIET_FOR`` seconds (then the stage under way is printed, from a timer
+    if the check is still silent in it) so a small scene's check finishes without them."""
+
+    def __init__(self, name: str):
+        import threading
+
+        self.name, self.t0, self.pending = name, time.perf_counter(), []
+        self.lock, self.open = threading.Lock(), False
+        self.timer = threading.Timer(QUIET_FOR, self._release)
+        self.timer.daemon = True
+        self.timer.start()
+
+    def _print(self, msg: str) -> None:
+        from twinrl import report
+
+        report.console.print(f"[dim]{self.name} [{time.perf_counter() - self.t0:4.0f} s] "
+                             f"{msg}[/dim]")
+
+    def _release(self) -> None:
+        with self.lock:
+            self.open = True
+            for m in self.pending:
+                self._print(m)
+            self.pending.clear()
+
+    def __call__(self, msg: str) -> None:
+        with self.lock:
+            if self.open:
+                self._print(msg)
+            else:
+                self.pending.append(msg)
+
+    def close(self) -> None:
+        self.timer.cancel()
 
 
 def _print_result(r, name: str, rtol: float, secs: float, strict: bool) -> None:

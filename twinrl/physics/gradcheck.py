@@ -104,7 +104,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -112,13 +112,14 @@ import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from mujoco.mjx._src import collision_driver as _driver
 from mujoco.mjx._src.types import JointType
 
 from twinrl.physics.integrator import tangent_qpos
 from twinrl.physics.mjwarn import mujoco_warnings
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, Scenario, scenario as make_scenario
-from twinrl.physics.sim import Sim
+from twinrl.physics.sim import CONTACT_BOUNDS, Sim
 
 __all__ = ["GradcheckResult", "gradcheck", "combine_summaries", "tangent_qpos"]
 
@@ -244,6 +245,49 @@ def _dof_names(mj_model) -> list[str]:
     return names
 
 
+MANY_CANDIDATES = 1000
+"""Contact candidates per step above which the check suggests MJX's contact bounds."""
+PROGRESS_EVERY = 10.0
+"""Seconds between progress lines while the differences run."""
+BATCH = 64
+"""Rollouts per batch of the finite differences: one compile for every batch, and memory that
+does not grow with the model's number of inputs (a 300-geom model's rollouts, all of its
+thousands of differences at once, would not fit)."""
+
+
+def _contact_candidates(sim: Sim) -> int:
+    """Contacts MJX evaluates every step (every candidate pair, touching or not)."""
+    try:
+        return int(sim.init()._impl.contact.dist.shape[0])
+    except AttributeError:  # a layout without that field: not worth failing the check over
+        return -1
+
+
+class _Batched:
+    """The batched loss over ``rows`` inputs, in batches of ``BATCH`` (the last padded, so one
+    compile serves all), with a progress line at most every ``PROGRESS_EVERY`` seconds."""
+
+    def __init__(self, fn, rows: int, say):
+        self.fn, self.rows, self.say = fn, rows, say
+        self.chunk = min(rows, BATCH)
+        self.done, self.calls, self.last = 0, 0, time.perf_counter()
+
+    def __call__(self, xs) -> np.ndarray:
+        out = []
+        for start in range(0, xs.shape[0], self.chunk):
+            part = xs[start:start + self.chunk]
+            pad = self.chunk - part.shape[0]
+            if pad:
+                part = jnp.concatenate([part, jnp.broadcast_to(part[:1], (pad, part.shape[1]))])
+            out.append(np.asarray(self.fn(part), np.float64)[:self.chunk - pad])
+            self.done += self.chunk - pad
+            now = time.perf_counter()
+            if now - self.last >= PROGRESS_EVERY:
+                self.say(f"differences: {self.done} rollouts done")
+                self.last = now
+        return np.concatenate(out)
+
+
 def classify(g, fd1, fd4, fwd, bwd, rounding, rtol, fd_noise=0.0, g_noise=0.0,
              g_noise_cap=np.inf):
     """Status ("kink" | "resolved" | "noise" | "outside") and verdict of each entry (module
@@ -278,7 +322,8 @@ def classify(g, fd1, fd4, fwd, bwd, rounding, rtol, fd_noise=0.0, g_noise=0.0,
 def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str | None = None,
               h: float = 1e-6, rtol: float = 1e-4, seed: int = 0,
               tolerance: float | None = 1e-12, settle: int = 0,
-              entries: int | None = None) -> GradcheckResult:
+              entries: int | None = None,
+              progress: Callable[[str], None] | None = None) -> GradcheckResult:
     """Compare ``jax.grad`` of a rollout loss with central finite differences.
 
     Args:
@@ -299,7 +344,11 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
         so the check goes through its contacts (and its friction) within a short horizon.
       entries: check at most this many entries per group (a random subset drawn with ``seed``;
         every group's ``scale`` entry is kept); ``None``: all of them.
+      progress: called with a line at each stage (tracing, compiling, the gradient, the
+        differences' batches, at most every ``PROGRESS_EVERY`` seconds while they run), so a
+        large model's check is not silent for minutes.
     """
+    say = progress or (lambda msg: None)
     if not rtol > 0:
         raise ValueError(f"rtol must be > 0, got {rtol}")
     if not h > 0:
@@ -352,10 +401,28 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
         return jnp.mean(per_step), tr.n_active
 
     t0 = time.perf_counter()
-    value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    T = int(sc.actions.shape[0])
+    candidates = _contact_candidates(sim)
+    say(f"tracing the gradient of a {T}-step rollout ({sim.nv} dofs, {x0.size} inputs, "
+        f"{candidates} contact candidates per step)")
+    if candidates > MANY_CANDIDATES and all(
+            _driver._numeric(sim.mj_model, b) < 0 for b in CONTACT_BOUNDS):
+        say(f"{candidates} contact candidates: MJX has no broad phase and evaluates every one "
+            f"every step; bounding them (max_geom_pairs, max_contact_points: "
+            f"--max-geom-pairs, --max-contact-points) cuts the time and memory")
+    lowered = jax.jit(jax.value_and_grad(loss, has_aux=True)).lower(x0)
+    t1 = time.perf_counter()
+    say(f"traced in {t1 - t0:.1f} s; compiling it")
+    # The gradient runs three times, the batched forward thousands: XLA's optimisation passes
+    # pay for themselves only on the latter (humanoid, 20 steps: the gradient's compile 49 s ->
+    # 16 s at level 0, each run 0.04 -> 0.11 s).
+    value_and_grad = lowered.compile(compiler_options={"xla_backend_optimization_level": 0})
+    t2 = time.perf_counter()
     (_, n_active), g = value_and_grad(x0)
     g = np.asarray(jax.block_until_ready(g), np.float64)
     seconds = time.perf_counter() - t0
+    say(f"compiled in {t2 - t1:.1f} s, ran in {seconds - (t2 - t0):.1f} s; the gradient again "
+        f"at 2 inputs moved in their last bits (its noise)")
     # "Measured noise": the same gradient at inputs moved in their last bits
     x0_abs = np.abs(np.asarray(x0, np.float64))
     jitters = [jnp.asarray(np.asarray(x0, np.float64) + JITTER * np.maximum(1.0, x0_abs)
@@ -389,7 +456,9 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     D = jnp.asarray(np.array([d for _, d in dirs]).reshape(len(dirs), x0np.size), dtype)
     k = len(dirs)
     eye = jax.nn.one_hot(chosen, x0np.size, dtype=dtype)  # the chosen rows of the identity
-    batched = jax.jit(jax.vmap(lambda x: loss(x)[0]))
+    batched = _Batched(jax.jit(jax.vmap(lambda x: loss(x)[0])), 1 + 2 * (n + k), say)
+    say(f"differencing {n + k} entries: {3 * batched.rows} rollouts in batches of "
+        f"{batched.chunk}")
     # each entry's step (then each group direction's); shrunk below where a difference left
     # the model's valid range
     steps64 = np.concatenate([h * np.maximum(1.0, np.abs(x0np[chosen])), np.full(k, h)])
@@ -397,9 +466,9 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     def evaluate(scale, x=x0):
         # one batch shape for every call (x rides along as row 0): a single compile
         st = jnp.asarray(scale * steps64, dtype)
-        out = np.asarray(batched(jnp.concatenate([
+        out = batched(jnp.concatenate([
             x[None], x + st[:n, None] * eye, x - st[:n, None] * eye,
-            x + st[n:, None] * D, x - st[n:, None] * D])), np.float64)
+            x + st[n:, None] * D, x - st[n:, None] * D]))
         plus = np.concatenate([out[1:n + 1], out[2 * n + 1:2 * n + 1 + k]])
         minus = np.concatenate([out[n + 1:2 * n + 1], out[2 * n + 1 + k:]])
         return out[0], plus, minus

@@ -28,15 +28,53 @@ from twinrl.physics.mjwarn import MuJoCoWarning, mujoco_warnings
 from twinrl.physics.params import PhysParams
 from twinrl.physics.scenes import SCENES, scene_path
 
-__all__ = ["Sim", "Trajectory", "MJCFError", "load_mjcf"]
+__all__ = ["Sim", "Trajectory", "MJCFError", "load_mjcf", "CONTACT_BOUNDS"]
 
 
 class MJCFError(ValueError):
     """An MJCF that is missing, unreadable or that MuJoCo rejects."""
 
 
-def load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
-    """Compile an MJCF given as a bundled scene name, a file path, or an XML string."""
+CONTACT_BOUNDS = ("max_geom_pairs", "max_contact_points")
+"""MJX's own bounds on the contacts it evaluates, as ``<custom><numeric>`` fields of the MJCF:
+``max_geom_pairs`` keeps, of each collision function's geom pairs (planes and height fields
+excepted), the ones whose bounding spheres are nearest; ``max_contact_points`` keeps the deepest
+contacts of each contact dimension. MJX has no broad phase: without them it evaluates every
+candidate pair every step (the Control Suite's dog: 7,951)."""
+
+
+def load_mjcf(mjcf: str | os.PathLike, **bounds: int | None) -> mujoco.MjModel:
+    """Compile an MJCF given as a bundled scene name, a file path, or an XML string.
+
+    ``bounds``: ``CONTACT_BOUNDS`` to set (or add) in the model's ``<custom><numeric>``
+    fields; ``None`` leaves the MJCF's own.
+    """
+    unknown = set(bounds) - set(CONTACT_BOUNDS)
+    if unknown:
+        raise TypeError(f"unknown contact bound(s) {sorted(unknown)}: "
+                        f"{', '.join(CONTACT_BOUNDS)}")
+    bounds = {k: int(v) for k, v in bounds.items() if v is not None}
+    for k, v in bounds.items():
+        if v < 1:
+            raise ValueError(f"{k} must be >= 1, got {v}")
+    model = _load_mjcf(mjcf)
+    if not bounds:
+        return model
+    # the bounds are numeric fields, which only a spec can add: the same source, edited
+    spec = (mujoco.MjSpec.from_string(str(mjcf)) if str(mjcf).lstrip().startswith("<")
+            else mujoco.MjSpec.from_file(str(scene_path(str(mjcf)) if str(mjcf) in SCENES
+                                             else mjcf)))
+    for k, v in bounds.items():
+        numeric = spec.numeric(k)
+        if numeric is None:
+            spec.add_numeric(name=k, data=[float(v)])
+        else:
+            numeric.data = [float(v)]
+    with mujoco_warnings(str(mjcf)[:80]):
+        return spec.compile()
+
+
+def _load_mjcf(mjcf: str | os.PathLike) -> mujoco.MjModel:
     text = str(mjcf)
     if not text.strip():
         # Path("") is ".", which would be reported as "a directory"
@@ -158,6 +196,8 @@ class Sim:
       contacts: collision rules: ``"mjx"`` (default, stock MJX's) or ``"mujoco"`` (a box on a
         plane touches with every lower corner, as MuJoCo C makes it; MJX keeps only corners
         within 1 mm of the deepest). See ``twinrl.physics.collision``.
+      max_geom_pairs, max_contact_points: MJX's bounds on the contacts evaluated per step
+        (``CONTACT_BOUNDS``), set in the model; default: the MJCF's own, if any.
     """
 
     mj_model: mujoco.MjModel
@@ -172,7 +212,9 @@ class Sim:
     @classmethod
     def load(cls, mjcf, *, frame_skip: int = 1, iterations: int | None = None,
              ls_iterations: int | None = None, name: str | None = None,
-             gradient: str = "implicit", contacts: str = "mjx") -> "Sim":
+             gradient: str = "implicit", contacts: str = "mjx",
+             max_geom_pairs: int | None = None,
+             max_contact_points: int | None = None) -> "Sim":
         if frame_skip < 1:
             raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
         if gradient not in solver.GRADIENTS:
@@ -182,7 +224,8 @@ class Sim:
         for what, n in (("iterations", iterations), ("ls_iterations", ls_iterations)):
             if n is not None and int(n) < 1:
                 raise ValueError(f"{what} must be >= 1, got {n}")
-        mj_model = load_mjcf(mjcf)
+        mj_model = load_mjcf(mjcf, max_geom_pairs=max_geom_pairs,
+                             max_contact_points=max_contact_points)
         if iterations is not None:
             mj_model.opt.iterations = int(iterations)
         if ls_iterations is not None:
