@@ -165,3 +165,19 @@ def test_several_scenes_summary_takes_the_worst_and_tags_every_row():
     assert all("rows" not in sc for sc in s["scenes"])
     assert s["rows"] == [{"i": 0, "scene": "a"}, {"i": 0, "scene": "b"}, {"i": 1, "scene": "b"}]
     assert combine_summaries([a])["passed"] is True
+
+
+def test_difference_batches_shrink_with_the_constraint_jacobian():
+    # one batch of differenced rollouts holds ~EFC_COPIES constraint Jacobians per rollout: a
+    # model with thousands of contact rows gets fewer rollouts per batch, a small one BATCH
+    from twinrl.physics.gradcheck import BATCH, batch_size
+
+    def capsules(n):
+        bodies = "".join(f'<body pos="{0.3 * i} 0 0.2"><freejoint/>'
+                         f'<geom type="capsule" size="0.05 0.1"/></body>' for i in range(n))
+        return (f'<mujoco><worldbody><geom type="plane" size="9 9 0.1"/>{bodies}'
+                f'</worldbody></mujoco>')
+
+    assert batch_size(Sim.load(capsules(2))) == BATCH
+    many = Sim.load(capsules(60))  # 1,770 capsule pairs: a 7,560 x 360 Jacobian (float32)
+    assert 1 <= batch_size(many) < BATCH

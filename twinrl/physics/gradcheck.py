@@ -145,6 +145,10 @@ class GradcheckResult:
     ``JITTER`` of itself ("Measured noise"): the forward's own roughness."""
     step: float = 0.0
     """The finite-difference step ``h`` (relative to ``max(1, |x|)``)."""
+    timings: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Seconds per stage: ``trace`` (and lower), ``compile`` and ``gradient`` (its first run),
+    ``noise`` (two more gradients), ``differences`` (every batch; the first, which compiles,
+    also as ``differences_first_batch``), and the number of ``rollouts`` differenced."""
 
     @property
     def resolution_floor(self) -> float:
@@ -201,6 +205,7 @@ class GradcheckResult:
             "failures": len(self.failures), "entries": len(self.rows),
             "constrained_steps": self.constrained_steps, "free_steps": self.free_steps,
             "loss_jitter": self.loss_jitter, "step": self.step, "passed": self.passed,
+            "timings": self.timings,
             "groups": self.groups, "rows": self.rows,
         }
 
@@ -250,9 +255,21 @@ MANY_CANDIDATES = 1000
 PROGRESS_EVERY = 10.0
 """Seconds between progress lines while the differences run."""
 BATCH = 64
-"""Rollouts per batch of the finite differences: one compile for every batch, and memory that
-does not grow with the model's number of inputs (a 300-geom model's rollouts, all of its
-thousands of differences at once, would not fit)."""
+"""Most rollouts per batch of the finite differences: one compile for every batch, and memory
+that does not grow with the model's number of inputs."""
+BATCH_BYTES = 2e9
+"""Memory a batch may take, at ``EFC_COPIES`` constraint Jacobians per rollout (``batch_size``)."""
+EFC_COPIES = 16
+"""Constraint-Jacobian-sized arrays one batched rollout holds: the Control Suite's dog (7,951
+contact candidates, a 31,804 x 85 Jacobian of 21.6 MB) ran out of 20 GB in a batch of 64."""
+
+
+def batch_size(sim: Sim) -> int:
+    """Rollouts per batch for ``sim``: ``BATCH``, fewer where its constraint Jacobian is large
+    (the dog's 5)."""
+    d = sim.init()
+    efc_bytes = max(1, int(np.prod(d._impl.efc_J.shape))) * jnp.asarray(0.0).dtype.itemsize
+    return int(np.clip(BATCH_BYTES // (EFC_COPIES * efc_bytes), 1, BATCH))
 
 
 def _contact_candidates(sim: Sim) -> int:
@@ -264,13 +281,13 @@ def _contact_candidates(sim: Sim) -> int:
 
 
 class _Batched:
-    """The batched loss over ``rows`` inputs, in batches of ``BATCH`` (the last padded, so one
+    """The batched loss over ``rows`` inputs, in batches of ``batch`` (the last padded, so one
     compile serves all), with a progress line at most every ``PROGRESS_EVERY`` seconds."""
 
-    def __init__(self, fn, rows: int, say):
+    def __init__(self, fn, rows: int, say, batch: int = BATCH):
         self.fn, self.rows, self.say = fn, rows, say
-        self.chunk = min(rows, BATCH)
-        self.done, self.calls, self.last = 0, 0, time.perf_counter()
+        self.chunk = min(rows, batch)
+        self.done, self.first, self.last = 0, 0.0, time.perf_counter()
 
     def __call__(self, xs) -> np.ndarray:
         out = []
@@ -279,9 +296,11 @@ class _Batched:
             pad = self.chunk - part.shape[0]
             if pad:
                 part = jnp.concatenate([part, jnp.broadcast_to(part[:1], (pad, part.shape[1]))])
+            t0 = time.perf_counter()
             out.append(np.asarray(self.fn(part), np.float64)[:self.chunk - pad])
             self.done += self.chunk - pad
             now = time.perf_counter()
+            self.first = self.first or now - t0
             if now - self.last >= PROGRESS_EVERY:
                 self.say(f"differences: {self.done} rollouts done")
                 self.last = now
@@ -429,6 +448,7 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
                            * rng.choice([-1.0, 1.0], size=x0_abs.size), dtype)
                for _ in range(2)]
     g_jit = [np.asarray(value_and_grad(xj)[1], np.float64) for xj in jitters]
+    t3 = time.perf_counter()
 
     labels = _labels(inputs, _dof_names(sim.mj_model))
     # One extra entry per parameter group: the derivative along scaling the whole group
@@ -456,7 +476,8 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     D = jnp.asarray(np.array([d for _, d in dirs]).reshape(len(dirs), x0np.size), dtype)
     k = len(dirs)
     eye = jax.nn.one_hot(chosen, x0np.size, dtype=dtype)  # the chosen rows of the identity
-    batched = _Batched(jax.jit(jax.vmap(lambda x: loss(x)[0])), 1 + 2 * (n + k), say)
+    batched = _Batched(jax.jit(jax.vmap(lambda x: loss(x)[0])), 1 + 2 * (n + k), say,
+                       batch_size(sim))
     say(f"differencing {n + k} entries: {3 * batched.rows} rollouts in batches of "
         f"{batched.chunk}")
     # each entry's step (then each group direction's); shrunk below where a difference left
@@ -484,6 +505,10 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
             break
         steps64 = np.where(outside, steps64 / 1e5, steps64)
     l_jit, plus_jit, minus_jit = evaluate(1.0, jitters[0])
+    t4 = time.perf_counter()
+    timings = {"trace": t1 - t0, "compile": t2 - t1, "gradient": seconds - (t2 - t0),
+               "noise": t3 - t0 - seconds, "differences": t4 - t3,
+               "differences_first_batch": batched.first, "rollouts": batched.done}
     # beyond the first-order change the move itself makes (the gradient is full-length here)
     loss_jitter = float(abs(l_jit - l0 - g @ (np.asarray(jitters[0], np.float64) - x0np)))
 
@@ -546,5 +571,5 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     return GradcheckResult(
         scene=sim.name, horizon=int(sc.actions.shape[0]), dtype=str(dtype), rtol=rtol, rows=rows,
         groups=group_rows, constrained_steps=int((na > 0).sum()), free_steps=int((na == 0).sum()),
-        seconds_compile_and_grad=seconds, scenario=name, tolerance=tolerance,
+        seconds_compile_and_grad=seconds, timings=timings, scenario=name, tolerance=tolerance,
         loss_jitter=loss_jitter, step=h)
