@@ -38,6 +38,8 @@ from twinrl.envs.base import Env
 from twinrl.physics import smooth
 from twinrl.physics.collision import collision
 
+_HINGE, _SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
+
 __all__ = ["suite_dir", "suite_xml", "find", "tolerance", "randomize_joints", "SuiteTask"]
 
 DM_CONTROL_PIN = "dm-control==1.0.50"
@@ -152,12 +154,12 @@ def randomize_joints(m: mujoco.MjModel, rng: jax.Array, qpos: jax.Array) -> jax.
     out = qpos
     keys = jax.random.split(rng, m.njnt)
     for j in range(m.njnt):
-        kind, adr = m.jnt_type[j], int(m.jnt_qposadr[j])
-        if kind not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+        kind, adr = int(m.jnt_type[j]), int(m.jnt_qposadr[j])
+        if kind not in (_HINGE, _SLIDE):
             raise NotImplementedError(f"randomize_joints: joint {j} is not a hinge or a slide")
         if m.jnt_limited[j]:
             lo, hi = (float(v) for v in m.jnt_range[j])
-        elif kind == mujoco.mjtJoint.mjJNT_HINGE:
+        elif kind == _HINGE:
             lo, hi = -np.pi, np.pi
         else:
             continue
@@ -213,7 +215,7 @@ class SuiteTask(Env):
         sensor), as the derivative of that centre along ``qvel`` (the suite's planar models
         have hinge and slide joints only, so ``d qpos / dt = qvel``)."""
         m = self.sim.mj_model
-        if not np.isin(m.jnt_type, (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)).all():
+        if not np.isin(m.jnt_type, (_HINGE, _SLIDE)).all():
             raise NotImplementedError(f"{self.name}: subtree_linvel needs hinge/slide joints only")
         root = self.body(body)
         ids = [b for b in range(m.nbody) if _is_in_subtree(m.body_parentid, b, root)]
