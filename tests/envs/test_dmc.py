@@ -7,6 +7,7 @@ twin's functions once; the states come from dm_control's own environments on MuJ
 
 import os
 import warnings
+from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -89,7 +90,7 @@ def test_the_models_are_the_wheels_own():
     import dm_control
 
     folder = dmc.suite_dir()
-    assert folder.parent == __import__("pathlib").Path(dm_control.__file__).parent
+    assert folder.parent == Path(dm_control.__file__).parent
     xml = dmc.suite_xml("cartpole")
     assert "<include" not in xml and "skybox" in xml  # the common assets inlined
     assert 'energy="enable"' not in xml and "<sensor" not in dmc.suite_xml("walker")
@@ -170,10 +171,11 @@ def test_every_config_field_has_a_docstring():
 
     for name in NAMES:
         cls = type(envs.default_config(name))
-        src = "".join(inspect.getsource(c) for c in cls.__mro__ if c.__module__.startswith("twinrl"))
+        src = "".join(inspect.getsource(c) for c in cls.__mro__
+                      if c.__module__.startswith("twinrl"))
         for f in dataclasses.fields(cls):
-            assert f"{f.name}:" in src and '"""' in src.split(f"{f.name}:", 1)[1].split("\n", 2)[1], (
-                name, f.name)
+            after = src.split(f"{f.name}:", 1)
+            assert len(after) == 2 and '"""' in after[1].split("\n", 2)[1], (name, f.name)
 
 
 @pytest.mark.parametrize("name", ["dmc/cartpole-swingup", "dmc/walker-walk"])
