@@ -196,3 +196,39 @@ def test_the_simulator_steps_as_dm_control(name):
     err = np.abs(np.asarray(ours) - np.asarray(theirs)).max()
     print(f"{name}: max |qpos - dm_control's| over 10 control steps = {err:.2g}")
     assert err < 1e-4, err  # measured: 3e-7 (cartpole), 4e-6 (walker, contacts)
+
+
+SMOOTH = {"dmc/cartpole-swingup", "dmc/cartpole-balance", "dmc/cheetah-run", "dmc/walker-walk"}
+MARGIN = {"dmc/pendulum-swingup": 0.5, "dmc/reacher-easy": 0.3, "dmc/finger-spin": 15.0}
+"""``reward_margin`` of the sparse tasks, in their units (cos, m, rad/s)."""
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_rewards_are_differentiable_where_the_suites_are_smooth(name):
+    # the gradient w.r.t. the state is finite everywhere (infinite bounds included) and not zero
+    # for the smooth rewards; the sparse ones get one from reward_margin > 0
+    qpos, qvel, action, _ = _suite_states(name)
+    env = envs.make(name, **({} if name in SMOOTH else {"reward_margin": MARGIN[name]}))
+    grad = jax.jit(jax.vmap(jax.grad(lambda q, v, a: env.reward(q, v, a)[0], argnums=(0, 1))))
+    gq, gv = (np.asarray(g) for g in grad(qpos, qvel, action))
+    assert np.isfinite(gq).all() and np.isfinite(gv).all(), name
+    assert np.abs(np.concatenate([gq, gv], 1)).max(axis=1).mean() > 0, name
+
+
+def test_finger_resets_without_interpenetration_as_the_suite_checks():
+    # the reset keeps the first draw whose geoms do not interpenetrate: twinrl's test of that
+    # agrees with MuJoCo C's contact count (ncon > 0) on the suite's own random draws
+    from dm_control.suite.utils import randomizers
+
+    physics = suite.load("finger", "spin", task_kwargs={"random": 0}).physics
+    rng = np.random.RandomState(1)
+    qpos, touching = [], []
+    for _ in range(60):
+        randomizers.randomize_limited_and_rotational_joints(physics, rng)
+        physics.after_reset()
+        qpos.append(physics.data.qpos.copy())
+        touching.append(physics.data.ncon > 0)
+    env = envs.make("dmc/finger-spin")
+    ours = np.asarray(jax.jit(jax.vmap(env.penetrating))(jnp.asarray(np.array(qpos), jnp.float32)))
+    assert any(touching) and not all(touching)
+    np.testing.assert_array_equal(ours, np.array(touching))
