@@ -24,7 +24,8 @@ __version__ = "0.1.0"
 
 TASK_NAMES = ("pendulum_swingup", "cartpole_balance", "cartpole_swingup", "push", "peg_insertion",
               "spatula_flipping", "needle_threading")
-"""``twinrl.envs.names()`` without importing the tasks (a test keeps the two equal)."""
+"""``twinrl.envs.names("twinrl")`` (twinrl's own tasks, each registered with Gymnasium as
+``twinrl/<task>-real-v0``) without importing the tasks (a test keeps the two equal)."""
 
 
 def _register_gymnasium() -> None:

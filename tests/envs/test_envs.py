@@ -14,7 +14,7 @@ import pytest
 
 from twinrl import envs
 
-NAMES = envs.names()
+NAMES = envs.names("twinrl")  # the Control Suite's: tests/envs/test_dmc.py
 # The gradient test compiles a value_and_grad per task. cartpole_balance is cartpole_swingup's
 # model, step and reward with another reset distribution (test_balance_and_swingup_share_a_model),
 # so it is compiled there once, as cartpole_swingup. push's gradients through contacts are checked

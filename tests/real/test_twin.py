@@ -18,7 +18,7 @@ from twinrl import envs
 from twinrl.real.perturbation import Perturbation
 from twinrl.real.twin import RealTwin, render_episode
 
-NAMES = envs.names()
+NAMES = envs.names("twinrl")  # the Control Suite's: tests/envs/test_dmc.py
 T = 100
 # Largest |qpos_real - qpos_sim| over a 100-step open-loop trajectory with Perturbation.none().
 # Measured (mujoco 3.17 C engine, implicitfast, 50 iterations, float64, against MJX float32, Euler,
@@ -351,7 +351,7 @@ def test_every_task_s_twin_is_a_gymnasium_id():
 
     import twinrl
 
-    assert twinrl.TASK_NAMES == envs.names()
+    assert twinrl.TASK_NAMES == envs.names("twinrl")
     for name in NAMES:
         assert f"twinrl/{name}-real-v0" in gymnasium.registry
     env = gymnasium.make("twinrl/cartpole_swingup-real-v0", seed=3)

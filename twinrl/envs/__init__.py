@@ -11,8 +11,10 @@ wrappers and trainers run our tasks unmodified.
 
 Registered tasks: ``pendulum_swingup``, ``cartpole_balance``, ``cartpole_swingup``, ``push``
 (each module's docstring says what it observes, rewards and how its real twin differs), and the
-manipulation suite (``envs.arm``). ``from_mjcf(path)`` (``envs.mjcf``) makes your own robot's
-MJCF a task observing its full state, for Real2Sim on your logs.
+manipulation suite (``envs.arm``); and the DeepMind Control Suite's tasks on the ``dm-control``
+wheel's own models, ``dmc/<domain>-<task>`` (``envs.dmc``; ``names("dmc")``).
+``from_mjcf(path)`` (``envs.mjcf``) makes your own robot's MJCF a task observing its full state,
+for Real2Sim on your logs.
 """
 
 from twinrl.envs.base import Env, PerturbationSpec, State, TaskConfig, tolerance

@@ -5,11 +5,17 @@ from __future__ import annotations
 
 import itertools
 
+import mujoco
+
 from twinrl.envs.base import PerturbationSpec
 
 
 def has_contacts(mj_model) -> bool:
-    """Whether any two geoms of different bodies can collide (contype/conaffinity)."""
+    """Whether any two geoms of different bodies can collide (contype/conaffinity), in a model
+    whose contacts are not disabled (``<flag contact="disable"/>``, as in several Control Suite
+    models)."""
+    if mj_model.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT):
+        return False
     for i, j in itertools.combinations(range(mj_model.ngeom), 2):
         bi, bj = mj_model.geom_bodyid[i], mj_model.geom_bodyid[j]
         if bi == bj or (bi == 0 and bj == 0):

@@ -6,6 +6,9 @@ A task name maps to an ``Env`` class and its default config (``cartpole_balance`
 change another's defaults. A task's real twin is ``twinrl.real.make_real(name, seed=...)``: the
 real side sits above ``envs`` in the package's layers (``twinrl.real`` imports ``twinrl.envs``,
 never the reverse), so the registry does not reach it.
+
+The DeepMind Control Suite's tasks are registered beside twinrl's own as ``dmc/<domain>-<task>``
+(``twinrl.envs.dmc``); ``names("twinrl")`` and ``names("dmc")`` list each suite.
 """
 
 from __future__ import annotations
@@ -18,12 +21,13 @@ from twinrl.envs.arm.peg_insertion import PegInsertion
 from twinrl.envs.arm.spatula_flipping import SpatulaFlipping
 from twinrl.envs.base import Env, TaskConfig, replace_config
 from twinrl.envs.cartpole import Cartpole, CartpoleConfig
+from twinrl.envs.dmc import SUITE as DMC_SUITE
 from twinrl.envs.pendulum import PendulumSwingup
 from twinrl.envs.push import Push
 from twinrl.envs.wrappers import LatencyWrapper
 from twinrl.physics import PhysParams
 
-__all__ = ["names", "make", "default_config", "TASKS"]
+__all__ = ["names", "make", "default_config", "TASKS", "SUITES"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,12 +44,21 @@ TASKS: dict[str, _Entry] = {
     "peg_insertion": _Entry(PegInsertion, PegInsertion.default_config),
     "spatula_flipping": _Entry(SpatulaFlipping, SpatulaFlipping.default_config),
     "needle_threading": _Entry(NeedleThreading, NeedleThreading.default_config),
+    **{name: _Entry(cls, config) for name, (cls, config) in DMC_SUITE.items()},
 }
 
+SUITES = ("twinrl", "dmc")
+"""The suites tasks come from: twinrl's own, and the DeepMind Control Suite's (``dmc/``)."""
 
-def names() -> tuple[str, ...]:
-    """Registered task names."""
-    return tuple(TASKS)
+
+def names(suite: str | None = None) -> tuple[str, ...]:
+    """Registered task names: all of them, or those of ``suite`` (``"twinrl"``: twinrl's own
+    tasks; ``"dmc"``: the Control Suite's, ``dmc/<domain>-<task>``)."""
+    if suite is None:
+        return tuple(TASKS)
+    if suite not in SUITES:
+        raise ValueError(f"suite must be one of {', '.join(SUITES)} or None, got {suite!r}")
+    return tuple(n for n in TASKS if n.startswith("dmc/") == (suite == "dmc"))
 
 
 def _entry(name: str) -> _Entry:

@@ -521,7 +521,8 @@ def render_episode(
     finally:
         twin.close()
 
-    tag = f"{name}_{'real' if real else 'sim'}"
+    # a file name: "dmc/walker-walk" -> "dmc_walker-walk" (the Control Suite's names hold a slash)
+    tag = f"{name.replace('/', '_')}_{'real' if real else 'sim'}"
     far = float(twin._model.vis.map.zfar * twin._model.stat.extent)
     paths = {
         "rgb": out / f"{tag}_rgb.png",
