@@ -189,6 +189,15 @@ def dmc_headline(doc: dict) -> list[list[str]]:
             if "error" not in r and r["task"] == "dmc/cartpole-swingup"]
 
 
+def gradcheck_large_table(doc: dict) -> str:
+    rows = [[r["model"], r.get("flags") or "", r.get("status"), r.get("wall_s"),
+             *(r.get("timings", {}).get(k) for k in ("trace", "compile", "gradient",
+                                                      "differences", "rollouts")),
+             r.get("peak_rss_gb")] for r in doc["rows"]]
+    return table(["model", "flags", "result", "wall (s)", "trace (s)", "compile (s)",
+                  "gradient (s)", "differences (s)", "rollouts", "peak memory (GB)"], rows)
+
+
 @dataclass(frozen=True)
 class Bench:
     """A bench's section: its script, title, method paragraph, the command that reproduces the
@@ -268,6 +277,13 @@ BENCHES = [
           "read off a plot).",
           "python bench/dmc.py --tasks dmc/cartpole-swingup dmc/pendulum-swingup --algos ppo "
           "shac --budget 2000000 --epochs 400 --out bench/results", dmc_table, dmc_headline),
+    Bench("gradcheck_large", "Gradient checks of large models",
+          "`twinrl gradcheck FILE --x64 --horizon 20` on the Control Suite's models of 20 or "
+          "more joints (the installed `dm_control` package's XML), each in a fresh process "
+          "with the compilation cache off: wall clock, the check's own stage times (trace and "
+          "lower, compile, the gradient's first run, the finite differences with their "
+          "batched forward's compile), the rollouts differenced and the peak resident memory.",
+          "python bench/gradcheck_large.py --out bench/results", gradcheck_large_table),
     Bench("sim2real", "Model-free on the real twin",
           "Real-twin steps that sbx-rl's SAC and TD3, trained directly on a loop run's real "
           "twin, need to reach 90 % of the oracle, against the loop's few real steps. Needs "
