@@ -105,6 +105,10 @@ def test_sysid_command_on_a_user_mjcf_and_an_npz_log(logs, tmp_path, capsys):
     args = ["sysid", "--env", str(xml), "--from", str(log), "--out", str(tmp_path / "s")]
     code = cli.main(args + [a for p in FITTED for a in ("--param", p)] + ["--max-latency", "0"])
     assert code == 0, capsys.readouterr().err
+    # progress as lines (a log sees them): the compile, then the iterations
+    out = capsys.readouterr().out
+    assert "sysid my_arm [" in out and "compiling the windows' rollouts" in out
+    assert "iteration 1: loss" in out
     table = {r["parameter"]: r["identified"] for r in
              json.loads((tmp_path / "s/summary.json").read_text())["table"]}
     for name, truth in TRUTH.items():

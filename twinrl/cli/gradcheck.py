@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 
-from twinrl.cli.common import UsageError, add_common, at_least_one
+from twinrl.cli.common import ProgressLines, UsageError, add_common, at_least_one
 
 
 def add_parser(sub) -> None:
@@ -116,7 +116,7 @@ def cmd(args) -> int:
     results = []
     for sim, scenario in loaded:
         t0 = time.perf_counter()
-        progress = _Progress(sim.name)
+        progress = ProgressLines(sim.name)
         try:
             r = gradcheck(sim, horizon=args.horizon, h=h, rtol=rtol, seed=args.seed,
                           scenario=args.scenario if scenario is None else scenario,
@@ -144,48 +144,6 @@ def cmd(args) -> int:
     path = report.write_json(args.out / "summary.json", summary)
     report.console.print(f"wrote {path}")
     return 0 if all(s["passed"] for s in results) else 1
-
-
-QUIET_FOR = 2.0
-"""Seconds a check runs before its progress lines are printed (``_Progress``)."""
-
-
-class _Progress:
-    """A ``gradcheck`` progress callback: dim lines with the time since the check began, held
-    back for its first ``QUIET_FOR`` seconds (then the stage under way is printed, from a timer
-    if the check is still silent in it) so a small scene's check finishes without them."""
-
-    def __init__(self, name: str):
-        import threading
-
-        self.name, self.t0, self.pending = name, time.perf_counter(), []
-        self.lock, self.open = threading.Lock(), False
-        self.timer = threading.Timer(QUIET_FOR, self._release)
-        self.timer.daemon = True
-        self.timer.start()
-
-    def _print(self, msg: str) -> None:
-        from twinrl import report
-
-        report.console.print(f"[dim]{self.name} [{time.perf_counter() - self.t0:4.0f} s] "
-                             f"{msg}[/dim]")
-
-    def _release(self) -> None:
-        with self.lock:
-            self.open = True
-            for m in self.pending:
-                self._print(m)
-            self.pending.clear()
-
-    def __call__(self, msg: str) -> None:
-        with self.lock:
-            if self.open:
-                self._print(msg)
-            else:
-                self.pending.append(msg)
-
-    def close(self) -> None:
-        self.timer.cancel()
 
 
 def _print_result(r, name: str, rtol: float, secs: float, strict: bool) -> None:

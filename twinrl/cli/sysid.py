@@ -8,7 +8,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from twinrl.cli.common import UsageError, add_common, at_least_one, check_task, is_mjcf
+from twinrl.cli.common import (ProgressLines, UsageError, add_common, at_least_one, check_task,
+                               is_mjcf)
 from twinrl.cli.export import add_minari_root
 
 
@@ -215,12 +216,18 @@ def _fit_and_report(args, env, data, transitions: int, source):
     from twinrl import report
     from twinrl.real2sim import sysid
 
+    lines = ProgressLines(f"sysid {env.name}")
     try:
         config = _sysid_config(args)
-        with report.console.status(f"sysid on {transitions} transitions ..."):
-            res = sysid.fit(env, data, config)
+        lines(f"fitting {transitions} transitions: compiling the windows' rollouts and their "
+              f"Jacobian (the first iteration)")
+        res = sysid.fit(env, data, config, progress_fn=lambda it, m: lines.tick(
+            f"iteration {it}: loss {m['loss']:.4g}, latency {m['latency']}, "
+            f"{m['rollouts']} window rollouts"))
     except ValueError as e:
         raise UsageError(str(e)) from None
+    finally:
+        lines.close()
     sysid.print_result(res, title=f"sysid {env.name}")
     summary = {"env": args.env, "dataset": str(source), "transitions": transitions,
                **res.summary()}
