@@ -277,10 +277,14 @@ class TrainStateCheckpointer:
         self.every = int(every)
         self._ocp = ocp
         self._writer = distributed.is_writer()
+        alone = _this_process_only(ocp)
+        if alone and self._writer:  # orbax creates no directory for a subset of processes
+            self.directory.mkdir(parents=True, exist_ok=True)
         self._manager = ocp.CheckpointManager(
             self.directory, options=ocp.CheckpointManagerOptions(
-                max_to_keep=keep, create=self._writer, read_only=not self._writer,
-                **_this_process_only(ocp)),
+                max_to_keep=keep if self._writer else None, create=not alone,
+                read_only=not self._writer, **({} if self._writer else {"save_interval_steps": 0}),
+                **alone),
             item_names=("state", "metrics"))
 
     def latest_epoch(self) -> int | None:
