@@ -5,7 +5,8 @@
 them. ``--what fit``: the imitation actor's data-parallel minibatch fit
 (``common.make_minibatch_fit`` with the global mesh, as ``imitation.train`` builds it) on a
 fixed synthetic regression, its parameters saved to ``--out/fit.npz``. Without
-``--num-processes`` (or with 1) the process runs alone, the one-process reference."""
+``--num-processes`` (or with 1) the process runs alone, the one-process reference. ``--what
+both``: the fit, then SHAC (one start-up for both)."""
 
 import argparse
 import json
@@ -40,7 +41,7 @@ def fit(out: Path, mesh) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--what", choices=("shac", "fit"), required=True)
+    p.add_argument("--what", choices=("shac", "fit", "both"), required=True)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--coordinator")
     p.add_argument("--num-processes", type=int, default=1)
@@ -57,9 +58,9 @@ def main(argv=None) -> int:
                                timeout_s=a.timeout, heartbeat_s=a.timeout)
     a.out.mkdir(parents=True, exist_ok=True)
     with distributed.guard("worker"):
-        if a.what == "fit":
+        if a.what in ("fit", "both"):
             fit(a.out, distributed.global_mesh() if many else None)
-        else:
+        if a.what in ("shac", "both"):
             from tests.learn.test_shac import PointMass
             from twinrl.envs import system
             from twinrl.learn import runner

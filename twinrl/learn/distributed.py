@@ -138,8 +138,8 @@ def _one_line_fatal(process_id, num_processes) -> None:
     passes every line through until that one, prints a single line naming the status, and drops
     the stack trace."""
     who = f"process {process_id if process_id is not None else '?'} of {num_processes or '?'}"
-    head = (f"twinrl: error: {who}: the JAX distributed runtime lost a process or its "
-            f"coordinator, so this process stops too")
+    head = (f"twinrl: error: {who}: the JAX distributed runtime stopped it (a process or the "
+            f"coordinator died, or not every process joined in time)")
     try:
         sys.stderr.flush()
         proc = subprocess.Popen([sys.executable, "-I", "-S", "-c", _FILTER, head],
