@@ -1,4 +1,5 @@
-"""One process of ``tests/learn/test_distributed.py``'s runs (``python -m tests.learn._dist_worker``).
+"""One process of ``tests/learn/test_distributed.py``'s runs
+(``python -m tests.learn._dist_worker``).
 
 ``--what shac``: ``runner.train_run`` of SHAC on ``test_shac.PointMass`` (a tiny config) into
 ``--out``: the runner's files, its checkpoints and the one writer, as ``twinrl train`` drives

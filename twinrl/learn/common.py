@@ -38,6 +38,7 @@ import numpy as np
 import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
+from twinrl.learn import distributed
 from twinrl.physics.gradients import global_norm, hygiene
 
 __all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn",
@@ -283,7 +284,7 @@ def regression_loss(apply_fn, params, obs, targets, weights):
 
 def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
                        augment: Callable[[Any, jax.Array], Any] | None = None,
-                       loop: str = "auto", mesh=None):
+                       loop: str = "auto", mesh="auto"):
     """``fit(params, opt_state, obs, targets, n, key, weights=None) -> (params, opt_state,
     losses)``: ``steps`` steps of ``tx`` on ``regression_loss`` over minibatches of ``batch``
     rows drawn from the first ``n`` rows of ``obs`` (any pytree, e.g. a dict observation) and
@@ -305,9 +306,13 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
     minibatch indices from the same key, and each minibatch's rows are split over the mesh, so
     each device takes the gradient of its rows and XLA all-reduces the mean: the same fit as on
     one device up to the order of that sum. ``batch`` must be a multiple of the device count;
-    the returned parameters and optimiser state are host (NumPy) copies. None: one device."""
+    the returned parameters and optimiser state are host (NumPy) copies. None: one device;
+    ``"auto"``: the global mesh when several processes run (``jax.distributed``: the imitation
+    actor's and the sensing Q's fits), else one device."""
     if loop not in ("auto", "scan", "python"):
         raise ValueError(f"loop must be 'auto', 'scan' or 'python', got {loop!r}")
+    if isinstance(mesh, str):
+        mesh = distributed.global_mesh() if distributed.is_distributed() else None
     if mesh is not None and batch % mesh.devices.size:
         raise ValueError(f"batch ({batch}) must be a multiple of the device count "
                          f"({mesh.devices.size}) to split each minibatch over the mesh")
@@ -358,8 +363,6 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
         run = stepwise if loop_for(obs) == "python" else scanned
         if mesh is None:
             return run(params, opt, obs, targets, n, key, weights)
-        from twinrl.learn import distributed
-
         everywhere = NamedSharding(mesh, PartitionSpec())
         args = jax.device_put(distributed.to_host((params, opt, obs, targets, n, key, weights)),
                               everywhere)

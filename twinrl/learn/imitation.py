@@ -44,7 +44,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.learn import distributed
 from twinrl.learn.common import (JSONConfig, MetricLog, held_episodes, make_minibatch_fit,
                                  make_optimizer, raw_key, rgb_jitter)
 from twinrl.learn.networks import NetworkConfig, make_network
@@ -252,11 +251,7 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     obs, acts, n = jax.tree_util.tree_map(grow, obs), grow(acts), acts.shape[0]
     weights = grow(weights)
     jitter = rgb_jitter(c.rgb_jitter) if c.observation == "pixels" and c.rgb_jitter else None
-    # several processes: each minibatch split over all their devices (the same fit, the
-    # gradient all-reduced); the episodes and labels are computed whole by every process
-    mesh = distributed.global_mesh() if distributed.is_distributed() else None
-    fit = make_minibatch_fit(net.apply, tx, int(c.fit_steps), int(c.batch_size), jitter,
-                             mesh=mesh)
+    fit = make_minibatch_fit(net.apply, tx, int(c.fit_steps), int(c.batch_size), jitter)
     episodes = lambda p, k, n, noise=0.0: actor_episodes(  # noqa: E731
         env, observe, lambda o: net.apply(p, o), c, k, n, noise)
 
