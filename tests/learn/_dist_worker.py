@@ -33,6 +33,11 @@ def fit(out: Path, mesh) -> None:
     y = np.tanh(np.asarray(x[:, :2] - 0.5 * x[:, 2:]))
     tx = make_optimizer(1e-2, 1.0)
     params = net.init(k_net)
+    if mesh is not None:  # each process's rows, assembled into the global batch they are
+        mine = distributed.process_rows(256, mesh)
+        whole = distributed.global_batch(np.asarray(x)[mine], mesh)
+        assert whole.shape == (256, 4) and len(whole.addressable_shards) == 1
+        np.testing.assert_array_equal(distributed.to_host(whole), np.asarray(x))
     run = make_minibatch_fit(net.apply, tx, 60, 32, mesh=mesh)
     params, _, losses = run(params, tx.init(params), x, y, 256, k_fit)
     if distributed.is_writer():

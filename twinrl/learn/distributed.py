@@ -18,10 +18,16 @@ so the same code runs on one process or on many:
   global key and then sliced is the same batch whatever the process count.
 - ``to_host`` gathers a (sharded) pytree to NumPy on every process: a checkpoint of the whole
   state. ``is_writer``: process 0 alone writes files (checkpoints, logs, reports).
-- Failure is loud: a coordinator that cannot be reached within ``timeout_s`` ends ``initialize``
-  with a ``DistributedError``; a peer that dies is seen by the runtime's heartbeats within
-  ``heartbeat_s`` (or at once by the next collective, whose TCP peer is gone), and every process
-  then exits non-zero (``guard``: one line on stderr, no traceback, no hang).
+- Failure is loud: every process ends with one line on stderr and a non-zero status, never a
+  hang. A peer that dies is seen at once by the next collective (its TCP connection is closed;
+  ``guard`` turns that error into one line, exit status 1) or by the runtime (a missed heartbeat
+  after ``heartbeat_s``, the coordinator's connection gone, peers not joined within
+  ``timeout_s``: JAX aborts the process, exit status 134, and a filter cuts its C++ stack trace
+  to one line, ``_one_line_fatal``).
+
+``initialize`` must run before anything starts a JAX backend: importing this module starts none,
+but importing the simulator (``twinrl.physics``, ``twinrl.envs``) does (it builds arrays), so a
+program calls ``initialize`` first (``twinrl train`` does, before it imports the rest).
 """
 
 from __future__ import annotations
