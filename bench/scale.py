@@ -6,8 +6,9 @@ For each algorithm (``shac``: one global batch sharded over the processes' devic
 process count in ``--processes``, the processes are started on 127.0.0.1 (JAX's Gloo CPU
 collectives), each pinned to its own core with ``taskset`` and to one XLA thread. Reported per run:
 
-- ``env_steps_per_s``: training environment steps per second after the first progress report
-  (the first holds the compilation), and the wall clock of the whole run (compile included);
+- ``env_steps_per_s``: training environment steps per second of wall clock between the first
+  progress report (which holds the compilation) and the last (evaluations included), and the
+  wall clock of the whole run (compile included);
 - ``wall_s_to_target``: the wall clock (compile included) at which the evaluation return first
   reached ``--target`` (None: not within the run);
 - the final return.
@@ -18,7 +19,7 @@ reduction order (``tests/learn/test_distributed.py``), PPO's draw per-process ra
 A table is printed and ``scale.json`` written to ``--out``::
 
     python bench/scale.py --out bench/results                        # SHAC and PPO, 1 and 2
-    python bench/scale.py --algos shac --shac-epochs 20 --out /tmp/scale   # a short version
+    python bench/scale.py --algos shac --shac-epochs 30 --shac-envs 64 --out /tmp/scale  # short
 
 ``--widths 256 1024 ...`` runs one process at those environment counts instead (a GPU machine:
 how the step rate grows with the batch on one device).
@@ -130,13 +131,13 @@ def main(argv=None) -> int:
     p.add_argument("--processes", nargs="+", type=int, default=[1, 2])
     p.add_argument("--widths", nargs="+", type=int, default=None,
                    help="one process at these environment counts instead (a GPU machine)")
-    p.add_argument("--shac-epochs", type=int, default=60)
-    p.add_argument("--shac-envs", type=int, default=64)
-    p.add_argument("--ppo-steps", type=int, default=400_000)
+    p.add_argument("--shac-epochs", type=int, default=150)
+    p.add_argument("--shac-envs", type=int, default=256)
+    p.add_argument("--ppo-steps", type=int, default=300_000)
     p.add_argument("--ppo-envs", type=int, default=256)
     p.add_argument("--ppo-evals", type=int, default=6)
-    p.add_argument("--target", type=float, default=100.0,
-                   help="the return whose first reaching is timed (default 100)")
+    p.add_argument("--target", type=float, default=80.0,
+                   help="the return whose first reaching is timed (default 80)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
     # one worker process (launch's)

@@ -230,8 +230,9 @@ def barrier(name: str) -> None:
 def guard(prefix: str = "twinrl"):
     """Around a distributed program: a ``DistributedError`` or a runtime error raised by a lost
     peer (a collective whose peer is gone, the coordination service's error) ends the process
-    with one line on stderr and exit status 1 instead of a traceback or a hang; other errors
-    pass unchanged. Not distributed: nothing."""
+    with one line on stderr and exit status 1 instead of a traceback or a hang (``os._exit``:
+    JAX's exit handler would wait at the runtime's shutdown barrier for the dead peer); other
+    errors pass unchanged. Not distributed: nothing."""
     try:
         yield
     except DistributedError as e:
@@ -243,8 +244,16 @@ def guard(prefix: str = "twinrl"):
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
         print(f"{prefix}: error: process {jax.process_index()} of {jax.process_count()} lost "
               f"its peers: {first}", file=sys.stderr, flush=True)
-        os._exit(1)  # no atexit: the runtime's shutdown barrier would wait for the dead peer
+        os._exit(1)
+
+
+_LOST = ("gloo", "connection", "peer", "coordination", "unavailable", "deadline_exceeded",
+         "barrier", "heartbeat")
+"""Words of a runtime error raised because another process is gone (Gloo's closed connection,
+the coordination service's errors); any other runtime error is the program's own."""
 
 
 def _runtime_failure(e: BaseException) -> bool:
-    return type(e).__name__ in ("XlaRuntimeError", "JaxRuntimeError")
+    text = str(e).lower()
+    return (type(e).__name__ in ("XlaRuntimeError", "JaxRuntimeError")
+            and any(word in text for word in _LOST))
