@@ -19,7 +19,7 @@ SHAC = {"num_envs": 8, "horizon": 8, "critic_iterations": 2, "critic_minibatches
 """``tests/learn/test_shac.TINY``'s fields: compiles in seconds."""
 
 
-def fit(out: Path, mesh) -> None:
+def fit(out: Path, mesh, fail: bool = False) -> None:
     import jax
     import numpy as np
 
@@ -38,6 +38,8 @@ def fit(out: Path, mesh) -> None:
         whole = distributed.global_batch(np.asarray(x)[mine], mesh)
         assert whole.shape == (256, 4) and len(whole.addressable_shards) == 1
         np.testing.assert_array_equal(distributed.to_host(whole), np.asarray(x))
+    if fail and jax.process_index() == 1:  # a bug in one process, its peer inside the fit
+        raise ValueError("injected failure in process 1")
     run = make_minibatch_fit(net.apply, tx, 60, 32, mesh=mesh)
     params, _, losses = run(params, tx.init(params), x, y, 256, k_fit)
     if distributed.is_writer():
@@ -55,6 +57,7 @@ def main(argv=None) -> int:
     p.add_argument("--epochs", type=int, default=4)
     p.add_argument("--resume", action="store_true")
     p.add_argument("--timeout", type=int, default=20)
+    p.add_argument("--fail", action="store_true", help="process 1 raises before the fit")
     a = p.parse_args(argv)
     from twinrl.learn import distributed
 
@@ -65,7 +68,7 @@ def main(argv=None) -> int:
     a.out.mkdir(parents=True, exist_ok=True)
     with distributed.guard("worker"):
         if a.what in ("fit", "both"):
-            fit(a.out, distributed.global_mesh() if many else None)
+            fit(a.out, distributed.global_mesh() if many else None, a.fail)
         if a.what in ("shac", "both"):
             from tests.learn.test_shac import PointMass
             from twinrl.envs import system

@@ -128,6 +128,19 @@ def test_a_dead_process_ends_the_other_loudly_and_one_process_resumes(tmp_path, 
     assert [int(float(r.split(",")[0])) for r in rows] == list(range(1, 41))
 
 
+def test_an_error_in_one_process_stops_both_at_once(tmp_path):
+    procs = _pair(tmp_path, "--what", "fit", "--fail")
+    t0 = time.monotonic()
+    (_, err0), (_, err1) = (p.communicate(timeout=TIMEOUT + 120) for p in procs)
+    assert procs[0].returncode != 0 and procs[1].returncode != 0
+    assert time.monotonic() - t0 < TIMEOUT + 100
+    # the failing process shows its traceback and says why it stopped; its peer, in one line
+    assert "ValueError: injected failure in process 1" in err1
+    assert err1.strip().splitlines()[-1].startswith("worker: error: process 1 of 2 stopped:")
+    assert "Traceback" not in err0 and "Check failure" not in err0, err0[-2000:]
+    assert err0.strip().splitlines()[-1].startswith(("worker: error:", "twinrl: error:"))
+
+
 def test_a_coordinator_nobody_answers_fails_in_one_line(tmp_path):
     t0 = time.monotonic()
     p = _worker(tmp_path, "--what", "fit", n=2, pid=1, port=_port(), timeout=3)

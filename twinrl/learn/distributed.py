@@ -35,6 +35,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import traceback
 from contextlib import contextmanager
 from typing import Any, Mapping
 
@@ -228,32 +229,44 @@ def barrier(name: str) -> None:
 
 @contextmanager
 def guard(prefix: str = "twinrl"):
-    """Around a distributed program: a ``DistributedError`` or a runtime error raised by a lost
-    peer (a collective whose peer is gone, the coordination service's error) ends the process
-    with one line on stderr and exit status 1 instead of a traceback or a hang (``os._exit``:
-    JAX's exit handler would wait at the runtime's shutdown barrier for the dead peer); other
-    errors pass unchanged. Not distributed: nothing."""
+    """Around a distributed program: any error ends this process at once with a non-zero
+    status, so its peers stop too (their next collective fails, or the runtime sees it gone)
+    instead of waiting. ``os._exit``: JAX's exit handler would wait at the runtime's shutdown
+    barrier for a peer that is not coming. What is printed: one line for a peer that was lost
+    (a collective whose connection closed, the coordination service's error) or a
+    ``DistributedError`` (exit status 1), and for twinrl's own errors, which name their cause
+    in one line (exit status 2, the command line's status for bad input); the traceback for any
+    other error (exit status 1). Not distributed: nothing, every error passes unchanged."""
     try:
         yield
     except DistributedError as e:
         print(f"{prefix}: error: {e}", file=sys.stderr, flush=True)
         os._exit(1)
     except Exception as e:
-        if not is_distributed() or not _runtime_failure(e):
+        if not is_distributed():
             raise
+        who = f"process {jax.process_index()} of {jax.process_count()}"
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        print(f"{prefix}: error: process {jax.process_index()} of {jax.process_count()} lost "
-              f"its peers: {first}", file=sys.stderr, flush=True)
+        if _runtime_failure(e):
+            print(f"{prefix}: error: {who} lost its peers: {first}", file=sys.stderr, flush=True)
+            os._exit(1)
+        if type(e).__module__.startswith("twinrl"):
+            print(f"{prefix}: error: {who}: {first}", file=sys.stderr, flush=True)
+            os._exit(2)
+        traceback.print_exc()
+        print(f"{prefix}: error: {who} stopped: {type(e).__name__}: {first}", file=sys.stderr,
+              flush=True)
         os._exit(1)
 
 
-_LOST = ("gloo", "connection", "peer", "coordination", "unavailable", "deadline_exceeded",
-         "barrier", "heartbeat")
-"""Words of a runtime error raised because another process is gone (Gloo's closed connection,
-the coordination service's errors); any other runtime error is the program's own."""
+_LOST = ("gloo", "coordination service", "unavailable:", "deadline_exceeded",
+         "connection reset", "connection closed", "connection refused", "heartbeat",
+         "shutdown barrier")
+"""Words of an error raised because another process is gone (Gloo's closed connection, the
+coordination service's errors; JAX raises them as ``JaxRuntimeError`` or, from a collective
+that was running, ``ValueError``); any other error is the program's own."""
 
 
 def _runtime_failure(e: BaseException) -> bool:
     text = str(e).lower()
-    return (type(e).__name__ in ("XlaRuntimeError", "JaxRuntimeError")
-            and any(word in text for word in _LOST))
+    return any(word in text for word in _LOST)
