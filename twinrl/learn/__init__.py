@@ -10,6 +10,14 @@ arrays on import, and ``jax.distributed.initialize`` refuses to run after that).
 """
 
 import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # what the names are, for readers and documentation tools (no import at run time)
+    from twinrl.learn.hds import HDSConfig
+    from twinrl.learn.pods import PODSConfig
+    from twinrl.learn.shac import SHACConfig
+    from twinrl.learn.trajopt import (TrajoptConfig, TrajoptResult, env_problem, improve,
+                                      optimize, trajectory_return)
 
 _NAMES = {"TrajoptConfig": "trajopt", "TrajoptResult": "trajopt", "env_problem": "trajopt",
           "improve": "trajopt", "optimize": "trajopt", "trajectory_return": "trajopt",
