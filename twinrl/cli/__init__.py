@@ -44,6 +44,17 @@ def main(argv: list[str] | None = None) -> int:
     """Run ``twinrl ARGV`` (default ``sys.argv[1:]``); returns the exit status: 0, 1 for a check
     that ran and failed, 2 for bad input (one line on stderr), 130 when interrupted."""
     args = build_parser().parse_args(argv)
+    from twinrl.learn.distributed import DistributedError
+
+    try:  # a command's setup that must come before any JAX backend starts (jax.distributed)
+        if getattr(args, "before_jax", None) is not None:
+            args.before_jax(args)
+    except UsageError as e:
+        print(f"twinrl {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except DistributedError as e:
+        print(f"twinrl {args.command}: error: {e}", file=sys.stderr)
+        return 1
     from twinrl import jaxconfig
     from twinrl.learn.checkpoint import CheckpointError
     from twinrl.learn.imitation import DemonstrationError

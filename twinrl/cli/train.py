@@ -45,8 +45,37 @@ def add_parser(sub) -> None:
                       help="control steps per episode (default 1000)")
     mjcf.add_argument("--frame-skip", type=int, default=None,
                       help="physics steps per control step (default 1)")
+    dist = p.add_argument_group(
+        "several processes (jax.distributed; docs: Scaling out)",
+        "Start the same command once per process, with the same --out on a shared file system: "
+        "the batch is split over every process's devices and process 0 alone writes. Under "
+        "SLURM (srun, several tasks) or Open MPI (mpirun) the three settings come from the "
+        "environment.")
+    dist.add_argument("--coordinator", metavar="HOST:PORT",
+                      help="address of process 0, where the others join (any free port)")
+    dist.add_argument("--num-processes", type=int, metavar="N", help="processes in the run")
+    dist.add_argument("--process-id", type=int, metavar="I", help="this process, 0 .. N-1")
+    dist.add_argument("--peer-timeout", type=int, default=120, metavar="S",
+                      help="seconds to wait for every process to join, and after which a "
+                           "process that stopped answering is declared dead, ending the others "
+                           "with an error (default 120)")
     add_common(p, "runs/train")
-    p.set_defaults(func=cmd)
+    p.set_defaults(func=cmd, before_jax=join)
+
+
+def join(args) -> None:
+    """Join JAX's multi-process runtime when the flags or the environment (SLURM, Open MPI) ask
+    for it; ``twinrl`` calls it before anything starts a JAX backend."""
+    from twinrl.learn import distributed
+
+    given = [args.coordinator, args.num_processes, args.process_id]
+    if None in given and any(x is not None for x in given) and not distributed.requested():
+        raise UsageError("--coordinator, --num-processes and --process-id go together (outside "
+                         "a SLURM or Open MPI launch, which sets them)")
+    if args.peer_timeout < 1:
+        raise UsageError(f"--peer-timeout must be >= 1 s, got {args.peer_timeout}")
+    distributed.initialize(args.coordinator, args.num_processes, args.process_id,
+                           timeout_s=args.peer_timeout, heartbeat_s=args.peer_timeout)
 
 
 def _mjcf_task(args):
@@ -85,8 +114,21 @@ def _mjcf_task(args):
 def cmd(args) -> int:
     """Train ``--algo`` on ``--env``."""
     from twinrl import report
+    from twinrl.learn import distributed
     from twinrl.learn.runner import parse_overrides, train_run
 
+    with distributed.guard(f"twinrl {args.command}"):  # a lost peer: one line, exit 1
+        s = _train(args, train_run, parse_overrides)
+    if distributed.is_writer():
+        f = s["final"]
+        report.print_table(f"trained {args.algo} on {args.env}",
+                           ["epochs", "env steps", "final return", "best return", "wall s"],
+                           [[s["epochs"], f.get("env_steps"), f.get("return"), s["best_return"],
+                             f.get("wall_s")]])
+    return 0
+
+
+def _train(args, train_run, parse_overrides) -> dict:
     env, spec = _mjcf_task(args)
     if env is None:
         check_task(args.env)
@@ -95,9 +137,4 @@ def cmd(args) -> int:
                   seed=args.seed, epochs=args.epochs, steps=args.steps,
                   overrides=parse_overrides(args.set), resume=args.resume, env=env,
                   env_spec=spec)
-    f = s["final"]
-    report.print_table(f"trained {args.algo} on {args.env}",
-                       ["epochs", "env steps", "final return", "best return", "wall s"],
-                       [[s["epochs"], f.get("env_steps"), f.get("return"), s["best_return"],
-                         f.get("wall_s")]])
-    return 0
+    return s

@@ -22,6 +22,12 @@ rng, counters; ``twinrl.learn.common``) and its metric history, saved together b
 temporary directory and renames it when complete, so a run killed at any moment leaves the last
 complete step; ``restore(template)`` continues from it. PRNG key arrays are stored as their raw key
 data and re-wrapped with the template's key implementation.
+
+**Several processes** (``twinrl.learn.distributed``): every process calls the checkpointer (the
+state is gathered to NumPy first, a collective), process 0 alone writes, and every process
+restores from the same directory (a file system they share); orbax runs on one process at a
+time (``MultiprocessingOptions(active_processes={this one})``), so no process waits for another
+at a save. What is written is the one-process format: a single process resumes from it.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
+from twinrl.learn import distributed
 from twinrl.learn.networks import Network, NetworkConfig, make_network
 from twinrl.report import to_jsonable
 
@@ -106,7 +113,9 @@ def save_policy(path: str | Path, policy: Network, params: Any, *, system: Any =
     leaves = jax.tree.leaves(params)
     if not all(np.all(np.isfinite(np.asarray(x))) for x in leaves):
         raise ValueError("refusing to save a policy with non-finite parameters")
-    ckptr = ocp.StandardCheckpointer()
+    if distributed.is_distributed():
+        params = distributed.to_host(params)
+    ckptr = ocp.StandardCheckpointer(**_this_process_only(ocp))
     ckptr.save(path / "params", params, force=True)
     ckptr.wait_until_finished()
     if system is not None:
@@ -242,6 +251,16 @@ def _unflat(saved: dict[str, Any], template):
     return jax.tree.unflatten(treedef, out)
 
 
+def _this_process_only(ocp) -> dict[str, Any]:
+    """Orbax options for a checkpointer that runs on this process alone (``{}`` when not
+    distributed: orbax's defaults, unchanged)."""
+    if not distributed.is_distributed():
+        return {}
+    me = jax.process_index()
+    return {"multiprocessing_options": ocp.options.MultiprocessingOptions(
+        primary_host=me, active_processes={me})}
+
+
 class TrainStateCheckpointer:
     """Saves a trainer's state + metrics every ``every`` epochs into ``directory``; restores it.
 
@@ -257,8 +276,15 @@ class TrainStateCheckpointer:
         self.directory = Path(directory).absolute()
         self.every = int(every)
         self._ocp = ocp
+        self._writer = distributed.is_writer()
+        alone = _this_process_only(ocp)
+        if alone and self._writer:  # orbax creates no directory for a subset of processes
+            self.directory.mkdir(parents=True, exist_ok=True)
         self._manager = ocp.CheckpointManager(
-            self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
+            self.directory, options=ocp.CheckpointManagerOptions(
+                max_to_keep=keep if self._writer else None, create=not alone,
+                read_only=not self._writer, **({} if self._writer else {"save_interval_steps": 0}),
+                **alone),
             item_names=("state", "metrics"))
 
     def latest_epoch(self) -> int | None:
@@ -269,6 +295,10 @@ class TrainStateCheckpointer:
         if not force and (epoch + 1) % self.every:
             return
         ocp = self._ocp
+        if distributed.is_distributed():
+            state = distributed.to_host(state)  # every process: the gather is a collective
+            if not self._writer:
+                return
         self._manager.save(int(epoch), args=ocp.args.Composite(
             state=ocp.args.StandardSave(_flat(state)),
             metrics=ocp.args.JsonSave(to_jsonable(metrics))), force=True)
@@ -279,8 +309,11 @@ class TrainStateCheckpointer:
         if step is None:
             raise CheckpointError(f"{self.directory}: no saved training state to resume from")
         ocp = self._ocp
-        abstract = {k: jax.ShapeDtypeStruct(np.shape(v), v.dtype)
-                    for k, v in _flat(template).items()}
+        if distributed.is_distributed():  # NumPy on each process; the trainer places it
+            abstract = {k: np.zeros(np.shape(v), v.dtype) for k, v in _flat(template).items()}
+        else:
+            abstract = {k: jax.ShapeDtypeStruct(np.shape(v), v.dtype)
+                        for k, v in _flat(template).items()}
         got = self._manager.restore(step, args=ocp.args.Composite(
             state=ocp.args.StandardRestore(abstract), metrics=ocp.args.JsonRestore()))
         return _unflat(got.state, template), dict(got.metrics)

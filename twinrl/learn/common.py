@@ -36,7 +36,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import NamedSharding, PartitionSpec
 
+from twinrl.learn import distributed
 from twinrl.physics.gradients import global_norm, hygiene
 
 __all__ = ["raw_key", "evaluate", "make_evaluator", "MetricLog", "ProgressFn", "CheckpointFn",
@@ -282,7 +284,7 @@ def regression_loss(apply_fn, params, obs, targets, weights):
 
 def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
                        augment: Callable[[Any, jax.Array], Any] | None = None,
-                       loop: str = "auto"):
+                       loop: str = "auto", mesh="auto"):
     """``fit(params, opt_state, obs, targets, n, key, weights=None) -> (params, opt_state,
     losses)``: ``steps`` steps of ``tx`` on ``regression_loss`` over minibatches of ``batch``
     rows drawn from the first ``n`` rows of ``obs`` (any pytree, e.g. a dict observation) and
@@ -297,19 +299,40 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
     (jax-ml/jax#12868): the image actor's step (64x64x5, batch 256, the keypoint CNN, 2 cores)
     takes 9.3 s inside the scan and 0.25 s called alone (``bench/learn_fit.py`` (in git history)); a vector
     fit's, 1.4 and 1.7 ms. Both draw the same minibatches (step i uses ``split(key, steps)[i]``).
-    ``fit.loop_for(obs)`` says which loop a fit on ``obs`` runs."""
+    ``fit.loop_for(obs)`` says which loop a fit on ``obs`` runs.
+
+    ``mesh`` (a ``("batch",)`` mesh over every process's devices, ``twinrl.learn.distributed``):
+    data-parallel. The data and the parameters are replicated, every process draws the same
+    minibatch indices from the same key, and each minibatch's rows are split over the mesh, so
+    each device takes the gradient of its rows and XLA all-reduces the mean: the same fit as on
+    one device up to the order of that sum. ``batch`` must be a multiple of the device count;
+    the returned parameters and optimiser state are host (NumPy) copies. None: one device;
+    ``"auto"``: the global mesh when several processes run (``jax.distributed``: the imitation
+    actor's and the sensing Q's fits), else one device."""
     if loop not in ("auto", "scan", "python"):
         raise ValueError(f"loop must be 'auto', 'scan' or 'python', got {loop!r}")
+    if isinstance(mesh, str):
+        mesh = distributed.global_mesh() if distributed.is_distributed() else None
+    if mesh is not None and batch % mesh.devices.size:
+        raise ValueError(f"batch ({batch}) must be a multiple of the device count "
+                         f"({mesh.devices.size}) to split each minibatch over the mesh")
     ones = jnp.ones((batch,))
+
+    def rows(tree):  # a minibatch's rows split over the mesh (nothing on one device)
+        if mesh is None:
+            return tree
+        return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(
+            x, NamedSharding(mesh, PartitionSpec("batch", *([None] * (x.ndim - 1))))), tree)
 
     def one(p, s, obs, targets, n, k, weights):
         k_idx, k_aug = (k, None) if augment is None else jax.random.split(k)
         idx = jax.random.randint(k_idx, (batch,), 0, n)
-        o = jax.tree_util.tree_map(lambda x: x[idx], obs)
+        o = rows(jax.tree_util.tree_map(lambda x: x[idx], obs))
         if augment is not None:
             o = augment(o, k_aug)
-        w = ones if weights is None else weights[idx]
-        value, g = jax.value_and_grad(regression_loss, argnums=1)(apply_fn, p, o, targets[idx], w)
+        w = rows(ones if weights is None else weights[idx])
+        value, g = jax.value_and_grad(regression_loss, argnums=1)(apply_fn, p, o,
+                                                                  rows(targets[idx]), w)
         u, s = tx.update(g, s, p)
         return optax.apply_updates(p, u), s, value
 
@@ -338,7 +361,12 @@ def make_minibatch_fit(apply_fn, tx, steps: int, batch: int,
 
     def fit(params, opt, obs, targets, n, key, weights=None):
         run = stepwise if loop_for(obs) == "python" else scanned
-        return run(params, opt, obs, targets, n, key, weights)
+        if mesh is None:
+            return run(params, opt, obs, targets, n, key, weights)
+        everywhere = NamedSharding(mesh, PartitionSpec())
+        args = jax.device_put(distributed.to_host((params, opt, obs, targets, n, key, weights)),
+                              everywhere)
+        return distributed.to_host(run(*args))
 
     fit.loop_for = loop_for
     return fit

@@ -69,7 +69,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.learn import trajopt
+from twinrl.learn import distributed, trajopt
 from twinrl.learn.common import (CheckpointFn, JSONConfig, ProgressFn, RestoreFn, compile_key,
                                  regression_loss)
 from twinrl.learn.critic import critic_stats, critic_targets
@@ -260,6 +260,8 @@ def train(env, config: PODSConfig = PODSConfig(), rng: jax.Array | int | None = 
         params, opt_state, batch, loss, pgn, loss0, cparams, copt = epoch_update(
             compiled, mesh, state.params, state.opt_state, k_batch, batch_size=c.batch_size,
             critic_params=state.critic_params, critic_opt_state=state.critic_opt_state)
+        if distributed.is_distributed():  # the figures below read every process's windows
+            batch = distributed.to_host(batch)
         env_steps = np.asarray(int(state.env_steps) + steps_per_epoch, np.int64)
         state = PODSState(params=params, opt_state=opt_state, rng=rng_next,
                           eval_key=state.eval_key, epoch=state.epoch + 1, env_steps=env_steps,

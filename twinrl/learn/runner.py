@@ -15,6 +15,11 @@ A **training run** directory holds::
 because trainers draw every random number from the key in their state, the resumed run ends
 with the same parameters and metrics as an uninterrupted one.
 
+Under ``jax.distributed`` (``twinrl.learn.distributed``) every process calls ``train_run`` with
+the same arguments and ``out`` (a shared file system); process 0 alone writes the directory
+(the others check it, train their share and return the same summary), and any process count,
+one included, resumes from it.
+
 The algorithm registry maps the CLI's names to trainers: ``pods`` and ``pods2`` (PODS, first and
 second order), ``hds``, ``shac`` and the Brax baselines ``ppo`` and ``apg``. Per-task tuned
 defaults are one table, ``twinrl.learn.tuned.TUNED[algo][env_name]`` (MuJoCo Playground's
@@ -33,7 +38,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from twinrl.learn import tuned
+from twinrl.learn import distributed, tuned
 
 __all__ = ["ALGORITHMS", "Algorithm", "algorithm", "make_config", "parse_overrides", "train_run",
            "continue_run", "eval_run", "policy_video", "RunError", "progress_figures",
@@ -197,11 +202,14 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
     elif resume:
         raise RunError(f"{algo} (a trainer without saved state) cannot resume; run it again "
                        f"without --resume")
-    report.write_json(run_file, run_doc)
+    distributed.barrier("twinrl-train-run-checked")  # every process read run.json before it changes
+    own = distributed.is_writer()
+    if own:
+        report.write_json(run_file, run_doc)
 
-    writer = report.MetricsWriter(out)
+    writer = report.MetricsWriter(out) if own else _NoMetrics(out)
     total = int(getattr(config, "epochs", 0) or 0)
-    bar, task = _progress_bar(f"train {algo} on {env_name}", total, enabled=progress)
+    bar, task = _progress_bar(f"train {algo} on {env_name}", total, enabled=progress and own)
 
     finished = [0]                     # epochs done (trainers number epochs from 0 or 1)
 
@@ -242,18 +250,38 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
     kept = metrics.get("kept") or []
     at = kept.index(1.0) if 1.0 in kept else -1
     final = {k: (v[at] if v else None) for k, v in metrics.items()}
+    summary = {"algo": algo, "env": env_name, "seed": int(seed), "final": final,
+               "best_return": float(np.nanmax(metrics["return"])) if metrics.get("return") else None,
+               "epochs": len(metrics.get("epoch", [])), "wall_s_this_process": wall,
+               "policy": str(out / "policy"), "curve": str(out / "curve.png"),
+               "metrics_csv": str(writer.path), "resumed": restore is not None}
+    if distributed.is_distributed():
+        params = distributed.to_host(params)
+    if not own:
+        return summary
     save_policy(out / "policy", policy, params, system=system_of(env), algo=algo, env=env_name,
                 env_config=_env_config(env), config=config, seed=int(seed),
                 metrics={k: v for k, v in final.items() if v is not None},
                 **({"mjcf": env_spec} if env_spec is not None else {}))
-    curve = _plot_training(out / "curve.png", metrics, f"{algo} on {env_name}")
-    summary = {"algo": algo, "env": env_name, "seed": int(seed), "final": final,
-               "best_return": float(np.nanmax(metrics["return"])) if metrics.get("return") else None,
-               "epochs": len(metrics.get("epoch", [])), "wall_s_this_process": wall,
-               "policy": str(out / "policy"), "curve": str(curve),
-               "metrics_csv": str(writer.path), "resumed": restore is not None}
+    summary["curve"] = str(_plot_training(out / "curve.png", metrics, f"{algo} on {env_name}"))
     report.write_json(out / "summary.json", summary)
     return summary
+
+
+class _NoMetrics:
+    """``report.MetricsWriter``'s interface writing nothing: a process other than the writer."""
+
+    def __init__(self, directory):
+        self.path = Path(directory) / "metrics.csv"
+
+    def write(self, step, row) -> None:
+        pass
+
+    def rewrite(self, history) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
 
 
 def continue_run(env_name: str, algo: str, out: str | Path, **kwargs) -> dict[str, Any]:

@@ -48,6 +48,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from twinrl.learn import distributed
 from twinrl.learn.common import (CheckpointFn, JSONConfig, ProgressFn, RestoreFn, make_evaluator,
                                  raw_key)
 from twinrl.learn.critic import td_lambda_targets
@@ -153,7 +154,9 @@ def train(env, config: SHACConfig = SHACConfig(), rng: jax.Array | None = None, 
     p = make_parts(env, c)
     state, log, done = resume(restore, init_state(p, rng), SHACState)
     # Environments split over the devices, everything else replicated, in and out of the epoch.
-    state, epoch_fn = jit_sharded_epoch(lambda s: epoch_step(p, s), state, mesh,
+    # several processes: the actor's gradient summed once an epoch (epoch_step's ``mesh``)
+    per_device = mesh if distributed.is_distributed() else None
+    state, epoch_fn = jit_sharded_epoch(lambda s: epoch_step(p, s, per_device), state, mesh,
                                         ("env_state", "ep_step"), 3)
     evaluate = make_evaluator(env, p.policy.apply, c.eval_episodes, p.episode_length)
 

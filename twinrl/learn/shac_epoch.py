@@ -14,6 +14,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import optax
+from jax.sharding import PartitionSpec as P
 
 from twinrl.learn.common import tree_where
 from twinrl.learn.critic import minibatch_fit, td_lambda_targets
@@ -115,15 +116,24 @@ def init_state(p: Parts, key) -> SHACState:
         rng=key, epoch=jnp.zeros((), jnp.int32))
 
 
-def actor_loss(p: Parts, actor, target_critic, env_state, ep_step, obs_norm, key):
+def actor_loss(p: Parts, actor, target_critic, env_state, ep_step, obs_norm, key, part=None):
     """SHAC's short-horizon actor loss (Eq. 2) and the window's data for the critic:
-    ``(loss, (next env_state, next ep_step, obs, rewards, next values, boundaries))``."""
+    ``(loss, (next env_state, next ep_step, obs, rewards, next values, boundaries))``.
+
+    ``part = (first, rows)``: ``env_state`` and ``ep_step`` are rows ``first .. first + rows``
+    of the ``num_envs`` (one device's share, ``epoch_step``'s ``mesh``); they take those rows
+    of the whole batch's random draws, and the loss is their share of the whole batch's."""
     c, N, h, T = p.config, int(p.config.num_envs), int(p.config.horizon), p.episode_length
     k_noise, k_reset = jax.random.split(key)
+    keys, noise = jax.random.split(k_reset, N), jax.random.normal(k_noise, (h, N, p.act_size))
+    if part is not None:
+        first, rows = part
+        keys = jax.lax.dynamic_slice_in_dim(keys, first, rows)
+        noise = jax.lax.dynamic_slice_in_dim(noise, first, rows, axis=1)
+    n = keys.shape[0]
     # One fresh state per environment serves any episode that ends inside this window
     # (h <= T, so at most one ends per window unless the simulation diverges twice).
-    fresh = jax.lax.stop_gradient(p.v_reset(jax.random.split(k_reset, N)))
-    noise = jax.random.normal(k_noise, (h, N, p.act_size))
+    fresh = jax.lax.stop_gradient(p.v_reset(keys))
     std = jnp.exp(actor["log_std"])
     mean_o, std_o = obs_norm["mean"], obs_std(obs_norm)
     norm = lambda o: (o - mean_o) / std_o  # noqa: E731
@@ -147,9 +157,9 @@ def actor_loss(p: Parts, actor, target_critic, env_state, ep_step, obs_norm, key
                jax.lax.stop_gradient(v_next), boundary, contrib)
         return (tree_where(ended, fresh, s2), jnp.where(ended, 0, t2), acc, disc), out
 
-    zeros = jnp.zeros((N,))
+    zeros = jnp.zeros((n,))
     (s_end, t_end, _, _), (obs, rew, v_next, bnd, contrib) = jax.lax.scan(
-        step, (env_state, ep_step, zeros, jnp.ones((N,))), (noise, jnp.arange(h)))
+        step, (env_state, ep_step, zeros, jnp.ones((n,))), (noise, jnp.arange(h)))
     loss = -jnp.sum(contrib) / (h * N)
     return loss, (jax.lax.stop_gradient(s_end), t_end, obs, rew, v_next, bnd)
 
@@ -163,14 +173,39 @@ def critic_update(p: Parts, params, opt, obs, targets, key):
                          targets.reshape(nh), key, c.critic_iterations, c.critic_minibatches)
 
 
-def epoch_step(p: Parts, s: SHACState):
+def _actor_gradient(p: Parts, mesh, *args):
+    """``((loss, aux), gradient)`` of ``actor_loss``; with ``mesh``, each device takes the
+    gradient of its environments' share of the loss and the shares are summed once (``psum``)."""
+    grad = jax.value_and_grad(lambda *a: actor_loss(p, *a[:-1], part=a[-1]), has_aux=True)
+    if mesh is None:
+        return grad(*args, None)
+    rows = int(p.config.num_envs) // mesh.devices.size
+
+    def local(*args):
+        (loss, aux), g = grad(*args, (jax.lax.axis_index("batch") * rows, rows))
+        return jax.lax.psum(loss, "batch"), aux, jax.lax.psum(g, "batch")
+
+    env, window, one = P("batch"), P(None, "batch"), P()  # aux: (state, step, obs, rew, v, bnd)
+    # check_vma off: the window's scan carries start replicated (zeros) and become per-device
+    loss, aux, g = jax.shard_map(
+        local, mesh=mesh, in_specs=(one, one, env, env, one, one),
+        out_specs=(one, (env, env, window, window, window, window), one), check_vma=False)(*args)
+    return (loss, aux), g
+
+
+def epoch_step(p: Parts, s: SHACState, mesh=None):
     """One epoch of Algorithm 1 (actor, critic, target critic, observation statistics):
-    ``(next state, metrics, evaluation key)``."""
+    ``(next state, metrics, evaluation key)``.
+
+    ``mesh`` (the environments split over its devices): the actor's gradient is taken per
+    device and summed once per epoch. Without it XLA's partitioner sums the gradient over the
+    devices at every step of the backward pass through the window (``horizon`` all-reduces an
+    epoch): over processes, where each costs milliseconds of TCP, that made two processes
+    8.5x slower than one (``bench/scale.py``). None: the one-device program."""
     c = p.config
     key, k_actor, k_critic, k_eval = jax.random.split(s.rng, 4)
-    (loss, aux), grads = jax.value_and_grad(
-        lambda *a: actor_loss(p, *a), has_aux=True)(
-        s.actor, s.target_critic, s.env_state, s.ep_step, s.obs_norm, k_actor)
+    (loss, aux), grads = _actor_gradient(p, mesh, s.actor, s.target_critic, s.env_state,
+                                         s.ep_step, s.obs_norm, k_actor)
     env_state, ep_step, obs, rew, v_next, bnd = aux
     updates, actor_opt = p.actor_tx.update(grads, s.actor_opt, s.actor)
     actor = optax.apply_updates(s.actor, updates)

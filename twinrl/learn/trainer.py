@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
+from twinrl.learn import distributed
 from twinrl.learn.common import CheckpointFn, MetricLog, ProgressFn, RestoreFn
 from twinrl.physics.parallel import shard_batch
 
@@ -37,7 +38,15 @@ EpochFn = Callable[[int, Any], tuple[Any, dict[str, Any]]]
 def replicate(tree, mesh):
     """Place ``tree`` on every device of ``mesh`` (the same placement every epoch, so the jitted
     epoch functions compile once: a fresh init and a jit output would otherwise differ)."""
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+    return jax.device_put(_from_host(tree), NamedSharding(mesh, PartitionSpec()))
+
+
+def _from_host(tree):
+    """Under ``jax.distributed``, ``tree`` as host (NumPy) arrays: an array committed to this
+    process's device (MJX's ``make_data`` commits its arrays) cannot be placed on a global mesh
+    ("does not support cross-host device transfers"), a host array can (every process holds the
+    same value and places its own shards). One process: ``tree`` unchanged."""
+    return distributed.to_host(tree) if distributed.is_distributed() else tree
 
 
 def jit_sharded_epoch(step: Callable, state, mesh, batched: tuple[str, ...], n_out: int):
@@ -46,6 +55,7 @@ def jit_sharded_epoch(step: Callable, state, mesh, batched: tuple[str, ...], n_o
     rest replicated, and ``step(state) -> (state, *n_out - 1 replicated outputs)`` keeps that
     layout (explicit shardings: an output laid out differently from its input would recompile the
     step on its second call)."""
+    state = _from_host(state)
     state = replicate(state, mesh)._replace(
         **{k: shard_batch(getattr(state, k), mesh) for k in batched})
     layout = jax.tree_util.tree_map(lambda x: x.sharding, state)

@@ -125,7 +125,8 @@ def put_model(mj_model: mujoco.MjModel, name: str = "mjcf") -> mjx.Model:
         mj_model.opt.enableflags = flags & ~sum(_REPORTING)
     try:
         with collision.mjx_pairs():  # the pairs MJX lacks, collided by twinrl's functions
-            return mjx.put_model(mj_model)
+            # MJX's default device is jax.devices()[0], another process's under jax.distributed
+            return mjx.put_model(mj_model, device=jax.local_devices()[0])
     except NotImplementedError as e:
         msg = _first_line(e)
         if "collisions not implemented" in msg:
@@ -269,7 +270,7 @@ class Sim:
     def init(self, qpos=None, qvel=None) -> mjx.Data:
         """A fresh ``mjx.Data`` at ``qpos``/``qvel`` (default: the model's ``qpos0``, rest)."""
         with collision.mjx_pairs():  # MJX sizes the contacts of every pair by its table
-            d = mjx.make_data(self.model)
+            d = mjx.make_data(self.model, device=jax.local_devices()[0])  # this process's
         if qpos is not None:
             d = d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype).reshape(self.nq))
         if qvel is not None:
