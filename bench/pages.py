@@ -284,6 +284,12 @@ BENCHES = [
           "lower, compile, the gradient's first run, the finite differences with their "
           "batched forward's compile), the rollouts differenced and the peak resident memory.",
           "python bench/gradcheck_large.py --out bench/results", gradcheck_large_table),
+    Bench("scale", "Past one process",
+          "SHAC and Brax PPO on `cartpole_swingup` under `jax.distributed`: env-steps/s and wall "
+          "clock at 1 and 2 CPU processes (one core each, `taskset`), and the return reached; "
+          "`--widths` adds environment counts for an accelerator. See the "
+          "[Scaling out](tutorials/scaling-out.md) tutorial.",
+          "python bench/scale.py --out bench/results"),
     Bench("sim2real", "Model-free on the real twin",
           "Real-twin steps that sbx-rl's SAC and TD3, trained directly on a loop run's real "
           "twin, need to reach 90 % of the oracle, against the loop's few real steps. Needs "
