@@ -187,8 +187,9 @@ def panda_dataset(seed: int, episodes: int, steps: int, frame_skip: int) -> dict
 
 
 # ---------------------------------------------------------------------- (b) mujoco.sysid
-def mujoco_sysid_fit(ds: dict, names: list[str], window: int, max_iters: int) -> dict:
-    """Identify ``names`` with ``mujoco.sysid`` on ``ds`` (module docstring, method (b))."""
+def mujoco_problem(ds: dict, names: list[str], window: int, latency: int):
+    """``mujoco.sysid``'s ``(ParameterDict, residual_fn)`` for ``names`` on ``ds`` with the
+    controls applied ``latency`` control steps late (module docstring, method (b))."""
     import mujoco
     from mujoco import sysid as mjs
 
@@ -211,6 +212,12 @@ def mujoco_sysid_fit(ds: dict, names: list[str], window: int, max_iters: int) ->
     sq = np.maximum(qpos.reshape(-1, qpos.shape[-1]).std(0), 1e-6)
     sv = np.maximum(qvel.reshape(-1, qvel.shape[-1]).std(0), 1e-6)
     nq = base.nq
+    # an unlimited hinge's angle is read off its observation modulo 2 pi (the cartpole's
+    # atan2): its error is taken modulo 2 pi too, as the task's cos/sin observation compares it
+    wrap = np.zeros(nq, bool)
+    for j in range(base.njnt):
+        if (base.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and not base.jnt_limited[j]):
+            wrap[base.jnt_qposadr[j]] = True
 
     def build_model(params, _spec):
         m = copy.copy(base)
@@ -221,43 +228,54 @@ def mujoco_sysid_fit(ds: dict, names: list[str], window: int, max_iters: int) ->
         k = np.rint(measured.times / dt).astype(int) - 1  # state row i: after physics step i+1
         q, v = state[k, 1:1 + nq], state[k, 1 + nq:1 + nq + model.nv]
         mq, mv = measured.data[:, :nq], measured.data[:, nq:nq + model.nv]
-        res = np.concatenate([((q - mq) / sq).ravel(), ((v - mv) / sv).ravel()])
+        dq = np.where(wrap, np.angle(np.exp(1j * (q - mq))), q - mq)
+        res = np.concatenate([(dq / sq).ravel(), ((v - mv) / sv).ravel()])
         return res, pred, measured
+
+    applied = np.concatenate([np.broadcast_to(ds["idle_ctrl"], (E, latency, ctrl.shape[-1])),
+                              ctrl[:, :T - latency]], axis=1)
+    inits, controls, sensors, seq = [], [], [], []
+    for e in range(E):
+        for s in range(0, T - window + 1, window):
+            inits.append(mjs.create_initial_state(base, qpos[e, s], qvel[e, s]))
+            c = np.repeat(applied[e, s:s + window], fs, axis=0)
+            c = np.concatenate([c, c[-1:]])  # rollout drops the last control
+            controls.append(mjs.TimeSeries(np.arange(len(c)) * dt, c))
+            meas = np.concatenate([qpos[e, s + 1:s + window + 1],
+                                   qvel[e, s + 1:s + window + 1]], axis=1)
+            sensors.append(mjs.TimeSeries.from_names(np.arange(1, window + 1) * fs * dt, meas,
+                                                     base))
+            seq.append(f"ep{e}_t{s}")
+    ms = mjs.ModelSequences(ds["name"], mspec, seq, inits, controls, sensors)
+    residual_fn = mjs.build_residual_fn(models_sequences=[ms], build_model=build_model,
+                                        modify_residual=modify_residual, resample_true=False)
+    return mujoco_parameters(base, spec, names), residual_fn
+
+
+def cost(residual_fn, params, x) -> float:
+    """Half the squared residual norm at ``x``."""
+    r = np.concatenate(residual_fn(np.asarray(x, np.float64), params.copy())[0])
+    return float(0.5 * r @ r)
+
+
+def mujoco_sysid_fit(ds: dict, names: list[str], window: int, max_iters: int) -> dict:
+    """Identify ``names`` with ``mujoco.sysid`` on ``ds``: its ``optimize`` once per latency in
+    0..``max_latency``, the lowest cost kept."""
+    from mujoco import sysid as mjs
 
     best = None
     t0 = time.perf_counter()
     for lat in range(ds["max_latency"] + 1):
-        applied = np.concatenate([np.broadcast_to(ds["idle_ctrl"], (E, lat, ctrl.shape[-1])),
-                                  ctrl[:, :T - lat]], axis=1)
-        inits, controls, sensors, seq = [], [], [], []
-        for e in range(E):
-            for s in range(0, T - window + 1, window):
-                x0 = mjs.create_initial_state(base, qpos[e, s], qvel[e, s])
-                c = np.repeat(applied[e, s:s + window], fs, axis=0)
-                c = np.concatenate([c, c[-1:]])  # rollout drops the last control
-                controls.append(mjs.TimeSeries(np.arange(len(c)) * dt, c))
-                meas = np.concatenate([qpos[e, s + 1:s + window + 1],
-                                       qvel[e, s + 1:s + window + 1]], axis=1)
-                sensors.append(mjs.TimeSeries.from_names(
-                    np.arange(1, window + 1) * fs * dt, meas, base))
-                inits.append(x0)
-                seq.append(f"ep{e}_t{s}")
-        ms = mjs.ModelSequences(ds["name"], mspec, seq, inits, controls, sensors)
-        params = mujoco_parameters(base, spec, names)
-        residual_fn = mjs.build_residual_fn(models_sequences=[ms], build_model=build_model,
-                                            modify_residual=modify_residual,
-                                            resample_true=False)
+        params, residual_fn = mujoco_problem(ds, names, window, lat)
         x0 = params.as_vector()
         opt, result = mjs.optimize(params, residual_fn, optimizer="mujoco", verbose=False,
                                    max_iters=max_iters, x_scale=np.maximum(np.abs(x0), 1e-3),
                                    output=io.StringIO())  # its per-iteration log
-        r = np.concatenate(residual_fn(result.x, opt.copy())[0])
-        cost = float(0.5 * r @ r)
-        if best is None or cost < best["cost"]:
-            best = dict(latency=lat, cost=cost,
-                        values={n: float(opt[n].value[0]) for n in names})
+        c = cost(residual_fn, params, result.x)
+        if best is None or c < best["cost"]:
+            best = dict(latency=lat, cost=c, values={n: float(opt[n].value[0]) for n in names},
+                        windows=len(residual_fn(result.x, params.copy())[0]))
     best["seconds"] = time.perf_counter() - t0
-    best["windows"] = len(seq)
     return best
 
 
