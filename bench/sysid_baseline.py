@@ -43,9 +43,9 @@ What ``mujoco.sysid`` can fit that twinrl cannot: any quantity an ``MjSpec`` edi
 a ``Parameter``'s modifier callback (geometry, positions, solref/solimp, tendon properties, ...);
 full body inertial parameters, mass, centre of mass and the rotational inertia, in physically
 consistent parameterisations (``body_inertia_param``: pseudo-inertia / log-Cholesky,
-``InertiaType``), where twinrl scales each body's inertia with its mass; position-servo P and
-D gains together (``apply_pgain`` / ``apply_dgain`` / ``apply_pdgain`` keep ``biasprm``
-consistent); and the *sensor side*: per-sensor delays, gains and biases (``signal_modifier.apply_delay`` /
+``InertiaType``), where twinrl scales each body's inertia with its mass; position-servo P and D
+gains together (``apply_pgain`` / ``apply_dgain`` / ``apply_pdgain`` keep ``biasprm`` consistent);
+and the *sensor side*: per-sensor delays, gains and biases (``signal_modifier.apply_delay`` /
 ``apply_gain`` / ``apply_bias``, resampling of logs at other rates, ``SignalTransform``), with
 residuals on any MuJoCo sensor rather than the task's observation. It also gives confidence
 intervals (``calculate_intervals``) and an HTML report.
