@@ -261,7 +261,7 @@ def test_sysid_reads_past_a_damaged_chunk_saying_what_was_dropped(tmp_path, caps
     chunk.write_bytes(bytes(data))
     seen = []
 
-    def fit(env, data, config):  # stands in for the fit: what it was given is what matters
+    def fit(env, data, config, **kwargs):  # stands in for the fit: what it was given matters
         seen.append(len(data))
         raise ValueError("stop here")
 

@@ -19,7 +19,17 @@ def cwd(tmp_path, monkeypatch):
     return tmp_path
 
 
-def test_compile_warning_is_a_python_warning_and_no_log_file(cwd):
+@pytest.fixture
+def no_handler():
+    """MuJoCo's own warning handler (none) for the test; whatever another test's import set
+    (dm_control installs one) is put back afterwards."""
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(None)
+    yield
+    mujoco.set_mju_user_warning(previous)
+
+
+def test_compile_warning_is_a_python_warning_and_no_log_file(cwd, no_handler):
     path = cwd / "deprecated.xml"
     path.write_text(DEPRECATED)
     with pytest.warns(MuJoCoWarning, match=r"deprecated\.xml: MuJoCo: .*settotalmass"):
