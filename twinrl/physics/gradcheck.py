@@ -264,18 +264,19 @@ EFC_COPIES = 16
 contact candidates, a 31,804 x 85 Jacobian of 21.6 MB) ran out of 20 GB in a batch of 64."""
 
 
-def batch_size(sim: Sim) -> int:
+def batch_size(sim: Sim, data=None) -> int:
     """Rollouts per batch for ``sim``: ``BATCH``, fewer where its constraint Jacobian is large
-    (the dog's 5)."""
-    d = sim.init()
+    (the dog's 4). ``data``: ``sim.init()``, when the caller has it already."""
+    d = sim.init() if data is None else data
     efc_bytes = max(1, int(np.prod(d._impl.efc_J.shape))) * jnp.asarray(0.0).dtype.itemsize
     return int(np.clip(BATCH_BYTES // (EFC_COPIES * efc_bytes), 1, BATCH))
 
 
-def _contact_candidates(sim: Sim) -> int:
-    """Contacts MJX evaluates every step (every candidate pair, touching or not)."""
+def _contact_candidates(data) -> int:
+    """Contacts MJX evaluates every step (every candidate pair, touching or not), from a
+    ``sim.init()``."""
     try:
-        return int(sim.init()._impl.contact.dist.shape[0])
+        return int(data._impl.contact.dist.shape[0])
     except AttributeError:  # a layout without that field: not worth failing the check over
         return -1
 
@@ -421,7 +422,8 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
 
     t0 = time.perf_counter()
     T = int(sc.actions.shape[0])
-    candidates = _contact_candidates(sim)
+    data0 = sim.init()  # its layout: the contacts and the constraint Jacobian per step
+    candidates = _contact_candidates(data0)
     bounded = any(_driver._numeric(sim.mj_model, b) >= 0 for b in CONTACT_BOUNDS)
     say(f"tracing the gradient of a {T}-step rollout ({sim.nv} dofs, {x0.size} inputs, "
         f"{candidates} contacts per step{' after its bounds' if bounded else ''})")
@@ -477,7 +479,7 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     k = len(dirs)
     eye = jax.nn.one_hot(chosen, x0np.size, dtype=dtype)  # the chosen rows of the identity
     batched = _Batched(jax.jit(jax.vmap(lambda x: loss(x)[0])), 1 + 2 * (n + k), say,
-                       batch_size(sim))
+                       batch_size(sim, data0))
     say(f"differencing {n + k} entries: {3 * batched.rows} rollouts in batches of "
         f"{batched.chunk}")
     # each entry's step (then each group direction's); shrunk below where a difference left
