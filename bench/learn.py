@@ -5,13 +5,19 @@ For every task (``pendulum_swingup``, ``cartpole_swingup``; simulated) and algor
 ``--seeds`` seeds:
 
 - final return (deterministic policy, mean over evaluation episodes), mean +- std over seeds;
-- wall-clock seconds (compile included) and env steps to first reach 90% of the best final return
+- wall-clock seconds (warm cache, below) and env steps to first reach 90% of the best final return
   that any algorithm reached on the task (mean over the seeds that reached it, and how many did);
 - whether each run **solved** the task (issue #4: an evaluation return >= 130 of the maximum 250
   while the mean of the last 10 evaluations is >= 130 too), and the epoch, seconds and env steps
   at which it first did;
 - seconds to reach PPO's final return, and that time as a fraction of PPO's whole run (the issue's
-  target for the best differentiable algorithm: <= 1/5);
+  target for the best differentiable algorithm: <= 1/5), measured twice: on a cold compilation
+  cache (compile included: what a first run on a fresh machine waits) and on a warm one
+  (learning time: every program loaded from the persistent cache, tracing still included);
+- **compile seconds** per algorithm and task, apart from learning: seed 0 runs first with an
+  empty JAX compilation cache (``--cache``, emptied at the start), then every seed, seed 0
+  included, runs again with the programs in the cache; compile = cold minus warm wall clock of
+  seed 0 (the same seed does the same work). The per-seed figures are the warm runs';
 - a plot of return against wall-clock and against env steps (``learn.png``), a printed table and
   ``learn.json`` in ``--out``.
 
@@ -23,6 +29,10 @@ meaningless). The full run takes long on a CPU; run it on an otherwise idle mach
     python bench/learn.py --out bench/results                    # everything, 3 seeds
     python bench/learn.py --algos shac ppo --envs cartpole_swingup --seeds 1
     python bench/learn.py --quick --out /tmp/learn_quick
+    python bench/learn.py --algos shac ppo --envs cartpole_swingup pendulum_swingup push
+
+``--set ALGO.FIELD=VALUE`` overrides one config field for the run (e.g. ``--set shac.epochs=100``),
+recorded with the results.
 
 Each finished run is also written to ``--out/learn_runs/TASK-ALGO-SEED.json`` and reused by a
 later invocation with the same ``--out`` (``--fresh`` ignores them), so a long benchmark can be
@@ -35,6 +45,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import sys
 import time
 import traceback
@@ -86,8 +97,10 @@ def trainer(algo: str, task: str, quick: bool):
     return train, cfg
 
 
-def run(algo: str, task: str, seed: int, quick: bool) -> dict:
+def run(algo: str, task: str, seed: int, quick: bool, overrides: dict | None = None) -> dict:
     train, cfg = trainer(algo, task, quick)
+    if overrides:
+        cfg = _override(cfg, overrides)
     env = envs.make(task, **(QUICK_TASK if quick else {}))
     t0 = time.perf_counter()
     last = [t0]
@@ -103,6 +116,23 @@ def run(algo: str, task: str, seed: int, quick: bool) -> dict:
     return {"seed": seed, "config": cfg_json, "wall_s": metrics["wall_s"],
             "env_steps": metrics["env_steps"], "return": metrics["return"],
             "total_s": time.perf_counter() - t0}
+
+
+def parse_sets(items: list[str]) -> dict[str, dict]:
+    """``["shac.epochs=100", ...]`` -> ``{"shac": {"epochs": 100}}`` (values parsed as JSON,
+    else kept as strings); ``ValueError`` naming a malformed item."""
+    out: dict[str, dict] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        algo, dot, field = key.partition(".")
+        if not (sep and dot and algo and field):
+            raise ValueError(f"--set {item!r}: expected ALGO.FIELD=VALUE")
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError:
+            parsed = value
+        out.setdefault(algo, {})[field] = tuple(parsed) if isinstance(parsed, list) else parsed
+    return out
 
 
 def first_reach(run_: dict, threshold: float) -> tuple[float, float]:
@@ -129,18 +159,24 @@ def _mean(xs) -> float:
     return float(np.mean(xs)) if xs else float("nan")
 
 
-def analyse(task_runs: dict[str, list[dict]]) -> dict:
+def analyse(task_runs: dict[str, list[dict]], cold: dict[str, dict] | None = None) -> dict:
     finals = {a: [r["return"][-1] for r in runs] for a, runs in task_runs.items() if runs}
     best = max(np.mean(f) for f in finals.values())
     threshold = FRACTION * best
     ppo_final = np.mean(finals["ppo"]) if "ppo" in finals else float("nan")
     ppo_wall = (np.mean([r["wall_s"][-1] for r in task_runs["ppo"]]) if "ppo" in finals
                 else float("nan"))
+    cold = cold or {}
+    ppo_cold = cold.get("ppo")
+    ppo_cold_wall = ppo_cold["wall_s"][-1] if ppo_cold else float("nan")
     out = {"best_final_return": best, "threshold": threshold, "ppo_final_return": ppo_final,
-           "ppo_wall_s": ppo_wall, "algos": {}}
+           "ppo_wall_s": ppo_wall, "ppo_cold_wall_s": ppo_cold_wall, "algos": {}}
     for a, runs in task_runs.items():
         if not runs:
             continue
+        c = cold.get(a)
+        compile_s = c["wall_s"][-1] - runs[0]["wall_s"][-1] if c else float("nan")
+        cold_to_ppo = first_reach(c, ppo_final)[0] if c and np.isfinite(ppo_final) else float("nan")
         reach = [first_reach(r, threshold) for r in runs]
         solved = [first_solved(r) for r in runs]
         to_ppo = [first_reach(r, ppo_final)[0] for r in runs] if np.isfinite(ppo_final) else []
@@ -158,7 +194,14 @@ def analyse(task_runs: dict[str, list[dict]]) -> dict:
             "steps_to_solved": _mean([x for _, _, x in solved]),
             "time_to_ppo_final_s": _mean(to_ppo),
             "fraction_of_ppo_wall": _mean(to_ppo) / ppo_wall if to_ppo else float("nan"),
+            "ppo_final_reached": int(sum(np.isfinite(t) for t in to_ppo)),
+            "fraction_of_ppo_wall_per_seed": [t / ppo_wall for t in to_ppo],
+            "compile_s": compile_s,
+            "cold_wall_s": c["wall_s"][-1] if c else float("nan"),
+            "cold_time_to_ppo_final_s": cold_to_ppo,
+            "cold_fraction_of_ppo_cold_wall": cold_to_ppo / ppo_cold_wall,
             "runs": runs,
+            "cold_run": c,
         }
     return out
 
@@ -178,7 +221,7 @@ def plot(results: dict, path: Path) -> None:
                 kw = dict(color=colours.get(a), alpha=0.8, lw=1.2, label=a if i == 0 else None)
                 row[0].plot(run_["wall_s"], run_["return"], **kw)
                 row[1].plot(run_["env_steps"], run_["return"], **kw)
-        for ax, xl in zip(row, ("wall-clock (s, compile included)", "env steps")):
+        for ax, xl in zip(row, ("wall-clock (s, programs from the compilation cache)", "env steps")):
             ax.axhline(res["threshold"], color="grey", ls=":", lw=1,
                        label=f"{FRACTION:.0%} of best final")
             ax.set_xlabel(xl)
@@ -201,14 +244,55 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="tiny configurations (smoke test)")
     p.add_argument("--fresh", action="store_true",
                    help="re-run every run instead of reusing --out/learn_runs/*.json")
+    p.add_argument("--cache", type=Path, default=None,
+                   help="JAX compilation cache of the runs (default --out/jax_cache); emptied "
+                        "at the start, so each algorithm's first run compiles cold")
+    p.add_argument("--set", action="append", default=[], metavar="ALGO.FIELD=VALUE",
+                   help="override a config field of one algorithm (repeatable)")
     args = p.parse_args(argv)
     if args.seeds < 1:
         p.error(f"--seeds must be >= 1, got {args.seeds}")
+    try:
+        overrides = parse_sets(args.set)
+    except ValueError as e:
+        p.error(str(e))
     runs_dir = args.out / "learn_runs"
+    cache = args.cache or args.out / "jax_cache"
+    shutil.rmtree(cache, ignore_errors=True)
+    cache.mkdir(parents=True)
+    jax.config.update("jax_compilation_cache_dir", str(cache))  # before the first compile
+
+    def saved(algo, task, tag):
+        cached = runs_dir / f"{task}-{algo}-{tag}.json"
+        if not cached.exists() or args.fresh:
+            return None
+        data = json.loads(cached.read_text())
+        same = json.loads(json.dumps(overrides.get(algo)))
+        return data["run"] if data.get("quick") == args.quick and data.get("overrides") == same \
+            else None
+
+    def all_runs(algo, task):
+        """Seed 0 on a cold cache (for the compile time), then every seed on a warm one; runs
+        saved by an earlier invocation are reused only all together (else the warm runs would
+        compile cold)."""
+        tags = ["cold"] + [str(s) for s in range(args.seeds)]
+        old = [saved(algo, task, t) for t in tags]
+        if all(r is not None for r in old):
+            print(f"{algo} on {task}: reusing {runs_dir}/{task}-{algo}-*.json", flush=True)
+            return old[0], old[1:]
+        out = []
+        for tag in tags:
+            seed = 0 if tag == "cold" else int(tag)
+            print(f"{algo} on {task}, {'seed 0, cold cache' if tag == 'cold' else 'seed ' + tag} "
+                  "...", flush=True)
+            out.append(run(algo, task, seed, args.quick, overrides.get(algo)))
+            write_json(runs_dir / f"{task}-{algo}-{tag}.json",
+                       {"quick": args.quick, "overrides": overrides.get(algo), "run": out[-1]})
+        return out[0], out[1:]
 
     results, skipped = {}, {}
     for task in args.envs:
-        task_runs = {}
+        task_runs, cold = {}, {}
         for algo in args.algos:
             try:
                 trainer(algo, task, args.quick)
@@ -216,25 +300,14 @@ def main(argv=None) -> int:
                 skipped[algo] = f"not available: {e}"
                 continue
             runs = []
-            for seed in range(args.seeds):
-                cached = runs_dir / f"{task}-{algo}-{seed}.json"
-                if cached.exists() and not args.fresh:
-                    saved = json.loads(cached.read_text())
-                    if saved.get("quick") == args.quick:
-                        print(f"{algo} on {task}, seed {seed}: reusing {cached}", flush=True)
-                        runs.append(saved["run"])
-                        continue
-                print(f"{algo} on {task}, seed {seed} ...", flush=True)
-                try:
-                    runs.append(run(algo, task, seed, args.quick))
-                    write_json(cached, {"quick": args.quick, "run": runs[-1]})
-                except Exception as e:  # one broken algorithm must not sink the others' numbers
-                    traceback.print_exc()
-                    skipped[f"{algo}/{task}"] = f"failed: {type(e).__name__}: {e}"
-                    break
+            try:
+                cold[algo], runs = all_runs(algo, task)
+            except Exception as e:  # one broken algorithm must not sink the others' numbers
+                traceback.print_exc()
+                skipped[f"{algo}/{task}"] = f"failed: {type(e).__name__}: {e}"
             task_runs[algo] = runs
         if any(task_runs.values()):
-            results[task] = analyse(task_runs)
+            results[task] = analyse({a: r for a, r in task_runs.items() if r}, cold)
 
     rows = []
     for task, res in results.items():
@@ -243,12 +316,14 @@ def main(argv=None) -> int:
                          r["wall_s_mean"], r["env_steps_final"], r["time_to_threshold_s"],
                          r["steps_to_threshold"], f"{r['reached']}/{r['seeds']}",
                          f"{r['solved']}/{r['seeds']}", r["time_to_solved_s"],
-                         r["time_to_ppo_final_s"], r["fraction_of_ppo_wall"]])
+                         r["time_to_ppo_final_s"], r["fraction_of_ppo_wall"],
+                         f"{r['ppo_final_reached']}/{r['seeds']}", r["compile_s"],
+                         r["cold_fraction_of_ppo_cold_wall"]])
     print_table(f"Learn@Sim ({args.seeds} seeds; threshold = {FRACTION:.0%} of the best final "
                 f"return per task; {jax.devices()[0].platform})",
                 ["task", "algo", "final return", "wall s", "env steps", "s to thr",
                  "steps to thr", "reached", "solved", "s to solved", "s to PPO final",
-                 "/ PPO wall"], rows)
+                 "/ PPO wall", "reached PPO", "compile s", "cold / PPO cold"], rows)
     for k, v in skipped.items():
         print(f"skipped {k}: {v}")
     args.out.mkdir(parents=True, exist_ok=True)
