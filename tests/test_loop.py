@@ -83,7 +83,8 @@ CHILD = textwrap.dedent("""
     evaluation.param_errors = lambda *a: {"cart_mass": 0.0}
     cartpole.deployed_policy = slow_deployed
     runner.ALGORITHMS["toy"] = runner.Algorithm("__main__", "train", "Config", {}, True)
-    config = loop.LoopConfig(rounds=%d, episodes_per_round=%d, algo="toy", epochs=2,
+    config = loop.LoopConfig(rounds=%d, episodes_per_round=%d, algo="toy", compare="toy",
+                             epochs=2,
                              model_fraction=0.0, hybrid=False, residual=False, oracle=False,
                              video=False, eval_episodes=1)
     note("start resume" if resume else "start")
@@ -160,9 +161,10 @@ def test_resume_loses_no_recorded_transition(runs):
 def test_finished_stages_are_not_redone(runs):
     full, killed, _, _ = runs
     calls = (killed.parent / "calls.log").read_text().split("\n")
-    # sysid and training ran once per round: round 1's before the kill, round 2's after
+    # sysid and training ran once per round: round 1's before the kill, round 2's after (two
+    # trainings a round: the deployed learner's and the compared one's, ``compare="toy"``)
     sysids = [c for c in calls if c.startswith("sysid")]
-    assert len(sysids) == ROUNDS and calls.count("train") == ROUNDS, calls
+    assert len(sysids) == ROUNDS and calls.count("train") == 2 * ROUNDS, calls
     assert calls.index("start resume") > calls.index(sysids[0])
     # the same data went into each round's sysid as in the uninterrupted run, except the
     # interrupted episode's partial transitions in round 2
@@ -183,6 +185,18 @@ def test_summary_matches_the_uninterrupted_run(runs):
     # the killed run's dataset also holds the interrupted episode's partial transitions
     assert b["rounds"][-1]["real_steps"] > a["rounds"][-1]["real_steps"]
     assert (killed / "report.md").exists() and (killed / "returns.png").exists()
+
+
+def test_a_compared_learner_is_reported_beside_the_deployed_one(runs):
+    full = runs[0]
+    summary = json.loads((full / "summary.json").read_text())
+    for rec in summary["rounds"][1:]:
+        c = rec["compare"]
+        assert c["algo"] == c["deployed_algo"] == "toy" and c["sim_return"] == 0.5
+        # the same seeded trainer: the deployed one reaches the compared one's final return
+        assert 0 <= c["deployed_s_to_compare_final"] <= c["deployed_learn_s"]
+        assert (full / f"round{rec['round']}" / "compare" / "metrics.csv").exists()
+    assert "## Learning wall clock against a second learner" in (full / "report.md").read_text()
 
 
 def test_the_loops_inputs_hold_no_evaluation_output(runs):

@@ -108,3 +108,21 @@ def test_label_frames_burns_a_label_into_each_panel(labels):
         assert (band < 50).mean() > 0.5 and (band > 150).any()  # dark band, light text
     np.testing.assert_array_equal(out[2][14:], frames[2][14:])  # the picture below untouched
     assert not np.array_equal(out[0][:14, :64], out[0][:14, 64:])  # two different labels
+
+
+def test_loop_report_sets_the_learner_beside_the_one_it_is_compared_with(tmp_path):
+    s = _summary()
+    s["rounds"][1]["compare"] = {"algo": "ppo", "sim_return": 190.0, "learn_s": 60.0,
+                                 "deployed_algo": "shac", "deployed_learn_s": 30.0,
+                                 "deployed_s_to_compare_final": 12.0}
+    report.loop_report(tmp_path, s)
+    md = (tmp_path / "report.md").read_text()
+    cells = _check_report(tmp_path, md)
+    assert "## Learning wall clock against a second learner" in md
+    assert "`shac`" in cells and "`ppo`" in cells and "20.0 %" in cells
+    s["rounds"][1]["compare"]["deployed_s_to_compare_final"] = None  # never reached it
+    report.loop_report(tmp_path / "b", s)
+    assert "never" in (tmp_path / "b" / "report.md").read_text()
+    del s["rounds"][1]["compare"]
+    report.loop_report(tmp_path / "c", s)
+    assert "second learner" not in (tmp_path / "c" / "report.md").read_text()

@@ -407,6 +407,30 @@ def label_frames(frames: Sequence[np.ndarray], labels: Sequence[str],
     return out
 
 
+def _compare_section(rounds: Sequence[dict]) -> list[str]:
+    """The report's lines on learning wall clock against a second learner (``twinrl run
+    --compare ppo``): per round, both learners' seconds and sim returns, and when the deployed one
+    first reached the other's final return."""
+    rows = []
+    for r in rounds:
+        c = r.get("compare")
+        if not c:
+            continue
+        reach, theirs = c.get("deployed_s_to_compare_final"), c.get("learn_s")
+        frac = reach / theirs if reach is not None and theirs else None
+        rows.append([r["round"], f"`{c.get('deployed_algo')}`", c.get("deployed_learn_s"),
+                     r.get("sim_return"), f"`{c.get('algo')}`", theirs, c.get("sim_return"),
+                     reach, _pct(frac) if frac is not None else "never"])
+    if not rows:
+        return []
+    return (["## Learning wall clock against a second learner", "",
+             "Both learners trained on the same round's identified simulator (seconds of "
+             "learning, compilation included); only the first is deployed."] + [""] +
+            _md_table(["round", "deployed learner", "seconds", "sim return", "compared with",
+                       "seconds", "sim return", "s to its final return", "of its time"], rows)
+            + [""])
+
+
 def loop_report(out: str | os.PathLike, summary: dict,
                 model_free: Sequence[dict] = ()) -> dict[str, Path]:
     """``report.md`` of a ``twinrl run`` (plus ``returns.png`` and, when the summary has
@@ -465,6 +489,7 @@ def loop_report(out: str | os.PathLike, summary: dict,
                      "sim policy, no adaptation (eval)", "adapted (eval)", "residual",
                      "seconds"], rows)
     md += [""]
+    md += _compare_section(rounds)
     if "returns" in files:
         md += ["![returns: learning curve in the identified simulator; real returns of each "
                "deployed policy vs the oracle](returns.png)", ""]

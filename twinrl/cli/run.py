@@ -36,6 +36,10 @@ def add_parser(sub) -> None:
                         "simulator's gradients, hds mixes in the hybrid model)")
     p.add_argument("--epochs", type=int, default=None,
                    help="training epochs per round (default: tuned per task)")
+    p.add_argument("--compare", default=None, metavar="ALGO",
+                   help="also train ALGO (e.g. ppo) on each round's identified simulator, for "
+                        "the report's learning wall clock beside the deployed learner's; never "
+                        "deployed (costs its training time)")
     p.add_argument("--no-oracle", action="store_true",
                    help="skip the oracle policy (evaluation only; saves a training run)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
@@ -68,7 +72,8 @@ def cmd(args) -> int:
                          "needle_threading, spatula_flipping); use --rounds, --algo, ... here")
     overrides = {k: v for k, v in (("rounds", args.rounds),
                                    ("episodes_per_round", args.episodes_per_round),
-                                   ("algo", args.algo), ("epochs", args.epochs)) if v is not None}
+                                   ("algo", args.algo), ("epochs", args.epochs),
+                                   ("compare", args.compare)) if v is not None}
     if args.no_oracle:
         overrides["oracle"] = False
     try:
@@ -84,7 +89,8 @@ def _run_arm(args) -> int:
     from twinrl.learn.runner import RunError, parse_overrides
 
     loop, loop_arm = _loops()
-    for flag, value in (("--algo", args.algo), ("--epochs", args.epochs)):
+    for flag, value in (("--algo", args.algo), ("--epochs", args.epochs),
+                        ("--compare", args.compare)):
         if value is not None:
             raise UsageError(f"{flag} is the state-based loop's; the manipulation loop learns an "
                              f"image actor by imitation (see --set imitation.FIELD=VALUE)")

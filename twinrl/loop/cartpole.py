@@ -107,6 +107,11 @@ class LoopConfig:
     checkpoint_every: int = 10
     """Save the learner's train state every this many epochs (a killed round resumes from the
     last save; saving every epoch costs SHAC on cartpole about a second an epoch)."""
+    compare: str | None = None
+    """A second learner (e.g. ``"ppo"``) trained on each round's identified simulator for the
+    report only (``round<r>/compare/``), never deployed: its learning wall clock and sim return
+    beside the deployed learner's, and the seconds the deployed learner took to first reach the
+    second's final return. Costs the second learner's training time."""
     oracle: bool = True
     """Train and evaluate the oracle policy (evaluation only)."""
     oracle_in_background: bool = True
@@ -242,6 +247,42 @@ def learn(run: RunContext, r: int, rdir: RoundDir, env, hybrid) -> dict[str, Any
     return {"policy_dir": rdir.train}
 
 
+def _curve(path: Path) -> dict[str, list[float]]:
+    """``wall_s`` and ``return`` columns of a trainer's ``metrics.csv`` (empty when absent)."""
+    import csv
+
+    if not path.exists():
+        return {"wall_s": [], "return": []}
+    rows = list(csv.DictReader(open(path)))
+    pick = lambda k: [float(r[k]) for r in rows if r.get(k) not in (None, "")]  # noqa: E731
+    return {"wall_s": pick("wall_s"), "return": pick("return")}
+
+
+def compare_learn(run: RunContext, r: int, rdir: RoundDir, env) -> dict[str, Any]:
+    """``LoopConfig.compare``'s learner on the same identified simulator -> ``compare/``, for
+    the report only: both learners' wall clock and sim return, and when the deployed learner
+    first reached the compared one's final return (None: never)."""
+    from twinrl.learn.runner import continue_run
+
+    algo, t0 = run.config.compare, time.perf_counter()
+    run.say(f"  learning with {algo} too, for the report's comparison only ...")
+    out = rdir.path / "compare"
+    continue_run(run.env_name, algo, out, seed=run.seed + r, progress=run.progress, env=env,
+                 checkpoint_every=run.config.checkpoint_every)
+    mine, theirs = _curve(rdir.train_metrics), _curve(out / "metrics.csv")
+    target = theirs["return"][-1] if theirs["return"] else None
+    reach = next((w for w, v in zip(mine["wall_s"], mine["return"])
+                  if target is not None and v >= target), None)
+    run.prog.mark(f"round{r}/compare", compare={
+        "algo": algo, "sim_return": target,
+        "learn_s": theirs["wall_s"][-1] if theirs["wall_s"] else None,
+        "deployed_algo": run.config.algo,
+        "deployed_learn_s": mine["wall_s"][-1] if mine["wall_s"] else None,
+        "deployed_s_to_compare_final": reach},
+        seconds=seconds_so_far(run.prog, r, compare=time.perf_counter() - t0))
+    return {}
+
+
 def train_residual(run: RunContext, r: int, rdir: RoundDir, env, hybrid, data,
                    policy_dir) -> dict[str, Any]:
     """The residual policy trained through the hybrid model from recorded real states ->
@@ -337,6 +378,8 @@ ROUND = (
           load=load_hybrid, enabled=lambda c: c.hybrid),
     Stage("learn", needs=("env", "hybrid"), gives=("policy_dir",), make=learn,
           load=lambda run, rdir, **_: {"policy_dir": rdir.train}),
+    Stage("compare", needs=("env",), gives=(), make=compare_learn,
+          enabled=lambda c: c.compare is not None),
     Stage("residual", needs=("env", "hybrid", "data", "policy_dir"), gives=("residual",),
           make=train_residual, load=lambda run, rdir, **_: {"residual": residual_gate(rdir)},
           enabled=lambda c: c.residual and c.hybrid),
@@ -354,6 +397,8 @@ def check_task(env_name: str, config: LoopConfig) -> None:
     from twinrl.learn.runner import algorithm
 
     algorithm(config.algo)
+    if config.compare is not None:
+        algorithm(config.compare)
     if not envs.make(env_name).observes_state:  # refused before any work
         raise LoopError(f"{env_name}'s observation does not determine its state, and the loop "
                         f"identifies the simulator from recorded observations; identify it "
@@ -408,7 +453,7 @@ def summarise(run: RunContext, summary: dict) -> None:
 RECORD_KEYS = {"real_steps": None, "real_return": None, "real_returns": None, "sim_return": None,
                "oracle_return": None, "param_rel_error": {}, "sim_policy_real_return": None,
                "adapted_real_return": None, "residual_accepted": None, "latency": None,
-               "seconds": {}}
+               "compare": None, "seconds": {}}
 """A round's row of the summary (from ``progress.json``; evaluation's merged in after)."""
 
 
