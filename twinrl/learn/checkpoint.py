@@ -33,6 +33,7 @@ at a save. What is written is the one-process format: a single process resumes f
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any, Callable
 
@@ -261,6 +262,18 @@ def _this_process_only(ocp) -> dict[str, Any]:
         primary_host=me, active_processes={me})}
 
 
+class _NoSaveWaits(logging.Filter):
+    """Drops orbax's "Waiting for previous save to complete took N seconds" warning. A train-state
+    save is asynchronous and the next one waits for it: on busy cores that is expected, and it
+    printed a line every few saves of a training (the loop's oracle process among them)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Waiting for previous save to complete")
+
+
+_NO_SAVE_WAITS = _NoSaveWaits()
+
+
 class TrainStateCheckpointer:
     """Saves a trainer's state + metrics every ``every`` epochs into ``directory``; restores it.
 
@@ -273,6 +286,7 @@ class TrainStateCheckpointer:
 
         if every < 1:
             raise ValueError(f"every must be >= 1 epoch, got {every}")
+        logging.getLogger("absl").addFilter(_NO_SAVE_WAITS)  # once: a filter is added once
         self.directory = Path(directory).absolute()
         self.every = int(every)
         self._ocp = ocp
