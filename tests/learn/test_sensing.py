@@ -257,6 +257,9 @@ def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoint
     assert iio.imread(tmp_path / "out" / "sense.png").shape[1] > 1000
     assert iio.imread(tmp_path / "out" / "views.png").shape == (PIX, 2 * PIX + 4, 3)
     doc = json.loads((tmp_path / "out" / "summary.json").read_text())
+    # the actor's saliency on both views, drawn beside them and on its own
+    assert iio.imread(tmp_path / "out" / "saliency.png").shape[1] > 1000
+    assert set(doc["saliency_target_share"]) == {"default", "chosen"}
     # the summary's poses are its coordinates' (the default's: the mount's), the move between
     # them takes the mount's speed limit, and the views are the two poses' images
     mount, chosen = env.mount, np.asarray(doc["chosen_coords"], np.float32)

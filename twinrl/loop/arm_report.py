@@ -114,7 +114,8 @@ def _camera(mode) -> str:
 
 
 def _stage_rows(rec: dict, cfg: dict) -> list[list[Any]]:
-    """``[stage, what it gave (evaluation against the hidden truth marked), seconds]``."""
+    """``[stage, what it gave (evaluation against the hidden truth marked), seconds]`` of the
+    stages that ran."""
     sec = rec.get("seconds") or {}
     he = [x for x in (_err_pair(rec, "hand_eye_pos_err_mm", "uncalibrated_pos_err_mm", "mm",
                                 "uncalibrated"),
@@ -129,7 +130,9 @@ def _stage_rows(rec: dict, cfg: dict) -> list[list[Any]]:
         worst = max(errs, key=lambda k: abs(float(errs[k])))
         sysid = (f"{len(errs)} parameters off the truth by median {100 * np.median(v):.1f} %, "
                  f"at most {100 * v.max():.1f} % ({worst}) (eval)")
-    if rec.get("latency") is not None:
+    if not cfg.get("sysid", True):
+        sysid = "off (`sysid=false`): the nominal servos and latency"
+    elif rec.get("latency") is not None:
         sysid = f"latency {rec['latency']} step(s)" + (f"; {sysid}" if sysid else "")
     n_sim = (cfg.get("imitation") or {}).get("eval_episodes")
     hyb = ""
@@ -162,7 +165,7 @@ def _stage_rows(rec: dict, cfg: dict) -> list[list[Any]]:
             ["evaluation (real, unrecorded)",
              f"default camera {_rate_text(rec.get('default_camera_successes'))}"
              if rec.get("default_camera_successes") else None, sec.get("evaluation")]]
-    return rows
+    return [r for r in rows if r[1] is not None or r[2] is not None]  # stages that ran
 
 
 def _verdict(rec: dict, cfg: dict, episodes: int | None) -> str:
