@@ -165,6 +165,12 @@ def _plot_sense(path, env, az, el, vals, sel, images, title, around: bool = Fals
         ax.axis("off")
     if saliency is not None:  # under each view, the actor's saliency on its own image of it
         vmax = max(float(np.max(v["saliency"])) for v in saliency.values()) or 1.0
+        ax = fig.add_subplot(rows, 3, 4)
+        ax.axis("off")
+        ax.text(0.0, 0.6, "Right: the actor's saliency, |d action / d pixel|\n"
+                "(every action dimension, RGB and depth), on the\nimage it sees from each "
+                "pose; warm = larger\n(square-root scale, one scale for both), grey = 0.",
+                fontsize=9, va="center", ha="left", transform=ax.transAxes)
         for i, name in enumerate(("default", "chosen")):
             ax = fig.add_subplot(rows, 3, 5 + i)
             _draw_saliency(ax, saliency[name], vmax)

@@ -170,8 +170,9 @@ def final_video(run: RunContext, values: dict) -> Path:
     """``final.mp4``: one more episode of the deployed actor on the real twin (not recorded), each
     frame the real scene (the fixed ``overview`` camera, left) beside the mount's view from the
     deployed pose (right: Q's choice, or the default where the gate fell back to it), the image
-    the actor acts on, under a caption (task, camera, the mount's pose, the step), from the
-    camera's move at the start to a last frame held a second with the real verdict."""
+    the actor acts on, labelled with the task and captioned with the step and the mount's pose
+    (``film_frames``), from the camera's move at the start to a last frame held a second with
+    the real verdict."""
     from twinrl.real.remote import TwinClient
     from twinrl.sim2real.active import DeployConfig
 

@@ -162,7 +162,9 @@ class ArmLoopConfig:
     """Draw the last round's figures for ``report.md`` in ``OUT/sense/``
     (``twinrl.loop.arm_report.write_figures``): Q's landscape over the mount's workspace with the
     default and chosen views (``twinrl sense`` for the start state ``reset(seed)``) and the
-    actor's saliency on each view; without a Q, the saliency on the default view."""
+    actor's saliency on each view; without a Q, the saliency on the default view. Minutes on 2
+    cores where there is a Q, most of it compiling Q's ascent (the needle's: 5 min on cores
+    shared with other jobs)."""
     image_size: int | None = None
     """Width and height (pixels) of the mount camera's images, recorded, simulated and deployed;
     ``None``: the task's (``ArmConfig.image_size``). The needle at 128 instead of its 64: the

@@ -288,9 +288,14 @@ def write_report(out, summary: dict, figures: dict[str, str] | None = None) -> P
            summary.get("video") else "- no video (`video=false`).", ""]
     wall = summary.get("wall_s_this_process")
     total = sum(sum((r.get("seconds") or {}).values()) for r in rounds)
-    md += [f"Stages' wall clock over all rounds: {total:.0f} s; this process: "
-           f"{report.cell(wall)} s." if wall is not None and math.isfinite(float(wall)) else
-           f"Stages' wall clock over all rounds: {total:.0f} s.", ""]
+    clock = f"Stages' wall clock over all rounds: {total:.0f} s"
+    if wall is not None and math.isfinite(float(wall)):
+        clock += f"; this process: {wall:.0f} s"
+        if summary.get("video_s") is not None:
+            clock += f" (the video {summary['video_s']:.0f} s)"
+    if summary.get("figures_s") is not None:
+        clock += f", then the figures: {summary['figures_s']:.0f} s"
+    md += [clock + ".", ""]
     path = out / "report.md"
     path.write_text("\n".join(md))
     return path
