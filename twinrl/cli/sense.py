@@ -47,12 +47,15 @@ def cmd(args) -> int:
                   steps=args.steps, progress=status.update)
     p = s["chosen_pose"]
     report.print_table(f"sense {args.env} (start state seed {args.seed})",
-                       ["pose", "azimuth", "elevation", "distance", "Q", "target px"],
+                       ["pose", "azimuth", "elevation", "distance", "Q", "target px",
+                        "saliency on target"],
                        [["default", s["default_pose"]["azimuth_rad"],
                          s["default_pose"]["elevation_rad"], s["default_pose"]["distance_m"],
-                         s["q_default"], s["target_pixels_160"]["default"]],
+                         s["q_default"], s["target_pixels_160"]["default"],
+                         s["saliency_target_share"]["default"]],
                         ["chosen", p["azimuth_rad"], p["elevation_rad"], p["distance_m"],
-                         s["q_chosen"], s["target_pixels_160"]["chosen"]]])
+                         s["q_chosen"], s["target_pixels_160"]["chosen"],
+                         s["saliency_target_share"]["chosen"]]])
     print(f"wrote {s['files']['plot']} and {s['files']['saliency']} (mount moves "
           f"{s['steps_to_move']} steps)")
     return 0
