@@ -186,6 +186,10 @@ def test_finished_stages_are_not_redone_and_the_summary_counts_the_episodes(kill
     assert report.startswith("# twinrl run: peg_insertion (seed 2)") and "**Verdict:**" in report
     assert "](sense/saliency.png)" in report and (out / "sense" / "saliency.png").exists()
     assert s["figures"] == {"saliency": str(out / "sense" / "saliency.png")}
+    # drawn at the start of the last deployed episode, from the pose it was deployed with
+    fig = json.loads((out / "sense" / "summary.json").read_text())
+    assert "last deployed episode" in fig["state"] and fig["deployed_camera"] == "default"
+    assert fig["coords"] == {"default": r1["chosen_coords"][-1]}
     assert (out / "final.mp4").stat().st_size > 0 and s["video"] == str(out / "final.mp4")
 
 

@@ -20,8 +20,8 @@ from twinrl.learn.camera_choice import image_size, landscape, select_camera
 from twinrl.learn.networks import Network
 from twinrl.learn.sensing import SensingConfig, SensingError, load_actor
 
-__all__ = ["load_q", "sense", "saliency", "saliency_views", "target_share", "plot_saliency",
-           "RGBD"]
+__all__ = ["load_q", "sense", "saliency", "saliency_views", "look", "target_share",
+           "plot_saliency", "plot_sense", "MARKERS", "RGBD"]
 
 
 def load_q(path) -> tuple[Network, object, dict]:
@@ -90,8 +90,11 @@ def sense(env_name: str, checkpoint, out, *, seed: int = 0, restarts: int | None
     seen = saliency_views(env, actor, actor_params, state,
                           {"default": default, "chosen": chosen})
     out.mkdir(parents=True, exist_ok=True)
-    _plot_sense(out / "sense.png", env, az, el, vals, sel, images, env_name,
-                around=int(cfg.smooth_samples) > 0, saliency=seen)
+    plot_sense(out / "sense.png", mount, (az, el, vals), {"default": default, "chosen": chosen},
+               images, {"default": float(sel.default_value), "chosen": float(sel.value)},
+               f"sensing-aware camera choice on {env_name}", note="(arrows: the ascents)",
+               arrows=list(zip(np.asarray(sel.starts), np.asarray(sel.ends))),
+               score="Q around it" if int(cfg.smooth_samples) > 0 else "Q", saliency=seen)
     plot_saliency(out / "saliency.png", seen, f"the actor's saliency on {env_name} "
                   f"(start state seed {int(seed)})")
     small = [seen[k]["rgb"] for k in ("default", "chosen")]
@@ -126,59 +129,74 @@ def _spherical(mount, coords) -> np.ndarray:
     return np.asarray(mount.spherical(jnp.asarray(coords, jnp.float32)), float)
 
 
-def _plot_sense(path, env, az, el, vals, sel, images, title, around: bool = False,
-                saliency=None):
+MARKERS = {"default": dict(marker="s", mfc="none", mec="orange", ms=10, ls="none"),
+           "chosen": dict(marker="*", color="red", ms=14, ls="none")}
+"""How ``plot_sense`` marks a pose on Q's landscape, by name (any other: a white triangle)."""
+
+
+def plot_sense(path, mount, land, poses: dict, images: dict, values: dict, title: str, *,
+               note: str = "", arrows=(), score: str = "Q", saliency=None) -> Path:
+    """``sense.png``: Q's landscape ``land`` (``(azimuths, elevations, values (E, A))``, radians,
+    at the distance of the last of ``poses``) with each pose of ``poses`` (name -> mount
+    coordinates) marked (``MARKERS``) and ``arrows`` (``(start, end)`` coordinates: the ascents);
+    beside it each pose's view ``images`` (name -> ``(rgb, target mask)``) titled with its
+    ``score`` ``values[name]``; under them, with ``saliency`` (``saliency_views``'s dict), the
+    actor's saliency on each view's own image."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    mount = env.mount
+    az, el, vals = land
     sph = functools.partial(_spherical, mount)
+    names = list(images)
     rows = 1 if saliency is None else 2
-    fig = plt.figure(figsize=(13, 4.2 * rows), dpi=110)
-    ax = fig.add_subplot(rows, 3, 1)
+    cols = 1 + len(names)
+    fig = plt.figure(figsize=(13 * cols / 3, 4.2 * rows), dpi=110)
+    ax = fig.add_subplot(rows, cols, 1)
     m = ax.pcolormesh(np.degrees(az), np.degrees(el), vals, shading="nearest", cmap="viridis")
     fig.colorbar(m, ax=ax, label="Q (hard image)")
-    for c0, c1 in zip(np.asarray(sel.starts), np.asarray(sel.ends)):
+    for c0, c1 in arrows:
         a, b = np.degrees(sph(c0)), np.degrees(sph(c1))
         ax.annotate("", xy=(b[0], b[1]), xytext=(a[0], a[1]),
                     arrowprops=dict(arrowstyle="->", color="w", lw=0.8))
-    d, c = np.degrees(sph(mount.default)), np.degrees(sph(sel.coords))
-    ax.plot(d[0], d[1], "s", mfc="none", mec="orange", ms=10, label="default")
-    ax.plot(c[0], c[1], "*", color="red", ms=14, label="chosen")
+    for name, c in poses.items():
+        d = np.degrees(sph(c))
+        ax.plot(d[0], d[1], label=name, **MARKERS.get(
+            name, dict(marker="^", mfc="none", mec="w", ms=10, ls="none")))
+    dist = sph(list(poses.values())[-1])[2]
     ax.set_xlabel("azimuth (deg)")
     ax.set_ylabel("elevation (deg)")
-    ax.set_title(f"Q over the workspace at {sph(sel.coords)[2]:.2f} m\n(arrows: the ascents)",
+    ax.set_title(f"Q over the workspace at {dist:.2f} m" + (f"\n{note}" if note else ""),
                  fontsize=9)
     ax.legend(loc="lower right", fontsize=8)
-    for i, (name, q) in enumerate((("default", float(sel.default_value)),
-                                   ("chosen", float(sel.value)))):
+    for i, name in enumerate(names):
         rgb, mask = images[name]
-        ax = fig.add_subplot(rows, 3, 2 + i)
+        ax = fig.add_subplot(rows, cols, 2 + i)
         shown = rgb.copy()
         shown[mask] = 0.5 * shown[mask] + 0.5 * np.array([1.0, 0.0, 0.0])
         ax.imshow(np.clip(shown, 0, 1))
-        score = "Q around it" if around else "Q"
-        ax.set_title(f"{name} pose: {score} {q:.3f}, target {int(mask.sum())} px (red)",
-                     fontsize=9)
+        ax.set_title(f"{name} pose: {score} {float(values[name]):.3f}, target "
+                     f"{int(mask.sum())} px (red)", fontsize=9)
         ax.axis("off")
     if saliency is not None:  # under each view, the actor's saliency on its own image of it
         vmax = max(float(np.max(v["saliency"])) for v in saliency.values()) or 1.0
-        ax = fig.add_subplot(rows, 3, 4)
+        ax = fig.add_subplot(rows, cols, cols + 1)
         ax.axis("off")
         ax.text(0.0, 0.6, "Right: the actor's saliency, |d action / d pixel|\n"
                 "(every action dimension, RGB and depth), on the\nimage it sees from each "
                 "pose; warm = larger\n(square-root scale, one scale for both), grey = 0.",
                 fontsize=9, va="center", ha="left", transform=ax.transAxes)
-        for i, name in enumerate(("default", "chosen")):
-            ax = fig.add_subplot(rows, 3, 5 + i)
+        for i, name in enumerate(names):
+            ax = fig.add_subplot(rows, cols, cols + 2 + i)
             _draw_saliency(ax, saliency[name], vmax)
             ax.set_title(f"{name}: the actor's |d action / d pixel| (RGB-D)\n"
                          f"{_share_text(saliency[name])}", fontsize=9)
             ax.axis("off")
-    fig.suptitle(f"sensing-aware camera choice on {title}")
+    fig.suptitle(title)
     fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     plt.close(fig)
     return path
@@ -208,18 +226,25 @@ def saliency(env, actor: Network, actor_params, joints, coords, pixels, *,
     if not isinstance(spec, dict):
         raise ValueError(f"saliency needs an image actor (a dict obs_spec); this one reads "
                          f"{spec!r}")
-    keys = tuple(spec)
+    per, _ = _action_jacobian(env, actor, actor_params, joints, coords, pixels, tuple(spec))
+    return per if per_channel else jnp.sum(per[..., :RGBD], axis=-1)
+
+
+def _action_jacobian(env, actor: Network, actor_params, joints, coords, pixels, keys,
+                     aux=None) -> tuple[jax.Array, jax.Array | None]:
+    """``saliency``'s ``per_channel`` map (n, n, 5) of the actor reading the observation's
+    ``keys`` of ``pixels``, and ``aux(obs, action)`` of the same forward pass (None without)."""
     joints = jnp.asarray(joints, jnp.float32)
     coords = jnp.asarray(coords, jnp.float32)
 
     def action(px):
         obs = env.observation_from_image(joints, coords, px[..., :3], px[..., 3], px[..., 4],
                                          keys=keys)
-        return jnp.reshape(actor.apply(actor_params, obs), (-1,))
+        a = actor.apply(actor_params, obs)
+        return jnp.reshape(a, (-1,)), None if aux is None else aux(obs, a)
 
-    jac = jax.jacrev(action)(jnp.asarray(pixels, jnp.float32))  # (actions, n, n, 5)
-    per = jnp.sum(jnp.abs(jac), axis=0)
-    return per if per_channel else jnp.sum(per[..., :RGBD], axis=-1)
+    jac, extra = jax.jacrev(action, has_aux=True)(jnp.asarray(pixels, jnp.float32))
+    return jnp.sum(jnp.abs(jac), axis=0), extra  # jac: (actions, n, n, 5)
 
 
 def saliency_views(env, actor: Network, actor_params, state,
@@ -241,6 +266,60 @@ def saliency_views(env, actor: Network, actor_params, state,
         px = np.asarray(px)
         views[name] = {"rgb": px[..., :3], "mask": px[..., 4] > 0.5, "saliency": np.asarray(sal)}
     return views
+
+
+def look(env, actor: Network, actor_params, obs, poses: dict[str, object], *, q=None,
+         q_params=None, grid: tuple[int, int] | None = None, distance_coord=None) -> dict:
+    """The figures' numbers of a measured observation and poses already chosen, with no ascent
+    (``twinrl run`` draws its report's figures from the pose its deployment chose): the
+    simulator's state of ``obs`` (``twinrl.sim2real.active.sim_state``, as the deployment reads
+    it off the robot) and per pose of ``poses`` (name -> unconstrained mount coordinates)
+    ``saliency_views``'s ``{"rgb", "mask", "saliency"}`` plus ``"q"``, Q on that hard image
+    (nan without ``q``), under ``"views"``; with ``q`` and ``grid``, Q over
+    ``workspace_grid(env.mount, distance_coord, grid)`` as ``"landscape"``: ``(azimuths,
+    elevations, values (E, A))``.
+
+    One small program, compiled once: a ``lax.map`` over the poses and the grid's of one pose's
+    render, the actor's observation of it, Q and the actor's Jacobian (the saliency: computed
+    at the grid's poses too, since a second program for them alone would cost a second
+    compilation, which is most of the time). On the needle (the pose fit inside), 2 + 77
+    poses: 30 s of CPU to trace and compile it, 1.3 s to run; ``sense``'s ascent, landscape,
+    160-pixel views and saliency take 150 s of CPU."""
+    from twinrl.learn.camera_choice import observed_keys, q_value, workspace_grid
+    from twinrl.sim2real.active import sim_state
+
+    n = image_size(env, actor)
+    names = list(poses)
+    keys = tuple(actor.obs_spec) if q is None else observed_keys(actor, q)
+    at = np.asarray([poses[k] for k in names], np.float32).reshape(-1, 3)
+    az = el = None
+    if q is not None and grid is not None:
+        az, el, coords = workspace_grid(env.mount, float(distance_coord), grid)
+        at = np.concatenate([at, coords.astype(np.float32)])
+
+    def value(o, a):
+        return jnp.float32(jnp.nan) if q is None else q_value(q, q_params, o, a)
+
+    @jax.jit
+    def run(obs, at):
+        state = sim_state(env, obs)
+        joints = state.obs[:14]
+
+        def see(c):  # one pose: its image, Q there and the actor's saliency on it
+            px = env.image_observation(state, c, size=n, keys=("pixels/mount",))["pixels/mount"]
+            per, v = _action_jacobian(env, actor, actor_params, joints, c, px, keys, value)
+            return px, jnp.sum(per[..., :RGBD], axis=-1), v
+
+        return jax.lax.map(see, at)
+
+    px, sal, values = (np.asarray(x) for x in run(jnp.asarray(obs, jnp.float32),
+                                                  jnp.asarray(at)))
+    out = {"views": {name: {"rgb": px[i, ..., :3], "mask": px[i, ..., 4] > 0.5,
+                            "saliency": sal[i], "q": float(values[i])}
+                     for i, name in enumerate(names)}}
+    if az is not None:
+        out["landscape"] = (az, el, values[len(names):].reshape(len(el), len(az)))
+    return out
 
 
 def target_share(view: dict[str, np.ndarray]) -> float:

@@ -159,7 +159,7 @@ def write_outputs(run: RunContext, summary: dict) -> None:
     if run.config.figures:
         t0 = time.perf_counter()
         env = stages.load_system(run, run.dir.round(run.config.rounds))["env"]
-        summary["figures"] = arm_report.write_figures(run, env)
+        summary["figures"] = arm_report.write_figures(run, env, summary["rounds"][-1])
         summary["figures_s"] = time.perf_counter() - t0
     report.write_json(run.dir.summary, summary)
     plot_success(run.dir.success_plot, summary)

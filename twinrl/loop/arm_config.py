@@ -160,11 +160,12 @@ class ArmLoopConfig:
     the actor acts on)."""
     figures: bool = True
     """Draw the last round's figures for ``report.md`` in ``OUT/sense/``
-    (``twinrl.loop.arm_report.write_figures``): Q's landscape over the mount's workspace with the
-    default and chosen views (``twinrl sense`` for the start state ``reset(seed)``) and the
-    actor's saliency on each view; without a Q, the saliency on the default view. Minutes on 2
-    cores where there is a Q, most of it compiling Q's ascent (the needle's: 5 min on cores
-    shared with other jobs)."""
+    (``twinrl.loop.arm_report.write_figures``), for the start of its last deployed episode and
+    the pose the deployment chose there: Q's landscape over the mount's workspace with the
+    default and chosen views and the actor's saliency on each; without a Q, the saliency on the
+    deployed view. One small compilation, no ascent: on the needle 36 s of CPU (about a
+    minute on 2 cores shared with other jobs), where ``twinrl sense``'s ascent, landscape and
+    saliency took 150 s of CPU (4 min)."""
     image_size: int | None = None
     """Width and height (pixels) of the mount camera's images, recorded, simulated and deployed;
     ``None``: the task's (``ArmConfig.image_size``). The needle at 128 instead of its 64: the

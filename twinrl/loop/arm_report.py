@@ -7,9 +7,10 @@ deployed camera against the default camera, each with its 95 % Wilson interval),
 each stage's figures per round (hand-eye and grasp errors, sysid's errors against the hidden
 truth, the plans solved, the actor's success in the identified twin, Q's rank correlation, the
 residual's verdict, the stages' wall clock), success per camera mode, and the figures.
-``write_figures`` draws the last round's figures: ``twinrl sense`` of its Q (Q's landscape with
-the chosen and default views, and the actor's saliency on both) or, where no Q was trained, the
-actor's saliency on the default view.
+``write_figures`` draws the last round's figures for the start of its last deployed episode, from
+the pose the deployment chose there (not chosen again): Q's landscape with the chosen and default
+views and the actor's saliency on both or, where no Q was trained, the actor's saliency on the
+deployed view.
 """
 
 from __future__ import annotations
@@ -23,41 +24,101 @@ import numpy as np
 
 from twinrl import report
 
-__all__ = ["write_figures", "write_report", "success_rows", "FIGURES", "CAMERAS"]
+__all__ = ["write_figures", "write_report", "success_rows", "FIGURES", "GRID", "CAMERAS"]
 
 FIGURES = "sense"
 """The run directory's folder of the last round's figures (``write_figures``)."""
 
 
 # ------------------------------------------------------------------------------ figures
-def write_figures(run, env) -> dict[str, str]:
-    """The last round's figures in ``OUT/sense/`` (``env``: the round's identified twin): with a
-    sensing-aware Q (``q/``), ``twinrl.sense.sense`` for the start state ``reset(seed)`` (Q's
-    landscape with the default and chosen views and the actor's saliency on each: ``sense.png``,
-    ``saliency.png``, ``views.png``, ``summary.json``); without one, the actor's saliency on the
-    default view (``saliency.png``). Returns the files written, by kind."""
-    import jax
+GRID = (11, 7)
+"""Azimuths x elevations of the report's landscape of Q (``twinrl sense`` draws 15 x 9): the
+figure's program runs the actor's Jacobian at every pose of it too, ~40 ms a pose on the needle."""
+
+
+def write_figures(run, env, record: dict) -> dict[str, str]:
+    """The last round's figures in ``OUT/sense/`` (``env``: the round's identified twin;
+    ``record``: the round's row of the summary), for the start of its last deployed episode:
+    the state read off the robot there (the dataset's last complete episode's first
+    observation) and the pose the deployment chose for it (``record["chosen_coords"]``), not
+    chosen again (``twinrl.sense.look``: one small compilation, no ascent). With a
+    sensing-aware Q (``q/``): ``sense.png`` (Q over a ``GRID`` of the workspace at the chosen
+    pose's distance with the default and chosen poses marked -- where the default camera was
+    deployed, the grid's best instead of a chosen one --, the views from them with Q there, and
+    under each the actor's saliency), ``views.png``, ``saliency.png`` and ``summary.json``;
+    without one, the actor's saliency on the deployed view (``saliency.png``, ``summary.json``).
+    Returns the files written, by kind ({} where no deployed episode was recorded)."""
+    import imageio.v3 as iio
 
     from twinrl.learn.sensing import load_actor
-    from twinrl.sense import plot_saliency, saliency_views, sense, target_share
+    from twinrl.loop.engine import read_dataset
+    from twinrl.sense import load_q, look, plot_saliency, plot_sense, target_share
 
     rdir = run.dir.round(run.config.rounds)
     out = run.dir.out / FIGURES
+    data = read_dataset(run.dir.dataset)
+    complete = np.flatnonzero(data.episode_complete)
+    chosen = [c for c in record.get("chosen_coords") or [] if c is not None]
+    if not len(complete) or not chosen:
+        run.say("  no deployed episode recorded: no figures for the report")
+        return {}
+    obs = data.obs[data.episode_starts[complete[-1]]]
+    mount = env.mount
+    default = np.asarray(mount.default, np.float64)
+    deployed = np.asarray(chosen[-1], np.float64)
+    camera = record.get("deployed_camera")
+    poses = {"default": default}
+    if camera == "selected":
+        poses["chosen"] = deployed
+    elif camera != "default":
+        poses[str(camera or "deployed")] = deployed
+    actor, actor_params, _ = load_actor(rdir.actor)
+    q = q_params = None
     if (rdir.q / "policy").exists():
         run.say("  Q's landscape and the actor's saliency for the report ...")
-        s = sense(run.env_name, rdir.q, out, seed=run.seed, env=env)
-        return {k: str(v) for k, v in s["files"].items()}
-    run.say("  the actor's saliency for the report ...")
-    actor, params, _ = load_actor(rdir.actor)
-    state = jax.jit(env.reset)(jax.random.PRNGKey(int(run.seed)))
-    views = saliency_views(env, actor, params, state, {"default": env.mount.default})
-    path = plot_saliency(out / "saliency.png", views,
-                         f"the actor's saliency on {run.env_name} (start state seed {run.seed})")
-    report.write_json(out / "summary.json", {
-        "kind": "saliency", "env": run.env_name, "seed": run.seed,
-        "saliency_target_share": {"default": target_share(views["default"])},
-        "files": {"saliency": str(path)}})
-    return {"saliency": str(path)}
+        q, q_params, _ = load_q(rdir.q)
+    else:
+        run.say("  the actor's saliency for the report ...")
+    seen = look(env, actor, actor_params, obs, poses, q=q, q_params=q_params,
+                grid=GRID if q is not None else None, distance_coord=deployed[2])
+    views = seen["views"]
+    where = (f"the start of round {run.config.rounds}'s last deployed episode on "
+             f"{run.env_name}")
+    files = {"saliency": str(plot_saliency(out / "saliency.png", views,
+                                           f"the actor's saliency at {where}"))}
+    sph = lambda c: dict(zip(("azimuth_rad", "elevation_rad", "distance_m"),  # noqa: E731
+                             np.asarray(mount.spherical(np.asarray(c, np.float32)),
+                                        float).tolist()))
+    doc = {"kind": "sense", "env": run.env_name, "seed": run.seed, "state": where,
+           "deployed_camera": camera, "image_size": int(views["default"]["rgb"].shape[0]),
+           "coords": {k: np.asarray(v).tolist() for k, v in poses.items()},
+           "poses": {k: sph(v) for k, v in poses.items()},
+           "target_pixels": {k: int(v["mask"].sum()) for k, v in views.items()},
+           "saliency_target_share": {k: target_share(v) for k, v in views.items()}}
+    if q is not None:
+        az, el, vals = seen["landscape"]
+        marks = dict(poses)
+        if "chosen" not in poses:  # the default camera was deployed: where Q's grid peaks
+            i, j = np.unravel_index(np.argmax(vals), vals.shape)
+            marks["Q's best on the grid"] = np.asarray(
+                mount.coords_of([az[j], el[i], sph(deployed)["distance_m"]]), np.float64)
+        files["plot"] = str(plot_sense(
+            out / "sense.png", mount, (az, el, vals), marks,
+            {k: (v["rgb"], v["mask"]) for k, v in views.items()},
+            {k: v["q"] for k, v in views.items()}, f"Q's camera choice at {where}",
+            note=f"({GRID[0]} x {GRID[1]} poses)", saliency=views))
+        gap = np.ones((views["default"]["rgb"].shape[0], 4, 3))
+        row = [x for k in views for x in (views[k]["rgb"], gap)][:-1]
+        iio.imwrite(out / "views.png", (np.concatenate(row, axis=1) * 255).clip(0, 255)
+                    .astype(np.uint8))
+        files["views"] = str(out / "views.png")
+        doc.update({"q": {k: v["q"] for k, v in views.items()},
+                    "q_landscape_max": float(np.max(vals)),
+                    "q_landscape_min": float(np.min(vals)), "grid": list(GRID),
+                    "steps_to_move": mount.steps_to_move(default, deployed)})
+    doc["files"] = files
+    report.write_json(out / "summary.json", doc)
+    return files
 
 
 # ------------------------------------------------------------------------------ the report
@@ -265,9 +326,10 @@ def write_report(out, summary: dict, figures: dict[str, str] | None = None) -> P
     shown = [("success.png", "real success per round: the deployed camera, the default camera "
               "and the actor in the identified twin")]
     if figures.get("plot"):
-        shown.append((figures["plot"], "Q over the mount's workspace (arrows: the ascents; "
-                      "square: the default pose; star: Q's choice), the default and the chosen "
-                      "view, and under each the actor's saliency on its own image"))
+        shown.append((figures["plot"], "Q over the mount's workspace at the start of the last "
+                      "deployed episode (square: the default pose; star: the pose the deployment "
+                      "chose there), the views from both, and under each the actor's saliency on "
+                      "its own image"))
     if figures.get("saliency"):
         shown.append((figures["saliency"], "the actor's saliency: |d action / d pixel| over "
                       "the RGB-D image it sees (`twinrl.sense.saliency`)"))
