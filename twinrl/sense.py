@@ -185,7 +185,8 @@ def plot_sense(path, mount, land, poses: dict, images: dict, values: dict, title
         ax.axis("off")
         ax.text(0.0, 0.6, "Right: the actor's saliency, |d action / d pixel|\n"
                 "(every action dimension, RGB and depth), on the\nimage it sees from each "
-                "pose; warm = larger\n(square-root scale, one scale for both), grey = 0.",
+                f"pose; warm = larger\n(square-root scale, one scale for "
+                f"{'both' if len(names) == 2 else 'all'}), grey = 0.",
                 fontsize=9, va="center", ha="left", transform=ax.transAxes)
         for i, name in enumerate(names):
             ax = fig.add_subplot(rows, cols, cols + 2 + i)

@@ -33,7 +33,8 @@ FIGURES = "sense"
 # ------------------------------------------------------------------------------ figures
 GRID = (11, 7)
 """Azimuths x elevations of the report's landscape of Q (``twinrl sense`` draws 15 x 9): the
-figure's program runs the actor's Jacobian at every pose of it too, ~40 ms a pose on the needle."""
+figure's program runs the actor's Jacobian at every pose of it too, ~20 ms a pose on the needle
+(its compilation, ~20 s, does not grow with the grid)."""
 
 
 def write_figures(run, env, record: dict) -> dict[str, str]:
@@ -326,10 +327,13 @@ def write_report(out, summary: dict, figures: dict[str, str] | None = None) -> P
     shown = [("success.png", "real success per round: the deployed camera, the default camera "
               "and the actor in the identified twin")]
     if figures.get("plot"):
-        shown.append((figures["plot"], "Q over the mount's workspace at the start of the last "
-                      "deployed episode (square: the default pose; star: the pose the deployment "
-                      "chose there), the views from both, and under each the actor's saliency on "
-                      "its own image"))
+        mark = ("star: the pose the deployment chose there" if
+                last.get("deployed_camera") == "selected" else
+                "the default camera was deployed; triangle: Q's best on the grid")
+        shown.append((figures["plot"], f"Q over the mount's workspace at the start of the last "
+                      f"deployed episode (square: the default pose; {mark}), the views from the "
+                      f"default and the deployed pose, and under each the actor's saliency on "
+                      f"its own image"))
     if figures.get("saliency"):
         shown.append((figures["saliency"], "the actor's saliency: |d action / d pixel| over "
                       "the RGB-D image it sees (`twinrl.sense.saliency`)"))
