@@ -285,7 +285,7 @@ def look(env, actor: Network, actor_params, obs, poses: dict[str, object], *, q=
     at the grid's poses too, since a second program for them alone would cost a second
     compilation, which is most of the time). On the needle (the pose fit inside), 2 + 77
     poses: 30 s of CPU to trace and compile it, 1.3 s to run; ``sense``'s ascent, landscape,
-    160-pixel views and saliency take 150 s of CPU."""
+    160-pixel views and saliency take 155 s of CPU."""
     from twinrl.learn.camera_choice import observed_keys, q_value, workspace_grid
     from twinrl.sim2real.active import sim_state
 

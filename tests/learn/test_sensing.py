@@ -1,6 +1,7 @@
 """The sensing-aware Q and the camera choice (``twinrl.learn.sensing``) on a short peg insertion:
 the data's targets are the actor's returns-to-go, Q fits them, the ascent through the renderer
-finds the poses a visibility score prefers, and ``twinrl sense`` writes its pose, plot and views.
+finds the poses a visibility score prefers, ``twinrl sense`` writes its pose, plot and views,
+and ``look`` (the loop's figures) gives Q and the saliency at poses already chosen.
 
 Compiles dominate: one 6-step episode batch, one fit, one ascent per Q, at 16-32 pixels.
 """

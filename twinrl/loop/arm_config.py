@@ -165,7 +165,7 @@ class ArmLoopConfig:
     default and chosen views and the actor's saliency on each; without a Q, the saliency on the
     deployed view. One small compilation, no ascent: on the needle 36 s of CPU (about a
     minute on 2 cores shared with other jobs), where ``twinrl sense``'s ascent, landscape and
-    saliency took 150 s of CPU (4 min)."""
+    saliency took 155 s of CPU (4 min)."""
     image_size: int | None = None
     """Width and height (pixels) of the mount camera's images, recorded, simulated and deployed;
     ``None``: the task's (``ArmConfig.image_size``). The needle at 128 instead of its 64: the
