@@ -91,7 +91,7 @@ CHILD = textwrap.dedent("""
 
     # no sysid: minutes of float64 arm rollouts, and resume is the same for every stage
     config = loop_arm.ArmLoopConfig(rounds=1, episodes_per_round=%d, camera="default",
-                                    eval_episodes=0, video=False, sysid=False)
+                                    eval_episodes=0, video=True, sysid=False)
     note("start resume" if resume else "start")
     loop_arm.run("peg_insertion", out, config, seed=2, resume=resume, progress=False)
     note("finished")
@@ -180,6 +180,17 @@ def test_finished_stages_are_not_redone_and_the_summary_counts_the_episodes(kill
     assert r1["deployed_camera"] == "default"  # what the table, plot and video name
     assert r1["real_steps"] == len(ds.read(out / "dataset"))
     assert (out / "success.png").exists()
+    # the outputs after the resume: the report, the actor's saliency (no Q with the default
+    # camera: the default view's), and the video of one more episode
+    report = (out / "report.md").read_text()
+    assert report.startswith("# twinrl run: peg_insertion (seed 2)") and "**Verdict:**" in report
+    assert "](sense/saliency.png)" in report and (out / "sense" / "saliency.png").exists()
+    assert s["figures"] == {"saliency": str(out / "sense" / "saliency.png")}
+    # drawn at the start of the last deployed episode, from the pose it was deployed with
+    fig = json.loads((out / "sense" / "summary.json").read_text())
+    assert "last deployed episode" in fig["state"] and fig["deployed_camera"] == "default"
+    assert fig["coords"] == {"default": r1["chosen_coords"][-1]}
+    assert (out / "final.mp4").stat().st_size > 0 and s["video"] == str(out / "final.mp4")
 
 
 def test_bad_settings_fail_with_one_line(tmp_path):

@@ -312,7 +312,8 @@ def test_the_loop_is_a_list_of_stages():
     assert run.end_lineno - run.lineno + 1 <= 60
     from twinrl import loop
 
-    assert [s.name for s in loop.ROUND] == ["sysid", "hybrid", "learn", "residual", "deploy"]
+    assert [s.name for s in loop.ROUND] == ["sysid", "hybrid", "learn", "compare", "residual",
+                                            "deploy"]
     given = {"data"}
     for stage in loop.ROUND:  # every stage needs only what the round or earlier stages give
         assert set(stage.needs) <= given, (stage.name, stage.needs, given)

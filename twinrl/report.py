@@ -22,7 +22,8 @@ from rich.console import Console
 from rich.table import Table
 
 __all__ = ["to_jsonable", "run_meta", "write_json", "print_table", "console", "MetricsWriter", "plot_curves",
-           "write_video"]
+           "write_video", "text_stamp", "label_frames", "compose_frame", "pct", "cell",
+           "md_table", "plot_param_errors", "loop_report", "MISSING", "wilson_interval"]
 
 # Not a terminal (CI logs, pipes): rich would wrap tables at 80 columns; logs can be wide.
 console = Console(stderr=False, highlight=False,
@@ -231,19 +232,33 @@ def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: floa
         return gif
 
 
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval of a success rate ``successes / n`` (95 % by default)."""
+    if n < 1:
+        return (float("nan"), float("nan"))
+    p = successes / n
+    d = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / d
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return (float(max(0.0, centre - half)), float(min(1.0, centre + half)))
+
+
 # ------------------------------------------------------------------------------ the loop's report
-def _pct(x: float | None) -> str:
+def pct(x: float | None) -> str:
+    """A fraction as a percentage with one decimal (``MISSING`` for None or not finite)."""
     return MISSING if x is None or not math.isfinite(float(x)) else f"{100 * float(x):.1f} %"
 
 
-def _cell(v: Any) -> str:
+def cell(v: Any) -> str:
+    """A Markdown table's cell: the table's number format, ``MISSING`` for None and NaN."""
     s = _fmt(v)
     return MISSING if s in ("nan", "None") else s
 
 
-def _md_table(columns: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
+def md_table(columns: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
+    """A Markdown table's lines (cells: ``cell``)."""
     out = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    out += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in rows]
+    out += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
     return out
 
 
@@ -378,6 +393,22 @@ def plot_param_errors(path: str | os.PathLike, identified: Sequence[dict],
     return _save(fig, path)
 
 
+def text_stamp(text: str, width: int, height: int = 22) -> np.ndarray:
+    """``(height, width, 3)`` uint8: ``text`` in white on black, left-aligned, rendered with
+    matplotlib (a video frame's label or caption)."""
+    plt = _pyplot()
+    fig = plt.figure(figsize=(width / 100, height / 100), dpi=100)
+    fig.patch.set_facecolor("black")
+    fig.text(0.01 if width > 300 else 0.02, 0.5, text, color="white",
+             fontsize=max(7, height * 0.45), va="center", ha="left", family="DejaVu Sans")
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    plt.close(fig)
+    out = np.zeros((height, width, 3), np.uint8)
+    out[:min(height, img.shape[0]), :min(width, img.shape[1])] = img[:height, :width]
+    return out
+
+
 def label_frames(frames: Sequence[np.ndarray], labels: Sequence[str],
                  band: int = 22) -> list[np.ndarray]:
     """Burn one label per horizontal panel into each frame (a dark band at the top of each
@@ -387,17 +418,7 @@ def label_frames(frames: Sequence[np.ndarray], labels: Sequence[str],
         return []
     h, w = frames[0].shape[:2]
     pw = w // len(labels)
-    plt = _pyplot()
-    stamps = []
-    for text in labels:
-        fig = plt.figure(figsize=(pw / 100, band / 100), dpi=100)
-        fig.patch.set_facecolor("black")
-        fig.text(0.02, 0.5, text, color="white", fontsize=max(7, band * 0.45), va="center",
-                 ha="left", family="DejaVu Sans")
-        fig.canvas.draw()
-        img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-        plt.close(fig)
-        stamps.append(img[:band, :pw])
+    stamps = [text_stamp(text, pw, band) for text in labels]
     out = []
     for f in frames:
         f = np.array(f, np.uint8, copy=True)
@@ -405,6 +426,31 @@ def label_frames(frames: Sequence[np.ndarray], labels: Sequence[str],
             f[:s.shape[0], i * pw:i * pw + s.shape[1]] = s
         out.append(f)
     return out
+
+
+def compose_frame(panels: Sequence[np.ndarray], labels: Sequence[str], caption: str = "",
+                  height: int | None = None, band: int = 22) -> np.ndarray:
+    """One video frame: the RGB ``panels`` side by side, each scaled by a whole factor (nearest
+    neighbour, so a small camera image keeps its pixels) to ``height`` (default: the tallest
+    panel's; a panel that does not divide it is padded below), each under a dark band with its
+    label, and ``caption`` in a band under them all (none when empty). uint8 ``(band + height
+    [+ band], sum of the scaled widths, 3)``."""
+    if not panels or len(panels) != len(labels):
+        raise ValueError(f"compose_frame: {len(panels)} panels for {len(labels)} labels")
+    panels = [np.asarray(p) for p in panels]
+    panels = [(np.clip(p, 0, 1) * 255).astype(np.uint8) if p.dtype.kind == "f" else
+              p.astype(np.uint8) for p in panels]
+    H = int(height or max(p.shape[0] for p in panels))
+    cols = []
+    for p, label in zip(panels, labels):
+        k = max(1, H // p.shape[0])
+        p = np.repeat(np.repeat(p[..., :3], k, 0), k, 1)[:H]
+        p = np.pad(p, ((0, H - p.shape[0]), (0, 0), (0, 0)))
+        cols.append(np.concatenate([text_stamp(label, p.shape[1], band), p], 0))
+    frame = np.concatenate(cols, 1)
+    if caption:
+        frame = np.concatenate([frame, text_stamp(caption, frame.shape[1], band)], 0)
+    return frame
 
 
 def _compare_section(rounds: Sequence[dict]) -> list[str]:
@@ -420,14 +466,14 @@ def _compare_section(rounds: Sequence[dict]) -> list[str]:
         frac = reach / theirs if reach is not None and theirs else None
         rows.append([r["round"], f"`{c.get('deployed_algo')}`", c.get("deployed_learn_s"),
                      r.get("sim_return"), f"`{c.get('algo')}`", theirs, c.get("sim_return"),
-                     reach, _pct(frac) if frac is not None else "never"])
+                     reach, pct(frac) if frac is not None else "never"])
     if not rows:
         return []
     return (["## Learning wall clock against a second learner", "",
              "Both learners trained on the same round's identified simulator (seconds of "
              "learning, compilation included); only the first is deployed."] + [""] +
-            _md_table(["round", "deployed learner", "seconds", "sim return", "compared with",
-                       "seconds", "sim return", "s to its final return", "of its time"], rows)
+            md_table(["round", "deployed learner", "seconds", "sim return", "compared with",
+                      "seconds", "sim return", "s to its final return", "of its time"], rows)
             + [""])
 
 
@@ -458,8 +504,8 @@ def loop_report(out: str | os.PathLike, summary: dict,
     if final.get("real_return") is not None:
         v = (f"**Verdict:** after {len(done)} round{'s' * (len(done) != 1)} and "
              f"{final.get('real_steps')} real-twin steps, the deployed policy returns "
-             f"{_cell(final['real_return'])} on the real twin")
-        v += (f", **{_pct(frac)} of the oracle** ({_cell(oracle)}: a policy trained the same way "
+             f"{cell(final['real_return'])} on the real twin")
+        v += (f", **{pct(frac)} of the oracle** ({cell(oracle)}: a policy trained the same way "
               f"on the twin's true parameters, evaluation only)." if frac is not None else
               " (no oracle was trained: `--no-oracle`).")
         md += [v, ""]
@@ -485,7 +531,7 @@ def loop_report(out: str | os.PathLike, summary: dict,
              r.get("sim_policy_real_return"), r.get("adapted_real_return"),
              {True: "accepted", False: "rejected"}.get(r.get("residual_accepted")),
              sum((r.get("seconds") or {}).values()) or None] for r in rounds]
-    md += _md_table(["round", "real steps (total)", "sim return", "real return (deployed)",
+    md += md_table(["round", "real steps (total)", "sim return", "real return (deployed)",
                      "sim policy, no adaptation (eval)", "adapted (eval)", "residual",
                      "seconds"], rows)
     md += [""]
@@ -501,12 +547,12 @@ def loop_report(out: str | os.PathLike, summary: dict,
                "Values the fit found, with its own standard deviation (from the curvature of "
                "the loss); the error against the hidden truth is evaluation only.", ""]
         prow = [[row["parameter"], row.get("initial"),
-                 f"{_cell(row.get('identified'))} ± {_cell(row.get('sd'))}", row.get("status"),
-                 _pct(errs.get(row["parameter"]))] for row in last["identified"]]
+                 f"{cell(row.get('identified'))} ± {cell(row.get('sd'))}", row.get("status"),
+                 pct(errs.get(row["parameter"]))] for row in last["identified"]]
         if last.get("latency") is not None:
             prow.append(["latency (steps)", None, last["latency"], "searched",
-                         _pct(errs.get("latency"))])
-        md += _md_table(["parameter", "nominal", "identified ± sd", "status",
+                         pct(errs.get("latency"))])
+        md += md_table(["parameter", "nominal", "identified ± sd", "status",
                          "error vs truth (eval)"], prow)
         md += [""]
         if any(str(row.get("status", "")).startswith("only in combination")
@@ -527,7 +573,7 @@ def loop_report(out: str | os.PathLike, summary: dict,
         md += [f"Model-free curves in `returns.png`: {len(model_free)} run(s) of "
                f"`bench/sim2real.py` on this task and seed.", ""]
     md += [f"Machine-readable figures: `summary.json`. Wall clock of this process: "
-           f"{_cell(summary.get('wall_s_this_process'))} s.", ""]
+           f"{cell(summary.get('wall_s_this_process'))} s.", ""]
     (out / "report.md").write_text("\n".join(md))
     files["report"] = out / "report.md"
     return files

@@ -1,6 +1,7 @@
 """The sensing-aware Q and the camera choice (``twinrl.learn.sensing``) on a short peg insertion:
 the data's targets are the actor's returns-to-go, Q fits them, the ascent through the renderer
-finds the poses a visibility score prefers, and ``twinrl sense`` writes its pose, plot and views.
+finds the poses a visibility score prefers, ``twinrl sense`` writes its pose, plot and views,
+and ``look`` (the loop's figures) gives Q and the saliency at poses already chosen.
 
 Compiles dominate: one 6-step episode batch, one fit, one ascent per Q, at 16-32 pixels.
 """
@@ -257,6 +258,9 @@ def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoint
     assert iio.imread(tmp_path / "out" / "sense.png").shape[1] > 1000
     assert iio.imread(tmp_path / "out" / "views.png").shape == (PIX, 2 * PIX + 4, 3)
     doc = json.loads((tmp_path / "out" / "summary.json").read_text())
+    # the actor's saliency on both views, drawn beside them and on its own
+    assert iio.imread(tmp_path / "out" / "saliency.png").shape[1] > 1000
+    assert set(doc["saliency_target_share"]) == {"default", "chosen"}
     # the summary's poses are its coordinates' (the default's: the mount's), the move between
     # them takes the mount's speed limit, and the views are the two poses' images
     mount, chosen = env.mount, np.asarray(doc["chosen_coords"], np.float32)
@@ -284,6 +288,49 @@ def test_sense_writes_the_choice_its_plot_and_views_and_refuses_other_checkpoint
         sensing.SensingConfig(target="value")
     with pytest.raises(ValueError, match="check_every must be an integer >= 1, got 0"):
         sensing.SensingConfig(check_every=0)
+
+
+def test_look_gives_q_and_the_saliency_at_given_poses_of_a_measured_state(peg, trained):
+    # the loop's figures: no ascent, the pose already chosen; Q and the saliency at each pose
+    # (and over the grid) are those of the hard image of the state read off the observation
+    from twinrl.learn.camera_choice import observed_keys, q_value, workspace_grid
+    from twinrl.sim2real.active import sim_state
+
+    env, actor, actor_params = peg
+    _, q, q_params, _, _ = trained
+    obs = np.asarray(env.reset(jax.random.PRNGKey(3)).obs, np.float32)
+    chosen = np.asarray(sensing.uniform_coords(env.mount, jax.random.PRNGKey(4)), np.float64)
+    poses = {"default": np.asarray(env.mount.default, np.float64), "chosen": chosen}
+    seen = sense_cmd.look(env, actor, actor_params, obs, poses, q=q, q_params=q_params,
+                          grid=(4, 3), distance_coord=chosen[2])
+    az, el, vals = seen["landscape"]
+    assert az.shape == (4,) and el.shape == (3,) and vals.shape == (3, 4)
+    grid = workspace_grid(env.mount, chosen[2], (4, 3))[2]
+    at = np.concatenate([np.stack(list(poses.values())), grid]).astype(np.float32)
+    state = sim_state(env, jnp.asarray(obs))
+    keys = observed_keys(actor, q)
+
+    @jax.jit
+    def reference(c):  # Q on the hard image, and ``saliency`` on the actor's image
+        o = sensing.observer(env, PIX, keys=keys + ("pixels/mount",))(state, c)
+        return (q_value(q, q_params, o, actor.apply(actor_params, o)), o["pixels/mount"],
+                sense_cmd.saliency(env, actor, actor_params, state.obs[:14], c,
+                                   o["pixels/mount"]))
+
+    refs = [reference(jnp.asarray(c)) for c in at]
+    np.testing.assert_allclose(vals.reshape(-1), [float(r[0]) for r in refs[2:]], rtol=1e-4,
+                               atol=1e-5)
+    for (name, view), (value, px, sal) in zip(seen["views"].items(), refs):
+        assert view["q"] == pytest.approx(float(value), rel=1e-4, abs=1e-5)
+        np.testing.assert_allclose(view["rgb"], np.asarray(px)[..., :3], atol=1e-5)
+        np.testing.assert_array_equal(view["mask"], np.asarray(px)[..., 4] > 0.5)
+        np.testing.assert_allclose(view["saliency"], sal, rtol=1e-4, atol=1e-6)
+        assert np.asarray(sal).max() > 0
+    # no Q: the views and their saliency alone
+    bare = sense_cmd.look(env, actor, actor_params, obs, {"default": poses["default"]})
+    assert set(bare) == {"views"} and np.isnan(bare["views"]["default"]["q"])
+    np.testing.assert_allclose(bare["views"]["default"]["saliency"], refs[0][2], rtol=1e-4,
+                               atol=1e-6)
 
 
 def test_q_of_a_pose_actor_also_sees_the_pose_and_what_the_fit_stands_on():

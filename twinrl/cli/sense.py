@@ -16,8 +16,10 @@ def add_parser(sub) -> None:
                     "camera's pose by gradient ascent of Q(image(pose), actor(image(pose))) "
                     "through the differentiable renderer (a `twinrl train --algo sensing` run). "
                     "Writes sense.png (Q over the workspace, the ascents, the views from the "
-                    "default and the chosen pose), views.png (the actor's 64x64 images) and "
-                    "summary.json (the chosen pose, Q, steps the mount needs to get there).")
+                    "default and the chosen pose, and under each the actor's saliency: "
+                    "|d action / d pixel| over the RGB-D image), views.png (the actor's images), "
+                    "saliency.png (each view beside its saliency) and summary.json (the chosen "
+                    "pose, Q, steps the mount needs to get there).")
     p.add_argument("--env", required=True, help="task name (see `twinrl envs`)")
     p.add_argument("--checkpoint", required=True, type=Path,
                    help="a `twinrl train --algo sensing` run (or its policy/), or a `twinrl run` "
@@ -45,12 +47,16 @@ def cmd(args) -> int:
                   steps=args.steps, progress=status.update)
     p = s["chosen_pose"]
     report.print_table(f"sense {args.env} (start state seed {args.seed})",
-                       ["pose", "azimuth", "elevation", "distance", "Q", "target px"],
+                       ["pose", "azimuth", "elevation", "distance", "Q", "target px",
+                        "saliency on target"],
                        [["default", s["default_pose"]["azimuth_rad"],
                          s["default_pose"]["elevation_rad"], s["default_pose"]["distance_m"],
-                         s["q_default"], s["target_pixels_160"]["default"]],
+                         s["q_default"], s["target_pixels_160"]["default"],
+                         s["saliency_target_share"]["default"]],
                         ["chosen", p["azimuth_rad"], p["elevation_rad"], p["distance_m"],
-                         s["q_chosen"], s["target_pixels_160"]["chosen"]]])
-    print(f"wrote {s['files']['plot']} (mount moves {s['steps_to_move']} steps)")
+                         s["q_chosen"], s["target_pixels_160"]["chosen"],
+                         s["saliency_target_share"]["chosen"]]])
+    print(f"wrote {s['files']['plot']} and {s['files']['saliency']} (mount moves "
+          f"{s['steps_to_move']} steps)")
     return 0
 

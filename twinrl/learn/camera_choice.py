@@ -30,7 +30,7 @@ from twinrl.learn.networks import Network
 
 __all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
            "neighbourhood_offsets", "score_around", "select_camera", "checked_steps",
-           "landscape", "view_outcomes", "q_predictions"]
+           "workspace_grid", "landscape", "view_outcomes", "q_predictions"]
 
 
 EDGE = float(np.log(0.98 / 0.02))
@@ -177,15 +177,23 @@ def select_camera(env, q: Network, q_params, actor: Network, actor_params, state
                      values.reshape(K, R), cand[pick])
 
 
-def landscape(env, q: Network, q_params, actor: Network, actor_params, state, distance_coord,
-              grid: tuple[int, int] = (15, 9)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Q (hard images) over an azimuth x elevation grid of the workspace at one distance
-    coordinate: ``(azimuths (A,), elevations (E,), values (E, A))`` in radians."""
-    mount = env.mount
+def workspace_grid(mount, distance_coord, grid: tuple[int, int] = (15, 9)
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An azimuth x elevation grid over the mount's workspace (its edges left out) at one
+    distance coordinate: ``(azimuths (A,), elevations (E,), coords (E * A, 3))``, the poses'
+    unconstrained mount coordinates elevation-major (``coords.reshape(E, A, 3)``)."""
     az = np.linspace(*mount.azimuth, grid[0] + 2)[1:-1]
     el = np.linspace(*mount.elevation, grid[1] + 2)[1:-1]
     dist = float(np.asarray(mount.spherical(jnp.full(3, distance_coord, jnp.float32)))[2])
     coords = np.array([mount.coords_of([a, e, dist]) for e in el for a in az], np.float32)
+    return az, el, coords
+
+
+def landscape(env, q: Network, q_params, actor: Network, actor_params, state, distance_coord,
+              grid: tuple[int, int] = (15, 9)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Q (hard images) over an azimuth x elevation grid of the workspace at one distance
+    coordinate: ``(azimuths (A,), elevations (E,), values (E, A))`` in radians."""
+    az, el, coords = workspace_grid(env.mount, distance_coord, grid)
     hard = observer(env, image_size(env, actor), keys=observed_keys(actor, q))
 
     @jax.jit

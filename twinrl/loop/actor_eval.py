@@ -33,22 +33,12 @@ import numpy as np
 
 from twinrl.learn.checkpoint import CheckpointError
 from twinrl.loop.checkpoints import Found, round_of, round_q
+from twinrl.report import wilson_interval
 
 __all__ = ["CAMERAS", "eval_actor", "wilson_interval"]
 
 CAMERAS = ("default", "chosen", "random")
 _DEPLOY = {"default": "default", "chosen": "selected", "random": "random"}
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """The Wilson score interval of a success rate ``successes / n`` (95 % by default)."""
-    if n < 1:
-        return (float("nan"), float("nan"))
-    p = successes / n
-    d = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / d
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return (float(max(0.0, centre - half)), float(min(1.0, centre + half)))
 
 
 def _actor_dir(found: Found) -> tuple[Path, Any]:

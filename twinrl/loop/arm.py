@@ -57,12 +57,14 @@ resets with seed ``seed + i``, so the episodes are those an uninterrupted run wo
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from twinrl import report
+from twinrl.loop import arm_report
 from twinrl.loop import arm_stages as stages
 from twinrl.loop.arm_config import (GRASP_TASKS, NESTED, TASK_IMITATION, ArmLoopConfig,
                                     check_task, grasp_on, imitation_settings, is_arm_task,
@@ -79,6 +81,7 @@ __all__ = ["ArmLoopConfig", "make_config", "run", "ARM_COLLECT", "ARM_ROUND", "F
            "is_arm_task", "task_env", "run_env", "grasp_on", "imitation_settings", "observation",
            "deployed_camera", "deployer", "nominal_episodes", "record_round0",
            "round0_poses", "sysid_config", "calibrate_mount", "fit_grasp", "tool_geoms",
+           "FilmedTwin", "film_frames",
            "GRASP_TASKS", "TASK_IMITATION", "NESTED", "stages"]
 
 ARM_COLLECT = Stage("collect", needs=(), gives=(), make=stages.collect)
@@ -140,7 +143,8 @@ def summarise(run: RunContext, summary: dict) -> None:
 
 
 def write_outputs(run: RunContext, summary: dict) -> None:
-    """The table, ``summary.json`` and ``success.png``."""
+    """The table, the last round's figures (``ArmLoopConfig.figures``: ``sense/``, named in the
+    summary's ``figures``), ``summary.json``, ``success.png`` and ``report.md``."""
     rows = [[r["round"], r["real_steps"], r.get("plan_success"), r.get("sim_success"),
              r.get("q_rank_corr"), r.get("hand_eye_pos_err_mm"), r.get("real_success"),
              r.get("deployed_camera") or "—", r.get("default_camera_success"),
@@ -152,14 +156,23 @@ def write_outputs(run: RunContext, summary: dict) -> None:
                         "hand-eye err mm", "real success", "camera", "default camera",
                         "camera steps", "residual"],
                        rows)
+    if run.config.figures:
+        t0 = time.perf_counter()
+        env = stages.load_system(run, run.dir.round(run.config.rounds))["env"]
+        summary["figures"] = arm_report.write_figures(run, env, summary["rounds"][-1])
+        summary["figures_s"] = time.perf_counter() - t0
     report.write_json(run.dir.summary, summary)
     plot_success(run.dir.success_plot, summary)
+    arm_report.write_report(run.dir.out, summary)
 
 
 def final_video(run: RunContext, values: dict) -> Path:
-    """``final.mp4``: one more episode of the deployed actor on the real twin (not recorded), the
-    mount's view from the deployed pose (left: Q's choice, or the default where the gate fell
-    back to it) beside a fixed overview of the real scene (right)."""
+    """``final.mp4``: one more episode of the deployed actor on the real twin (not recorded), each
+    frame the real scene (the fixed ``overview`` camera, left) beside the mount's view from the
+    deployed pose (right: Q's choice, or the default where the gate fell back to it), the image
+    the actor acts on, labelled with the task and captioned with the step and the mount's pose
+    (``film_frames``), from the camera's move at the start to a last frame held a second with
+    the real verdict."""
     from twinrl.real.remote import TwinClient
     from twinrl.sim2real.active import DeployConfig
 
@@ -171,12 +184,42 @@ def final_video(run: RunContext, values: dict) -> Path:
                                  perturbation=run.perturbation, width=n, height=n))
     camera = deployed_camera(run.config, values["q_rank"])
     try:
-        dep.run(twin, DeployConfig(camera=camera, episodes=1), seed=90_000 + run.seed)
+        res = dep.run(twin, DeployConfig(camera=camera, episodes=1), seed=90_000 + run.seed)
     finally:
         twin.close()
     view = {"selected": "chosen view", "default": "default view"}.get(camera, f"{camera} view")
-    frames = report.label_frames(twin.frames, [view, "real scene"])
+    frames = film_frames(twin.shots, env, run.env_name, view, env.episode_length,
+                         n * max(2, -(-256 // n)), verdict=bool(res["success"][0]),
+                         hold=max(1, round(1.0 / env.dt)))
     return report.write_video(run.dir.video, frames, fps=1.0 / env.dt)
+
+
+def film_frames(shots, env, task: str, view: str, T: int, height: int,
+                verdict: bool | None = None, hold: int = 1) -> list[np.ndarray]:
+    """``final.mp4``'s frames of ``FilmedTwin.shots``: per shot ``report.compose_frame`` of the
+    real scene (left, labelled with the ``task``) and the mount's ``view`` (right, the image the
+    actor acts on), both scaled to ``height``, captioned with the step of ``T`` and the mount's
+    pose (``env.mount``'s azimuth, elevation and distance); the last frame repeated ``hold``
+    times with ``verdict`` (the real twin's success) when given."""
+    labels = [f"real scene: {task}", f"{view}: the actor's image"]
+    frames, when = [], ""
+    for shot in shots:
+        when = caption = ("camera moved, before acting" if shot["t"] == 0 else
+                          f"step {shot['t']}/{T}")
+        if shot.get("coords") is not None:
+            az, el, dist = np.asarray(env.mount.spherical(
+                np.asarray(shot["coords"], np.float32)), float)
+            caption += (f"  |  {view} at azimuth {np.degrees(az):.0f}\u00b0, elevation "
+                        f"{np.degrees(el):.0f}\u00b0, {dist:.2f} m")
+        frames.append(report.compose_frame([shot["scene"], shot["view"]], labels, caption,
+                                           height=height))
+    if frames and verdict is not None:
+        last = shots[-1]
+        end = report.compose_frame([last["scene"], last["view"]], labels,
+                                   f"real twin: {'success' if verdict else 'failure'}  |  "
+                                   f"{when}", height=height)
+        frames += [end] * int(hold)
+    return frames
 
 
 def _family() -> Family:
@@ -241,22 +284,44 @@ def plot_success(path: Path, summary: dict) -> None:
 
 
 class FilmedTwin:
-    """A twin client that keeps, after every step while ``film`` is true, the mount's frame
-    beside the scene's ``overview`` camera (each scaled up 3 times)."""
+    """A twin client that films while ``film`` is true: after every camera move and every step,
+    a shot ``{"view": the mount's RGB frame (what an image actor sees), "scene": the scene's
+    ``overview`` camera, "coords": the mount's commanded pose, "t": the steps since the reset}``
+    (``shots``); ``frames``: each shot's view beside its scene, each scaled up 3 times."""
 
     def __init__(self, twin, film: bool = True):
-        self._twin, self.frames, self.film = twin, [], film
+        self._twin, self.shots, self.film, self._t = twin, [], film, 0
 
     def __getattr__(self, name):
         return getattr(self._twin, name)
 
+    @property
+    def frames(self) -> list[np.ndarray]:
+        """The shots' view and scene side by side, each scaled up 3 times."""
+        return [np.concatenate([np.repeat(np.repeat(s[k], 3, 0), 3, 1)
+                                for k in ("view", "scene")], 1) for s in self.shots]
+
+    def _shoot(self) -> None:
+        views = [self._twin.render_images(c, ("rgb",))["rgb"] for c in ("mount", "overview")]
+        coords = self._twin.mount_coords
+        self.shots.append({"view": views[0], "scene": views[1], "t": self._t,
+                           "coords": None if coords is None else np.asarray(coords, np.float64)})
+
+    def reset(self, *args, **kwargs):
+        self._t = 0
+        return self._twin.reset(*args, **kwargs)
+
+    def move_camera(self, coords) -> int:
+        steps = self._twin.move_camera(coords)
+        if self.film:
+            self._shoot()
+        return steps
+
     def step(self, action):
         out = self._twin.step(action)
-        if not self.film:
-            return out
-        views = [self._twin.render_images(c, ("rgb",))["rgb"] for c in ("mount", "overview")]
-        self.frames.append(np.concatenate([np.repeat(np.repeat(v, 3, 0), 3, 1) for v in views],
-                                          1))
+        self._t += 1
+        if self.film:
+            self._shoot()
         return out
 
     def close(self):

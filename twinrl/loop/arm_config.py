@@ -156,7 +156,16 @@ class ArmLoopConfig:
     +1.1 % through the hybrid model, -0.8 % through the twin) and cost the chosen camera 10
     real points (84 -> 74 %, 50 episodes: 5 solved only without it, 0 only with it)."""
     video: bool = True
-    """Write final.mp4: a deployment episode, the deployed view beside an overview of the scene."""
+    """Write final.mp4: a deployment episode, the real scene beside the deployed view (the image
+    the actor acts on)."""
+    figures: bool = True
+    """Draw the last round's figures for ``report.md`` in ``OUT/sense/``
+    (``twinrl.loop.arm_report.write_figures``), for the start of its last deployed episode and
+    the pose the deployment chose there: Q's landscape over the mount's workspace with the
+    default and chosen views and the actor's saliency on each; without a Q, the saliency on the
+    deployed view. One small compilation, no ascent: on the needle 36 s of CPU (about a
+    minute on 2 cores shared with other jobs), where ``twinrl sense``'s ascent, landscape and
+    saliency took 155 s of CPU (4 min)."""
     image_size: int | None = None
     """Width and height (pixels) of the mount camera's images, recorded, simulated and deployed;
     ``None``: the task's (``ArmConfig.image_size``). The needle at 128 instead of its 64: the
