@@ -8,18 +8,28 @@ Python (``--dreamer-python``, or ``$TWINRL_DREAMER_PYTHON``) as a subprocess of 
 an action and gets back the default camera's RGB frame (the task's ``image_size``, 64 pixels for
 the arm tasks), the reward and the episode flags.
 
-The separate environment, as it was set up (the ``dreamer`` package on PyPI, 3.3.1, is an sdist
-whose setup.py reads a requirements.txt it does not ship, so ``pip install dreamer`` fails with
-``FileNotFoundError: ... 'requirements.txt'``; ``dreamerv3`` 1.5.0 on PyPI is the 2023 version and
-fails on its ``gym==0.19.0`` pin: ``error in gym setup command: 'extras_require' must be a
-dictionary ...``)::
+The separate environment. PyPI has no installable DreamerV3: ``pip install dreamer`` (3.3.1,
+danijar's current release) fails building its sdist, whose setup.py reads a requirements.txt
+the sdist does not ship (``FileNotFoundError: [Errno 2] No such file or directory:
+'requirements.txt'``), and ``pip install dreamerv3`` (1.5.0, the 2023 version) fails on its
+``gym==0.19.0`` pin (``error in gym setup command: 'extras_require' must be a dictionary whose
+values are strings or lists of strings containing valid project/version requirement
+specifiers.``). So the code comes from the source (github.com/danijar/dreamerv3, setup.py
+version 3.3.1; used here at commit e3f02248693a) and its requirements.txt from PyPI, less the
+Atari, CUDA and debugger ones; pip resolves jax 0.4.33, numpy 1.26.4, ml-dtypes 0.5.4,
+optax 0.2.5, chex 0.1.90, elements 3.22.4, ninjax 3.6.3, portal 3.8.3 (Python 3.11)::
 
     python3 -m venv /tmp/dreamer-venv
     /tmp/dreamer-venv/bin/pip install "jax==0.4.33" "jaxlib==0.4.33" chex einops \\
         "elements>=3.19.1" "granular>=0.20.3" jaxtyping "ninjax>=3.5.1" "numpy<2" optax \\
         "portal>=3.5.0" "scope>=0.4.4" tqdm av colored_traceback
-    # the source of danijar/dreamerv3 (the dreamer 3.3.1 release) in DIR; then
+    git clone https://github.com/danijar/dreamerv3 DIR
     export TWINRL_DREAMER_PYTHON=/tmp/dreamer-venv/bin/python DREAMERV3_SRC=DIR
+    PYTHONPATH=DIR $TWINRL_DREAMER_PYTHON bench/dreamer_baseline.py --probe  # dreamerv3 with jax 0.4.33
+
+Dreamer's settings: its ``size1m`` model (687k parameters), float32 on the CPU, one
+environment, train ratio 32 (replayed steps per real step), the rest its defaults; training
+starts once the replay holds one batch (16 x 64 steps).
 
 Success is the twin's ``success()`` at the end of each training episode (the stochastic training
 policy, reset seeds ``20,000 + episode``), reported as the mean of the last 10 episodes; the

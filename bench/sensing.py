@@ -54,6 +54,8 @@ spread that one twin seed has. Prints the tables and writes ``DIR/sensing.json``
     twinrl run --env needle_threading --out runs/needle
     python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle \
         --episodes 50 --modes selected default random --out bench/results
+    TWINRL_DREAMER_PYTHON=/tmp/dreamer-venv/bin/python DREAMERV3_SRC=DIR python bench/sensing.py \
+        --tasks needle_threading --run needle_threading=runs/needle --dreamer-steps 20000
 """
 
 from __future__ import annotations
