@@ -52,9 +52,9 @@ spread that one twin seed has. Prints the tables and writes ``DIR/sensing.json``
     python bench/sensing.py --tasks peg_insertion --actor peg_insertion=runs/ia \\
         --q peg_insertion=runs/sq --state-actor peg_insertion=runs/sa --out bench/results
     twinrl run --env needle_threading --out runs/needle
-    python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle \
+    python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle \\
         --episodes 50 --modes selected default random --out bench/results
-    TWINRL_DREAMER_PYTHON=/tmp/dreamer-venv/bin/python DREAMERV3_SRC=DIR python bench/sensing.py \
+    TWINRL_DREAMER_PYTHON=/tmp/dreamer-venv/bin/python DREAMERV3_SRC=DIR python bench/sensing.py \\
         --tasks needle_threading --run needle_threading=runs/needle --dreamer-steps 20000
 """
 
