@@ -67,8 +67,11 @@ def dreamer_python(path: str | None = None) -> tuple[str | None, str | None]:
     exe = shutil.which(path)
     if exe is None:
         return None, f"no Dreamer environment: {path} is not an executable"
-    probe = subprocess.run([exe, __file__, "--probe"], capture_output=True, text=True,
-                           env=_worker_env(), timeout=300)
+    try:
+        probe = subprocess.run([exe, __file__, "--probe"], capture_output=True, text=True,
+                               env=_worker_env(), timeout=300)
+    except subprocess.TimeoutExpired:
+        return None, f"DreamerV3 did not import in {exe} within 300 s"
     if probe.returncode != 0:
         last = (probe.stderr.strip().splitlines() or ["(no output)"])[-1]
         return None, f"DreamerV3 does not import in {exe}: {last}"
