@@ -31,6 +31,13 @@ real steps, evaluating success every ``--eval-every`` steps, and reports the rea
 needed to reach the selected camera's success, or ``--model-free-target`` (or that it did not
 within N).
 
+``--dreamer-steps N`` adds DreamerV3 (danijar/dreamerv3) from pixels -- the default camera's RGB
+frames -- on the same twin for N real steps: SAM-RL's third baseline. It needs its own
+environment (DreamerV3 pins jax 0.4.33; ``--dreamer-python`` or ``$TWINRL_DREAMER_PYTHON``, built
+as ``bench/dreamer_baseline.py``'s docstring says), where it runs as a subprocess talking to the
+twin here. Its success is the mean of its last 10 training episodes. Without that environment
+the row is kept, marked ``absent`` with the reason.
+
 ``--where sim`` (with or instead of ``real``) runs the image actor's camera modes in the
 simulator as well -- the run's identified twin with ``--run``/``--system``, else the nominal task
 -- from ``--episodes`` start states ``reset(PRNGKey(1000 * seed + i))``: the success in sim of
@@ -45,8 +52,10 @@ spread that one twin seed has. Prints the tables and writes ``DIR/sensing.json``
     python bench/sensing.py --tasks peg_insertion --actor peg_insertion=runs/ia \\
         --q peg_insertion=runs/sq --state-actor peg_insertion=runs/sa --out bench/results
     twinrl run --env needle_threading --out runs/needle
-    python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle \
+    python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle \\
         --episodes 50 --modes selected default random --out bench/results
+    TWINRL_DREAMER_PYTHON=/tmp/dreamer-venv/bin/python DREAMERV3_SRC=DIR python bench/sensing.py \\
+        --tasks needle_threading --run needle_threading=runs/needle --dreamer-steps 20000
 """
 
 from __future__ import annotations
@@ -150,6 +159,11 @@ def main(argv=None) -> int:
     p.add_argument("--model-free-target", type=float, default=None,
                    help="success SAC/TD3 must reach (default: the selected camera's here)")
     p.add_argument("--eval-every", type=int, default=5000)
+    p.add_argument("--dreamer-steps", type=int, default=0,
+                   help="real steps of DreamerV3 from pixels per task (bench/dreamer_baseline.py;"
+                        " its own environment: --dreamer-python)")
+    p.add_argument("--dreamer-python", default=None,
+                   help="the Dreamer environment's interpreter (default: $TWINRL_DREAMER_PYTHON)")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
     args.run_dirs = {}
@@ -187,6 +201,15 @@ def main(argv=None) -> int:
                 model_free.append(train_model_free(algo, name, target, args,
                                                    secrets.get(name)))
                 write_result(args.out / "sensing.json", _result(args, rows, model_free, sim_rows), args)
+        if args.dreamer_steps > 0:
+            from dreamer_baseline import train_dreamer
+
+            sel = [r["success"] for r in rows if r["task"] == name and r["mode"] == "selected"]
+            target = (args.model_free_target if args.model_free_target is not None
+                      else float(np.mean(sel)) if sel else 0.8)
+            model_free.append(train_dreamer(name, args.dreamer_steps, target, int(args.seeds[0]),
+                                            secrets.get(name), python=args.dreamer_python))
+            write_result(args.out / "sensing.json", _result(args, rows, model_free, sim_rows), args)
     table = summarise(rows)
     cols = ["task", "mode", "success", "spread (sd over seeds)", "return", "real steps",
             "camera steps", "wall s"]
@@ -211,11 +234,14 @@ def main(argv=None) -> int:
                       f"{100 * x['ci95'][0]:+.0f} .. {100 * x['ci95'][1]:+.0f}", x["only_a"],
                       x["only_b"], f"{x['sign_test_p']:.3f}"] for x in pairs])
     if model_free:
-        print_table("model-free on the real twin (state observation)",
-                    ["task", "algo", "target success", "steps to target", "best success",
-                     "real steps"],
-                    [[m["task"], m["algo"], m["target"], m["steps_to_target"] or "not reached",
-                      m["best_success"], m["real_steps_trained"]] for m in model_free])
+        print_table("model-free on the real twin",
+                    ["task", "algo", "observation", "target success", "steps to target",
+                     "best success", "real steps"],
+                    [[m["task"], m["algo"], m.get("observation", "state"), m["target"],
+                      f"absent: {m['absent']}" if "absent" in m
+                      else m["steps_to_target"] or "not reached",
+                      m.get("best_success", "-"), m.get("real_steps_trained", 0)]
+                     for m in model_free])
     path = write_result(args.out / "sensing.json", _result(args, rows, model_free, sim_rows), args)
     _plot(args.out / "sensing.png", table, summarise(sim_rows))
     print(f"wrote {path} and {args.out / 'sensing.png'}")
