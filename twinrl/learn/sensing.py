@@ -48,9 +48,11 @@ import numpy as np
 
 from twinrl.learn.camera_choice import (Selection, image_size, observer, q_predictions,
                                         q_value, select_camera, uniform_coords)
+from twinrl.learn.augment import image_augment
 from twinrl.learn.common import (JSONConfig, MetricLog, held_episodes, make_minibatch_fit,
-                                 make_optimizer, raw_key, rgb_jitter)
+                                 make_optimizer, raw_key)
 from twinrl.learn.networks import Network, NetworkConfig, make_network
+from twinrl.learn.ranking import evaluate_ranking, rank_corr_per_state
 
 __all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
            "observer", "sensing_data", "q_inputs", "make_q", "fit_q", "q_value", "train",
@@ -75,6 +77,10 @@ class SensingConfig(JSONConfig):
     """One example every this many steps of each episode."""
     rgb_jitter: float = 0.1
     """RGB gain/offset jitter of each training image (``common.rgb_jitter``; 0: none)."""
+    random_shift: int = 0
+    """Each training image shifted by up to this many pixels, edges repeated (DrQ,
+    ``augment.random_shift``; 0: none). Images only: an actor on the fitted pose or the target
+    cloud gives Q no image."""
     hidden: tuple[int, ...] = (256, 256)
     learning_rate: float = 1e-3
     max_grad_norm: float | None = 1.0
@@ -100,7 +106,7 @@ class SensingConfig(JSONConfig):
     def __post_init__(self):
         self.check_fields(at_least_one=("states", "every", "fit_steps", "batch_size", "restarts",
                                         "ascent_steps", "check_every", "smooth_top"),
-                          non_negative=("rgb_jitter", "smooth_samples"),
+                          non_negative=("rgb_jitter", "smooth_samples", "random_shift"),
                           positive=("ascent_lr", "tau", "smooth_sd"), widths=("hidden",),
                           choices={"target": ("return", "success")})
         if int(self.cameras) < 2:
@@ -193,50 +199,10 @@ def fit_q(q: Network, params, data: SensingData, config: SensingConfig, key: jax
     obs, targets = jax.tree_util.tree_map(flat, data.obs), flat(data.targets)
     tx = make_optimizer(config.learning_rate, config.max_grad_norm)
     fit = make_minibatch_fit(q.apply, tx, int(config.fit_steps), int(config.batch_size),
-                             rgb_jitter(config.rgb_jitter) if config.rgb_jitter else None)
+                             image_augment(config.rgb_jitter, config.random_shift))
     params, _, losses = fit(params, tx.init(params), {**obs, "action": flat(data.actions)},
                             targets[:, None], targets.shape[0], key)
     return params, losses
-
-
-def _rank_corr(a: np.ndarray, b: np.ndarray) -> float:
-    """Spearman's rank correlation of two vectors, ties at their mean rank (0 when either is
-    constant)."""
-    from scipy.stats import rankdata
-
-    if np.ptp(a) == 0 or np.ptp(b) == 0:
-        return 0.0
-    ra, rb = rankdata(a), rankdata(b)
-    return float(np.corrcoef(ra, rb)[0, 1])
-
-
-def rank_corr_per_state(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Spearman's correlation of Q (``pred``, ``q_predictions``) with the target across the
-    poses of each start state, at the episodes' first example: (S,)."""
-    return np.asarray([_rank_corr(p, t) for p, t in zip(pred[:, :, 0], target[:, :, 0])])
-
-
-def evaluate_ranking(q: Network, q_params, data: SensingData, pred=None) -> dict:
-    """On held-out data: Q's loss, its per-state rank correlation with the target across poses
-    (first example of each episode; ``rank_corr``, what a camera choice needs) and over all the
-    held-out (state, pose) pairs (``rank_corr_pooled``: a state's own difficulty counts too),
-    the target at Q's preferred pose vs the poses' mean and best, and the episode return from
-    Q's preferred pose (``return``). ``pred``: ``q_predictions`` of ``data``, if computed."""
-    pred = q_predictions(q, q_params, data) if pred is None else np.asarray(pred)
-    target = np.asarray(data.targets)
-    first_pred, first_target = pred[:, :, 0], target[:, :, 0]
-    corr = rank_corr_per_state(pred, target)
-    pick = np.argmax(first_pred, axis=1)
-    rows = np.arange(len(pick))
-    return {"val_loss": float(np.mean((pred - target) ** 2)),
-            "rank_corr": float(np.mean(corr)),
-            "rank_corr_pooled": _rank_corr(first_pred.ravel(), first_target.ravel()),
-            "target_q_choice": float(np.mean(first_target[rows, pick])),
-            "target_mean_pose": float(np.mean(first_target)),
-            "target_best_pose": float(np.mean(first_target.max(axis=1))),
-            "success_q_choice": float(np.mean(np.asarray(data.success)[rows, pick])),
-            "success_mean_pose": float(np.mean(np.asarray(data.success))),
-            "return": float(np.mean(np.asarray(data.returns)[rows, pick]))}
 
 
 def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0, *,
