@@ -33,11 +33,12 @@ def rank_corr_per_state(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def evaluate_ranking(q: Network, q_params, data, pred=None) -> dict:
-    """On held-out data (a ``sensing.SensingData``): Q's loss, its per-state rank correlation with the target across poses
-    (first example of each episode; ``rank_corr``, what a camera choice needs) and over all the
-    held-out (state, pose) pairs (``rank_corr_pooled``: a state's own difficulty counts too),
-    the target at Q's preferred pose vs the poses' mean and best, and the episode return from
-    Q's preferred pose (``return``). ``pred``: ``q_predictions`` of ``data``, if computed."""
+    """On held-out data (a ``sensing.SensingData``): Q's loss, its per-state rank correlation
+    with the target across poses (first example of each episode; ``rank_corr``, what a camera
+    choice needs) and over all the held-out (state, pose) pairs (``rank_corr_pooled``: a state's
+    own difficulty counts too), the target at Q's preferred pose vs the poses' mean and best,
+    and the episode return from Q's preferred pose (``return``). ``pred``: ``q_predictions`` of
+    ``data``, if computed."""
     pred = q_predictions(q, q_params, data) if pred is None else np.asarray(pred)
     target = np.asarray(data.targets)
     first_pred, first_target = pred[:, :, 0], target[:, :, 0]

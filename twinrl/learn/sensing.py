@@ -82,6 +82,9 @@ class SensingConfig(JSONConfig):
     ``augment.random_shift``; 0: none). Images only: an actor on the fitted pose or the target
     cloud gives Q no image."""
     hidden: tuple[int, ...] = (256, 256)
+    ensemble: int = 1
+    """Q's members (``NetworkConfig.ensemble``): each fitted to the targets on its own, Q their
+    mean."""
     learning_rate: float = 1e-3
     max_grad_norm: float | None = 1.0
     fit_steps: int = 2000
@@ -105,7 +108,8 @@ class SensingConfig(JSONConfig):
 
     def __post_init__(self):
         self.check_fields(at_least_one=("states", "every", "fit_steps", "batch_size", "restarts",
-                                        "ascent_steps", "check_every", "smooth_top"),
+                                        "ascent_steps", "check_every", "smooth_top",
+                                        "ensemble"),
                           non_negative=("rgb_jitter", "smooth_samples", "random_shift"),
                           positive=("ascent_lr", "tau", "smooth_sd"), widths=("hidden",),
                           choices={"target": ("return", "success")})
@@ -189,19 +193,25 @@ def make_q(actor: Network, action_size: int, config: SensingConfig) -> Network:
     spec = q_inputs(actor)
     spec["action"] = (int(action_size),)
     return make_network(spec, 1, NetworkConfig(hidden=tuple(config.hidden), activation="elu",
-                                               output="linear", layer_norm=True))
+                                               output="linear", layer_norm=True,
+                                               ensemble=int(config.ensemble)))
 
 
 def fit_q(q: Network, params, data: SensingData, config: SensingConfig, key: jax.Array):
-    """Regress Q onto ``data``'s targets (``config``'s fit fields; images RGB-jittered):
-    ``(params, losses)``, the minibatches' mean squared error per step."""
+    """Regress Q onto ``data``'s targets (``config``'s fit fields; images augmented):
+    ``(params, losses)``, the minibatches' squared error per step (an ensemble's: every
+    member's on its own, summed over the members)."""
     flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
-    obs, targets = jax.tree_util.tree_map(flat, data.obs), flat(data.targets)
+    obs, targets = jax.tree_util.tree_map(flat, data.obs), flat(data.targets)[:, None]
+    apply = q.apply
+    if q.members is not None:  # each member regressed on the targets: (rows, members)
+        apply = lambda p, o: q.members(p, o)[..., 0]  # noqa: E731
+        targets = jnp.tile(targets, (1, int(q.config.ensemble)))
     tx = make_optimizer(config.learning_rate, config.max_grad_norm)
-    fit = make_minibatch_fit(q.apply, tx, int(config.fit_steps), int(config.batch_size),
+    fit = make_minibatch_fit(apply, tx, int(config.fit_steps), int(config.batch_size),
                              image_augment(config.rgb_jitter, config.random_shift))
     params, _, losses = fit(params, tx.init(params), {**obs, "action": flat(data.actions)},
-                            targets[:, None], targets.shape[0], key)
+                            targets, targets.shape[0], key)
     return params, losses
 
 
