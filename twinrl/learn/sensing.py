@@ -70,7 +70,10 @@ class SensingConfig(JSONConfig):
     """``"return"`` (mean reward per step to the episode's end) or ``"success"`` (module
     docstring says why the return is the default)."""
     states: int = 32
-    """Start states of the training data (a fifth more are drawn and held out)."""
+    """Start states of the training data (a fifth more are drawn and held out). Q's rank per
+    state on 40 fresh states x 8 poses of a loop's identified twin (mean of 3 fit seeds), 32
+    states -> 64: needle 0.46 -> 0.49, spatula 0.53 -> 0.57; the data's cost doubles with it
+    (the needle's episodes fit the target's pose at every step: minutes on 2 cores)."""
     cameras: int = 8
     """Camera poses per start state, uniform over the mount's workspace."""
     every: int = 10
@@ -84,7 +87,8 @@ class SensingConfig(JSONConfig):
     hidden: tuple[int, ...] = (256, 256)
     ensemble: int = 1
     """Q's members (``NetworkConfig.ensemble``): each fitted to the targets on its own, Q their
-    mean."""
+    mean. Five members, measured as ``states``: needle 0.46 -> 0.49, spatula 0.53 -> 0.51 (64
+    states: 0.49 -> 0.51, 0.57 -> 0.55), within a fit seed's spread (0.03-0.04): one."""
     learning_rate: float = 1e-3
     max_grad_norm: float | None = 1.0
     fit_steps: int = 2000
