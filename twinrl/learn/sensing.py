@@ -72,8 +72,9 @@ class SensingConfig(JSONConfig):
     states: int = 32
     """Start states of the training data (a fifth more are drawn and held out). Q's rank per
     state on 40 fresh states x 8 poses of a loop's identified twin (mean of 3 fit seeds), 32
-    states -> 64: needle 0.46 -> 0.49, spatula 0.53 -> 0.57; the data's cost doubles with it
-    (the needle's episodes fit the target's pose at every step: minutes on 2 cores)."""
+    states -> 64: needle 0.46 -> 0.49, spatula 0.53 -> 0.57 (``bench/q_rank.py --retrain
+    states=64`` on spatula twin 0's loop: 0.54 -> 0.61, Q's training 37 -> 82 s); the data's cost
+    doubles with it (the needle's episodes fit the target's pose at every step: minutes)."""
     cameras: int = 8
     """Camera poses per start state, uniform over the mount's workspace."""
     every: int = 10
