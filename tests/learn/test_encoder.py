@@ -170,3 +170,22 @@ def test_rgb_jitter_changes_colours_only_within_its_bounds():
             gain, bias = np.polyfit(x[keep], y[keep], 1)
             assert abs(gain - 1) <= 0.1 + 1e-4 and abs(bias) <= 0.05 + 1e-4
     assert not np.allclose(new[0, ..., :3] - px[0, ..., :3], new[1, ..., :3] - px[1, ..., :3])
+
+
+def test_an_ensemble_is_the_mean_of_members_of_their_own_and_survives_a_checkpoint(tmp_path):
+    cfg = NetworkConfig(hidden=(16,), conv_features=(4, 8), conv_kernels=(3, 3),
+                        conv_strides=(2, 2), embed=8, output="linear", ensemble=3)
+    net = make_network(SPEC, 2, cfg)
+    params = net.init(jax.random.PRNGKey(0))
+    obs = _obs(jax.random.PRNGKey(1), (4,))
+    each = np.asarray(net.members(params, obs))
+    assert each.shape == (4, 3, 2) and net.apply(params, _obs(jax.random.PRNGKey(1))).shape == (2,)
+    np.testing.assert_allclose(net.apply(params, obs), each.mean(axis=1), rtol=1e-5, atol=1e-6)
+    assert not np.allclose(each[:, 0], each[:, 1])  # each member from its own initialisation
+    save_policy(tmp_path / "p", net, params, algo="test")
+    loaded, lparams, _ = load_policy(tmp_path / "p")
+    assert loaded.config.ensemble == 3
+    np.testing.assert_array_equal(loaded.apply(lparams, obs), net.apply(params, obs))
+    assert make_network(3, 1).members is None  # one network: no members
+    with pytest.raises(ValueError, match="ensemble"):
+        NetworkConfig(ensemble=0)

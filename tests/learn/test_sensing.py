@@ -150,6 +150,28 @@ def test_fitted_q_ranks_the_poses_of_held_out_states_by_a_known_q():
     assert f["target_best_pose"] - f["target_q_choice"] <= 0.1 * gap, f
 
 
+def test_an_ensemble_q_fits_every_member_on_its_own_and_ranks_by_their_mean():
+    # the stand-in above with a 3-member Q: each member, fitted on its own error, explains the
+    # held-out targets; the members start and end apart; Q is their mean
+    actor = make_network({"state": (3,)}, 2, NetworkConfig(hidden=(8,)))
+    cfg = sensing.SensingConfig(hidden=(32,), fit_steps=1000, batch_size=32, learning_rate=3e-3,
+                                rgb_jitter=0.0, ensemble=3)
+    q = sensing.make_q(actor, 2, cfg)
+    fit_data, _ = _known_q_data(jax.random.PRNGKey(0), 64, 4)
+    held, _ = _known_q_data(jax.random.PRNGKey(1), 16, 4)
+    q_params, _ = sensing.fit_q(q, q.init(jax.random.PRNGKey(2)), fit_data, cfg,
+                                jax.random.PRNGKey(3))
+    obs = {**held.obs, "action": held.actions}
+    each = np.asarray(q.members(q_params, obs))[..., 0]  # (S, C, K, members)
+    target = np.asarray(held.targets)
+    explained = 1.0 - np.mean((each - target[..., None]) ** 2, axis=(0, 1, 2)) / np.var(target)
+    assert each.shape[-1] == 3 and np.all(explained >= 0.85), explained
+    assert np.mean(np.std(each, axis=-1)) > 1e-4
+    np.testing.assert_allclose(np.asarray(q.apply(q_params, obs))[..., 0], each.mean(-1),
+                               rtol=1e-5, atol=1e-6)
+    assert sensing.evaluate_ranking(q, q_params, held)["rank_corr"] >= 0.8
+
+
 def test_ranking_figures_follow_the_order_q_gives_the_poses():
     # a stand-in Q that scores the action's first entry: with targets in the same order across a
     # state's poses the rank correlation is 1 and Q's choice is the best pose; reversed, -1 and

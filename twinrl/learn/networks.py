@@ -80,12 +80,17 @@ class NetworkConfig(JSONConfig):
     or ``"keypoints"`` (a spatial softmax per channel of the last convolution and its expected
     image coordinates: 2 numbers per channel, Levine et al., JMLR 2016 -- where things are, to a
     fraction of a feature cell, which a flattened map localises only coarsely)."""
+    ensemble: int = 1
+    """Members of a deep ensemble (Lakshminarayanan et al., NeurIPS 2017): that many networks of
+    this architecture, each from its own initialisation; ``apply`` is their mean output and
+    ``Network.members`` each one's, so a fit can train every member on its own error. 1: one
+    network."""
 
     def __post_init__(self):
         self.check_fields(widths=("hidden", "conv_features", "conv_kernels", "conv_strides"),
                           choices={"activation": ACTIVATIONS, "output": ("tanh", "linear"),
                                    "image_head": ("dense", "keypoints")},
-                          positive=("output_scale",), at_least_one=("embed",))
+                          positive=("output_scale",), at_least_one=("embed", "ensemble"))
         if not len(self.conv_features) == len(self.conv_kernels) == len(self.conv_strides):
             raise ValueError(f"NetworkConfig: conv_features, conv_kernels and conv_strides must "
                              f"have one entry per convolution, got {self.conv_features}, "
@@ -230,6 +235,9 @@ class Network(NamedTuple):
     obs_spec: Any = None
     """The normalised observation spec: an int, or a dict of keys to shapes (None: ``in_size``,
     for networks built elsewhere, e.g. ``twinrl.learn.brax_policies``)."""
+    members: Callable[[Any, Any], jax.Array] | None = None
+    """An ensemble's (``NetworkConfig.ensemble`` > 1) ``members(params, x) -> (..., ensemble,
+    out_size)``: every member's output, whose mean ``apply`` gives; None for one network."""
 
 
 def _check_dict_obs(spec: dict[str, tuple[int, ...]], obs) -> dict[str, jax.Array]:
@@ -276,7 +284,7 @@ def make_network(obs_spec: ObsSpec, out_size: int,
                 raise ValueError(f"network expects inputs of size {spec}, got shape {x.shape}")
             return head.apply(params, x)
 
-        return Network(init, apply, spec, out_size, config, spec)
+        return _ensemble(Network(init, apply, spec, out_size, config, spec))
 
     module = EncodedMLP(Encoder(tuple(spec.items()), config.conv_features, config.conv_kernels,
                                 config.conv_strides, config.embed, config.image_head), head)
@@ -287,7 +295,25 @@ def make_network(obs_spec: ObsSpec, out_size: int,
     def apply_dict(params, obs):
         return module.apply(params, _check_dict_obs(spec, obs))
 
-    return Network(init_dict, apply_dict, spec_size(spec), out_size, config, spec)
+    return _ensemble(Network(init_dict, apply_dict, spec_size(spec), out_size, config, spec))
+
+
+def _ensemble(net: Network) -> Network:
+    """``net`` itself, or ``config.ensemble`` copies of it (params stacked on a leading axis)."""
+    k = int(net.config.ensemble)
+    if k == 1:
+        return net
+
+    def init(rng):
+        return jax.vmap(net.init)(jax.random.split(rng, k))
+
+    def members(params, x):
+        return jnp.moveaxis(jax.vmap(net.apply, in_axes=(0, None))(params, x), 0, -2)
+
+    def apply(params, x):
+        return jnp.mean(members(params, x), axis=-2)
+
+    return net._replace(init=init, apply=apply, members=members)
 
 
 def make_policy(obs_size: ObsSpec, action_size: int, hidden: Sequence[int] = (64, 64),

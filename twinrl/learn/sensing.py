@@ -48,9 +48,11 @@ import numpy as np
 
 from twinrl.learn.camera_choice import (Selection, image_size, observer, q_predictions,
                                         q_value, select_camera, uniform_coords)
+from twinrl.learn.augment import image_augment
 from twinrl.learn.common import (JSONConfig, MetricLog, held_episodes, make_minibatch_fit,
-                                 make_optimizer, raw_key, rgb_jitter)
+                                 make_optimizer, raw_key)
 from twinrl.learn.networks import Network, NetworkConfig, make_network
+from twinrl.learn.ranking import evaluate_ranking, rank_corr_per_state
 
 __all__ = ["SensingConfig", "SensingError", "SensingData", "Selection", "uniform_coords",
            "observer", "sensing_data", "q_inputs", "make_q", "fit_q", "q_value", "train",
@@ -68,14 +70,26 @@ class SensingConfig(JSONConfig):
     """``"return"`` (mean reward per step to the episode's end) or ``"success"`` (module
     docstring says why the return is the default)."""
     states: int = 32
-    """Start states of the training data (a fifth more are drawn and held out)."""
+    """Start states of the training data (a fifth more are drawn and held out). Q's rank per
+    state on 40 fresh states x 8 poses of a loop's identified twin (mean of 3 fit seeds), 32
+    states -> 64: needle 0.46 -> 0.49, spatula 0.53 -> 0.57 (``bench/q_rank.py --retrain
+    states=64`` on spatula twin 0's loop: 0.54 -> 0.61, Q's training 37 -> 82 s); the data's cost
+    doubles with it (the needle's episodes fit the target's pose at every step: minutes)."""
     cameras: int = 8
     """Camera poses per start state, uniform over the mount's workspace."""
     every: int = 10
     """One example every this many steps of each episode."""
     rgb_jitter: float = 0.1
     """RGB gain/offset jitter of each training image (``common.rgb_jitter``; 0: none)."""
+    random_shift: int = 0
+    """Each training image shifted by up to this many pixels, edges repeated (DrQ,
+    ``augment.random_shift``; 0: none). Images only: an actor on the fitted pose or the target
+    cloud gives Q no image."""
     hidden: tuple[int, ...] = (256, 256)
+    ensemble: int = 1
+    """Q's members (``NetworkConfig.ensemble``): each fitted to the targets on its own, Q their
+    mean. Five members, measured as ``states``: needle 0.46 -> 0.49, spatula 0.53 -> 0.51 (64
+    states: 0.49 -> 0.51, 0.57 -> 0.55), within a fit seed's spread (0.03-0.04): one."""
     learning_rate: float = 1e-3
     max_grad_norm: float | None = 1.0
     fit_steps: int = 2000
@@ -99,8 +113,9 @@ class SensingConfig(JSONConfig):
 
     def __post_init__(self):
         self.check_fields(at_least_one=("states", "every", "fit_steps", "batch_size", "restarts",
-                                        "ascent_steps", "check_every", "smooth_top"),
-                          non_negative=("rgb_jitter", "smooth_samples"),
+                                        "ascent_steps", "check_every", "smooth_top",
+                                        "ensemble"),
+                          non_negative=("rgb_jitter", "smooth_samples", "random_shift"),
                           positive=("ascent_lr", "tau", "smooth_sd"), widths=("hidden",),
                           choices={"target": ("return", "success")})
         if int(self.cameras) < 2:
@@ -183,60 +198,26 @@ def make_q(actor: Network, action_size: int, config: SensingConfig) -> Network:
     spec = q_inputs(actor)
     spec["action"] = (int(action_size),)
     return make_network(spec, 1, NetworkConfig(hidden=tuple(config.hidden), activation="elu",
-                                               output="linear", layer_norm=True))
+                                               output="linear", layer_norm=True,
+                                               ensemble=int(config.ensemble)))
 
 
 def fit_q(q: Network, params, data: SensingData, config: SensingConfig, key: jax.Array):
-    """Regress Q onto ``data``'s targets (``config``'s fit fields; images RGB-jittered):
-    ``(params, losses)``, the minibatches' mean squared error per step."""
+    """Regress Q onto ``data``'s targets (``config``'s fit fields; images augmented):
+    ``(params, losses)``, the minibatches' squared error per step (an ensemble's: every
+    member's on its own, summed over the members)."""
     flat = lambda x: x.reshape((-1,) + x.shape[3:])  # noqa: E731
-    obs, targets = jax.tree_util.tree_map(flat, data.obs), flat(data.targets)
+    obs, targets = jax.tree_util.tree_map(flat, data.obs), flat(data.targets)[:, None]
+    apply = q.apply
+    if q.members is not None:  # each member regressed on the targets: (rows, members)
+        apply = lambda p, o: q.members(p, o)[..., 0]  # noqa: E731
+        targets = jnp.tile(targets, (1, int(q.config.ensemble)))
     tx = make_optimizer(config.learning_rate, config.max_grad_norm)
-    fit = make_minibatch_fit(q.apply, tx, int(config.fit_steps), int(config.batch_size),
-                             rgb_jitter(config.rgb_jitter) if config.rgb_jitter else None)
+    fit = make_minibatch_fit(apply, tx, int(config.fit_steps), int(config.batch_size),
+                             image_augment(config.rgb_jitter, config.random_shift))
     params, _, losses = fit(params, tx.init(params), {**obs, "action": flat(data.actions)},
-                            targets[:, None], targets.shape[0], key)
+                            targets, targets.shape[0], key)
     return params, losses
-
-
-def _rank_corr(a: np.ndarray, b: np.ndarray) -> float:
-    """Spearman's rank correlation of two vectors, ties at their mean rank (0 when either is
-    constant)."""
-    from scipy.stats import rankdata
-
-    if np.ptp(a) == 0 or np.ptp(b) == 0:
-        return 0.0
-    ra, rb = rankdata(a), rankdata(b)
-    return float(np.corrcoef(ra, rb)[0, 1])
-
-
-def rank_corr_per_state(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Spearman's correlation of Q (``pred``, ``q_predictions``) with the target across the
-    poses of each start state, at the episodes' first example: (S,)."""
-    return np.asarray([_rank_corr(p, t) for p, t in zip(pred[:, :, 0], target[:, :, 0])])
-
-
-def evaluate_ranking(q: Network, q_params, data: SensingData, pred=None) -> dict:
-    """On held-out data: Q's loss, its per-state rank correlation with the target across poses
-    (first example of each episode; ``rank_corr``, what a camera choice needs) and over all the
-    held-out (state, pose) pairs (``rank_corr_pooled``: a state's own difficulty counts too),
-    the target at Q's preferred pose vs the poses' mean and best, and the episode return from
-    Q's preferred pose (``return``). ``pred``: ``q_predictions`` of ``data``, if computed."""
-    pred = q_predictions(q, q_params, data) if pred is None else np.asarray(pred)
-    target = np.asarray(data.targets)
-    first_pred, first_target = pred[:, :, 0], target[:, :, 0]
-    corr = rank_corr_per_state(pred, target)
-    pick = np.argmax(first_pred, axis=1)
-    rows = np.arange(len(pick))
-    return {"val_loss": float(np.mean((pred - target) ** 2)),
-            "rank_corr": float(np.mean(corr)),
-            "rank_corr_pooled": _rank_corr(first_pred.ravel(), first_target.ravel()),
-            "target_q_choice": float(np.mean(first_target[rows, pick])),
-            "target_mean_pose": float(np.mean(first_target)),
-            "target_best_pose": float(np.mean(first_target.max(axis=1))),
-            "success_q_choice": float(np.mean(np.asarray(data.success)[rows, pick])),
-            "success_mean_pose": float(np.mean(np.asarray(data.success))),
-            "return": float(np.mean(np.asarray(data.returns)[rows, pick]))}
 
 
 def train(env, config: SensingConfig = SensingConfig(), rng: jax.Array | int = 0, *,

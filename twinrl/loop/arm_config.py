@@ -18,7 +18,10 @@ __all__ = ["ArmLoopConfig", "make_config", "is_arm_task", "task_env", "run_env",
 
 def _imitation_defaults() -> dict[str, Any]:
     # demonstrations seen from 8 mount poses each; the observation and the DAgger rounds are the
-    # task's (observation, TASK_IMITATION), unless set
+    # task's (observation, TASK_IMITATION), unless set. 16 poses gave no more: needle twin 0's
+    # identified twin, 46 demonstrations, 50 fresh starts from random views: 68 % with 8, 70 %
+    # with 16 (68 % fitted 20,000 steps); only 60 % of the random views' steps give a pose
+    # estimate within 5 mm (``plans.accurate``): the views limit the pose actor, not its data
     return {"views": 8, "eval_episodes": 20}
 
 
