@@ -264,7 +264,7 @@ def test_no_module_is_over_600_lines():
 # below, never one above. The base layer holds what every layer uses: the package itself (its lazy
 # attribute table), the JAX settings and the writers of results (``report``: JSON, tables, plots).
 LAYERS = (
-    ("twinrl", "twinrl.jaxconfig", "twinrl.report"),
+    ("twinrl", "twinrl.jaxconfig", "twinrl.report", "twinrl.progress"),
     ("twinrl.physics",),
     ("twinrl.render",),
     ("twinrl.envs",),

@@ -199,3 +199,22 @@ def test_progress_bar_shows_only_reported_finite_figures():
     assert progress_figures({"return": 184.04}) == "return 184.04"  # PPO: no 'grad nan'
     assert progress_figures({"return": 1.0, "grad_norm": float("nan")}) == "return 1.00"
     assert progress_figures({"return": 2.0, "grad_norm": 0.5}) == "return 2.00  grad 5.00e-01"
+
+
+def test_training_in_a_log_prints_progress_lines(tmp_path, monkeypatch, capsys):
+    # no terminal (a log, a pipe): no live bar, which a log shows nothing of, but dim lines --
+    # the first while the first epoch compiles, then the epochs with their figures
+    from twinrl import progress
+
+    monkeypatch.setattr(progress, "QUIET_FOR", 0.0)
+    lines = []
+    real = progress.ProgressLines._print
+    monkeypatch.setattr(progress.ProgressLines, "_print",
+                        lambda self, msg: (lines.append(msg), real(self, msg)))
+    monkeypatch.setattr(progress.ProgressLines, "tick", lambda self, msg: self(msg))  # each
+    runner.train_run(ENV, "toy", tmp_path / "run", epochs=3, seed=0, progress=True)
+    assert lines[0] == "tracing and compiling the first epoch ..."
+    assert [m.split()[:2] for m in lines[1:]] == [["epoch", "1/3"], ["epoch", "2/3"],
+                                                  ["epoch", "3/3"]]
+    assert all("return" in m for m in lines[1:])
+    assert "train toy on pendulum_swingup [" in capsys.readouterr().out

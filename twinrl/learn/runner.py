@@ -209,7 +209,9 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
 
     writer = report.MetricsWriter(out) if own else _NoMetrics(out)
     total = int(getattr(config, "epochs", 0) or 0)
-    bar, task = _progress_bar(f"train {algo} on {env_name}", total, enabled=progress and own)
+    title = f"train {algo} on {env_name}"
+    bar, task = _progress_bar(title, total, enabled=progress and own)
+    lines = _progress_lines(title, enabled=progress and own and bar is None)
 
     finished = [0]                     # epochs done (trainers number epochs from 0 or 1)
 
@@ -226,6 +228,9 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
         finished[0] += 1
         if bar is not None:
             bar.update(task, completed=finished[0], figures=progress_figures(row))
+        if lines is not None:
+            lines.tick(f"epoch {finished[0]}{f'/{total}' if total else ''}  "
+                       f"{progress_figures(row)}")
 
     kwargs = dict(train_kwargs or {})
     kwargs["progress_fn"] = progress_fn
@@ -237,10 +242,14 @@ def train_run(env_name: str, algo: str, out: str | Path, *, seed: int = 0,
     try:
         if bar is not None:
             bar.start()
+        if lines is not None:
+            lines("tracing and compiling the first epoch ...")
         policy, params, metrics = train_fn(env, config, rng, **kwargs)
     finally:
         if bar is not None:
             bar.stop()
+        if lines is not None:
+            lines.close()
         writer.close()
         if ckpt is not None:
             ckpt.close()
@@ -304,12 +313,13 @@ def _env_config(env) -> dict[str, Any]:
 
 
 def _progress_bar(title: str, total: int, enabled: bool):
-    if not enabled:
+    """A live rich bar on a terminal; (None, None) elsewhere (a log shows nothing of it)."""
+    from twinrl import report
+
+    if not enabled or not report.console.is_terminal:
         return None, None
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
                                TimeElapsedColumn, TimeRemainingColumn)
-
-    from twinrl import report
 
     bar = Progress(TextColumn(f"[bold]{title}"), BarColumn(), MofNCompleteColumn(),
                    TextColumn("{task.fields[figures]}"),
@@ -317,6 +327,16 @@ def _progress_bar(title: str, total: int, enabled: bool):
                    auto_refresh=True)
     task = bar.add_task("train", total=total or None, figures="")
     return bar, task
+
+
+def _progress_lines(title: str, enabled: bool):
+    """Where no live bar can show (a log, a pipe): a dim line a while (``twinrl.progress``), the
+    first while the first epoch traces and compiles."""
+    if not enabled:
+        return None
+    from twinrl.progress import ProgressLines
+
+    return ProgressLines(title)
 
 
 def progress_figures(row) -> str:
