@@ -339,6 +339,14 @@ BENCHES = [
           "cold caches (compile included).",
           "python bench/learn.py --algos ppo shac --envs cartpole_swingup pendulum_swingup "
           "--out bench/results", learn_table, learn_headline),
+    Bench("learn_push", "Learn@Sim through contacts: push",
+          "The same comparison on `push` (a sphere pushes a box to a goal through contacts), one "
+          "seed at a smaller budget (PPO 1 M steps, SHAC 100 epochs): return against learning "
+          "wall clock, compile apart. Written as `learn.json` in its `--out` and kept here as "
+          "`learn_push.json`.",
+          "python bench/learn.py --algos ppo shac --envs push --seeds 1 --set "
+          "ppo.num_timesteps=1000000 --set shac.epochs=100 --out DIR", learn_table,
+          learn_headline),
     Bench("dmc", "The DeepMind Control Suite at a fixed budget",
           "Brax PPO and SHAC on the `dmc/` tasks (the Control Suite's own XML and rewards) at a "
           "CPU budget: final return of the deterministic policy over 1000-step episodes, env "
