@@ -252,15 +252,12 @@ def learn(run: RunContext, r: int, rdir: RoundDir, env, hybrid) -> dict[str, Any
     return {"policy_dir": rdir.train}
 
 
-def _curve(path: Path) -> dict[str, list[float]]:
-    """``wall_s`` and ``return`` columns of a trainer's ``metrics.csv`` (empty when absent)."""
+def _columns(path: Path, *keys: str) -> dict[str, list[float]]:
+    """Columns ``keys`` of a trainer's ``metrics.csv`` (empty lists when it is absent)."""
     import csv
 
-    if not path.exists():
-        return {"wall_s": [], "return": []}
-    rows = list(csv.DictReader(open(path)))
-    pick = lambda k: [float(r[k]) for r in rows if r.get(k) not in (None, "")]  # noqa: E731
-    return {"wall_s": pick("wall_s"), "return": pick("return")}
+    rows = list(csv.DictReader(open(path))) if path.exists() else []
+    return {k: [float(r[k]) for r in rows if r.get(k) not in (None, "")] for k in keys}
 
 
 def compare_learn(run: RunContext, r: int, rdir: RoundDir, env) -> dict[str, Any]:
@@ -274,7 +271,8 @@ def compare_learn(run: RunContext, r: int, rdir: RoundDir, env) -> dict[str, Any
     out = rdir.path / "compare"
     continue_run(run.env_name, algo, out, seed=run.seed + r, progress=run.progress, env=env,
                  checkpoint_every=run.config.checkpoint_every)
-    mine, theirs = _curve(rdir.train_metrics), _curve(out / "metrics.csv")
+    mine = _columns(rdir.train_metrics, "wall_s", "return")
+    theirs = _columns(out / "metrics.csv", "wall_s", "return")
     target = theirs["return"][-1] if theirs["return"] else None
     reach = next((w for w, v in zip(mine["wall_s"], mine["return"])
                   if target is not None and v >= target), None)
@@ -527,13 +525,8 @@ def _add_round_details(rdir: RoundDir, rec: dict[str, Any]) -> None:
     """Round ``rec["round"]``'s learning curve in its identified simulator (``env_steps``,
     ``return`` of its ``train/metrics.csv``) and its sysid table (value, sd, status per
     parameter), for the report."""
-    import csv
-
-    f = rdir.train_metrics
-    if f.exists():
-        rows = list(csv.DictReader(open(f)))
-        pick = lambda k: [float(r[k]) for r in rows if r.get(k) not in (None, "")]  # noqa: E731
-        rec["learning_curve"] = {"env_steps": pick("env_steps"), "return": pick("return")}
+    if rdir.train_metrics.exists():
+        rec["learning_curve"] = _columns(rdir.train_metrics, "env_steps", "return")
     if rdir.sysid.exists():
         rec["identified"] = json.loads(rdir.sysid.read_text()).get("table", [])
 
