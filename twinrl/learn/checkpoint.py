@@ -286,7 +286,7 @@ class TrainStateCheckpointer:
 
         if every < 1:
             raise ValueError(f"every must be >= 1 epoch, got {every}")
-        logging.getLogger("absl").addFilter(_NO_SAVE_WAITS)  # once: a filter is added once
+        logging.getLogger("absl").addFilter(_NO_SAVE_WAITS)  # addFilter keeps a single copy
         self.directory = Path(directory).absolute()
         self.every = int(every)
         self._ocp = ocp
