@@ -87,20 +87,19 @@ def _override(config, overrides: dict):
     return dataclasses.replace(config, **{k: v for k, v in overrides.items() if k in names})
 
 
-def trainer(algo: str, task: str, quick: bool):
+def trainer(algo: str, task: str, quick: bool, overrides: dict | None = None):
     """``(train_fn, config)`` for ``algo`` on ``task``: the CLI's registry and per-task tuned
-    configs (``twinrl.learn.runner``); ``ImportError`` if the algorithm's module is absent."""
+    configs (``twinrl.learn.runner``), then ``overrides`` (``--set``; ``RunError`` naming a
+    field the config lacks); ``ImportError`` if the algorithm's module is absent."""
     _, train, _ = runner.algorithm(algo)
-    cfg = runner.make_config(algo, task)
-    if quick:
-        cfg = _override(cfg, QUICK["pods" if algo == "pods2" else algo])
+    cfg = runner.make_config(algo, task, overrides)
+    if quick:  # the tiny sizes, the user's settings still on top
+        cfg = _override(cfg, {**QUICK["pods" if algo == "pods2" else algo], **(overrides or {})})
     return train, cfg
 
 
 def run(algo: str, task: str, seed: int, quick: bool, overrides: dict | None = None) -> dict:
-    train, cfg = trainer(algo, task, quick)
-    if overrides:
-        cfg = _override(cfg, overrides)
+    train, cfg = trainer(algo, task, quick, overrides)
     env = envs.make(task, **(QUICK_TASK if quick else {}))
     t0 = time.perf_counter()
     last = [t0]
@@ -119,19 +118,14 @@ def run(algo: str, task: str, seed: int, quick: bool, overrides: dict | None = N
 
 
 def parse_sets(items: list[str]) -> dict[str, dict]:
-    """``["shac.epochs=100", ...]`` -> ``{"shac": {"epochs": 100}}`` (values parsed as JSON,
-    else kept as strings); ``ValueError`` naming a malformed item."""
+    """``["shac.epochs=100", ...]`` -> ``{"shac": {"epochs": 100}}`` (values as
+    ``runner.parse_overrides`` reads them); ``ValueError`` naming a malformed item."""
     out: dict[str, dict] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
+    for key, value in runner.parse_overrides(items).items():
         algo, dot, field = key.partition(".")
-        if not (sep and dot and algo and field):
-            raise ValueError(f"--set {item!r}: expected ALGO.FIELD=VALUE")
-        try:
-            parsed = json.loads(value)
-        except json.JSONDecodeError:
-            parsed = value
-        out.setdefault(algo, {})[field] = tuple(parsed) if isinstance(parsed, list) else parsed
+        if not (dot and algo and field):
+            raise ValueError(f"--set {key!r}: expected ALGO.FIELD=VALUE")
+        out.setdefault(algo, {})[field] = tuple(value) if isinstance(value, list) else value
     return out
 
 
@@ -254,7 +248,11 @@ def main(argv=None) -> int:
         p.error(f"--seeds must be >= 1, got {args.seeds}")
     try:
         overrides = parse_sets(args.set)
-    except ValueError as e:
+        for algo in overrides:  # a field the config lacks, before any run
+            if algo in args.algos:
+                for task in args.envs:
+                    trainer(algo, task, args.quick, overrides[algo])
+    except (ValueError, runner.RunError) as e:
         p.error(str(e))
     runs_dir = args.out / "learn_runs"
     cache = args.cache or args.out / "jax_cache"
