@@ -65,7 +65,9 @@ fails on them.
 
 Cost. Each checked entry costs four rollouts (two step sizes, both signs); ``entries`` bounds the
 entries checked per group (a seeded random subset, reported; the gradient is still computed in
-full), so a large model's check can judge every group at a fraction of the cost.
+full), so a large model's check can judge every group at a fraction of the cost. The stages
+overlap where they can: the gradient compiles (in a thread; XLA does not hold Python's lock) while
+the differences' batched rollout is traced, and that compiles while the gradient runs.
 
 Range. A step can leave the range where the model is defined: the Control Suite's fish has fin
 bodies of 1e-7 inertia and no armature, so an armature step of 1e-6 below zero makes the mass
@@ -103,6 +105,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import threading
 import time
 from typing import Any, Callable
 
@@ -281,6 +284,32 @@ def _contact_candidates(data) -> int:
         return -1
 
 
+class _Background:
+    """``fn(*args, **kwargs)`` run in a daemon thread (an XLA compile, which releases Python's
+    lock): ``result()`` waits for it and returns its value or raises its error; ``seconds`` is
+    how long it ran. Daemon: an interrupted check does not wait for a compile to finish."""
+
+    def __init__(self, fn, *args, **kwargs):
+        self.seconds, self._value, self._error = 0.0, None, None
+
+        def run():
+            t0 = time.perf_counter()
+            try:
+                self._value = fn(*args, **kwargs)
+            except BaseException as e:  # handed to the caller of result()
+                self._error = e
+            self.seconds = time.perf_counter() - t0
+
+        self._thread = threading.Thread(target=run, daemon=True)
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
 class _Batched:
     """The batched loss over ``rows`` inputs, in batches of ``batch`` (the last padded, so one
     compile serves all), with a progress line at most every ``PROGRESS_EVERY`` seconds."""
@@ -433,24 +462,14 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
             f"--max-geom-pairs, --max-contact-points) cuts the time and memory")
     lowered = jax.jit(jax.value_and_grad(loss, has_aux=True)).lower(x0)
     t1 = time.perf_counter()
-    say(f"traced in {t1 - t0:.1f} s; compiling it")
+    say(f"traced in {t1 - t0:.1f} s; compiling it while the differences' rollouts are traced")
     # The gradient runs three times, the batched forward thousands: XLA's optimisation passes
     # pay for themselves only on the latter (humanoid, 20 steps: the gradient's compile 49 s ->
-    # 16 s at level 0, each run 0.04 -> 0.11 s).
-    value_and_grad = lowered.compile(compiler_options={"xla_backend_optimization_level": 0})
-    t2 = time.perf_counter()
-    (_, n_active), g = value_and_grad(x0)
-    g = np.asarray(jax.block_until_ready(g), np.float64)
-    seconds = time.perf_counter() - t0
-    say(f"compiled in {t2 - t1:.1f} s, ran in {seconds - (t2 - t0):.1f} s; the gradient again "
-        f"at 2 inputs moved in their last bits (its noise)")
-    # "Measured noise": the same gradient at inputs moved in their last bits
-    x0_abs = np.abs(np.asarray(x0, np.float64))
-    jitters = [jnp.asarray(np.asarray(x0, np.float64) + JITTER * np.maximum(1.0, x0_abs)
-                           * rng.choice([-1.0, 1.0], size=x0_abs.size), dtype)
-               for _ in range(2)]
-    g_jit = [np.asarray(value_and_grad(xj)[1], np.float64) for xj in jitters]
-    t3 = time.perf_counter()
+    # 16 s at level 0, each run 0.04 -> 0.11 s). XLA compiles without Python's lock, so the
+    # gradient compiles in a thread while this one traces the differences' batched rollout,
+    # which then compiles in another while the gradient runs ("Cost").
+    grad_job = _Background(lowered.compile,
+                           compiler_options={"xla_backend_optimization_level": 0})
 
     labels = _labels(inputs, _dof_names(sim.mj_model))
     # One extra entry per parameter group: the derivative along scaling the whole group
@@ -478,8 +497,28 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     D = jnp.asarray(np.array([d for _, d in dirs]).reshape(len(dirs), x0np.size), dtype)
     k = len(dirs)
     eye = jax.nn.one_hot(chosen, x0np.size, dtype=dtype)  # the chosen rows of the identity
-    batched = _Batched(jax.jit(jax.vmap(lambda x: loss(x)[0])), 1 + 2 * (n + k), say,
-                       batch_size(sim, data0))
+    rows = 1 + 2 * (n + k)
+    chunk = min(rows, batch_size(sim, data0))
+    tf = time.perf_counter()
+    forward = jax.jit(jax.vmap(lambda x: loss(x)[0])).lower(
+        jax.ShapeDtypeStruct((chunk, x0np.size), dtype))
+    trace_differences = time.perf_counter() - tf
+    forward_job = _Background(forward.compile)
+    value_and_grad = grad_job.result()
+    t2 = time.perf_counter()
+    (_, n_active), g = value_and_grad(x0)
+    g = np.asarray(jax.block_until_ready(g), np.float64)
+    seconds = time.perf_counter() - t0
+    say(f"compiled in {grad_job.seconds:.1f} s, ran in {seconds - (t2 - t0):.1f} s; the "
+        f"gradient again at 2 inputs moved in their last bits (its noise)")
+    # "Measured noise": the same gradient at inputs moved in their last bits
+    x0_abs = np.abs(x0np)
+    jitters = [jnp.asarray(x0np + JITTER * np.maximum(1.0, x0_abs)
+                           * rng.choice([-1.0, 1.0], size=x0_abs.size), dtype)
+               for _ in range(2)]
+    g_jit = [np.asarray(value_and_grad(xj)[1], np.float64) for xj in jitters]
+    t3 = time.perf_counter()
+    batched = _Batched(lambda xs: forward_job.result()(xs), rows, say, chunk)
     say(f"differencing {n + k} entries: {3 * batched.rows} rollouts in batches of "
         f"{batched.chunk}")
     # each entry's step (then each group direction's); shrunk below where a difference left
@@ -508,8 +547,10 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
         steps64 = np.where(outside, steps64 / 1e5, steps64)
     l_jit, plus_jit, minus_jit = evaluate(1.0, jitters[0])
     t4 = time.perf_counter()
-    timings = {"trace": t1 - t0, "compile": t2 - t1, "gradient": seconds - (t2 - t0),
-               "noise": t3 - t0 - seconds, "differences": t4 - t3,
+    timings = {"trace": t1 - t0, "compile": grad_job.seconds,
+               "gradient": seconds - (t2 - t0), "noise": t3 - t0 - seconds,
+               "trace_differences": trace_differences,
+               "compile_differences": forward_job.seconds, "differences": t4 - t3,
                "differences_first_batch": batched.first, "rollouts": batched.done}
     # beyond the first-order change the move itself makes (the gradient is full-length here)
     loss_jitter = float(abs(l_jit - l0 - g @ (np.asarray(jitters[0], np.float64) - x0np)))
