@@ -122,8 +122,25 @@ def sysid_baseline_table(doc: dict) -> str:
                                                     for n, e in v["rel_err"].items()),
                          pct(v["worst"], 2, signed=False), pct(v["median"], 2, signed=False),
                          v["seconds"]])
-    return table(["dataset", "method", "error per parameter", "worst (shared)",
-                  "median (shared)", "wall (s)"], rows)
+    out = table(["dataset", "method", "error per parameter", "worst (shared)",
+                 "median (shared)", "wall (s)"], rows)
+    return out + sysid_baseline_rows(doc)
+
+
+def sysid_baseline_rows(doc: dict) -> str:
+    """How the rows were produced where they come from several runs (``meta.rows``, written by
+    ``--merge``): each run's command, commit, date and load average, with its datasets."""
+    groups: dict[tuple, list[str]] = {}
+    for name, p in (doc.get("meta", {}).get("rows") or {}).items():
+        load = p.get("load_average") or []
+        key = (committed_command(p.get("command") or "?"), (p.get("commit") or "?")[:10],
+               p.get("date") or "?", f"{load[0]:.1f}" if load else "?")
+        groups.setdefault(key, []).append(name)
+    if len(groups) < 2:
+        return ""
+    lines = [f"- {', '.join(names)}: `{cmd}` at commit `{commit}`, {date}, load average "
+             f"{load} at the end" for (cmd, commit, date, load), names in groups.items()]
+    return "\n\nThe rows come from separate runs:\n\n" + "\n".join(lines)
 
 
 def sysid_baseline_headline(doc: dict) -> list[list[str]]:
