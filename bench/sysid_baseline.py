@@ -29,8 +29,8 @@ Methods, each on the parameters twinrl's fit identifies there (names as ``sysid.
     recorded beside its optimum's (``cost_at_truth``, evaluation only): below the truth's, the
     data's minimum itself lies away from the truth.
 (c) **CMA-ES** -- ``twinrl.real2sim.baselines.cmaes_fit`` on the objective of ``bench/sysid.py``'s
-    part 2 (its ``COMPARE`` parameters, recorded starts, the latency twinrl found), real twins only
-    (``--no-cma`` skips it).
+    part 2 (recorded starts, the latency twinrl found) over its ``COMPARE`` parameters on the
+    real twins and over every mass and damping twinrl fits on the Panda (``--no-cma`` skips it).
 
 Reports per dataset and method each parameter's relative error against the hidden truth
 (evaluation only; the absolute error where the truth is 0), the worst and median error over the
@@ -194,7 +194,7 @@ def twin_dataset(task: str, seed: int, episodes: int) -> dict:
                 true_latency=truth.perturbation.latency_steps, known=((body0, known_value),),
                 qpos=qpos, qvel=qvel, ctrl=ctrl, idle_ctrl=idle, nominal=nominal,
                 mjcf=env.mjcf(), frame_skip=int(env.config.frame_skip), max_latency=1,
-                twinrl_cfg={}, cma=task in COMPARE)
+                twinrl_cfg={}, cma=COMPARE.get(task))
 
 
 def panda_dataset(seed: int, episodes: int, steps: int, frame_skip: int,
@@ -213,7 +213,7 @@ def panda_dataset(seed: int, episodes: int, steps: int, frame_skip: int,
                 idle_ctrl=ctrl[0, 0], nominal=mujoco.MjModel.from_xml_path(path), mjcf=path,
                 frame_skip=frame_skip, max_latency=0,
                 twinrl_cfg=dict(params=tuple(names), max_latency=0, bound_lr=bound_lr),
-                cma=False)
+                cma=tuple(names))
 
 
 # ---------------------------------------------------------------------- (b) mujoco.sysid
@@ -350,12 +350,12 @@ def run(ds: dict, window: int, max_iters: int, cma_evals: int | None, seed: int)
     out["methods"]["mujoco.sysid"] = mujoco_sysid_fit(ds, names, window, max_iters)
     # (c) CMA-ES, bench/sysid.py part 2's objective
     if cma_evals is not None and ds["cma"]:
-        cfg = sysid.SysidConfig(params=COMPARE[ds["name"]], known=ds["known"],
+        cfg = sysid.SysidConfig(params=ds["cma"], known=ds["known"],
                                 estimate_start=False, latency=res.latency, window=window)
         c = baselines.cmaes_fit(env, data, cfg, baselines.CmaesConfig(max_evals=cma_evals),
                                 seed=seed)
         out["methods"]["CMA-ES"] = dict(
-            values=dict(zip(COMPARE[ds["name"]], (float(v) for v in c.values))),
+            values=dict(zip(ds["cma"], (float(v) for v in c.values))),
             seconds=float(c.seconds), loss=float(c.loss), rollouts=int(c.sim_rollouts))
     for m in out["methods"].values():
         m["rel_err"] = rel_errors(ds, m["values"])
