@@ -387,11 +387,13 @@ BENCHES = [
     Bench("sysid_baseline", "twinrl's sysid against MuJoCo's own mujoco.sysid",
           "The same recorded data identified three ways: the pendulum and cartpole real twins "
           "(seed 0, first mass known) and the Panda logs of the user-MJCF bench. twinrl's "
-          "`sysid.fit` as those benches call it; `mujoco.sysid.optimize` (MuJoCo's "
+          "`sysid.fit` as those benches call it (on the Panda without the bound test, whose "
+          "refits cannot hold a 24-61 N s/m damping at 0 and took most of the fit's time); "
+          "`mujoco.sysid.optimize` (MuJoCo's "
           "least-squares, finite-difference Jacobians) on MuJoCo C rollouts of the nominal model "
           "over the same windows, each started at the recorded state, with the same physical "
           "parameters, the same known mass and the same latency grid; CMA-ES on `bench/sysid.py`'s "
-          "objective (real twins). Relative error of each parameter against the hidden truth "
+          "objective with the recorded starts. Relative error of each parameter against the hidden truth "
           "(evaluation only), worst and median over the parameters every method fits, and wall "
           "clock (twinrl's includes JAX compilation). The script's docstring lists what each "
           "tool can fit that the other cannot.",

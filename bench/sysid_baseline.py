@@ -61,11 +61,15 @@ own optimizer (scipy's losses are reachable through ``optimizer="scipy"``); fits
 finite differences (one linearisation is one batched JAX pass instead of n + 1 rollouts of every
 window). The identified ``PhysParams`` go straight into the simulator the policy is trained in.
 
-The Panda's twinrl fit is the slow part (about 4 min on 2 idle cores; 28 min under a load of 6
-in ``bench/results/user_mjcf_sysid.json``); ``mujoco.sysid``'s takes about 26 s there.
+On the Panda twinrl's fit is ``bench/user_mjcf_sysid.py``'s without its bound test
+(``PANDA_BOUND_LR``): Levenberg-Marquardt converges in 6 iterations (about 45 s of CPU with
+compilation), the Laplace step and one refit for the flat base mass take about 25 s more, with the
+same errors as that bench's full fit (28 min under a load of 6 in
+``bench/results/user_mjcf_sysid.json``), whose seven bound-test refits take the rest.
+``--merge`` adds or replaces datasets in an existing result (``meta.rows``: each row's run).
 
 Run: ``python bench/sysid_baseline.py [--datasets pendulum_swingup cartpole_swingup panda]
-[--episodes 5] [--no-cma] [--out DIR]``.
+[--episodes 5] [--no-cma] [--panda-bound-lr 2.71] [--merge] [--out DIR]``.
 """
 
 from __future__ import annotations
