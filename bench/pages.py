@@ -124,7 +124,28 @@ def sysid_baseline_table(doc: dict) -> str:
                          v["seconds"]])
     out = table(["dataset", "method", "error per parameter", "worst (shared)",
                  "median (shared)", "wall (s)"], rows)
-    return out + sysid_baseline_rows(doc)
+    return out + sysid_baseline_flat(doc) + sysid_baseline_rows(doc)
+
+
+def sysid_baseline_flat(doc: dict) -> str:
+    """Per dataset where twinrl reports shared parameters not identifiable (no effect on the
+    data, e.g. a body welded to the world): each method's worst error without them, since the
+    worst over all shared parameters is then set by where each method leaves a parameter the
+    data do not see."""
+    lines = []
+    for r in doc["results"]:
+        status = r["methods"].get("twinrl", {}).get("status", {})
+        flat = [n for n in r.get("shared", []) if status.get(n, "").startswith("not identifiable")]
+        rest = [n for n in r.get("shared", []) if n not in flat]
+        if not flat or not rest:
+            continue
+        worst = ", ".join(f"{m} {pct(max(v['rel_err'][n] for n in rest), 2, signed=False)}"
+                          for m, v in r["methods"].items())
+        lines.append(f"- {r['dataset']}: without {', '.join(flat)} (twinrl: "
+                     f"{status[flat[0]]}), the worst error is {worst}")
+    return ("\n\nWhere twinrl reports a parameter not identifiable the data do not pin it "
+            "and the worst error above is set by where each method leaves it:\n\n"
+            + "\n".join(lines)) if lines else ""
 
 
 def sysid_baseline_rows(doc: dict) -> str:
