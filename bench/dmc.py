@@ -18,7 +18,8 @@ at that step, read from the CSV at the commit given. MuJoCo Playground's Brax PP
 steps, 2048 environments, on a GPU) are recorded with their settings but no return: the paper
 shows them as learning curves only. ``--budget`` steps on a 2-core CPU lies one to two orders of
 magnitude below Playground's budget and level with TD-MPC2's 1 M agent steps (2 M control
-steps), which those methods spend with about one gradient update per agent step on a GPU.
+steps), though equal steps are not equal computation: those methods are off-policy and reuse
+each step in many updates (DreamerV3 and TD-MPC2 also learn a world model, TD-MPC2 plans).
 
     python bench/dmc.py --out bench/results                       # every task, ppo+shac, 1 seed
     python bench/dmc.py --tasks dmc/cartpole-swingup --algos ppo --budget 200000 --out /tmp/dmc

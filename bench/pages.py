@@ -293,9 +293,10 @@ def dmc_table(doc: dict) -> str:
     note = (f" The published block was written by `{written['command']}` at commit "
             f"`{written['commit'][:10]}`, {written['date']}." if written else "")
     return (ours + "\n\nPublished figures (returns over 1000 control steps, from states; a "
-            "TD-MPC2 agent step is two control steps, its action repeat). At the same number "
-            "of control steps their methods spend far more computation per step than ours "
-            "(off-policy updates, world models, planning, on a GPU)." + scale + note + "\n\n"
+            "TD-MPC2 agent step is two control steps, its action repeat). Equal steps are not "
+            "equal computation: those methods are off-policy and reuse each step in many "
+            "updates (DreamerV3 and TD-MPC2 also learn a world model, TD-MPC2 plans with it)."
+            + scale + note + "\n\n"
             + table(["task", "algorithm", "observations", "return (mean ± sd)", "seeds",
                      "control steps", "agent steps", "source"], prows)
             + ("\n\n" + "\n".join(lines) if lines else ""))
