@@ -122,8 +122,46 @@ def sysid_baseline_table(doc: dict) -> str:
                                                     for n, e in v["rel_err"].items()),
                          pct(v["worst"], 2, signed=False), pct(v["median"], 2, signed=False),
                          v["seconds"]])
-    return table(["dataset", "method", "error per parameter", "worst (shared)",
-                  "median (shared)", "wall (s)"], rows)
+    out = table(["dataset", "method", "error per parameter", "worst (shared)",
+                 "median (shared)", "wall (s)"], rows)
+    return out + sysid_baseline_flat(doc) + sysid_baseline_rows(doc)
+
+
+def sysid_baseline_flat(doc: dict) -> str:
+    """Per dataset where twinrl reports shared parameters not identifiable (no effect on the
+    data, e.g. a body welded to the world): each method's worst error without them, since the
+    worst over all shared parameters is then set by where each method leaves a parameter the
+    data do not see."""
+    lines = []
+    for r in doc["results"]:
+        status = r["methods"].get("twinrl", {}).get("status", {})
+        flat = [n for n in r.get("shared", []) if status.get(n, "").startswith("not identifiable")]
+        rest = [n for n in r.get("shared", []) if n not in flat]
+        if not flat or not rest:
+            continue
+        worst = ", ".join(f"{m} {pct(max(v['rel_err'][n] for n in rest), 2, signed=False)}"
+                          for m, v in r["methods"].items())
+        lines.append(f"- {r['dataset']}: without {', '.join(flat)} (twinrl: "
+                     f"{status[flat[0]]}), the worst error is {worst}")
+    return ("\n\nWhere twinrl reports a parameter not identifiable the data do not pin it "
+            "and the worst error above is set by where each method leaves it:\n\n"
+            + "\n".join(lines)) if lines else ""
+
+
+def sysid_baseline_rows(doc: dict) -> str:
+    """How the rows were produced where they come from several runs (``meta.rows``, written by
+    ``--merge``): each run's command, commit, date and load average, with its datasets."""
+    groups: dict[tuple, list[str]] = {}
+    for name, p in (doc.get("meta", {}).get("rows") or {}).items():
+        load = p.get("load_average") or []
+        key = (committed_command(p.get("command") or "?"), (p.get("commit") or "?")[:10],
+               p.get("date") or "?", f"{load[0]:.1f}" if load else "?")
+        groups.setdefault(key, []).append(name)
+    if len(groups) < 2:
+        return ""
+    lines = [f"- {', '.join(names)}: `{cmd}` at commit `{commit}`, {date}, load average "
+             f"{load} at the end" for (cmd, commit, date, load), names in groups.items()]
+    return "\n\nThe rows come from separate runs:\n\n" + "\n".join(lines)
 
 
 def sysid_baseline_headline(doc: dict) -> list[list[str]]:
@@ -194,15 +232,74 @@ def generic_table(doc: dict) -> str:
     return "(no table in this result)"
 
 
+def dmc_figures(doc: dict, task: str) -> list[dict]:
+    """The published figures ``dmc.json`` holds for ``task`` (a list; one dict in older files)."""
+    figs = doc.get("published", {}).get(task) or []
+    return [figs] if isinstance(figs, dict) else figs
+
+
+def dmc_near(fig: dict, steps: float) -> tuple[int, float, float, int] | None:
+    """A published curve's ``(control steps, mean, sd, seeds)`` nearest ``steps``."""
+    curve = fig.get("curve") or {}
+    if not curve or not steps:
+        return None
+    k = min(curve, key=lambda c: abs(int(c) - steps))
+    return (int(k), *curve[k])
+
+
 def dmc_table(doc: dict) -> str:
-    pub = doc.get("published", {})
-    rows = [[r["task"], r["algo"], r["seed"], r.get("return"), r.get("best_return"),
-             r.get("env_steps"), r.get("wall_s"),
-             fmt(pub.get(r["task"], {}).get("return")) if pub.get(r["task"], {}).get("return")
-             is not None else "curves only"] for r in doc["runs"] if "error" not in r]
-    return table(["task", "algo", "seed", "final return (max 1000)", "best evaluation",
-                  "env steps", "wall (s)",
-                  "published Brax PPO (60 M steps)"], rows)
+    """Our runs beside the published figures at about the same control steps, then every
+    published figure with its budget and source, and those published without a number."""
+    runs = [r for r in doc["runs"] if "error" not in r]
+    rows = []
+    for r in runs:
+        steps = r.get("env_steps") or 0
+        near, at, ratio = [], None, []
+        for f in dmc_figures(doc, r["task"]):
+            n = dmc_near(f, steps)
+            if n is not None:
+                near.append(f"{f['algo']} {n[1]:.0f} ± {n[2]:.0f}")
+                at = n[0]
+            elif f.get("return") is None and f.get("steps") and steps:
+                ratio.append(f"{f['steps'] / steps:.0f}x")
+        rows.append([r["task"], r["algo"], r["seed"], r.get("return"), r.get("best_return"),
+                     steps or None, r.get("wall_s"), " / ".join(near) or "–",
+                     fmt(at) if at else "–", " / ".join(ratio) or "–"])
+    ours = table(["task", "algo", "seed", "final return (max 1000)", "best evaluation",
+                  "env steps", "wall (s)", "published at about the same control steps "
+                  "(mean ± sd over seeds, states)", "their control steps",
+                  "Playground PPO's steps / this run's"], rows)
+    prows, without = [], {}
+    for task in doc.get("published", {}):
+        for f in dmc_figures(doc, task):
+            if f.get("return") is None:
+                without.setdefault((f["algo"], f.get("steps"), f.get("reason", ""),
+                                    f.get("source")), []).append(task)
+                continue
+            prows.append([task, f["algo"], f.get("obs", "–"),
+                          f"{f['return']:.0f} ± {f.get('sd', float('nan')):.0f}",
+                          f.get("seeds"), f.get("steps"), f.get("agent_steps"),
+                          f"[csv]({f['source']})" if f.get("source") else "–"])
+    lines = [f"{algo} ({fmt(steps)} steps) on {', '.join(tasks)}: no number; {reason} "
+             f"([source]({src}))." for (algo, steps, reason, src), tasks in without.items()]
+    budget = max((r.get("env_steps") or 0 for r in runs), default=0)
+    top = max((f.get("steps") or 0 for t in doc.get("published", {})
+               for f in dmc_figures(doc, t)), default=0)
+    scale = (f" The largest published budget, {fmt(top)} steps, is {top / budget:.0f} times "
+             f"this table's largest run ({fmt(budget)}); where the ratio is 10 or more the "
+             f"budgets differ by an order of magnitude or more, and a row says where a CPU "
+             f"budget gets, not whether it matches." if budget and top else "")
+    written = doc.get("meta", {}).get("published_written")
+    note = (f" The published block was written by `{written['command']}` at commit "
+            f"`{written['commit'][:10]}`, {written['date']}." if written else "")
+    return (ours + "\n\nPublished figures (returns over 1000 control steps, from states; a "
+            "TD-MPC2 agent step is two control steps, its action repeat). Equal steps are not "
+            "equal computation: those methods are off-policy and reuse each step in many "
+            "updates (DreamerV3 and TD-MPC2 also learn a world model, TD-MPC2 plans with it)."
+            + scale + note + "\n\n"
+            + table(["task", "algorithm", "observations", "return (mean ± sd)", "seeds",
+                     "control steps", "agent steps", "source"], prows)
+            + ("\n\n" + "\n".join(lines) if lines else ""))
 
 
 def dmc_headline(doc: dict) -> list[list[str]]:
@@ -312,11 +409,13 @@ BENCHES = [
     Bench("sysid_baseline", "twinrl's sysid against MuJoCo's own mujoco.sysid",
           "The same recorded data identified three ways: the pendulum and cartpole real twins "
           "(seed 0, first mass known) and the Panda logs of the user-MJCF bench. twinrl's "
-          "`sysid.fit` as those benches call it; `mujoco.sysid.optimize` (MuJoCo's "
+          "`sysid.fit` as those benches call it (on the Panda without the bound test, whose "
+          "refits cannot hold a 24-61 N s/m damping at 0 and took most of the fit's time); "
+          "`mujoco.sysid.optimize` (MuJoCo's "
           "least-squares, finite-difference Jacobians) on MuJoCo C rollouts of the nominal model "
           "over the same windows, each started at the recorded state, with the same physical "
           "parameters, the same known mass and the same latency grid; CMA-ES on `bench/sysid.py`'s "
-          "objective (real twins). Relative error of each parameter against the hidden truth "
+          "objective with the recorded starts. Relative error of each parameter against the hidden truth "
           "(evaluation only), worst and median over the parameters every method fits, and wall "
           "clock (twinrl's includes JAX compilation). The script's docstring lists what each "
           "tool can fit that the other cannot.",
@@ -350,10 +449,12 @@ BENCHES = [
     Bench("dmc", "The DeepMind Control Suite at a fixed budget",
           "Brax PPO and SHAC on the `dmc/` tasks (the Control Suite's own XML and rewards) at a "
           "CPU budget: final return of the deterministic policy over 1000-step episodes, env "
-          "steps and wall clock (compile included), beside MuJoCo Playground's published Brax "
-          "PPO runs on the same tasks (60 M steps, 2048 environments, on a GPU; the paper gives "
-          "them as learning curves, so the settings and the source are recorded, not a number "
-          "read off a plot).",
+          "steps and wall clock (compile included), beside published figures at about the same "
+          "number of control steps: the learning-curve data TD-MPC2 (Hansen et al., ICLR 2024) "
+          "released for SAC, DreamerV3 and TD-MPC2 from states, 3 seeds, read from its CSVs "
+          "(one of its agent steps is two control steps). MuJoCo Playground's Brax PPO runs "
+          "(60 M steps, 2048 environments, on a GPU) are given as learning curves only, so "
+          "their settings and source are recorded, not a number read off a plot.",
           "python bench/dmc.py --tasks dmc/cartpole-swingup dmc/pendulum-swingup --algos ppo "
           "shac --budget 2000000 --epochs 400 --out bench/results", dmc_table, dmc_headline),
     Bench("gradcheck_large", "Gradient checks of large models",

@@ -29,8 +29,8 @@ Methods, each on the parameters twinrl's fit identifies there (names as ``sysid.
     recorded beside its optimum's (``cost_at_truth``, evaluation only): below the truth's, the
     data's minimum itself lies away from the truth.
 (c) **CMA-ES** -- ``twinrl.real2sim.baselines.cmaes_fit`` on the objective of ``bench/sysid.py``'s
-    part 2 (its ``COMPARE`` parameters, recorded starts, the latency twinrl found), real twins only
-    (``--no-cma`` skips it).
+    part 2 (recorded starts, the latency twinrl found) over its ``COMPARE`` parameters on the
+    real twins and over every mass and damping twinrl fits on the Panda (``--no-cma`` skips it).
 
 Reports per dataset and method each parameter's relative error against the hidden truth
 (evaluation only; the absolute error where the truth is 0), the worst and median error over the
@@ -61,11 +61,15 @@ own optimizer (scipy's losses are reachable through ``optimizer="scipy"``); fits
 finite differences (one linearisation is one batched JAX pass instead of n + 1 rollouts of every
 window). The identified ``PhysParams`` go straight into the simulator the policy is trained in.
 
-The Panda's twinrl fit is the slow part (about 4 min on 2 idle cores; 28 min under a load of 6
-in ``bench/results/user_mjcf_sysid.json``); ``mujoco.sysid``'s takes about 26 s there.
+On the Panda twinrl's fit is ``bench/user_mjcf_sysid.py``'s without its bound test
+(``PANDA_BOUND_LR``, which says what that test costs there): Levenberg-Marquardt stops after 6
+iterations (the worst error of the identified parameters 9 % after 3, 0.32 % after 4, 0.187 %
+from 5 on, where the loss stops falling), one refit with the flat base mass at nominal and two
+Laplace steps follow; about 60 s of CPU in all, compilation included.
+``--merge`` adds or replaces datasets in an existing result (``meta.rows``: each row's run).
 
 Run: ``python bench/sysid_baseline.py [--datasets pendulum_swingup cartpole_swingup panda]
-[--episodes 5] [--no-cma] [--out DIR]``.
+[--episodes 5] [--no-cma] [--panda-bound-lr 2.71] [--merge] [--out DIR]``.
 """
 
 from __future__ import annotations
@@ -122,6 +126,17 @@ def write_params(model, nominal, spec: list[tuple[str, int]], values) -> None:
         if field == "mass":
             model.body_inertia[i + 1] = nominal.body_inertia[i + 1] * (float(v)
                                                                        / nominal.body_mass[i + 1])
+
+
+PANDA_BOUND_LR = 0.0
+"""twinrl's ``bound_lr`` on the Panda. Its bound test refits the whole problem once per fitted
+damping held at 0 (seven Levenberg-Marquardt fits started at damping 0, a Laplace step each) to
+decide whether the data allow 0. The Panda's dampings are 24-61 N s/m and identified to 1e-5
+relative; the tests' likelihood ratios come out at 3e9-6e13 against the threshold 2.71, so none
+is held at 0 and the identified values are the same to four digits with or without the test. On
+2 cores at a load of 6 the whole fit took 1,328 s (989 s of CPU), 1,259 s of it the bound test
+(refits of 65-331 s each, 219,000 of its 225,570 window rollouts); without it, 84 s (60 s of
+CPU). 0 skips the test; ``--panda-bound-lr 2.71`` runs user_mjcf_sysid.py's fit exactly."""
 
 
 NONNEG_INIT = 0.1
@@ -186,11 +201,14 @@ def twin_dataset(task: str, seed: int, episodes: int) -> dict:
                 true_latency=truth.perturbation.latency_steps, known=((body0, known_value),),
                 qpos=qpos, qvel=qvel, ctrl=ctrl, idle_ctrl=idle, nominal=nominal,
                 mjcf=env.mjcf(), frame_skip=int(env.config.frame_skip), max_latency=1,
-                twinrl_cfg={}, cma=task in COMPARE)
+                twinrl_cfg={}, cma=COMPARE.get(task))
 
 
-def panda_dataset(seed: int, episodes: int, steps: int, frame_skip: int) -> dict:
-    """The Panda logs of ``bench/user_mjcf_sysid.py`` (its defaults: no noise)."""
+def panda_dataset(seed: int, episodes: int, steps: int, frame_skip: int,
+                  bound_lr: float = 0.0) -> dict:
+    """The Panda logs of ``bench/user_mjcf_sysid.py`` (its defaults: no noise). twinrl's fit is
+    that bench's but for ``bound_lr`` (``SysidConfig.bound_lr``; default 0 here, see
+    ``PANDA_BOUND_LR``)."""
     import mujoco
 
     path = str(user_mjcf_sysid.PANDA)
@@ -201,7 +219,8 @@ def panda_dataset(seed: int, episodes: int, steps: int, frame_skip: int) -> dict
                 truth=truth, true_latency=0, known=(), qpos=qpos, qvel=qvel, ctrl=ctrl,
                 idle_ctrl=ctrl[0, 0], nominal=mujoco.MjModel.from_xml_path(path), mjcf=path,
                 frame_skip=frame_skip, max_latency=0,
-                twinrl_cfg=dict(params=tuple(names), max_latency=0), cma=False)
+                twinrl_cfg=dict(params=tuple(names), max_latency=0, bound_lr=bound_lr),
+                cma=tuple(names))
 
 
 # ---------------------------------------------------------------------- (b) mujoco.sysid
@@ -318,7 +337,9 @@ def rel_errors(ds: dict, values: dict) -> dict:
 def run(ds: dict, window: int, max_iters: int, cma_evals: int | None, seed: int) -> dict:
     env, data = ds["env"], ds["data"]
     out = {"dataset": ds["name"], "true_latency": ds["true_latency"],
-           "known": [list(k) for k in ds["known"]], "methods": {}}
+           "known": [list(k) for k in ds["known"]], "methods": {},
+           "twinrl_config": {"window": window, **{k: list(v) if isinstance(v, tuple) else v
+                                                  for k, v in ds["twinrl_cfg"].items()}}}
     # (a) twinrl, as bench/sysid.py / bench/user_mjcf_sysid.py call it
     t = time.perf_counter()
     res = sysid.fit(env, data, sysid.SysidConfig(known=ds["known"], window=window,
@@ -329,18 +350,19 @@ def run(ds: dict, window: int, max_iters: int, cma_evals: int | None, seed: int)
     vals = dict(zip(res.names, (float(v) for v in res.values)))
     out["methods"]["twinrl"] = dict(values={n: vals[n] for n in fitted}, seconds=sec,
                                     latency=int(res.latency), loss=float(res.loss),
-                                    status=dict(zip(res.names, res.status)))
+                                    status=dict(zip(res.names, res.status)),
+                                    iterations=len(res.history), rollouts=int(res.sim_rollouts))
     # (b) mujoco.sysid on the mapped ones
     names = [n for n in fitted if n.split("/")[0] in MAPPED]
     out["methods"]["mujoco.sysid"] = mujoco_sysid_fit(ds, names, window, max_iters)
     # (c) CMA-ES, bench/sysid.py part 2's objective
     if cma_evals is not None and ds["cma"]:
-        cfg = sysid.SysidConfig(params=COMPARE[ds["name"]], known=ds["known"],
+        cfg = sysid.SysidConfig(params=ds["cma"], known=ds["known"],
                                 estimate_start=False, latency=res.latency, window=window)
         c = baselines.cmaes_fit(env, data, cfg, baselines.CmaesConfig(max_evals=cma_evals),
                                 seed=seed)
         out["methods"]["CMA-ES"] = dict(
-            values=dict(zip(COMPARE[ds["name"]], (float(v) for v in c.values))),
+            values=dict(zip(ds["cma"], (float(v) for v in c.values))),
             seconds=float(c.seconds), loss=float(c.loss), rollouts=int(c.sim_rollouts))
     for m in out["methods"].values():
         m["rel_err"] = rel_errors(ds, m["values"])
@@ -365,6 +387,26 @@ def print_dataset(r: dict) -> None:
                        ["parameter"] + methods, rows)
 
 
+def row_provenance(meta: dict) -> dict:
+    """How a row was produced: the command, commit, date and load average of its run."""
+    return {"command": meta.get("command"), "commit": meta.get("commit"),
+            "dirty": meta.get("dirty"), "date": meta.get("date"),
+            "load_average": meta.get("machine", {}).get("load_average")}
+
+
+def committed_rows(path: Path) -> dict:
+    """The rows already at ``path`` (``{"results": [], "rows": {}}`` without a file) and each
+    one's provenance: ``meta.rows`` where the file has it, else the file's own ``meta``."""
+    import json
+
+    if not path.exists():
+        return {"results": [], "rows": {}}
+    old = json.loads(path.read_text())
+    meta = old.get("meta", {})
+    rows = meta.get("rows") or {r["dataset"]: row_provenance(meta) for r in old["results"]}
+    return {"results": old["results"], "rows": rows}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", nargs="+",
@@ -378,13 +420,21 @@ def main(argv=None) -> int:
     ap.add_argument("--max-iters", type=int, default=100, help="mujoco.sysid iterations")
     ap.add_argument("--cma-evals", type=int, default=2000)
     ap.add_argument("--no-cma", action="store_true", help="skip CMA-ES")
+    ap.add_argument("--panda-bound-lr", type=float, default=PANDA_BOUND_LR,
+                    help="twinrl's SysidConfig.bound_lr on the Panda (user_mjcf_sysid.py's fit: "
+                         "2.71; default %(default)s, see PANDA_BOUND_LR)")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep OUT/sysid_baseline.json's rows of other datasets (a dataset run "
+                         "again replaces its row); meta.rows says how each row was produced")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
+    path = args.out / "sysid_baseline.json"
+    base = committed_rows(path) if args.merge else {"results": [], "rows": {}}
     results = []
     for name in args.datasets:
         t = time.perf_counter()
         if name == "panda":
-            ds = panda_dataset(args.seed, 3, 100, 4)
+            ds = panda_dataset(args.seed, 3, 100, 4, args.panda_bound_lr)
             window = args.panda_window
         else:
             ds = twin_dataset(name, args.seed, args.episodes)
@@ -392,7 +442,7 @@ def main(argv=None) -> int:
         r = run(ds, window, args.max_iters, None if args.no_cma else args.cma_evals, args.seed)
         r["seconds"] = time.perf_counter() - t
         results.append(r)
-        write_result(args.out / "sysid_baseline.json", {"results": results}, args)
+        write_rows(path, base, results, args)
         print_dataset(r)
     report.print_table(
         "twinrl vs mujoco.sysid vs CMA-ES: worst / median relative error over the shared "
@@ -400,8 +450,22 @@ def main(argv=None) -> int:
         ["dataset", "method", "worst", "median", "seconds"],
         [[r["dataset"], m, f"{100 * v['worst']:.2f} %", f"{100 * v['median']:.2f} %",
           f"{v['seconds']:.1f}"] for r in results for m, v in r["methods"].items()])
-    print(f"wrote {args.out / 'sysid_baseline.json'}")
+    print(f"wrote {path}")
     return 0
+
+
+def write_rows(path: Path, base: dict, results: list[dict], args) -> None:
+    """Write ``results`` merged into ``base`` (``committed_rows``; empty without ``--merge``): a
+    dataset run again replaces its row in place, a new one is appended, the others are kept;
+    ``meta.rows`` gives each row's provenance (this run's for ``results``)."""
+    from benchio import metadata
+
+    new = {r["dataset"]: r for r in results}
+    merged = [new.pop(r["dataset"], r) for r in base["results"]] + list(new.values())
+    rows = {r["dataset"]: base["rows"].get(r["dataset"]) for r in merged}
+    now = row_provenance(metadata(args))
+    rows.update({r["dataset"]: now for r in results})
+    write_result(path, {"meta": {"rows": rows}, "results": merged}, args)
 
 
 if __name__ == "__main__":

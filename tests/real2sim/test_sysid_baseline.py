@@ -47,3 +47,30 @@ def test_parameters_map_to_the_physparams_fields(bench):
     assert m.body_mass[a] == nominal.body_mass[a]
     with pytest.raises(ValueError, match="gravity"):
         bench.model_field(m, "gravity", 0)
+
+
+def test_merge_replaces_a_rerun_dataset_and_keeps_the_others_provenance(bench, tmp_path):
+    import argparse
+    import json
+
+    path = tmp_path / "sysid_baseline.json"
+    old_meta = {"command": "python bench/sysid_baseline.py", "commit": "a" * 40, "dirty": False,
+                "date": "2026-01-01T00:00:00Z", "machine": {"load_average": [1.0, 1.0, 1.0]}}
+    path.write_text(json.dumps({"meta": old_meta, "results": [
+        {"dataset": "pendulum_swingup", "v": 1}, {"dataset": "cartpole_swingup", "v": 1}]}))
+    base = bench.committed_rows(path)
+    args = argparse.Namespace(datasets=["cartpole_swingup", "panda"])
+    bench.write_rows(path, base, [{"dataset": "cartpole_swingup", "v": 2},
+                                  {"dataset": "panda (user MJCF)", "v": 2}], args)
+    doc = json.loads(path.read_text())
+    assert [(r["dataset"], r["v"]) for r in doc["results"]] == [
+        ("pendulum_swingup", 1), ("cartpole_swingup", 2), ("panda (user MJCF)", 2)]
+    rows = doc["meta"]["rows"]
+    assert rows["pendulum_swingup"]["commit"] == "a" * 40
+    assert rows["pendulum_swingup"]["load_average"] == [1.0, 1.0, 1.0]
+    assert rows["cartpole_swingup"]["commit"] != "a" * 40
+    assert rows["panda (user MJCF)"] == rows["cartpole_swingup"]
+    # without --merge (an empty base) only this run's rows are written
+    bench.write_rows(path, {"results": [], "rows": {}}, [{"dataset": "panda (user MJCF)"}], args)
+    assert [r["dataset"] for r in json.loads(path.read_text())["results"]] == [
+        "panda (user MJCF)"]
