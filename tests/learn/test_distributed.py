@@ -2,8 +2,8 @@
 127.0.0.1, Gloo's CPU collectives, one CPU device per process.
 
 Each run is a subprocess of ``tests/learn/_dist_worker.py`` (a tiny SHAC through the runner, a
-tiny HDS, the imitation actor's minibatch fit and the sensing Q's image fit). Two processes hold one global batch between them, so they
-must end where one process ends: the random draws are the same (every key comes from the one
+tiny HDS, the imitation actor's minibatch fit and the sensing Q's image fit). Two processes
+hold one global batch between them, so they must end where one process ends: the random draws are the same (every key comes from the one
 global key, and JAX's partitionable threefry gives each device its slice of the same numbers),
 and only the order of the all-reduced sums differs (a sum over 2 devices' halves is not
 bit-equal to one device's sum in float32). Measured: SHAC's parameters after 4 epochs within
