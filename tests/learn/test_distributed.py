@@ -2,16 +2,17 @@
 127.0.0.1, Gloo's CPU collectives, one CPU device per process.
 
 Each run is a subprocess of ``tests/learn/_dist_worker.py`` (a tiny SHAC through the runner, a
-tiny HDS, the imitation actor's minibatch fit and the sensing Q's image fit). Two processes
-hold one global batch between them, so they must end where one process ends: the random draws are the same (every key comes from the one
-global key, and JAX's partitionable threefry gives each device its slice of the same numbers),
-and only the order of the all-reduced sums differs (a sum over 2 devices' halves is not
-bit-equal to one device's sum in float32). Measured: SHAC's parameters after 4 epochs within
-4e-9, the fit's after 60 Adam steps within 1.2e-7, HDS's after 3 epochs within 6e-8, the Q's
-after 12 steps within 2e-7 (parameters of order 0.05-1.5); the tests allow 1e-5, far below any
-change of the algorithm (a step of Adam moves a parameter by ~1e-2). HDS's annealing compares
-two energies that differ between the runs by ~3e-8: a proposal whose energy tied the current
-one's that closely could be taken on one process count and not on the other (none does here).
+tiny HDS, the imitation actor's minibatch fit and the sensing Q's image fit). Two processes hold
+one global batch between them, so they must end where one process ends: the random draws are the
+same (every key comes from the one global key, and JAX's partitionable threefry gives each
+device its slice of the same numbers), and only the order of the all-reduced sums differs (a sum
+over 2 devices' halves is not bit-equal to one device's sum in float32). Measured: SHAC's
+parameters after 4 epochs within 4e-9, the fit's after 60 Adam steps within 1.2e-7, HDS's after
+3 epochs within 6e-8, the Q's after 12 steps within 2e-7 (parameters of order 0.05-1.5); the
+tests allow 1e-5, far below any change of the algorithm (a step of Adam moves a parameter by
+~1e-2). HDS's annealing compares two energies that differ between the runs by ~3e-8: a proposal
+whose energy tied the current one's that closely could be taken on one process count and not on
+the other (none does here).
 """
 
 import json
