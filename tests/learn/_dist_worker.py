@@ -11,7 +11,8 @@ use), with exploration, the annealed step size, the critic and half the rollouts
 heavier slider's ``step`` (the model fraction), its parameters and step sizes saved to
 ``--out/hds.npz``. ``--what q``: the sensing Q's fit (``sensing.fit_q``: images augmented, an
 ensemble of two, one compiled step a minibatch) on a synthetic set of 8 x 8 images, its
-parameters and losses saved to ``--out/q.npz``. Without
+parameters and losses saved to ``--out/q.npz``. ``--what ppo``: one Brax PPO iteration (``PPO``).
+Without
 ``--num-processes`` (or with 1) the process runs alone, the one-process reference. ``--what
 both``: the fit, then SHAC (one start-up for both)."""
 
@@ -181,9 +182,54 @@ def q_fit(out: Path) -> None:
         np.savez(out / "q.npz", *leaves, losses=np.asarray(losses))
 
 
+PPO = {"num_timesteps": 128, "num_envs": 8, "batch_size": 8, "num_minibatches": 2,
+       "unroll_length": 8, "num_updates_per_batch": 1, "policy_hidden": (16,),
+       "value_hidden": (16,), "num_evals": 2, "num_eval_envs": 4, "episode_length": 20}
+"""One Brax PPO iteration (8 x 8 x 2 steps) on ``test_shac.PointMass``: ``ppo_train`` (each
+process's parameters saved to ``--out/ppo<process>.npz``), then the same through the runner into
+``--out/ppo``."""
+
+
+def ppo(out: Path) -> None:
+    import jax
+    import numpy as np
+
+    from tests.learn.test_shac import PointMass
+    from twinrl.learn import distributed
+    from twinrl.learn.baselines import PPOConfig, ppo_train
+
+    _, params, metrics = ppo_train(PointMass(), PPOConfig(**PPO), 0)
+    leaves = jax.tree_util.tree_leaves(distributed.to_host(params))
+    np.savez(out / f"ppo{jax.process_index()}.npz", *leaves,  # Brax reports on process 0
+             env_steps=np.asarray(metrics.get("env_steps", [])))
+    toy_run(out / "ppo", "ppo", PPO)  # twinrl train --algo ppo: one writer
+
+
+def toy_run(out: Path, algo: str, overrides: dict, epochs: int | None = None,
+            resume: bool = False) -> None:
+    """``runner.train_run`` of ``algo`` on ``test_shac.PointMass`` into ``out``, as ``twinrl
+    train`` drives it; the writer also saves the summary to ``out/worker.json``."""
+    from tests.learn.test_shac import PointMass
+    from twinrl.envs import system
+    from twinrl.learn import distributed, runner
+
+    class Toy(PointMass):
+        config = {}  # no task config; no MJCF system (the checkpoint holds none)
+
+    of = system.system_of
+    system.system_of = lambda env: None if isinstance(env, Toy) else of(env)
+    try:
+        s = runner.train_run("pointmass", algo, out, seed=3, epochs=epochs, overrides=overrides,
+                             resume=resume, progress=False, env=Toy())
+    finally:
+        system.system_of = of
+    if distributed.is_writer():
+        (out / "worker.json").write_text(json.dumps(s, default=str))
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--what", nargs="+", choices=("shac", "fit", "hds", "q"), required=True)
+    p.add_argument("--what", nargs="+", choices=("shac", "fit", "hds", "q", "ppo"), required=True)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--coordinator")
     p.add_argument("--num-processes", type=int, default=1)
@@ -203,25 +249,14 @@ def main(argv=None) -> int:
     with distributed.guard("worker"):
         if "fit" in a.what:
             fit(a.out, distributed.global_mesh() if many else None, a.fail)
+        if "ppo" in a.what:
+            ppo(a.out)
         if "q" in a.what:
             q_fit(a.out)
         if "hds" in a.what:
             hds(a.out)
         if "shac" in a.what:
-            from tests.learn.test_shac import PointMass
-            from twinrl.envs import system
-            from twinrl.learn import runner
-
-            class Toy(PointMass):
-                config = {}  # no task config; no MJCF system (the checkpoint holds none)
-
-            of = system.system_of
-            system.system_of = lambda env: None if isinstance(env, Toy) else of(env)
-
-            s = runner.train_run("pointmass", "shac", a.out, seed=3, epochs=a.epochs,
-                                 overrides=SHAC, resume=a.resume, progress=False, env=Toy())
-            if distributed.is_writer():
-                (a.out / "worker.json").write_text(json.dumps(s, default=str))
+            toy_run(a.out, "shac", SHAC, a.epochs, a.resume)
     return 0
 
 

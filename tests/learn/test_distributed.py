@@ -71,7 +71,7 @@ def runs(tmp_path_factory):
     """The same training on one process and on two, side by side, and the stderr of the second
     process of two."""
     one, two = tmp_path_factory.mktemp("one"), tmp_path_factory.mktemp("two")
-    what = ("--what", "fit", "q", "hds", "shac")
+    what = ("--what", "fit", "q", "hds", "ppo", "shac")
     procs = [_worker(one, *what), *_pair(two, *what)]
     errs = _finish(procs)
     return one, two, errs[2]
@@ -107,6 +107,30 @@ def test_two_processes_fit_the_sensing_q_as_one_does(runs):
     for k in a:
         np.testing.assert_allclose(a[k], b[k], rtol=0, atol=1e-5, err_msg=k)
     assert a["losses"][-1] < 0.5 * a["losses"][0]  # it fitted something
+
+
+def test_two_processes_run_a_brax_ppo_iteration_in_step(runs):
+    """Brax PPO through its own multi-process path: each process steps half the environments
+    with its own random stream (Brax folds the process index into its keys, so the run is not
+    one process's), and the gradients are averaged over both, so the two processes end with
+    the same parameters; ``twinrl train --algo ppo``'s runner writes the run from process 0."""
+    one, two, _ = runs
+    a, b, alone = (np.load(two / "ppo0.npz"), np.load(two / "ppo1.npz"),
+                   np.load(one / "ppo0.npz"))
+    leaves = [k for k in a if k != "env_steps"]
+    assert len(leaves) > 2
+    for k in leaves:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        assert np.all(np.isfinite(a[k])), k
+    assert any(not np.allclose(a[k], alone[k]) for k in leaves)  # not one process's streams
+    assert list(a["env_steps"]) == [0, 128] == list(alone["env_steps"])
+    assert b["env_steps"].size == 0  # Brax reports on process 0 alone
+    rows = (two / "ppo" / "metrics.csv").read_text().splitlines()
+    assert len(rows) == 3 and [r.split(",")[1] for r in rows[1:]] == ["0.0", "128.0"]
+    _, params, meta = load_policy(two / "ppo" / "policy")
+    assert meta["algo"] == "ppo" and meta["metrics"]["env_steps"] == 128
+    saved = jax.tree_util.tree_leaves(params)
+    assert [x.shape for x in saved] == [a[k].shape for k in leaves]
 
 
 def test_the_process_that_does_not_write_says_nothing(runs):

@@ -35,6 +35,8 @@ Tuned settings for our 250-step swing-ups (per-step reward in [0, 1]) are
 from __future__ import annotations
 
 import dataclasses
+import warnings
+from contextlib import contextmanager
 from typing import Any
 
 import jax
@@ -43,7 +45,7 @@ import numpy as np
 from brax.training.agents.apg import train as apg
 from brax.training.agents.ppo import train as ppo
 
-from twinrl.learn import tuned
+from twinrl.learn import distributed, tuned
 from twinrl.learn.common import JSONConfig, MetricLog, ProgressFn
 from twinrl.learn.brax_policies import (BraxPolicy, apg_policy, make_apg_nets, make_ppo_nets,
                                         ppo_policy)
@@ -202,6 +204,36 @@ def _refuse_resume(name, checkpoint_fn, restore):
             f"twinrl trainers pods, hds and shac)")
 
 
+@contextmanager
+def _brax_pmap():
+    """Brax's trainers under ``jax.distributed``: with JAX's original ``pmap``
+    (``jax_pmap_shmap_merge=False``) for their duration. Brax 0.14.2 runs its epoch with
+    ``jax.pmap`` over each process's local devices and then takes ``jnp.mean`` of the
+    epoch's metrics on the host; JAX 0.9's default ``pmap`` (built on ``shard_map``) returns
+    arrays over every process's devices, and that ``jnp.mean`` copies them to this process's
+    devices alone, which JAX refuses (``INVALID_ARGUMENT: CopyArrays only supports destination
+    device list of the same size as the array device lists``) -- the first epoch of PPO or APG
+    on two processes ended there. The original ``pmap`` returns this process's shards, as
+    Brax expects. The setting is deprecated in JAX 0.9 (removed in 0.10: by then Brax must
+    take the new ``pmap``'s arrays); its deprecation warning is silenced here. One process:
+    nothing changes."""
+    if not distributed.is_distributed():
+        yield
+        return
+    before = jax.config.jax_pmap_shmap_merge
+
+    def use(value):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            jax.config.update("jax_pmap_shmap_merge", value)
+
+    use(False)
+    try:
+        yield
+    finally:
+        use(before)
+
+
 def _metric_row(log: MetricLog, index: int, env_steps: int, m: dict) -> dict[str, float]:
     extra = {k.split("/", 1)[1]: v for k, v in m.items()
              if k.startswith("training/") and np.ndim(v) == 0
@@ -228,16 +260,17 @@ def ppo_train(env, config: PPOConfig = PPOConfig(), rng: jax.Array | int = 0, *,
 
     nets = lambda obs_size, action_size, preprocess_observations_fn: make_ppo_nets(  # noqa: E731
         obs_size, action_size, c)
-    _, params, _ = ppo.train(
-        environment=env, num_timesteps=c.num_timesteps, num_envs=c.num_envs,
-        episode_length=T, batch_size=c.batch_size, num_minibatches=c.num_minibatches,
-        unroll_length=c.unroll_length, num_updates_per_batch=c.num_updates_per_batch,
-        learning_rate=c.learning_rate, entropy_cost=c.entropy_cost, discounting=c.discounting,
-        gae_lambda=c.gae_lambda, clipping_epsilon=c.clipping_epsilon,
-        reward_scaling=c.reward_scaling, max_grad_norm=c.max_grad_norm,
-        normalize_observations=c.normalize_observations, network_factory=nets,
-        num_evals=c.num_evals, num_eval_envs=c.num_eval_envs, deterministic_eval=True,
-        use_pmap_on_reset=False, seed=_seed(rng), progress_fn=progress)
+    with _brax_pmap():
+        _, params, _ = ppo.train(
+            environment=env, num_timesteps=c.num_timesteps, num_envs=c.num_envs,
+            episode_length=T, batch_size=c.batch_size, num_minibatches=c.num_minibatches,
+            unroll_length=c.unroll_length, num_updates_per_batch=c.num_updates_per_batch,
+            learning_rate=c.learning_rate, entropy_cost=c.entropy_cost, discounting=c.discounting,
+            gae_lambda=c.gae_lambda, clipping_epsilon=c.clipping_epsilon,
+            reward_scaling=c.reward_scaling, max_grad_norm=c.max_grad_norm,
+            normalize_observations=c.normalize_observations, network_factory=nets,
+            num_evals=c.num_evals, num_eval_envs=c.num_eval_envs, deterministic_eval=True,
+            use_pmap_on_reset=False, seed=_seed(rng), progress_fn=progress)
     policy = ppo_policy(int(env.observation_size), int(env.action_size), c)
     return policy, _plain_params(params[0], params[1]), log.as_dict()
 
@@ -261,12 +294,14 @@ def apg_train(env, config: APGConfig = APGConfig(), rng: jax.Array | int = 0, *,
 
     nets = lambda obs_size, action_size, preprocess_observations_fn: make_apg_nets(  # noqa: E731
         obs_size, action_size, c)
-    _, params, _ = apg.train(
-        environment=env, episode_length=T, policy_updates=c.policy_updates,
-        horizon_length=c.horizon_length, num_envs=c.num_envs, num_evals=c.num_evals,
-        num_eval_envs=c.num_eval_envs, learning_rate=c.learning_rate,
-        use_schedule=c.use_schedule, schedule_decay=c.schedule_decay,
-        max_gradient_norm=c.max_gradient_norm, normalize_observations=c.normalize_observations,
-        deterministic_eval=True, network_factory=nets, seed=_seed(rng), progress_fn=progress)
+    with _brax_pmap():
+        _, params, _ = apg.train(
+            environment=env, episode_length=T, policy_updates=c.policy_updates,
+            horizon_length=c.horizon_length, num_envs=c.num_envs, num_evals=c.num_evals,
+            num_eval_envs=c.num_eval_envs, learning_rate=c.learning_rate,
+            use_schedule=c.use_schedule, schedule_decay=c.schedule_decay,
+            max_gradient_norm=c.max_gradient_norm, normalize_observations=c.normalize_observations,
+            deterministic_eval=True, network_factory=nets, seed=_seed(rng),
+            progress_fn=progress)
     policy = apg_policy(int(env.observation_size), int(env.action_size), c)
     return policy, _plain_params(params[0], params[1]), log.as_dict()
