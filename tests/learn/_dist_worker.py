@@ -11,10 +11,11 @@ use), with exploration, the annealed step size, the critic and half the rollouts
 heavier slider's ``step`` (the model fraction), its parameters and step sizes saved to
 ``--out/hds.npz``. ``--what q``: the sensing Q's fit (``sensing.fit_q``: images augmented, an
 ensemble of two, one compiled step a minibatch) on a synthetic set of 8 x 8 images, its
-parameters and losses saved to ``--out/q.npz``. ``--what ppo``: one Brax PPO iteration (``PPO``).
-Without
-``--num-processes`` (or with 1) the process runs alone, the one-process reference. ``--what
-both``: the fit, then SHAC (one start-up for both)."""
+parameters and losses saved to ``--out/q.npz``. ``--what ppo``: one Brax PPO iteration
+(``PPO``). ``--what apg``: Brax APG through the runner (refused on several processes).
+
+Without ``--num-processes`` (or with 1) the process runs alone, the one-process reference.
+Several ``--what`` run one after the other (fit, ppo, apg, q, hds, shac) in one start-up."""
 
 import argparse
 import functools
@@ -229,7 +230,8 @@ def toy_run(out: Path, algo: str, overrides: dict, epochs: int | None = None,
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--what", nargs="+", choices=("shac", "fit", "hds", "q", "ppo"), required=True)
+    p.add_argument("--what", nargs="+", required=True,
+                   choices=("shac", "fit", "hds", "q", "ppo", "apg"))
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--coordinator")
     p.add_argument("--num-processes", type=int, default=1)
@@ -251,6 +253,8 @@ def main(argv=None) -> int:
             fit(a.out, distributed.global_mesh() if many else None, a.fail)
         if "ppo" in a.what:
             ppo(a.out)
+        if "apg" in a.what:  # refused on several processes
+            toy_run(a.out, "apg", {"policy_updates": 2, "num_envs": 8, "num_evals": 2})
         if "q" in a.what:
             q_fit(a.out)
         if "hds" in a.what:

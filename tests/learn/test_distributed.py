@@ -218,6 +218,15 @@ def test_a_coordinator_nobody_answers_fails_in_one_line(tmp_path):
     print(f"gave up after {waited:.1f} s (timeout 3 s, exit {p.returncode}): {last}")
 
 
+def test_brax_apg_on_two_processes_is_refused_in_one_line(tmp_path):
+    procs = _pair(tmp_path, "--what", "apg")
+    for p in procs:
+        _, err = p.communicate(timeout=TIMEOUT + 120)
+        assert p.returncode == 1, err[-2000:]
+        assert "Traceback" not in err, err[-2000:]
+        assert "Brax APG cannot run on several processes" in err.strip().splitlines()[-1]
+
+
 def test_one_process_is_left_alone():
     assert distributed.initialize() == 1 and not distributed.is_distributed()
     assert distributed.is_writer()

@@ -206,14 +206,14 @@ def _refuse_resume(name, checkpoint_fn, restore):
 
 @contextmanager
 def _brax_pmap():
-    """Brax's trainers under ``jax.distributed``: with JAX's original ``pmap``
+    """Brax's PPO under ``jax.distributed``: with JAX's original ``pmap``
     (``jax_pmap_shmap_merge=False``) for their duration. Brax 0.14.2 runs its epoch with
     ``jax.pmap`` over each process's local devices and then takes ``jnp.mean`` of the
     epoch's metrics on the host; JAX 0.9's default ``pmap`` (built on ``shard_map``) returns
     arrays over every process's devices, and that ``jnp.mean`` copies them to this process's
     devices alone, which JAX refuses (``INVALID_ARGUMENT: CopyArrays only supports destination
-    device list of the same size as the array device lists``) -- the first epoch of PPO or APG
-    on two processes ended there. The original ``pmap`` returns this process's shards, as
+    device list of the same size as the array device lists``) -- the first epoch of PPO on two
+    processes ended there. The original ``pmap`` returns this process's shards, as
     Brax expects. The setting is deprecated in JAX 0.9 (removed in 0.10: by then Brax must
     take the new ``pmap``'s arrays); its deprecation warning is silenced here. One process:
     nothing changes."""
@@ -280,6 +280,11 @@ def apg_train(env, config: APGConfig = APGConfig(), rng: jax.Array | int = 0, *,
               ) -> tuple[Network, dict[str, Any], dict[str, list[float]]]:
     """Brax APG on ``env``; returns ``(policy, params, metrics)`` as described in the module."""
     _refuse_resume("apg_train", checkpoint_fn, restore)
+    if distributed.is_distributed():
+        raise distributed.DistributedError(
+            "Brax APG cannot run on several processes: brax 0.14.2's apg.train draws episode "
+            "step counters for num_envs environments (scramble_times) where each process holds "
+            "num_envs / processes; run APG on one process")
     c = config
     T = int(c.episode_length or env.episode_length)
     log = MetricLog()
@@ -294,14 +299,13 @@ def apg_train(env, config: APGConfig = APGConfig(), rng: jax.Array | int = 0, *,
 
     nets = lambda obs_size, action_size, preprocess_observations_fn: make_apg_nets(  # noqa: E731
         obs_size, action_size, c)
-    with _brax_pmap():
-        _, params, _ = apg.train(
-            environment=env, episode_length=T, policy_updates=c.policy_updates,
-            horizon_length=c.horizon_length, num_envs=c.num_envs, num_evals=c.num_evals,
-            num_eval_envs=c.num_eval_envs, learning_rate=c.learning_rate,
-            use_schedule=c.use_schedule, schedule_decay=c.schedule_decay,
-            max_gradient_norm=c.max_gradient_norm, normalize_observations=c.normalize_observations,
-            deterministic_eval=True, network_factory=nets, seed=_seed(rng),
-            progress_fn=progress)
+    _, params, _ = apg.train(
+        environment=env, episode_length=T, policy_updates=c.policy_updates,
+        horizon_length=c.horizon_length, num_envs=c.num_envs, num_evals=c.num_evals,
+        num_eval_envs=c.num_eval_envs, learning_rate=c.learning_rate,
+        use_schedule=c.use_schedule, schedule_decay=c.schedule_decay,
+        max_gradient_norm=c.max_gradient_norm, normalize_observations=c.normalize_observations,
+        deterministic_eval=True, network_factory=nets, seed=_seed(rng),
+        progress_fn=progress)
     policy = apg_policy(int(env.observation_size), int(env.action_size), c)
     return policy, _plain_params(params[0], params[1]), log.as_dict()

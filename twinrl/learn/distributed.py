@@ -54,7 +54,8 @@ DEFAULT_HEARTBEAT_S = 30
 
 
 class DistributedError(RuntimeError):
-    """The multi-process runtime could not start, or a peer was lost: one line naming why."""
+    """The multi-process runtime could not start, a peer was lost, or what was asked cannot run
+    on several processes: one line naming why."""
 
 
 def requested(environ: Mapping[str, str] | None = None) -> bool:
