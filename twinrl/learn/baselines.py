@@ -35,8 +35,6 @@ Tuned settings for our 250-step swing-ups (per-step reward in [0, 1]) are
 from __future__ import annotations
 
 import dataclasses
-import warnings
-from contextlib import contextmanager
 from typing import Any
 
 import jax
@@ -204,36 +202,6 @@ def _refuse_resume(name, checkpoint_fn, restore):
             f"twinrl trainers pods, hds and shac)")
 
 
-@contextmanager
-def _brax_pmap():
-    """Brax's PPO under ``jax.distributed``: with JAX's original ``pmap``
-    (``jax_pmap_shmap_merge=False``) for their duration. Brax 0.14.2 runs its epoch with
-    ``jax.pmap`` over each process's local devices and then takes ``jnp.mean`` of the
-    epoch's metrics on the host; JAX 0.9's default ``pmap`` (built on ``shard_map``) returns
-    arrays over every process's devices, and that ``jnp.mean`` copies them to this process's
-    devices alone, which JAX refuses (``INVALID_ARGUMENT: CopyArrays only supports destination
-    device list of the same size as the array device lists``) -- the first epoch of PPO on two
-    processes ended there. The original ``pmap`` returns this process's shards, as
-    Brax expects. The setting is deprecated in JAX 0.9 (removed in 0.10: by then Brax must
-    take the new ``pmap``'s arrays); its deprecation warning is silenced here. One process:
-    nothing changes."""
-    if not distributed.is_distributed():
-        yield
-        return
-    before = jax.config.jax_pmap_shmap_merge
-
-    def use(value):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            jax.config.update("jax_pmap_shmap_merge", value)
-
-    use(False)
-    try:
-        yield
-    finally:
-        use(before)
-
-
 def _metric_row(log: MetricLog, index: int, env_steps: int, m: dict) -> dict[str, float]:
     extra = {k.split("/", 1)[1]: v for k, v in m.items()
              if k.startswith("training/") and np.ndim(v) == 0
@@ -260,7 +228,7 @@ def ppo_train(env, config: PPOConfig = PPOConfig(), rng: jax.Array | int = 0, *,
 
     nets = lambda obs_size, action_size, preprocess_observations_fn: make_ppo_nets(  # noqa: E731
         obs_size, action_size, c)
-    with _brax_pmap():
+    with distributed.classic_pmap():  # Brax 0.14.2 needs it on several processes
         _, params, _ = ppo.train(
             environment=env, num_timesteps=c.num_timesteps, num_envs=c.num_envs,
             episode_length=T, batch_size=c.batch_size, num_minibatches=c.num_minibatches,
