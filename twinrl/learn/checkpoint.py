@@ -158,7 +158,10 @@ def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
     if not (path / "params").exists():
         raise CheckpointError(f"{path}: params/ missing (checkpoint incomplete)")
     template = jax.eval_shape(network.init, jax.random.key(0))
-    params = ocp.StandardCheckpointer().restore(path / "params", template)
+    # on this process alone: one process of several reads a policy without the others (the loop
+    # deploys it from process 0), where orbax's default would wait for every process
+    params = ocp.StandardCheckpointer(**_this_process_only(ocp)).restore(path / "params",
+                                                                         template)
     return network, params, meta
 
 
