@@ -1,6 +1,7 @@
 """``twinrl.loop`` on two processes (``jax.distributed`` on 127.0.0.1): process 0 runs the loop
 and the real twin and writes every file; process 1 follows it through ``progress.json`` and
-runs the learning stages (learn, compare) with it, their collectives spanning both processes.
+runs the learning stages (learn, compare) with it, their collectives spanning both processes;
+both resume the finished run.
 
 The stages that compile are stand-ins, as in ``tests/test_loop.py`` (a sysid that returns the
 nominal parameters; a trainer that compiles nothing), and the stand-in trainer gathers every
@@ -23,6 +24,7 @@ CHILD = textwrap.dedent("""
     from twinrl.learn import distributed
 
     out, port, pid = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3])
+    resume = sys.argv[4] == "resume"
     distributed.initialize(f"127.0.0.1:{port}", 2, pid, timeout_s=60, heartbeat_s=60)
     import jax
     import numpy as np
@@ -73,7 +75,8 @@ CHILD = textwrap.dedent("""
                              model_fraction=0.0, hybrid=False, residual=False, oracle=False,
                              video=False, eval_episodes=1)
     with distributed.guard("child"):
-        summary = loop.run("cartpole_swingup", out, config, seed=4, progress=False)
+        summary = loop.run("cartpole_swingup", out, config, seed=4, progress=False,
+                           resume=resume)
     note(f"finished {sorted(summary)}")
 """)
 
@@ -84,15 +87,22 @@ def _port() -> int:
         return s.getsockname()[1]
 
 
-def test_process_0_runs_the_loop_and_both_learn(tmp_path):
-    out, port = tmp_path / "run", _port()
+def _pair(out: Path, mode: str) -> list[str]:
+    """Both processes of the loop into ``out``; their output, once both succeeded."""
+    port = _port()
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    procs = [subprocess.Popen([sys.executable, "-c", CHILD, str(out), str(port), str(i)],
+    procs = [subprocess.Popen([sys.executable, "-c", CHILD, str(out), str(port), str(i), mode],
                               cwd=ROOT, env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True) for i in range(2)]
     texts = [p.communicate(timeout=300)[0] for p in procs]
     for p, text in zip(procs, texts):
         assert p.returncode == 0, text[-3000:]
+    return texts
+
+
+def test_process_0_runs_the_loop_and_both_learn_and_resume(tmp_path):
+    out = tmp_path / "run"
+    texts = _pair(out, "fresh")
     calls = [(tmp_path / f"calls{i}.log").read_text().splitlines() for i in range(2)]
     # process 0 identified the simulator and deployed; process 1 only learned, with it, twice
     # (the deployed learner and the compared one), and returned no summary of its own
@@ -106,3 +116,10 @@ def test_process_0_runs_the_loop_and_both_learn(tmp_path):
     done = json.loads((out / "progress.json").read_text())["done"]
     assert {"round1/learn", "round1/compare", "round1/deploy"} <= set(done)
     assert "Traceback" not in texts[1] and "WARNING" not in texts[1], texts[1][-2000:]
+
+    # both resume the finished run: every stage read back, nothing learned or identified again
+    _pair(out, "resume")
+    again = [(tmp_path / f"calls{i}.log").read_text().splitlines()[len(c):]
+             for i, c in enumerate(calls)]
+    assert again[1] == ["finished []"] and len(again[0]) == 1, again
+    assert json.loads((out / "summary.json").read_text())["rounds"] == summary["rounds"]
