@@ -6,6 +6,7 @@ Every import of the loops is in ``_loops`` below."""
 from __future__ import annotations
 
 from twinrl.cli.common import UsageError, add_common, check_task
+from twinrl.cli.train import add_distributed, join
 
 MJCF_RUN_HINT = ("the loop is for the registered tasks: identify your MJCF with `twinrl sysid "
                  "--env PATH --from LOG.npz`, learn in it with `twinrl train --env PATH "
@@ -47,8 +48,12 @@ def add_parser(sub) -> None:
                         "ArmLoopConfig), repeatable, e.g. --set demonstrations=16 --set "
                         "imitation.fit_steps=1000 --set camera=default")
     p.add_argument("--resume", action="store_true", help="continue a killed run in --out")
+    add_distributed(p, "Process 0 runs the loop (the real twin, every file); the others follow "
+                       "it and learn with it (the learning stages are data-parallel over every "
+                       "process's devices). Start the same command once per process, with the "
+                       "same --out on a shared file system.")
     add_common(p, "runs/loop")
-    p.set_defaults(func=cmd)
+    p.set_defaults(func=cmd, before_jax=join)
 
 
 def _loops():
@@ -62,7 +67,14 @@ def _loops():
 
 def cmd(args) -> int:
     """Run the loop for ``--env``: the SAM-RL loop on a manipulation task, else the cartpole
-    family's."""
+    family's (on several processes: each process's part, ``twinrl.loop.engine``)."""
+    from twinrl.learn import distributed
+
+    with distributed.guard(f"twinrl {args.command}"):  # a lost peer: one line, exit 1
+        return _run(args)
+
+
+def _run(args) -> int:
     loop, loop_arm = _loops()
     check_task(args.env, MJCF_RUN_HINT)
     if loop_arm.is_arm_task(args.env):

@@ -45,12 +45,24 @@ def add_parser(sub) -> None:
                       help="control steps per episode (default 1000)")
     mjcf.add_argument("--frame-skip", type=int, default=None,
                       help="physics steps per control step (default 1)")
+    add_distributed(p)
+    add_common(p, "runs/train")
+    p.set_defaults(func=cmd, before_jax=join)
+
+
+TRAIN_PROCESSES = ("Start the same command once per process, with the same --out on a shared "
+                   "file system: the batch is split over every process's devices and process 0 "
+                   "alone writes.")
+
+
+def add_distributed(p, what: str = TRAIN_PROCESSES) -> None:
+    """The flags that join several processes (``--coordinator``, ``--num-processes``,
+    ``--process-id``, ``--peer-timeout``; ``join`` reads them), in a group whose description
+    starts with ``what``: ``twinrl train``'s and ``twinrl run``'s."""
     dist = p.add_argument_group(
         "several processes (jax.distributed; docs: Scaling out)",
-        "Start the same command once per process, with the same --out on a shared file system: "
-        "the batch is split over every process's devices and process 0 alone writes. Under "
-        "SLURM (srun, several tasks) or Open MPI (mpirun) the three settings come from the "
-        "environment.")
+        f"{what} Under SLURM (srun, several tasks) or Open MPI (mpirun) the three settings come "
+        f"from the environment.")
     dist.add_argument("--coordinator", metavar="HOST:PORT",
                       help="address of process 0, where the others join (any free port)")
     dist.add_argument("--num-processes", type=int, metavar="N", help="processes in the run")
@@ -59,8 +71,6 @@ def add_parser(sub) -> None:
                       help="seconds to wait for every process to join, and after which a "
                            "process that stopped answering is declared dead, ending the others "
                            "with an error (default 120)")
-    add_common(p, "runs/train")
-    p.set_defaults(func=cmd, before_jax=join)
 
 
 def join(args) -> None:

@@ -43,7 +43,7 @@ import numpy as np
 from brax.training.agents.apg import train as apg
 from brax.training.agents.ppo import train as ppo
 
-from twinrl.learn import tuned
+from twinrl.learn import distributed, tuned
 from twinrl.learn.common import JSONConfig, MetricLog, ProgressFn
 from twinrl.learn.brax_policies import (BraxPolicy, apg_policy, make_apg_nets, make_ppo_nets,
                                         ppo_policy)
@@ -228,16 +228,17 @@ def ppo_train(env, config: PPOConfig = PPOConfig(), rng: jax.Array | int = 0, *,
 
     nets = lambda obs_size, action_size, preprocess_observations_fn: make_ppo_nets(  # noqa: E731
         obs_size, action_size, c)
-    _, params, _ = ppo.train(
-        environment=env, num_timesteps=c.num_timesteps, num_envs=c.num_envs,
-        episode_length=T, batch_size=c.batch_size, num_minibatches=c.num_minibatches,
-        unroll_length=c.unroll_length, num_updates_per_batch=c.num_updates_per_batch,
-        learning_rate=c.learning_rate, entropy_cost=c.entropy_cost, discounting=c.discounting,
-        gae_lambda=c.gae_lambda, clipping_epsilon=c.clipping_epsilon,
-        reward_scaling=c.reward_scaling, max_grad_norm=c.max_grad_norm,
-        normalize_observations=c.normalize_observations, network_factory=nets,
-        num_evals=c.num_evals, num_eval_envs=c.num_eval_envs, deterministic_eval=True,
-        use_pmap_on_reset=False, seed=_seed(rng), progress_fn=progress)
+    with distributed.classic_pmap():  # Brax 0.14.2 needs it on several processes
+        _, params, _ = ppo.train(
+            environment=env, num_timesteps=c.num_timesteps, num_envs=c.num_envs,
+            episode_length=T, batch_size=c.batch_size, num_minibatches=c.num_minibatches,
+            unroll_length=c.unroll_length, num_updates_per_batch=c.num_updates_per_batch,
+            learning_rate=c.learning_rate, entropy_cost=c.entropy_cost, discounting=c.discounting,
+            gae_lambda=c.gae_lambda, clipping_epsilon=c.clipping_epsilon,
+            reward_scaling=c.reward_scaling, max_grad_norm=c.max_grad_norm,
+            normalize_observations=c.normalize_observations, network_factory=nets,
+            num_evals=c.num_evals, num_eval_envs=c.num_eval_envs, deterministic_eval=True,
+            use_pmap_on_reset=False, seed=_seed(rng), progress_fn=progress)
     policy = ppo_policy(int(env.observation_size), int(env.action_size), c)
     return policy, _plain_params(params[0], params[1]), log.as_dict()
 
@@ -247,6 +248,11 @@ def apg_train(env, config: APGConfig = APGConfig(), rng: jax.Array | int = 0, *,
               ) -> tuple[Network, dict[str, Any], dict[str, list[float]]]:
     """Brax APG on ``env``; returns ``(policy, params, metrics)`` as described in the module."""
     _refuse_resume("apg_train", checkpoint_fn, restore)
+    if distributed.is_distributed():
+        raise distributed.DistributedError(
+            "Brax APG cannot run on several processes: brax 0.14.2's apg.train draws episode "
+            "step counters for num_envs environments (scramble_times) where each process holds "
+            "num_envs / processes; run APG on one process")
     c = config
     T = int(c.episode_length or env.episode_length)
     log = MetricLog()
@@ -267,6 +273,7 @@ def apg_train(env, config: APGConfig = APGConfig(), rng: jax.Array | int = 0, *,
         num_eval_envs=c.num_eval_envs, learning_rate=c.learning_rate,
         use_schedule=c.use_schedule, schedule_decay=c.schedule_decay,
         max_gradient_norm=c.max_gradient_norm, normalize_observations=c.normalize_observations,
-        deterministic_eval=True, network_factory=nets, seed=_seed(rng), progress_fn=progress)
+        deterministic_eval=True, network_factory=nets, seed=_seed(rng),
+        progress_fn=progress)
     policy = apg_policy(int(env.observation_size), int(env.action_size), c)
     return policy, _plain_params(params[0], params[1]), log.as_dict()

@@ -158,7 +158,10 @@ def load_policy(path: str | Path) -> tuple[Network, Any, dict[str, Any]]:
     if not (path / "params").exists():
         raise CheckpointError(f"{path}: params/ missing (checkpoint incomplete)")
     template = jax.eval_shape(network.init, jax.random.key(0))
-    params = ocp.StandardCheckpointer().restore(path / "params", template)
+    # on this process alone: one process of several reads a policy without the others (the loop
+    # deploys it from process 0), where orbax's default would wait for every process
+    params = ocp.StandardCheckpointer(**_this_process_only(ocp)).restore(path / "params",
+                                                                         template)
     return network, params, meta
 
 
@@ -274,6 +277,29 @@ class _NoSaveWaits(logging.Filter):
 _NO_SAVE_WAITS = _NoSaveWaits()
 
 
+class _ReaderNotices(logging.Filter):
+    """Drops orbax's notices that a directory is read only ("Given directory is read only",
+    "... is read only, save will be skipped", "... delete will be skipped") for the directories
+    of this process's reading checkpointers: under ``jax.distributed`` every process but the
+    writer opens the training state read only on purpose, and orbax warned about it on each of
+    them. The same notice about any other directory still shows."""
+
+    NOTICES = ("Given directory is read only=%s", "%s is read only, save will be skipped",
+               "%s is read only, delete will be skipped")
+
+    def __init__(self):
+        super().__init__()
+        self.directories: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args if isinstance(record.args, tuple) else ()
+        return not (record.msg in self.NOTICES and len(args) == 1
+                    and str(args[0]) in self.directories)
+
+
+_READER_NOTICES = _ReaderNotices()
+
+
 class TrainStateCheckpointer:
     """Saves a trainer's state + metrics every ``every`` epochs into ``directory``; restores it.
 
@@ -292,6 +318,9 @@ class TrainStateCheckpointer:
         self._ocp = ocp
         self._writer = distributed.is_writer()
         alone = _this_process_only(ocp)
+        if not self._writer:
+            _READER_NOTICES.directories.add(str(self.directory))
+            logging.getLogger("absl").addFilter(_READER_NOTICES)
         if alone and self._writer:  # orbax creates no directory for a subset of processes
             self.directory.mkdir(parents=True, exist_ok=True)
         self._manager = ocp.CheckpointManager(

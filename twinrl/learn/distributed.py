@@ -18,6 +18,7 @@ so the same code runs on one process or on many:
   global key and then sliced is the same batch whatever the process count.
 - ``to_host`` gathers a (sharded) pytree to NumPy on every process: a checkpoint of the whole
   state. ``is_writer``: process 0 alone writes files (checkpoints, logs, reports).
+- ``classic_pmap``: JAX's original ``pmap`` for Brax PPO's multi-process path.
 - Failure is loud: every process ends with one line on stderr and a non-zero status, never a
   hang. A peer that dies is seen at once by the next collective (its TCP connection is closed;
   ``guard`` turns that error into one line, exit status 1) or by the runtime (a missed heartbeat
@@ -36,6 +37,7 @@ import os
 import subprocess
 import sys
 import traceback
+import warnings
 from contextlib import contextmanager
 from typing import Any, Mapping
 
@@ -45,7 +47,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 __all__ = ["DistributedError", "requested", "initialize", "is_distributed", "is_writer",
            "process_rows", "global_batch", "to_host", "barrier", "global_mesh", "guard",
-           "DEFAULT_TIMEOUT_S", "DEFAULT_HEARTBEAT_S"]
+           "classic_pmap", "DEFAULT_TIMEOUT_S", "DEFAULT_HEARTBEAT_S"]
 
 DEFAULT_TIMEOUT_S = 120
 """Seconds ``initialize`` waits for every process to join before it fails."""
@@ -54,7 +56,8 @@ DEFAULT_HEARTBEAT_S = 30
 
 
 class DistributedError(RuntimeError):
-    """The multi-process runtime could not start, or a peer was lost: one line naming why."""
+    """The multi-process runtime could not start, a peer was lost, or what was asked cannot run
+    on several processes: one line naming why."""
 
 
 def requested(environ: Mapping[str, str] | None = None) -> bool:
@@ -270,3 +273,32 @@ that was running, ``ValueError``); any other error is the program's own."""
 def _runtime_failure(e: BaseException) -> bool:
     text = str(e).lower()
     return any(word in text for word in _LOST)
+
+
+@contextmanager
+def classic_pmap():
+    """Under several processes, JAX's original ``pmap`` (``jax_pmap_shmap_merge=False``) for the
+    duration: Brax 0.14.2's PPO needs it. Brax runs its epoch under ``jax.pmap`` over each
+    process's devices, then takes ``jnp.mean`` of the epoch's metrics on the host; JAX 0.9's
+    default ``pmap`` (built on ``shard_map``) returns arrays over every process's devices, and
+    that ``jnp.mean`` copies them onto this process's devices alone, which JAX refuses
+    (``INVALID_ARGUMENT: CopyArrays only supports destination device list of the same size as
+    the array device lists``): PPO on two processes ended in its first epoch. The original
+    ``pmap`` returns each process its own shards, as Brax expects. The setting is deprecated in
+    JAX 0.9 (removed in 0.10, by when Brax must take the new ``pmap``'s arrays); its deprecation
+    warning is silenced here. One process: nothing changes."""
+    if not is_distributed():
+        yield
+        return
+    before = jax.config.jax_pmap_shmap_merge
+
+    def use(value):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            jax.config.update("jax_pmap_shmap_merge", value)
+
+    use(False)
+    try:
+        yield
+    finally:
+        use(before)

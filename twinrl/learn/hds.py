@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twinrl.learn import trajopt
+from twinrl.learn import distributed, trajopt
 from twinrl.learn.common import CheckpointFn, ProgressFn, RestoreFn, compile_key
 from twinrl.learn.networks import Network
 from twinrl.learn.critic import critic_stats
@@ -221,6 +221,8 @@ def train(env, config: HDSConfig = HDSConfig(), rng: jax.Array | int | None = No
             compiled, mesh, state.params, state.opt_state, k_batch, sigma=sigma, scales=scales,
             batch_size=c.batch_size, critic_params=state.critic_params,
             critic_opt_state=state.critic_opt_state)
+        if distributed.is_distributed():  # the energies and figures read every process's windows
+            batch = distributed.to_host(batch)
         energy, energy_prop = _energies(batch, H)
         u = float(jax.random.uniform(k_acc))
         take = energy_prop >= energy or u < math.exp((energy_prop - energy) / temperature)

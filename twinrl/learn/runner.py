@@ -301,8 +301,9 @@ def continue_run(env_name: str, algo: str, out: str | Path, **kwargs) -> dict[st
 
     entry, _, _ = algorithm(algo)
     out = Path(out)
-    if not entry.resumable and out.exists():
+    if not entry.resumable and out.exists() and distributed.is_writer():
         shutil.rmtree(out)
+    distributed.barrier("twinrl-continue-run")  # every process sees what process 0 left
     return train_run(env_name, algo, out, resume=entry.resumable, **kwargs)
 
 

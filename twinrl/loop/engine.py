@@ -8,6 +8,13 @@ then walks the rounds: round 0's stage, then for each round ``r >= 1`` every sta
 given the values earlier stages gave (``Stage.needs`` / ``Stage.gives``) and the round's ``data``
 (every intact real transition so far).
 
+Several processes (``jax.distributed``, ``twinrl run --coordinator ...``): process 0 runs the
+loop as one process does (the real twin, every file); every other process follows it
+(``follow``): it waits for each stage process 0 marks done in ``progress.json`` (a file system
+they share) and reads the stage's values back from its files, and runs the ``shared`` stages --
+the learners, data-parallel over every process's devices -- together with process 0. It opens
+no real twin and writes nothing.
+
 Resume: every stage writes its outputs, then marks itself done in ``progress.json`` (atomically);
 a stage marked done is not run again, its values are read back from its own files
 (``Stage.load``). ``progress.json`` is a record: no stage takes a decision from it. Real episodes
@@ -28,8 +35,12 @@ from twinrl import report
 from twinrl.loop.errors import LoopError
 from twinrl.loop.rundir import RunDir
 
-__all__ = ["LoopError", "Progress", "RunContext", "Stage", "Family", "run", "check_settings",
-           "read_dataset", "episodes_in", "real_steps", "quiet", "seconds_so_far"]
+__all__ = ["LoopError", "Progress", "RunContext", "Stage", "Family", "run", "follow",
+           "check_settings", "read_dataset", "episodes_in", "real_steps", "quiet",
+           "seconds_so_far", "POLL_S"]
+
+POLL_S = 0.5
+"""Seconds between a following process's reads of ``progress.json`` (``follow``)."""
 
 
 class Progress:
@@ -52,6 +63,24 @@ class Progress:
 
     def record(self, r: int) -> dict[str, Any]:
         return self.doc["rounds"].get(f"round{r}", {})
+
+
+class _Followed(Progress):
+    """Process 0's ``progress.json`` as a following process sees it: read again at every
+    ``done``; ``mark`` keeps the record in memory (process 0 alone writes the file)."""
+
+    def done(self, stage: str) -> bool:
+        if self.path.exists():
+            try:
+                self.doc = json.loads(self.path.read_text())
+            except json.JSONDecodeError:  # written atomically; a torn read is retried later
+                return False
+        return stage in self.doc["done"]
+
+    def mark(self, stage: str, **record: Any) -> None:
+        if record:
+            self.doc["rounds"].setdefault(stage.split("/")[0], {}).update(
+                report.to_jsonable(record))
 
 
 @dataclasses.dataclass
@@ -108,6 +137,10 @@ class Stage:
     make: Callable[..., dict[str, Any] | None]
     load: Callable[..., dict[str, Any]] = lambda run, rdir, **_: {}
     enabled: Callable[[Any], bool] = lambda config: True
+    shared: bool = False
+    """Under several processes, run by every process together (a learner that splits its batch
+    over every process's devices and writes from process 0 alone); a stage that is not runs on
+    process 0 alone, and the others read its values back (``follow``)."""
 
     def __call__(self, run: RunContext, r: int, values: dict[str, Any]) -> dict[str, Any]:
         if not self.enabled(run.config):
@@ -159,6 +192,14 @@ def run(family: Family, env_name: str, out: str | Path, config, *, seed: int = 0
     if not isinstance(config, family.config_class):
         raise LoopError(f"the {family.name} loop takes a {family.config_class.__name__}, got "
                         f"{type(config).__name__}")
+    from twinrl.learn import distributed
+
+    if distributed.is_distributed():
+        if not any(stage.shared for stage in family.round):
+            raise LoopError(f"the {family.name} loop runs on one process (none of its stages is "
+                            f"distributed); start it without --coordinator")
+        if not distributed.is_writer():
+            return follow(family, env_name, out, config, seed=seed)
     rd = RunDir(check_settings(family, env_name, Path(out), config, seed, resume))
     ctx = _start(family, rd, env_name, config, seed, progress, perturbation)
     rounds: list[dict[str, Any]] = []
@@ -175,6 +216,40 @@ def run(family: Family, env_name: str, out: str | Path, config, *, seed: int = 0
     finally:
         ctx.close()
     return _finish(family, ctx, rounds, values)
+
+
+def follow(family: Family, env_name: str, out: str | Path, config, *, seed: int = 0,
+           poll_s: float = POLL_S) -> dict[str, Any]:
+    """A process other than process 0 in a loop on several processes (module docstring): wait
+    for each stage process 0 runs alone and read its values back, run the ``shared`` stages with
+    it, then wait for process 0's ``summary.json``; returns ``{}`` (process 0 has the summary).
+    Process 0 checks the settings and writes every file; a process that stops (an error, a
+    kill) ends the others through the runtime (``twinrl.learn.distributed``)."""
+    rd = RunDir(Path(out))
+
+    def written():  # summary.json as it stands (rewritten by a rename: a new inode)
+        st = rd.summary.stat() if rd.summary.exists() else None
+        return st and (st.st_ino, st.st_mtime_ns, st.st_size)
+
+    before = written()
+    ctx = RunContext(env_name, int(seed), rd, config, None, None, None, _Followed(rd.progress),
+                     _Followed(rd.evaluation), quiet, False, None, time.perf_counter())
+
+    def wait(stage: str) -> None:
+        while not ctx.prog.done(stage):
+            time.sleep(poll_s)
+
+    last = "round0/collect"
+    wait(last)
+    for r in range(1, config.rounds + 1):
+        values: dict[str, Any] = {"data": read_dataset(rd.dataset)}
+        for stage in family.round:
+            if stage.enabled(config) and not stage.shared:
+                wait(f"round{r}/{stage.name}")
+            values.update(stage(ctx, r, values))
+    while written() in (None, before):
+        time.sleep(poll_s)  # leaving earlier would hold process 0 at the runtime's shutdown
+    return {}
 
 
 def check_settings(family: Family, env_name: str, out: Path, config, seed: int,
