@@ -93,3 +93,34 @@ def test_no_nonfinite_gradient_float32_vmapped_with_and_without_contacts(name):
     leaves = jax.tree_util.tree_leaves(grads)
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
     assert float(jnp.abs(grads[0]).max()) > 0  # actions matter
+
+
+def test_a_solve_gone_nan_stops_at_once_and_a_finite_one_is_unchanged(sims):
+    # Stock's convergence test compares NaN with the tolerance, never true: a NaN solve ran all
+    # of its iterations (each with its whole line search) and, under vmap, held its batch for as
+    # long. Ours stops it; a finite solve runs exactly as before.
+    from mujoco.mjx._src import solver as stock
+
+    from twinrl.physics import solver
+
+    with jax.enable_x64(True):
+        sim = sims["push"]
+        sc = scenario("push", sim.nq, sim.nv, sim.nu, sim.mj_model.qpos0, horizon=30)
+        # 20 steps in: the box rests on the floor. The last step's forward left a consistent
+        # set (its constraint rows, qacc_smooth): the solve to run again, from qacc_smooth.
+        d = sim.rollout(sim.init(sc.qpos, sc.qvel), jnp.asarray(sc.actions)[:20])[0]
+        d = d.replace(qacc=d.qacc_smooth)
+        m = sim.model
+        n_iter = int(m.opt.iterations)
+
+        def run(d):
+            ctx = solver._converge(m, d, stock.Context.create(m, d), n_iter)
+            return ctx.solver_niter, ctx.qacc
+
+        niter, qacc = jax.jit(run)(d)
+        assert 0 < int(niter) < n_iter and bool(jnp.all(jnp.isfinite(qacc)))
+        assert bool(jnp.any(qacc != d.qacc_smooth))  # the constraints acted
+        bad = d.replace(qacc_smooth=d.qacc_smooth.at[0].set(jnp.nan))
+        bad = bad.replace(qacc=bad.qacc_smooth)
+        niter_bad, _ = jax.jit(run)(bad)
+        assert int(niter_bad) <= 1, int(niter_bad)
