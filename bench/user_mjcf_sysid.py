@@ -15,7 +15,7 @@ not identifiable). The identified MJCF is written to ``OUT/identified.xml``.
 
 Prints the table and writes ``OUT/user_mjcf_sysid.json``.
 
-    python bench/user_mjcf_sysid.py --out B                       # the Panda, ~4 min on 2 cores
+    python bench/user_mjcf_sysid.py --out B                       # the Panda, ~1 min on 2 cores
     python bench/user_mjcf_sysid.py --mjcf my_robot.xml --frame-skip 1 --out B
 """
 
