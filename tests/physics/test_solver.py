@@ -114,7 +114,7 @@ def test_a_solve_gone_nan_stops_at_once_and_a_finite_one_is_unchanged(sims):
         n_iter = int(m.opt.iterations)
 
         def run(d):
-            ctx = solver._converge(m, d, stock.Context.create(m, d), n_iter)
+            ctx = solver.converge(m, d, stock.Context.create(m, d), n_iter)
             return ctx.solver_niter, ctx.qacc
 
         niter, qacc = jax.jit(run)(d)

@@ -32,12 +32,24 @@ def _episode(env, steps=60):
     return np.array(out)
 
 
+def _twins_alive() -> int:
+    """``RealTwin`` objects in this process. A dead ``weakref.proxy`` a library left in the heap
+    raises ReferenceError when asked its type: it is no twin."""
+    n = 0
+    for o in gc.get_objects():
+        try:
+            n += isinstance(o, RealTwin)
+        except ReferenceError:
+            pass
+    return n
+
+
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     secret = tmp_path_factory.mktemp("run") / "eval" / "twin.json"
-    before = sum(isinstance(o, RealTwin) for o in gc.get_objects())
+    before = _twins_alive()
     client = TwinClient(TASK, seed=SEED, secret=secret, width=64, height=48)
-    created_here = sum(isinstance(o, RealTwin) for o in gc.get_objects()) - before
+    created_here = _twins_alive() - before
     traj = _episode(client)
     frames = client.render_images(client.camera, ("rgb", "depth"))
     yield client, secret, traj, frames, created_here

@@ -105,7 +105,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import threading
 import time
 from typing import Any, Callable
 
@@ -118,6 +117,7 @@ from jax.flatten_util import ravel_pytree
 from mujoco.mjx._src import collision_driver as _driver
 from mujoco.mjx._src.types import JointType
 
+from twinrl.physics._threads import Background
 from twinrl.physics.integrator import tangent_qpos
 from twinrl.physics.mjwarn import mujoco_warnings
 from twinrl.physics.params import PhysParams
@@ -284,32 +284,6 @@ def _contact_candidates(data) -> int:
         return -1
 
 
-class _Background:
-    """``fn(*args, **kwargs)`` run in a daemon thread (an XLA compile, which releases Python's
-    lock): ``result()`` waits for it and returns its value or raises its error; ``seconds`` is
-    how long it ran. Daemon: an interrupted check does not wait for a compile to finish."""
-
-    def __init__(self, fn, *args, **kwargs):
-        self.seconds, self._value, self._error = 0.0, None, None
-
-        def run():
-            t0 = time.perf_counter()
-            try:
-                self._value = fn(*args, **kwargs)
-            except BaseException as e:  # handed to the caller of result()
-                self._error = e
-            self.seconds = time.perf_counter() - t0
-
-        self._thread = threading.Thread(target=run, daemon=True)
-        self._thread.start()
-
-    def result(self):
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self._value
-
-
 class _Batched:
     """The batched loss over ``rows`` inputs, in batches of ``batch`` (the last padded, so one
     compile serves all), with a progress line at most every ``PROGRESS_EVERY`` seconds."""
@@ -468,7 +442,7 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     # 16 s at level 0, each run 0.04 -> 0.11 s). XLA compiles without Python's lock, so the
     # gradient compiles in a thread while this one traces the differences' batched rollout,
     # which then compiles in another while the gradient runs ("Cost").
-    grad_job = _Background(lowered.compile,
+    grad_job = Background(lowered.compile,
                            compiler_options={"xla_backend_optimization_level": 0})
 
     labels = _labels(inputs, _dof_names(sim.mj_model))
@@ -503,7 +477,7 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     forward = jax.jit(jax.vmap(lambda x: loss(x)[0])).lower(
         jax.ShapeDtypeStruct((chunk, x0np.size), dtype))
     trace_differences = time.perf_counter() - tf
-    forward_job = _Background(forward.compile)
+    forward_job = Background(forward.compile)
     value_and_grad = grad_job.result()
     t2 = time.perf_counter()
     (_, n_active), g = value_and_grad(x0)

@@ -8,7 +8,7 @@ constraint then fails with "Reverse-mode differentiation does not work for lax.w
 convergence test says done, so the forward result is the stock result bit for bit (tested in
 ``tests/physics/test_solver.py``) and the reverse pass exists. With ``gradient="implicit"`` (the
 default) the iterations are never differentiated, so the forward keeps the stock ``while_loop``
-(``_converge``): under ``vmap`` a scan's no-op ``cond`` becomes a ``select`` that computes every
+(``converge``): under ``vmap`` a scan's no-op ``cond`` becomes a ``select`` that computes every
 iteration, and a user's MJCF with MuJoCo's default 100 iterations paid all 100 every step (a
 float64 gradcheck of a 2-link arm on a box, in the suite: 368 s -> 41 s).
 
@@ -60,7 +60,7 @@ from mujoco.mjx._src.types import DisableBit, SolverType
 from twinrl.physics import collision as _collision
 from twinrl.physics import smooth as _tree
 
-__all__ = ["solve", "forward", "GRADIENTS"]
+__all__ = ["solve", "forward", "converge", "GRADIENTS"]
 
 # How reverse mode goes through the constraint solve (module docstring).
 GRADIENTS = ("implicit", "unrolled")
@@ -123,7 +123,7 @@ def _iterations(m, d, ctx, n_iter: int):
     return ctx
 
 
-def _converge(m, d, ctx, n_iter: int):
+def converge(m, d, ctx, n_iter: int):
     """At most ``n_iter`` stock iterations from ``ctx``, stopping at convergence: the stock
     ``while_loop`` (not reverse-differentiable). The implicit derivative never differentiates the
     iterations, so its forward runs this; under ``vmap`` it stops once every lane has converged,
@@ -177,7 +177,7 @@ def solve(m, d, iterations: int | None = None, gradient: str = "implicit"):
     else:
         def run(_, qacc0):
             ms, ds = jax.lax.stop_gradient((m, d.replace(qacc=qacc0)))
-            return _converge(ms, ds, _stock.Context.create(ms, ds), n_iter).qacc
+            return converge(ms, ds, _stock.Context.create(ms, ds), n_iter).qacc
 
         qacc = jax.lax.custom_root(lambda a: _residual(m, d, a), d.qacc, run, _tangent_solve)
         # forces from the solution, so they carry its derivative too
