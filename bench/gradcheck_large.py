@@ -65,8 +65,11 @@ def check(model: str, flags: list[str], horizon: int, timeout: float) -> dict:
             if time.perf_counter() - t0 > timeout:
                 proc.kill()
                 proc.wait()
+                # where it stood: its stages' seconds and the differences' pace so far
                 return {"model": model, "flags": " ".join(flags), "peak_rss_gb": peak,
-                        "status": f"timeout {timeout:.0f} s"}
+                        "status": f"timeout {timeout:.0f} s",
+                        "progress_lines": [ln.strip() for ln in log.read_text().splitlines()
+                                           if " s] " in ln]}
             time.sleep(1.0)
         stdout, stderr = log.read_text(), err.read_text()
         wall = time.perf_counter() - t0
