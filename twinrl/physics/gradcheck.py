@@ -470,7 +470,6 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     n = chosen.size
     D = jnp.asarray(np.array([d for _, d in dirs]).reshape(len(dirs), x0np.size), dtype)
     k = len(dirs)
-    eye = jax.nn.one_hot(chosen, x0np.size, dtype=dtype)  # the chosen rows of the identity
     rows = 1 + 2 * (n + k)
     chunk = min(rows, batch_size(sim, data0))
     tf = time.perf_counter()
@@ -499,7 +498,8 @@ def gradcheck(sim: Sim, *, horizon: int | None = None, scenario: Scenario | str 
     # the model's valid range
     steps64 = np.concatenate([h * np.maximum(1.0, np.abs(x0np[chosen])), np.full(k, h)])
 
-    along_rows = jnp.concatenate([eye, D])  # each entry's direction: its unit row, a group's
+    # each entry's direction: its row of the identity, then each group's scaling
+    along_rows = jnp.concatenate([jax.nn.one_hot(chosen, x0np.size, dtype=dtype), D])
 
     def evaluate(scale, x=x0, idx=None):
         # the loss at x (row 0) and at x +- each entry's step (entries idx; default all); one
