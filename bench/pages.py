@@ -341,6 +341,46 @@ def learn_headline(doc: dict) -> list[list[str]]:
     return out
 
 
+def sensing_table(doc: dict) -> str:
+    """Per task and twin: each camera mode's real success with its 95 % Wilson interval, and the
+    selected camera against the default one on the same starts (per twin, then pooled)."""
+    cell = lambda x: (f"{100 * x['success']:.0f} % "  # noqa: E731
+                      f"({100 * x['ci95'][0]:.0f}-{100 * x['ci95'][1]:.0f})")
+    diff = lambda x: f"{100 * x['difference']:+.0f} (p {x['sign_test_p']:.2g})"  # noqa: E731
+    per = doc.get("per_twin", [])
+    rows = []
+    for task, seed in dict.fromkeys((x["task"], x["seed"]) for x in per):
+        mine = [x for x in per if x["task"] == task and x["seed"] == seed]
+        by = {x["mode"]: x for x in mine}
+        rows.append([task, str(seed), *(cell(by[m]) if m in by else "–"
+                                        for m in ("selected", "default", "random")),
+                     str(by["selected"]["episodes"]) if "selected" in by else "–",
+                     diff(by["selected - default"]) if "selected - default" in by else "–"])
+    for x in doc.get("paired", []):
+        sel = [t for t in doc.get("table", []) if t["task"] == x["task"]]
+        by = {t["mode"]: f"{100 * t['success']:.0f} %" for t in sel}
+        rows.append([x["task"], "pooled", *(by.get(m, "–") for m in ("selected", "default",
+                                                                      "random")),
+                     str(x["episodes"]), diff(x)])
+    return table(["task", "twin", "selected camera", "default camera", "random camera",
+                  "episodes per mode", "selected - default, points (sign test)"], rows)
+
+
+def sensing_headline(doc: dict) -> list[list[str]]:
+    out = []
+    for x in doc.get("paired", []):
+        sel = next((t for t in doc.get("table", []) if t["task"] == x["task"]
+                    and t["mode"] == "selected"), None)
+        twins = dict.fromkeys(str(r["seed"]) for r in doc.get("per_twin", [])
+                              if r["task"] == x["task"])
+        if sel is not None:
+            out.append([f"SAM-RL loop: {x['task']}, twins {', '.join(twins)}",
+                        f"real success with the chosen camera, {x['episodes']} starts "
+                        f"({100 * x['difference']:+.0f} points over the default camera)",
+                        f"{100 * sel['success']:.0f} %"])
+    return out
+
+
 def gradcheck_large_table(doc: dict) -> str:
     rows = [[r["model"], r.get("flags") or "", r.get("status"), r.get("wall_s"),
              *(r.get("timings", {}).get(k) for k in ("trace", "compile", "gradient",
@@ -515,7 +555,9 @@ BENCHES = [
           "selects, the default camera and a random one, against the state-based oracle and "
           "model-free SAC/TD3 (SAM-RL's Table I comparison), over 50 starts per mode.",
           "python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle "
-          "--episodes 50 --modes selected default --out bench/results"),
+          "--episodes 50 --modes selected default random --out DIR; one DIR per loop run, then "
+          "python bench/sensing.py --merge DIR0/sensing.json DIR1/sensing.json ... --out "
+          "bench/results", sensing_table, sensing_headline),
 ]
 
 

@@ -61,6 +61,7 @@ spread that one twin seed has. Prints the tables and writes ``DIR/sensing.json``
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -164,8 +165,13 @@ def main(argv=None) -> int:
                         " its own environment: --dreamer-python)")
     p.add_argument("--dreamer-python", default=None,
                    help="the Dreamer environment's interpreter (default: $TWINRL_DREAMER_PYTHON)")
+    p.add_argument("--merge", nargs="*", type=Path, default=[],
+                   help="sensing.json files of earlier invocations (e.g. one per loop run with "
+                        "--run): their episodes analysed together into --out; nothing is run")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
+    if args.merge:
+        return merge(args)
     args.run_dirs = {}
     _from_runs(_per_task(args.run, "--run"), args)
     if args.episodes < 1 or not args.seeds:
@@ -519,8 +525,53 @@ def _plot(path: Path, table: list[dict], sim_table: list[dict] = ()) -> None:
     plt.close(fig)
 
 
+def per_twin(rows: list[dict]) -> list[dict]:
+    """Per task, twin seed and mode: the successes over its episodes with their 95 % Wilson
+    interval; and per task and twin, the selected camera against the default one (``paired`` on
+    that twin's episodes alone)."""
+    from twinrl.report import wilson_interval
+
+    out = []
+    for r in rows:
+        ok = [float(x) for x in r["episodes"]["success"]]
+        lo, hi = wilson_interval(int(round(sum(ok))), len(ok))
+        out.append({"task": r["task"], "seed": r["seed"], "mode": r["mode"],
+                    "episodes": len(ok), "success": float(np.mean(ok)), "ci95": [lo, hi]})
+    for task, seed in dict.fromkeys((r["task"], r["seed"]) for r in rows):
+        for x in paired([r for r in rows if r["task"] == task and r["seed"] == seed]):
+            out.append({**x, "seed": seed, "mode": "selected - default"})
+    return out
+
+
+def merge(args) -> int:
+    """``--merge``: the rows of several ``sensing.json`` files as one result (pooled tables, the
+    pooled sign test, per-twin figures); each file's command is kept in ``meta.merged``."""
+    rows, model_free, sim_rows, commands = [], [], [], []
+    for path in args.merge:
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise SystemExit(f"--merge {path}: not a sensing.json ({e})") from None
+        rows += doc.get("rows", [])
+        model_free += doc.get("model_free", [])
+        sim_rows += doc.get("sim_rows", [])
+        commands.append(doc.get("meta", {}).get("command"))
+    result = _result(args, rows, model_free, sim_rows)
+    write_result(args.out / "sensing.json", {"meta": {"merged": commands}, **result}, args)
+    for x in result["per_twin"]:
+        ci = f"{100 * x['ci95'][0]:.0f}-{100 * x['ci95'][1]:.0f} %"
+        what = (f"{100 * x['difference']:+.0f} points, sign test p {x['sign_test_p']:.3g}"
+                if "difference" in x else f"{100 * x['success']:.0f} % ({ci})")
+        print(f"{x['task']} twin {x['seed']} {x['mode']}: {what}")
+    for x in result["paired"]:
+        print(f"{x['task']} pooled selected - default: {100 * x['difference']:+.0f} points over "
+              f"{x['episodes']} episodes, sign test p {x['sign_test_p']:.3g}")
+    print(f"wrote {args.out / 'sensing.json'}")
+    return 0
+
+
 def _result(args, rows, model_free, sim_rows=()) -> dict:
-    return {"table": summarise(rows), "paired": paired(rows),
+    return {"table": summarise(rows), "paired": paired(rows), "per_twin": per_twin(rows),
             "rows": rows, "model_free": model_free, "sim_table": summarise(list(sim_rows)),
             "sim_paired": paired(list(sim_rows)), "sim_rows": list(sim_rows)}
 

@@ -1,0 +1,66 @@
+"""``bench/sensing.py --merge``: one result from several loop runs' ``sensing.json`` (one per twin),
+with the pooled sign test the SAM-RL issue asks for and each twin's own figures."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _fake(path: Path, seed: int, outcomes: dict[str, list[int]]) -> Path:
+    rows = [{"task": "needle_threading", "seed": seed, "mode": mode, "where": "real",
+             "success": sum(ok) / len(ok), "return": 1.0, "real_steps": 10 * len(ok),
+             "camera_steps": 2, "wall_s": 1.0,
+             "episodes": {"seed": 1000 * seed, "success": [float(x) for x in ok]}}
+            for mode, ok in outcomes.items()]
+    path.write_text(json.dumps({"meta": {"command": f"run {seed}"}, "rows": rows,
+                                "model_free": [], "sim_rows": []}))
+    return path
+
+
+def test_merge_pools_the_twins_and_keeps_each(tmp_path):
+    # twin 0: selected solves 8 of 10, default 4 (selected alone on 5 starts, default alone on 1)
+    a = _fake(tmp_path / "a.json", 0, {"selected": [1, 1, 1, 1, 1, 1, 1, 1, 0, 0],
+                                       "default": [1, 1, 1, 0, 0, 0, 0, 0, 1, 0]})
+    # twin 1: both solve the same 5 starts: no discordant pair
+    b = _fake(tmp_path / "b.json", 1, {"selected": [1, 1, 1, 1, 1, 0, 0, 0, 0, 0],
+                                       "default": [1, 1, 1, 1, 1, 0, 0, 0, 0, 0]})
+    out = tmp_path / "merged"
+    r = subprocess.run([sys.executable, "bench/sensing.py", "--merge", str(a), str(b), "--out",
+                        str(out)], cwd=ROOT, capture_output=True, text=True,
+                       env={"PYTHONPATH": f"{ROOT}:{ROOT / 'bench'}", "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((out / "sensing.json").read_text())
+    assert doc["meta"]["merged"] == ["run 0", "run 1"]
+    pooled = doc["paired"][0]
+    assert (pooled["episodes"], pooled["only_a"], pooled["only_b"]) == (20, 5, 1)
+    assert pooled["difference"] == pytest.approx(4 / 20)
+    assert pooled["sign_test_p"] == pytest.approx(0.21875)  # two-sided binomial, 5 of 6
+    twin = {(x["seed"], x["mode"]): x for x in doc["per_twin"]}
+    assert twin[(0, "selected")]["success"] == pytest.approx(0.8)
+    lo, hi = twin[(0, "selected")]["ci95"]
+    assert lo < 0.8 < hi and hi < 1.0  # Wilson: never the point estimate's degenerate interval
+    assert twin[(0, "selected - default")]["difference"] == pytest.approx(0.4)
+    assert twin[(1, "selected - default")]["sign_test_p"] == 1.0
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        import pages
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    text = pages.sensing_table(doc)
+    assert "| needle_threading | 0 | 80 % (49-94) | 40 % (17-69) | – | 10 | +40 (p 0.22) |" in text
+    assert "| needle_threading | pooled | 65 % | 45 % | – | 20 | +20 (p 0.22) |" in text
+
+
+def test_merge_names_a_bad_file(tmp_path):
+    bad = tmp_path / "x.json"
+    bad.write_text("not json")
+    r = subprocess.run([sys.executable, "bench/sensing.py", "--merge", str(bad), "--out",
+                        str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
+                       env={"PYTHONPATH": f"{ROOT}:{ROOT / 'bench'}", "PATH": "/usr/bin:/bin"})
+    assert r.returncode != 0
+    assert f"--merge {bad}: not a sensing.json" in r.stderr
