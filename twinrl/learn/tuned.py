@@ -66,7 +66,7 @@ TUNED: dict[str, dict[str, dict[str, Any]]] = {
         # critic_iterations 4 (16 before): the critic's 64 minibatch steps were 40 % of an epoch
         # (0.168 -> 0.103 s on 2 cores) and the return learned per epoch did not suffer: PPO's
         # final 193.4 reached at epoch never / 148 / 188 (16: 153 / 87 / never). No setting tried
-        # reached it on 3 of 3 seeds (the docs' known limits: horizon 32, 2 critic iterations or
+        # reached it on 3 of 3 seeds (docs/known-limits.md: horizon 32, 2 critic iterations or
         # 2 minibatches, 128 or 256 environments, 100 or 150 epochs, actor_lr 2e-2).
         "cartpole_swingup": {"epochs": 300, "actor_lr": 1e-2, "critic_lr": 1e-3, "horizon": 64,
                              "critic_iterations": 4},
