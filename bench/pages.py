@@ -551,9 +551,13 @@ BENCHES = [
           "default pose. Needs a `twinrl run` output directory.",
           "python bench/q_rank.py --run needle_threading=runs/needle --out bench/results"),
     Bench("sensing", "Active sensing on the real twins",
-          "A loop's image actor deployed on its own hidden real twin with the camera Q "
-          "selects, the default camera and a random one, against the state-based oracle and "
-          "model-free SAC/TD3 (SAM-RL's Table I comparison), over 50 starts per mode.",
+          "A SAM-RL loop's image actor deployed on the loop's own hidden real twin (`RUNk`: "
+          "`twinrl run --env TASK --seed k --out RUNk`, the loop's defaults) with the camera Q "
+          "selects, the default camera and a random one, 50 starts per mode: each mode's "
+          "success with its 95 % (Wilson) interval, and the selected camera against the "
+          "default one on the same starts (exact sign test), per twin and pooled. "
+          "`--state-actor` and `--model-free-steps` add the state-based oracle and model-free "
+          "SAC/TD3 (SAM-RL's Table I comparison).",
           "python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle "
           "--episodes 50 --modes selected default random --out DIR; one DIR per loop run, then "
           "python bench/sensing.py --merge DIR0/sensing.json DIR1/sensing.json ... --out "
@@ -567,6 +571,26 @@ def committed_command(command: str) -> str:
     import re
 
     return re.sub(r"--out(=|\s+)\S+", "--out bench/results", command)
+
+
+def reproduce(meta: dict, command: str) -> list[str]:
+    """The command lines that reproduce a committed result. A result merged from several
+    (``meta.merged``, e.g. ``bench/sensing.py --merge``) gets each merged command first; their
+    scratch paths become ``DIR0``, ``DIR1``, ... (``--out``) and ``RUN0``, ... (``--run``)."""
+    import re
+
+    merged = [c for c in meta.get("merged") or [] if c]
+    main = meta.get("command", command)
+    if not merged:
+        return [committed_command(main)]
+    names: dict[str, str] = {}
+    for c in merged:
+        for flag, stem in (("--out", "DIR"), ("--run", "RUN")):
+            for m in re.finditer(rf"{flag}(?:=|\s+)(?:\w+=)?(\S+)", c):
+                names.setdefault(m.group(1), f"{stem}{sum(v.startswith(stem) for v in names.values())}")
+    pattern = re.compile("|".join(re.escape(k) for k in sorted(names, key=len, reverse=True)))
+    rename = lambda c: pattern.sub(lambda m: names[m.group(0)], c) if names else c  # noqa: E731
+    return [rename(c) for c in merged] + [committed_command(rename(main))]
 
 
 def provenance(meta: dict) -> str:
@@ -606,7 +630,7 @@ def benchmarks_page(docs: dict[str, dict]) -> str:
             continue
         meta = doc.get("meta", {})
         out += [b.render(doc), "", "Reproduce with:", "", "```sh",
-                committed_command(meta.get("command", b.command)), "```", "",
+                *reproduce(meta, b.command), "```", "",
                 f"Measured on {provenance(meta)}.", ""]
     return "\n".join(out).rstrip() + "\n"
 
