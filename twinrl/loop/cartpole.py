@@ -87,8 +87,9 @@ class LoopConfig:
     """Learner in sim (``twinrl.learn.runner.ALGORITHMS``). Brax PPO by default, for measured
     reasons (2 cores, ``cartpole_swingup``, seed 0): with SHAC the loop's sim policy stalled at 88
     (balanced, but the cart drifting 5-16 m out, where the ``centered`` reward term is flat and
-    gives no gradient back), 68 % of the oracle; SHAC alone ends at 135-189 over 3 seeds, HDS at
-    165-198 (``bench/learn.py``, one core, ~160 s against PPO's 108 s). With PPO (3.5 M
+    gives no gradient back), 68 % of the oracle; SHAC alone reaches PPO's final return on 2 of 3
+    seeds (``bench/results/learn.json``; no setting screened reached it on 3, docs' known
+    limits). With PPO (3.5 M
     simulated steps, ~3.5 min beside the oracle's) the default loop reaches 99.5-101.7 % of the
     oracle on cartpole real twins 0-2 (entropy cost 0.03, ``learn.tuned.TUNED``). SHAC with
     horizon 64 learns the identified simulator of twin 0 well (sim return 195.0, real 192.5, where
