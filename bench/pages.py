@@ -350,8 +350,7 @@ def sensing_table(doc: dict) -> str:
     per = doc.get("per_twin", [])
     rows = []
     for task, seed in dict.fromkeys((x["task"], x["seed"]) for x in per):
-        mine = [x for x in per if x["task"] == task and x["seed"] == seed]
-        by = {x["mode"]: x for x in mine}
+        by = {x["mode"]: x for x in per if x["task"] == task and x["seed"] == seed}
         rows.append([task, str(seed), *(cell(by[m]) if m in by else "–"
                                         for m in ("selected", "default", "random")),
                      str(by["selected"]["episodes"]) if "selected" in by else "–",
@@ -587,7 +586,8 @@ def reproduce(meta: dict, command: str) -> list[str]:
     for c in merged:
         for flag, stem in (("--out", "DIR"), ("--run", "RUN")):
             for m in re.finditer(rf"{flag}(?:=|\s+)(?:\w+=)?(\S+)", c):
-                names.setdefault(m.group(1), f"{stem}{sum(v.startswith(stem) for v in names.values())}")
+                count = sum(v.startswith(stem) for v in names.values())
+                names.setdefault(m.group(1), f"{stem}{count}")
     pattern = re.compile("|".join(re.escape(k) for k in sorted(names, key=len, reverse=True)))
     rename = lambda c: pattern.sub(lambda m: names[m.group(0)], c) if names else c  # noqa: E731
     return [rename(c) for c in merged] + [committed_command(rename(main))]
