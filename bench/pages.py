@@ -380,6 +380,23 @@ def sensing_headline(doc: dict) -> list[list[str]]:
     return out
 
 
+def actor_views_table(doc: dict) -> str:
+    """Per loop run: the image actor's success fed the true state, from random views (split by
+    whether the view's fitted pose is right) and from the default view."""
+    cell = lambda x: "–" if x is None else f"{100 * x:.0f} %"  # noqa: E731
+    rows = []
+    for r in doc["rows"]:
+        rnd = r["random"]
+        rows.append([r["task"], str(r["twin_seed"]), str(r["episodes"]),
+                     cell(r.get("truth", {}).get("success")), cell(rnd["success"]),
+                     cell(r["default"]["success"]), cell(rnd.get("p_good")),
+                     f"{cell(rnd.get('s_good'))} / {cell(rnd.get('s_bad'))}",
+                     cell(rnd.get("need_bad"))])
+    return table(["task", "twin", "starts", "true state", "random views", "default view",
+                  "random views whose fit is right", "success from those / the others",
+                  "the others would need (for 90 %)"], rows)
+
+
 def gradcheck_large_table(doc: dict) -> str:
     rows = [[r["model"], r.get("flags") or "", r.get("status"), r.get("wall_s"),
              *(r.get("timings", {}).get(k) for k in ("trace", "compile", "gradient",
@@ -549,6 +566,14 @@ BENCHES = [
           "interval), and how often the ascent through the renderer raises Q above the "
           "default pose. Needs a `twinrl run` output directory.",
           "python bench/q_rank.py --run needle_threading=runs/needle --out bench/results"),
+    Bench("actor_views", "What limits the image actor",
+          "A loop run's image actor in its identified twin on fresh starts: fed the true state "
+          "where it reads a fitted pose (what cloning alone reaches), from a random mount pose "
+          "per episode (the loop's own evaluation) and from the default pose. A random view is "
+          "*right* where 90 % of its steps' fitted poses are within 5 mm of the truth; the last "
+          "column is the success the other views would need for 90 % overall.",
+          "python bench/actor_views.py --run needle_threading=runs/needle --episodes 100 "
+          "--out bench/results", actor_views_table),
     Bench("sensing", "Active sensing on the real twins",
           "A SAM-RL loop's image actor deployed on the loop's own hidden real twin (`RUNk`: "
           "`twinrl run --env TASK --seed k --out RUNk`, the loop's defaults) with the camera Q "
