@@ -342,26 +342,33 @@ def learn_headline(doc: dict) -> list[list[str]]:
 
 
 def sensing_table(doc: dict) -> str:
-    """Per task and twin: each camera mode's real success with its 95 % Wilson interval, and the
+    """Per task and twin: each camera mode's real success with its 95 % Wilson interval, the
+    camera the loop deploys (its Q rank against the gate picks selected or default), and the
     selected camera against the default one on the same starts (per twin, then pooled)."""
     cell = lambda x: (f"{100 * x['success']:.0f} % "  # noqa: E731
                       f"({100 * x['ci95'][0]:.0f}-{100 * x['ci95'][1]:.0f})")
     diff = lambda x: f"{100 * x['difference']:+.0f} (p {x['sign_test_p']:.2g})"  # noqa: E731
     per = doc.get("per_twin", [])
+    gates = {(r["task"], r["seed"]): r for r in doc.get("rows", []) if r["mode"] == "loop"}
     rows = []
     for task, seed in dict.fromkeys((x["task"], x["seed"]) for x in per):
         by = {x["mode"]: x for x in per if x["task"] == task and x["seed"] == seed}
+        g = gates.get((task, seed))
+        loop = (f"{cell(by['loop'])}: {g['deployed_from']} (Q {g['q_rank_corr']:.2f})"
+                if g is not None and "loop" in by else "–")
         rows.append([task, str(seed), *(cell(by[m]) if m in by else "–"
-                                        for m in ("selected", "default", "random")),
+                                        for m in ("selected", "default", "random")), loop,
                      str(by["selected"]["episodes"]) if "selected" in by else "–",
                      diff(by["selected - default"]) if "selected - default" in by else "–"])
     for x in doc.get("paired", []):
         sel = [t for t in doc.get("table", []) if t["task"] == x["task"]]
         by = {t["mode"]: f"{100 * t['success']:.0f} %" for t in sel}
         rows.append([x["task"], "pooled", *(by.get(m, "–") for m in ("selected", "default",
-                                                                      "random")),
+                                                                      "random", "loop")),
                      str(x["episodes"]), diff(x)])
-    return table(["task", "twin", "selected camera", "default camera", "random camera",
+    gate = doc.get("camera_min_rank")
+    head = "the loop's camera" + (f" (Q rank >= {gate:g}: selected)" if gate is not None else "")
+    return table(["task", "twin", "selected camera", "default camera", "random camera", head,
                   "episodes per mode", "selected - default, points (sign test)"], rows)
 
 

@@ -74,6 +74,7 @@ from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' 
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 MODES = ("selected", "default", "random", "oracle")
+"""Camera modes a run measures; ``--merge`` adds ``"loop"`` (``loop_camera_rows``)."""
 
 
 def _per_task(pairs: list[str], flag: str) -> dict[str, Path]:
@@ -116,6 +117,7 @@ def _from_runs(runs: dict[str, Path], args) -> None:
             print(f"[bench] --run {task}: twin seed {summary['seed']} (the run's)", flush=True)
         args.seeds = [int(summary["seed"])]
         args.run_dirs[task] = d  # the task's settings the run ran with (its image size)
+        args.q_ranks[task] = summary["final"].get("q_rank_corr")  # the loop's camera gate
 
 
 def main(argv=None) -> int:
@@ -168,11 +170,15 @@ def main(argv=None) -> int:
     p.add_argument("--merge", nargs="*", type=Path, default=[],
                    help="sensing.json files of earlier invocations (e.g. one per loop run with "
                         "--run): their episodes analysed together into --out; nothing is run")
+    p.add_argument("--camera-min-rank", type=float, default=None,
+                   help="with --merge: the loop's camera gate (ArmLoopConfig.camera_min_rank, "
+                        "default the loop's): a twin's 'loop' row is its selected camera where "
+                        "the run's Q ranks at least this, else its default camera")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
     if args.merge:
         return merge(args)
-    args.run_dirs = {}
+    args.run_dirs, args.q_ranks = {}, {}
     _from_runs(_per_task(args.run, "--run"), args)
     if args.episodes < 1 or not args.seeds:
         raise SystemExit("--episodes must be >= 1 and --seeds must name at least one seed")
@@ -320,7 +326,9 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
                          "success": res["success_rate"], "return": res["mean_return"],
                          "real_steps": res["real_steps"],
                          "camera_steps": res["real_camera_steps"], "wall_s": res["wall_s"],
-                         "episodes": res})
+                         "episodes": res,
+                         **({"q_rank_corr": getattr(args, "q_ranks", {})[name]}
+                            if name in getattr(args, "q_ranks", {}) else {})})
         twin.close()
     return rows
 
@@ -382,7 +390,7 @@ def run_sim(name, actor_dir, q_dir, args, system=None) -> list[dict]:
 def summarise(rows: list[dict]) -> list[dict]:
     out = []
     for task in dict.fromkeys(r["task"] for r in rows):
-        for mode in MODES:
+        for mode in (*MODES, "loop"):
             sel = [r for r in rows if r["task"] == task and r["mode"] == mode]
             if not sel:
                 continue
@@ -501,7 +509,7 @@ def _plot(path: Path, table: list[dict], sim_table: list[dict] = ()) -> None:
     fig, axes = plt.subplots(1, len(panels), figsize=(len(panels) * (2.2 + 2.4 * len(tasks)),
                                                       3.4), squeeze=False, sharey=True)
     for ax, (where, tab) in zip(axes[0], panels):
-        modes = [m for m in MODES if any(t["mode"] == m for t in tab)]
+        modes = [m for m in (*MODES, "loop") if any(t["mode"] == m for t in tab)]
         width = 0.8 / len(modes)
         for j, mode in enumerate(modes):
             xs, ys, es = [], [], []
@@ -552,12 +560,19 @@ def merge(args) -> int:
             doc = json.loads(path.read_text())
         except (OSError, ValueError) as e:
             raise SystemExit(f"--merge {path}: not a sensing.json ({e})") from None
-        rows += doc.get("rows", [])
+        rows += _with_q_rank(doc)
         model_free += doc.get("model_free", [])
         sim_rows += doc.get("sim_rows", [])
         commands.append(doc.get("meta", {}).get("command"))
+    gate = args.camera_min_rank
+    if gate is None:
+        from twinrl.loop.arm_config import ArmLoopConfig
+
+        gate = ArmLoopConfig.camera_min_rank
+    rows += loop_camera_rows(rows, gate)
     result = _result(args, rows, model_free, sim_rows)
-    write_result(args.out / "sensing.json", {"meta": {"merged": commands}, **result}, args)
+    write_result(args.out / "sensing.json", {"meta": {"merged": commands},
+                                             "camera_min_rank": gate, **result}, args)
     for x in result["per_twin"]:
         ci = f"{100 * x['ci95'][0]:.0f}-{100 * x['ci95'][1]:.0f} %"
         what = (f"{100 * x['difference']:+.0f} points, sign test p {x['sign_test_p']:.3g}"
@@ -568,6 +583,46 @@ def merge(args) -> int:
               f"{x['episodes']} episodes, sign test p {x['sign_test_p']:.3g}")
     print(f"wrote {args.out / 'sensing.json'}")
     return 0
+
+
+def _with_q_rank(doc: dict) -> list[dict]:
+    """A sensing.json's rows, each with its loop run's Q rank (``q_rank_corr``): the row's own,
+    else the run's ``summary.json`` if the file was written with ``--run`` and the run is still
+    there."""
+    import ast
+
+    rows = [dict(r) for r in doc.get("rows", [])]
+    try:
+        runs = _per_task(ast.literal_eval(doc["meta"]["settings"]["run"]), "--run")
+    except (KeyError, ValueError, SyntaxError, SystemExit):
+        runs = {}
+    for r in rows:
+        if "q_rank_corr" in r or r["task"] not in runs:
+            continue
+        try:
+            summary = json.loads((runs[r["task"]] / "summary.json").read_text())
+        except (OSError, ValueError):
+            continue
+        if int(summary.get("seed", -1)) == int(r["seed"]):
+            r["q_rank_corr"] = summary["final"].get("q_rank_corr")
+    return rows
+
+
+def loop_camera_rows(rows: list[dict], gate: float) -> list[dict]:
+    """Per task and twin, the camera the loop deploys (mode ``"loop"``): its ``selected`` row
+    where the run's Q ranks at least ``gate`` (``ArmLoopConfig.camera_min_rank``), else its
+    ``default`` row -- the same episodes, relabelled (``deployed_from``). Twins without a Q rank
+    or without both rows get none."""
+    out = []
+    for task, seed in dict.fromkeys((r["task"], r["seed"]) for r in rows):
+        by = {r["mode"]: r for r in rows if r["task"] == task and r["seed"] == seed}
+        q = by.get("selected", {}).get("q_rank_corr")
+        if q is None or "default" not in by or "loop" in by:
+            continue
+        src = "selected" if q >= gate else "default"
+        out.append({**by[src], "mode": "loop", "deployed_from": src, "q_rank_corr": q,
+                    "camera_min_rank": gate})
+    return out
 
 
 def _result(args, rows, model_free, sim_rows=()) -> dict:

@@ -11,10 +11,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _fake(path: Path, seed: int, outcomes: dict[str, list[int]]) -> Path:
+def _fake(path: Path, seed: int, outcomes: dict[str, list[int]], q_rank: float) -> Path:
     rows = [{"task": "needle_threading", "seed": seed, "mode": mode, "where": "real",
              "success": sum(ok) / len(ok), "return": 1.0, "real_steps": 10 * len(ok),
-             "camera_steps": 2, "wall_s": 1.0,
+             "camera_steps": 2, "wall_s": 1.0, "q_rank_corr": q_rank,
              "episodes": {"seed": 1000 * seed, "success": [float(x) for x in ok]}}
             for mode, ok in outcomes.items()]
     path.write_text(json.dumps({"meta": {"command": f"run {seed}"}, "rows": rows,
@@ -25,13 +25,13 @@ def _fake(path: Path, seed: int, outcomes: dict[str, list[int]]) -> Path:
 def test_merge_pools_the_twins_and_keeps_each(tmp_path):
     # twin 0: selected solves 8 of 10, default 4 (selected alone on 5 starts, default alone on 1)
     a = _fake(tmp_path / "a.json", 0, {"selected": [1, 1, 1, 1, 1, 1, 1, 1, 0, 0],
-                                       "default": [1, 1, 1, 0, 0, 0, 0, 0, 1, 0]})
+                                       "default": [1, 1, 1, 0, 0, 0, 0, 0, 1, 0]}, 0.5)
     # twin 1: both solve the same 5 starts: no discordant pair
     b = _fake(tmp_path / "b.json", 1, {"selected": [1, 1, 1, 1, 1, 0, 0, 0, 0, 0],
-                                       "default": [1, 1, 1, 1, 1, 0, 0, 0, 0, 0]})
+                                       "default": [1, 1, 1, 1, 1, 0, 0, 0, 0, 0]}, 0.25)
     out = tmp_path / "merged"
     r = subprocess.run([sys.executable, "bench/sensing.py", "--merge", str(a), str(b), "--out",
-                        str(out)], cwd=ROOT, capture_output=True, text=True,
+                        str(out), "--camera-min-rank", "0.3"], cwd=ROOT, capture_output=True, text=True,
                        env={"PYTHONPATH": f"{ROOT}:{ROOT / 'bench'}", "PATH": "/usr/bin:/bin"})
     assert r.returncode == 0, r.stderr[-2000:]
     doc = json.loads((out / "sensing.json").read_text())
@@ -52,8 +52,18 @@ def test_merge_pools_the_twins_and_keeps_each(tmp_path):
     finally:
         sys.path.remove(str(ROOT / "bench"))
     text = pages.sensing_table(doc)
-    assert "| needle_threading | 0 | 80 % (49-94) | 40 % (17-69) | – | 10 | +40 (p 0.22) |" in text
-    assert "| needle_threading | pooled | 65 % | 45 % | – | 20 | +20 (p 0.22) |" in text
+    # the loop's camera: twin 0's Q (0.5) passes the gate (0.3), twin 1's (0.25) does not
+    assert doc["camera_min_rank"] == 0.3
+    loop = {r["seed"]: r for r in doc["rows"] if r["mode"] == "loop"}
+    assert (loop[0]["deployed_from"], loop[1]["deployed_from"]) == ("selected", "default")
+    assert loop[0]["episodes"]["success"] == [1.0] * 8 + [0.0] * 2
+    assert twin[(0, "loop")]["success"] == pytest.approx(0.8)
+    assert twin[(1, "loop")]["success"] == pytest.approx(0.5)
+    assert "| needle_threading | 0 | 80 % (49-94) | 40 % (17-69) | – | 80 % (49-94): selected " \
+           "(Q 0.50) | 10 | +40 (p 0.22) |" in text
+    assert "| needle_threading | 1 | 50 % (24-76) | 50 % (24-76) | – | 50 % (24-76): default " \
+           "(Q 0.25) | 10 | +0 (p 1) |" in text
+    assert "| needle_threading | pooled | 65 % | 45 % | – | 65 % | 20 | +20 (p 0.22) |" in text
 
 
 def test_merge_names_a_bad_file(tmp_path):
