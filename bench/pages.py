@@ -577,8 +577,9 @@ BENCHES = [
           "A loop run's image actor in its identified twin on fresh starts: fed the true state "
           "where it reads a fitted pose (what cloning alone reaches), from a random mount pose "
           "per episode (the loop's own evaluation) and from the default pose. A random view is "
-          "*right* where 90 % of its steps' fitted poses are within 5 mm of the truth; the last "
-          "column is the success the other views would need for 90 % overall.",
+          "*right* where 90 % of its steps' fitted poses are within 5 mm of the truth (along the "
+          "actor's own episode); the last column is the success the other views would need for "
+          "90 % overall. `RUNk`: `twinrl run --env TASK --seed k --out RUNk`.",
           "python bench/actor_views.py --run needle_threading=runs/needle --episodes 100 "
           "--out bench/results", actor_views_table),
     Bench("sensing", "Active sensing on the real twins",
@@ -607,21 +608,24 @@ def committed_command(command: str) -> str:
 def reproduce(meta: dict, command: str) -> list[str]:
     """The command lines that reproduce a committed result. A result merged from several
     (``meta.merged``, e.g. ``bench/sensing.py --merge``) gets each merged command first; their
-    scratch paths become ``DIR0``, ``DIR1``, ... (``--out``) and ``RUN0``, ... (``--run``)."""
+    scratch paths become ``DIR0``, ``DIR1``, ... (``--out``). A loop run named ``TASK=/abs/path``
+    (``--run``) becomes ``TASK=RUN0``, ``TASK=RUN1``, ... (a ``twinrl run`` output directory)."""
     import re
 
     merged = [c for c in meta.get("merged") or [] if c]
     main = meta.get("command", command)
-    if not merged:
-        return [committed_command(main)]
     names: dict[str, str] = {}
     for c in merged:
-        for flag, stem in (("--out", "DIR"), ("--run", "RUN")):
-            for m in re.finditer(rf"{flag}(?:=|\s+)(?:\w+=)?(\S+)", c):
-                count = sum(v.startswith(stem) for v in names.values())
-                names.setdefault(m.group(1), f"{stem}{count}")
-    pattern = re.compile("|".join(re.escape(k) for k in sorted(names, key=len, reverse=True)))
-    rename = lambda c: pattern.sub(lambda m: names[m.group(0)], c) if names else c  # noqa: E731
+        for m in re.finditer(r"--out(?:=|\s+)(\S+)", c):
+            names.setdefault(m.group(1), f"DIR{sum(v.startswith('DIR') for v in names.values())}")
+    for c in [*merged, main]:
+        for m in re.finditer(r"(?:^|[\s=])\w+=(/\S+)", c):
+            names.setdefault(m.group(1), f"RUN{sum(v.startswith('RUN') for v in names.values())}")
+    if names:
+        pattern = re.compile("|".join(re.escape(k) for k in sorted(names, key=len, reverse=True)))
+        rename = lambda c: pattern.sub(lambda m: names[m.group(0)], c)  # noqa: E731
+    else:
+        rename = lambda c: c  # noqa: E731
     return [rename(c) for c in merged] + [committed_command(rename(main))]
 
 
