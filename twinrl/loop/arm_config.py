@@ -133,13 +133,14 @@ class ArmLoopConfig:
     """``SensingConfig`` overrides of the sensing-aware Q."""
     camera: str = "selected"
     """The deployment's camera: ``"selected"`` (Q's ascent), ``"default"`` or ``"random"``."""
-    camera_min_rank: float = 0.2
+    camera_min_rank: float = 0.35
     """``"selected"`` deploys Q's choice only if Q's rank correlation on its held-out states
     (the sensing stage's ``rank_corr``) reaches this; below it the round deploys the default
-    camera and says so (``deployed_camera``). On 50 real starts per twin: Q at 0.38-0.62 chose
-    as well as the default or better (spatula twin 1 +0, needle +8 .. +18), peg at 0.33 -2;
-    spatula twin 2's Q at -0.12 cost 20 points (76 against 96 %), twin 0's at 0.02 cost 6 (84
-    against 90 %)."""
+    camera and says so (``deployed_camera``). On 50 real starts per twin (``bench/sensing.py
+    --run``), every Q below 0.35 chose worse than the default camera: peg 0.27 -12 points, 0.31
+    -6, 0.33 -2; spatula twin 2's -0.12 -20 (76 against 96 %), twin 0's 0.02 -6; every Q from
+    0.38 chose as well or better: spatula twin 1 +0, needle 0.41 / 0.50 / 0.63 +22 / +16 / +26
+    (twins 1 / 0 / 2). It was 0.2, before the peg's three runs."""
     eval_episodes: int = 10
     """Evaluation-only real episodes (not recorded) of the deployed actor with the default
     camera; 0: none."""
