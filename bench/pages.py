@@ -392,6 +392,22 @@ def sensing_headline(doc: dict) -> list[list[str]]:
     return out
 
 
+def q_rank_table(doc: dict) -> str:
+    """Per loop run: Q's rank correlation per state across poses on fresh states (bootstrap 95 %
+    interval), pooled, the loop's own held-out figure, the retest (the outcome one small camera
+    move away ranking the outcome) and the success at Q's preferred pose against the mean pose."""
+    cell = lambda r, k: "–" if r.get(k) is None else fmt(r[k])  # noqa: E731
+    rows = [[r["task"], str(r["twin_seed"]), f"{r['states']} x {r['cameras']}",
+             f"{r['rank_corr']:.2f} ({r['rank_corr_ci95'][0]:.2f}-{r['rank_corr_ci95'][1]:.2f})",
+             f"{r['rank_corr_pooled']:.2f}", cell(r, "loop_rank_corr"),
+             cell(r, "retest_rank_corr"),
+             f"{100 * r['success_q_choice']:.0f} % / {100 * r['success_mean_pose']:.0f} %"]
+            for r in doc["rows"]]
+    return table(["task", "twin", "states x poses", "rank per state (95 %)", "pooled",
+                  "the loop's (held-out fifth)", "outcome one move away ranks it",
+                  "success: Q's pose / mean pose"], rows)
+
+
 def actor_views_table(doc: dict) -> str:
     """Per loop run: the image actor's success fed the true state, from random views (split by
     whether the view's fitted pose is right) and from the default view."""
@@ -576,8 +592,10 @@ BENCHES = [
           "How well a loop's sensing-aware Q ranks camera poses on fresh states of its "
           "identified twin (Spearman's correlation per state across poses, with a bootstrap "
           "interval), and how often the ascent through the renderer raises Q above the "
-          "default pose. Needs a `twinrl run` output directory.",
-          "python bench/q_rank.py --run needle_threading=runs/needle --out bench/results"),
+          "default pose. Needs a `twinrl run` output directory (`RUNk`: a `twinrl run --env "
+          "TASK --seed S --out RUNk`, S the twin).",
+          "python bench/q_rank.py --run needle_threading=runs/needle --out bench/results",
+          q_rank_table),
     Bench("actor_views", "What limits the image actor",
           "A loop run's image actor in its identified twin on fresh starts: fed the true state "
           "where it reads a fitted pose (what cloning alone reaches), from a random mount pose "
