@@ -3,9 +3,9 @@
 The issue's target for the SAM-RL actor is success from *random* camera poses in the identified
 twin. An actor that acts on the target's pose fitted to the image (``observation="pose"``: peg,
 needle) can only be as right as that fit, and from some poses the fit is wrong (the needle's eye
-seen edge-on, the peg's hole hidden behind the arm). For each ``--run TASK=DIR`` (a finished
-``twinrl run`` directory: its last round's actor and identified twin), ``--episodes`` fresh starts
-(keys from ``--key``, states no stage saw) are run by the actor
+seen edge-on). For each ``--run TASK=DIR`` (a finished ``twinrl run`` directory: its last
+round's actor and identified twin), ``--episodes`` fresh starts (keys from ``--key``, states no
+stage saw) are run by the actor
 
 - ``truth``: fed the true state where it reads a fitted pose (what cloning alone reaches: the
   ceiling of any view);
@@ -41,7 +41,7 @@ import numpy as np
 
 from twinrl.report import print_table, wilson_interval
 from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
-from q_rank import load_run, parse_run  # noqa: E402  (bench/q_rank.py: a run's last round)
+from q_rank import _pct, load_run, parse_run  # noqa: E402  (bench/q_rank.py: a run's last round)
 
 TARGET = 0.9
 """The issue's success target from random views."""
@@ -115,10 +115,6 @@ def evaluate(task: str, run: Path, args) -> dict:
           f"{out['truth']['success'] if pose else float('nan'):.2f} ({out['wall_s']:.0f} s)",
           flush=True)
     return out
-
-
-def _pct(x) -> str:
-    return "-" if x is None else f"{100 * x:.0f} %"
 
 
 def main(argv=None) -> int:
