@@ -74,7 +74,9 @@ from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' 
 
 TASKS = ("peg_insertion", "spatula_flipping", "needle_threading")
 MODES = ("selected", "default", "random", "oracle")
-"""Camera modes a run measures; ``--merge`` adds ``"loop"`` (``loop_camera_rows``)."""
+"""Camera modes a run measures."""
+REPORTED = (*MODES, "loop")
+"""Modes the tables and plot report: ``--merge`` adds ``"loop"`` (``loop_camera_rows``)."""
 
 
 def _per_task(pairs: list[str], flag: str) -> dict[str, Path]:
@@ -306,6 +308,8 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
         print(f"[bench] {name}: no checkpoints given; skipped", flush=True)
         return []
     rows = []
+    q_ranks = getattr(args, "q_ranks", {})  # with --run: the loop's Q rank, its camera gate
+    q_rank = {"q_rank_corr": q_ranks[name]} if name in q_ranks else {}
     for seed in args.seeds:
         hidden = None if secret is None else hidden_perturbation(name, seed, secret)
         twin = RealTwin(name, seed=seed, perturbation=hidden, width=size or 64,
@@ -326,9 +330,7 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
                          "success": res["success_rate"], "return": res["mean_return"],
                          "real_steps": res["real_steps"],
                          "camera_steps": res["real_camera_steps"], "wall_s": res["wall_s"],
-                         "episodes": res,
-                         **({"q_rank_corr": getattr(args, "q_ranks", {})[name]}
-                            if name in getattr(args, "q_ranks", {}) else {})})
+                         "episodes": res, **q_rank})
         twin.close()
     return rows
 
@@ -390,7 +392,7 @@ def run_sim(name, actor_dir, q_dir, args, system=None) -> list[dict]:
 def summarise(rows: list[dict]) -> list[dict]:
     out = []
     for task in dict.fromkeys(r["task"] for r in rows):
-        for mode in (*MODES, "loop"):
+        for mode in REPORTED:
             sel = [r for r in rows if r["task"] == task and r["mode"] == mode]
             if not sel:
                 continue
@@ -509,7 +511,7 @@ def _plot(path: Path, table: list[dict], sim_table: list[dict] = ()) -> None:
     fig, axes = plt.subplots(1, len(panels), figsize=(len(panels) * (2.2 + 2.4 * len(tasks)),
                                                       3.4), squeeze=False, sharey=True)
     for ax, (where, tab) in zip(axes[0], panels):
-        modes = [m for m in (*MODES, "loop") if any(t["mode"] == m for t in tab)]
+        modes = [m for m in REPORTED if any(t["mode"] == m for t in tab)]
         width = 0.8 / len(modes)
         for j, mode in enumerate(modes):
             xs, ys, es = [], [], []
