@@ -343,7 +343,8 @@ def learn_headline(doc: dict) -> list[list[str]]:
 
 def sensing_table(doc: dict) -> str:
     """Per task and twin: each camera mode's real success with its 95 % Wilson interval, the
-    camera the loop deploys (its Q rank against the gate picks selected or default), and the
+    camera the loop deploys (its Q rank against the gate, then where the run checked it, Q's
+    choice against the default in the identified twin, pick selected or default), and the
     selected camera against the default one on the same starts (per twin, then pooled)."""
     cell = lambda x: (f"{100 * x['success']:.0f} % "  # noqa: E731
                       f"({100 * x['ci95'][0]:.0f}-{100 * x['ci95'][1]:.0f})")
@@ -354,8 +355,10 @@ def sensing_table(doc: dict) -> str:
     for task, seed in dict.fromkeys((x["task"], x["seed"]) for x in per):
         by = {x["mode"]: x for x in per if x["task"] == task and x["seed"] == seed}
         g = gates.get((task, seed))
-        loop = (f"{cell(by['loop'])}: {g['deployed_from']} (Q {g['q_rank_corr']:.2f})"
-                if g is not None and "loop" in by else "–")
+        checked = g is not None and g.get("deploy_camera") and \
+            g["q_rank_corr"] >= (doc.get("camera_min_rank") or -1)
+        loop = (f"{cell(by['loop'])}: {g['deployed_from']} (Q {g['q_rank_corr']:.2f}"
+                f"{', twin check' if checked else ''})" if g is not None and "loop" in by else "–")
         rows.append([task, str(seed), *(cell(by[m]) if m in by else "–"
                                         for m in ("selected", "default", "random")), loop,
                      str(by["selected"]["episodes"]) if "selected" in by else "–",
@@ -367,7 +370,9 @@ def sensing_table(doc: dict) -> str:
                                                                       "random", "loop")),
                      str(x["episodes"]), diff(x)])
     gate = doc.get("camera_min_rank")
-    head = "the loop's camera" + (f" (Q rank >= {gate:g}: selected)" if gate is not None else "")
+    head = "the loop's camera" + (f" (selected where Q rank >= {gate:g} and, where checked, "
+                                  f"Q's choice beat the default in the identified twin)"
+                                  if gate is not None else "")
     return table(["task", "twin", "selected camera", "default camera", "random camera", head,
                   "episodes per mode", "selected - default, points (sign test)"], rows)
 

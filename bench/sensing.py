@@ -119,7 +119,7 @@ def _from_runs(runs: dict[str, Path], args) -> None:
             print(f"[bench] --run {task}: twin seed {summary['seed']} (the run's)", flush=True)
         args.seeds = [int(summary["seed"])]
         args.run_dirs[task] = d  # the task's settings the run ran with (its image size)
-        args.q_ranks[task] = summary["final"].get("q_rank_corr")  # the loop's camera gate
+        args.q_ranks[task] = _run_gate(summary, rdir)  # the loop's camera gate
 
 
 def main(argv=None) -> int:
@@ -309,7 +309,7 @@ def run_task(name, actor_dir, q_dir, state_dir, args, system=None, secret=None,
         return []
     rows = []
     q_ranks = getattr(args, "q_ranks", {})  # with --run: the loop's Q rank, its camera gate
-    q_rank = {"q_rank_corr": q_ranks[name]} if name in q_ranks else {}
+    q_rank = q_ranks.get(name, {})
     for seed in args.seeds:
         hidden = None if secret is None else hidden_perturbation(name, seed, secret)
         twin = RealTwin(name, seed=seed, perturbation=hidden, width=size or 64,
@@ -599,29 +599,43 @@ def _with_q_rank(doc: dict) -> list[dict]:
     except (KeyError, ValueError, SyntaxError, SystemExit):
         runs = {}
     for r in rows:
-        if "q_rank_corr" in r or r["task"] not in runs:
+        if r["task"] not in runs:
             continue
         try:
             summary = json.loads((runs[r["task"]] / "summary.json").read_text())
         except (OSError, ValueError):
             continue
         if int(summary.get("seed", -1)) == int(r["seed"]):
-            r["q_rank_corr"] = summary["final"].get("q_rank_corr")
+            rdir = runs[r["task"]] / f"round{summary['final']['round']}"
+            r.update({k: v for k, v in _run_gate(summary, rdir).items() if k not in r})
     return rows
 
 
+def _run_gate(summary: dict, rdir: Path) -> dict:
+    """What a loop run's camera gate read: its Q's held-out rank (``q_rank_corr``) and, where
+    the run has its ``camera_check`` stage's record, the camera it chose (``deploy_camera``)."""
+    out = {"q_rank_corr": summary["final"].get("q_rank_corr")}
+    try:
+        out["deploy_camera"] = json.loads((rdir / "camera_check.json").read_text())["camera"]
+    except (OSError, ValueError, KeyError):
+        pass
+    return out
+
+
 def loop_camera_rows(rows: list[dict], gate: float) -> list[dict]:
-    """Per task and twin, the camera the loop deploys (mode ``"loop"``): its ``selected`` row
-    where the run's Q ranks at least ``gate`` (``ArmLoopConfig.camera_min_rank``), else its
-    ``default`` row -- the same episodes, relabelled (``deployed_from``). Twins without a Q rank
-    or without both rows get none."""
+    """Per task and twin, the camera the loop deploys (mode ``"loop"``): its ``default`` row
+    where the run's Q ranks below ``gate`` (``ArmLoopConfig.camera_min_rank``); else the camera
+    the run's ``camera_check`` stage chose where it recorded one (``deploy_camera``: Q's choice
+    against the default camera in the identified twin), its ``selected`` row where not -- the
+    same episodes, relabelled (``deployed_from``). Twins without a Q rank or without both rows
+    get none."""
     out = []
     for task, seed in dict.fromkeys((r["task"], r["seed"]) for r in rows):
         by = {r["mode"]: r for r in rows if r["task"] == task and r["seed"] == seed}
         q = by.get("selected", {}).get("q_rank_corr")
         if q is None or "default" not in by or "loop" in by:
             continue
-        src = "selected" if q >= gate else "default"
+        src = "default" if q < gate else by["selected"].get("deploy_camera") or "selected"
         out.append({**by[src], "mode": "loop", "deployed_from": src, "q_rank_corr": q,
                     "camera_min_rank": gate})
     return out

@@ -11,10 +11,11 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _fake(path: Path, seed: int, outcomes: dict[str, list[int]], q_rank: float) -> Path:
+def _fake(path: Path, seed: int, outcomes: dict[str, list[int]], q_rank: float,
+          **gate) -> Path:
     rows = [{"task": "needle_threading", "seed": seed, "mode": mode, "where": "real",
              "success": sum(ok) / len(ok), "return": 1.0, "real_steps": 10 * len(ok),
-             "camera_steps": 2, "wall_s": 1.0, "q_rank_corr": q_rank,
+             "camera_steps": 2, "wall_s": 1.0, "q_rank_corr": q_rank, **gate,
              "episodes": {"seed": 1000 * seed, "success": [float(x) for x in ok]}}
             for mode, ok in outcomes.items()]
     path.write_text(json.dumps({"meta": {"command": f"run {seed}"}, "rows": rows,
@@ -64,6 +65,52 @@ def test_merge_pools_the_twins_and_keeps_each(tmp_path):
     assert "| needle_threading | 1 | 50 % (24-76) | 50 % (24-76) | – | 50 % (24-76): default " \
            "(Q 0.25) | 10 | +0 (p 1) |" in text
     assert "| needle_threading | pooled | 65 % | 45 % | – | 65 % | 20 | +20 (p 0.22) |" in text
+
+
+def test_the_loops_camera_is_what_its_check_in_the_identified_twin_chose(tmp_path):
+    """A run whose ``camera_check`` stage kept the default camera deploys the default camera
+    however well its Q ranks; the rank gate still comes first; a run that recorded no check
+    falls back to the rank gate alone. The check is read from the run's own directory."""
+    runs = {}
+    for seed, camera in ((0, "default"), (1, "selected"), (2, None)):
+        d = tmp_path / f"run{seed}"
+        (d / "round1").mkdir(parents=True)
+        (d / "summary.json").write_text(json.dumps(
+            {"env": "needle_threading", "seed": seed,
+             "final": {"round": 1, "q_rank_corr": 0.5 if seed != 1 else 0.1}}))
+        if camera:
+            (d / "round1" / "camera_check.json").write_text(json.dumps({"camera": camera}))
+        runs[seed] = d
+    files = []
+    for seed, d in runs.items():
+        p = _fake(tmp_path / f"s{seed}.json", seed, {"selected": [1, 1, 0, 0],
+                                                     "default": [1, 1, 1, 0]}, 0.0)
+        doc = json.loads(p.read_text())
+        for r in doc["rows"]:
+            del r["q_rank_corr"]  # as --run rows written before the gate was recorded
+        doc["meta"]["settings"] = {"run": repr([f"needle_threading={d}"])}
+        p.write_text(json.dumps(doc))
+        files.append(str(p))
+    out = tmp_path / "merged"
+    r = subprocess.run([sys.executable, "bench/sensing.py", "--merge", *files, "--out", str(out),
+                        "--camera-min-rank", "0.3"], cwd=ROOT, capture_output=True, text=True,
+                       env={"PYTHONPATH": f"{ROOT}:{ROOT / 'bench'}", "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((out / "sensing.json").read_text())
+    loop = {x["seed"]: x for x in doc["rows"] if x["mode"] == "loop"}
+    # twin 0: Q passes the rank gate, the check kept the default; twin 1: the check chose Q's
+    # camera but Q is below the gate; twin 2: no check recorded, the rank gate alone
+    assert [loop[s]["deployed_from"] for s in (0, 1, 2)] == ["default", "default", "selected"]
+    assert loop[0]["episodes"]["success"] == [1.0, 1.0, 1.0, 0.0]
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        import pages
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    text = pages.sensing_table(doc)
+    assert "75 % (30-95): default (Q 0.50, twin check)" in text
+    assert "75 % (30-95): default (Q 0.10) |" in text
+    assert "50 % (15-85): selected (Q 0.50) |" in text
 
 
 def test_merge_names_a_bad_file(tmp_path):

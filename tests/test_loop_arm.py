@@ -329,3 +329,55 @@ def test_a_run_started_before_a_setting_existed_resumes_at_its_default(tmp_path)
     (out / "loop.json").write_text(json.dumps(saved))
     with pytest.raises(LoopError, match="other settings"):
         check_settings("needle_threading", out, config, 0, resume=True)
+
+
+def test_qs_choice_is_deployed_only_where_it_beats_the_default_in_the_identified_twin(
+        tmp_path, monkeypatch):
+    """The ``camera_check`` stage: below the rank gate no check is played; above it Q's choice
+    is deployed only if it succeeds on more of the fresh starts in the identified twin than the
+    default camera (a tie keeps the default); ``camera_check=0`` is the rank gate alone. The
+    decision and its figures land in ``camera_check.json`` (what a resumed run reads back) and
+    the round's record."""
+    from types import SimpleNamespace
+
+    from twinrl.learn.camera_choice import CameraCheck
+    from twinrl.loop import LoopError, arm_stages
+    from twinrl.loop.arm import make_config
+    from twinrl.loop.engine import Progress
+    from twinrl.loop.rundir import RoundDir
+
+    outcome, calls = {}, []
+
+    def fake_check(run, r, rdir, env):  # the identified twin's episodes, as check_choice gives
+        calls.append(r)
+        n = run.config.camera_check
+        sel, dft = (np.array([1.0] * k + [0.0] * (n - k)) for k in outcome["counts"])
+        return CameraCheck(sel, dft, sel, dft, np.zeros((n, 3)))
+    monkeypatch.setattr(arm_stages, "sim_camera_check", fake_check)
+
+    def decide(rank, counts=(0, 0), **settings):
+        outcome["counts"] = counts
+        d = tmp_path / f"run{len(list(tmp_path.iterdir()))}"
+        rdir = RoundDir(d / "round1")
+        rdir.make()
+        said = []
+        run = SimpleNamespace(config=make_config(settings), seed=0, say=said.append,
+                              prog=Progress(d / "progress.json"))
+        cam = arm_stages.check_camera(run, 1, rdir, None, rank)["deploy_camera"]
+        assert arm_stages.load_deploy_camera(run, rdir) == {"deploy_camera": cam}
+        return cam, json.loads(rdir.camera_check.read_text()), run.prog.record(1), said
+
+    cam, doc, rec, said = decide(0.2, (5, 1))
+    assert cam == "default" and doc["reason"] == "rank" and not calls  # no check played
+    assert "below camera_min_rank" in said[0] and rec["sim_selected_success"] is None
+    cam, doc, rec, said = decide(0.5, (15, 12))
+    assert cam == "selected" and calls == [1] and doc["selected_success"] == 0.75
+    assert rec["sim_default_success"] == 0.6 and rec["deploy_camera"] == "selected"
+    assert "15/20" in said[-1] and "12/20" in said[-1]
+    cam, doc, rec, said = decide(0.5, (12, 12))
+    assert cam == "default" and doc["reason"] == "identified twin"
+    assert "does not pay" in said[-1]
+    cam, doc, *_ = decide(0.5, (2, 3), camera_check=0)
+    assert cam == "selected" and len(calls) == 2  # the rank gate alone: no check
+    with pytest.raises(LoopError, match="camera_check must be an integer"):
+        make_config({"camera_check": -1})

@@ -205,3 +205,37 @@ def test_pose_memory_acts_on_the_best_supported_frames_fit(monkeypatch):
                 np.testing.assert_allclose(seen[t], np.asarray(estimate(
                     jnp.asarray(joints[t], jnp.float32), jnp.asarray(fits[k][0]))), atol=1e-6,
                     err_msg=f"{memory}: step {t} should act on frame {k}'s fit")
+
+
+def test_the_camera_check_plays_each_start_with_qs_choice_and_the_default(peg, trained):
+    """``check_choice``: per start, Q's choice is ``select_camera``'s from that start, both
+    columns are the actor's episodes from the same starts (``view_outcomes``), and the choice
+    "pays" only if it succeeds on more of them than the default camera."""
+    from twinrl.learn.camera_choice import CameraCheck, check_choice, select_camera, view_outcomes
+
+    env, actor, actor_params = peg
+    cfg, q, q_params, _, _ = trained
+    keys = jax.random.split(jax.random.PRNGKey(3), 3)
+    seen = []
+    chk = check_choice(env, q, q_params, actor, actor_params, cfg, keys, on_choice=seen.append)
+    assert seen == [0, 1, 2] and chk.coords.shape == (3, 3)
+    k = keys[1]  # compiled and eager ascents agree to float32 rounding, amplified by Adam
+    want = select_camera(env, q, q_params, actor, actor_params, env.reset(k),
+                         jax.random.fold_in(k, 1), cfg).coords
+    np.testing.assert_allclose(chk.coords[1], np.asarray(want), atol=2e-3)
+    assert not np.allclose(chk.coords[0], chk.coords[1], atol=2e-3)  # each start its own
+    default = jnp.tile(jnp.asarray(env.mount.default, jnp.float32), (3, 1))
+    ret, ok = view_outcomes(env, actor, actor_params, keys, default)
+    np.testing.assert_allclose(chk.default_return, np.asarray(ret), rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(chk.default, np.asarray(ok, np.float64))
+    ret, ok = view_outcomes(env, actor, actor_params, keys, jnp.asarray(chk.coords, jnp.float32))
+    np.testing.assert_allclose(chk.selected_return, np.asarray(ret), rtol=1e-5, atol=1e-5)
+    # a different pose gives a different episode: the returns are not the default's copy
+    assert not np.allclose(chk.selected_return, chk.default_return)
+    doc = chk.as_dict()
+    assert doc["episodes"] == 3 and len(doc["coords"]) == 3
+    one = lambda *v: np.asarray(v, np.float64)  # noqa: E731
+    z = np.zeros(2)
+    assert CameraCheck(one(1, 1), one(1, 0), z, z, z).pays
+    assert not CameraCheck(one(1, 0), one(0, 1), z, z, z).pays  # a tie keeps the default
+    assert not CameraCheck(one(0, 0), one(1, 0), z, z, z).pays

@@ -30,7 +30,8 @@ from twinrl.learn.networks import Network
 
 __all__ = ["Selection", "uniform_coords", "observer", "observed_keys", "image_size", "q_value",
            "neighbourhood_offsets", "score_around", "select_camera", "checked_steps",
-           "workspace_grid", "landscape", "view_outcomes", "q_predictions"]
+           "workspace_grid", "landscape", "view_outcomes", "q_predictions", "CameraCheck",
+           "check_choice"]
 
 
 EDGE = float(np.log(0.98 / 0.02))
@@ -224,3 +225,52 @@ def q_predictions(q, q_params, data) -> np.ndarray:
     obs = jax.tree_util.tree_map(flat, data.obs)
     return np.asarray(jax.jit(lambda p, o, a: q_value(q, p, o, a))(
         q_params, obs, flat(data.actions))).reshape(data.targets.shape)
+
+
+class CameraCheck(NamedTuple):
+    """Q's choice against the default camera on the same fresh starts in the (identified) twin
+    (``check_choice``): per start, the success and return with each camera, and Q's poses."""
+
+    selected: np.ndarray
+    default: np.ndarray
+    selected_return: np.ndarray
+    default_return: np.ndarray
+    coords: np.ndarray
+
+    @property
+    def pays(self) -> bool:
+        """Q's choice succeeded on more of the starts than the default camera (a tie keeps the
+        default: moving the camera costs steps, and no start says it helps)."""
+        return int(self.selected.sum()) > int(self.default.sum())
+
+    def as_dict(self) -> dict:
+        return {"episodes": int(len(self.selected)),
+                "selected_success": float(self.selected.mean()),
+                "default_success": float(self.default.mean()),
+                "selected_successes": self.selected.astype(bool).tolist(),
+                "default_successes": self.default.astype(bool).tolist(),
+                "selected_return": float(self.selected_return.mean()),
+                "default_return": float(self.default_return.mean()),
+                "coords": self.coords.tolist(), "pays": self.pays}
+
+
+def check_choice(env, q: Network, q_params, actor: Network, actor_params, config, keys,
+                 on_choice: Callable[[int], None] | None = None) -> CameraCheck:
+    """The image actor's episodes in ``env`` (the identified twin) from ``reset(keys[i])``, once
+    with the pose ``select_camera`` chooses from that start (``config``: the Q's
+    ``SensingConfig``) and once with the mount's default pose -- what the deployment would gain
+    by moving the camera, measured without a real episode. ``on_choice(i)`` is called after
+    each choice (progress)."""
+    choose = jax.jit(lambda k: select_camera(env, q, q_params, actor, actor_params, env.reset(k),
+                                             jax.random.fold_in(k, 1), config).coords)
+    coords = []
+    for i, k in enumerate(keys):
+        coords.append(choose(k))
+        if on_choice is not None:
+            on_choice(i)
+    coords = jnp.stack(coords)
+    run = jax.jit(lambda k, c: view_outcomes(env, actor, actor_params, k, c))
+    default = jnp.tile(jnp.asarray(env.mount.default, jnp.float32), (len(keys), 1))
+    r_sel, ok_sel = (np.asarray(x, np.float64) for x in run(keys, coords))
+    r_def, ok_def = (np.asarray(x, np.float64) for x in run(keys, default))
+    return CameraCheck(ok_sel, ok_def, r_sel, r_def, np.asarray(coords, np.float64))

@@ -96,9 +96,13 @@ ARM_ROUND = (
     Stage("imitation", needs=("env",), gives=(), make=stages.imitate),
     Stage("sensing", needs=("env",), gives=("q_rank",), make=stages.sense,
           load=stages.load_q_rank, enabled=lambda c: c.camera == "selected"),
+    Stage("camera_check", needs=("env", "q_rank"), gives=("deploy_camera",),
+          make=stages.check_camera, load=stages.load_deploy_camera,
+          enabled=lambda c: c.camera == "selected"),
     Stage("residual", needs=("env", "system", "data"), gives=("residual_accepted",),
           make=stages.train_residual, load=stages.load_residual, enabled=lambda c: c.residual),
-    Stage("deploy", needs=("env", "q_rank", "residual_accepted"), gives=(), make=stages.deploy),
+    Stage("deploy", needs=("env", "deploy_camera", "residual_accepted"), gives=(),
+          make=stages.deploy),
 )
 """The stages of every round ``r >= 1``, in order."""
 
@@ -133,7 +137,7 @@ RECORD_KEYS = dict.fromkeys(
     ("real_steps", "real_success", "real_successes", "real_return", "camera_steps",
      "chosen_coords", "plan_success", "sim_success", "q_rank_corr", "q_rank_corr_pooled",
      "latency", "residual_accepted", "hybrid_rmse", "hybrid_sim_rmse", "deployed_camera",
-     "seconds"))
+     "sim_selected_success", "sim_default_success", "seconds"))
 """A round's row of the summary (from ``progress.json``; evaluation's merged in after)."""
 
 
@@ -182,7 +186,7 @@ def final_video(run: RunContext, values: dict) -> Path:
     n = run.twin.width
     twin = FilmedTwin(TwinClient(run.env_name, seed=run.seed, secret=run.secret,
                                  perturbation=run.perturbation, width=n, height=n))
-    camera = deployed_camera(run.config, values["q_rank"])
+    camera = values["deploy_camera"] or run.config.camera
     try:
         res = dep.run(twin, DeployConfig(camera=camera, episodes=1), seed=90_000 + run.seed)
     finally:

@@ -222,6 +222,7 @@ def _stage_rows(rec: dict, cfg: dict) -> list[list[Any]]:
              f"{report.pct(rec['plan_success'])} of the starts solved", sec.get("plan")],
             ["imitation (image actor)", sim, sec.get("imitation")],
             ["sensing (Q)", q, sec.get("sensing")],
+            ["camera check (identified twin)", _check_text(rec, cfg), sec.get("camera_check")],
             ["residual", residual, sec.get("residual")],
             ["deploy (real)", deploy, sec.get("deploy")],
             ["evaluation (real, unrecorded)",
@@ -243,17 +244,30 @@ def _verdict(rec: dict, cfg: dict, episodes: int | None) -> str:
     v += "."
     if cfg.get("camera") == "selected" and cam == "default":
         rank = rec.get("q_rank_corr")
-        v += (f" Q's held-out rank correlation ({'—' if rank is None else f'{rank:.2f}'}) was "
-              f"below camera_min_rank {cfg.get('camera_min_rank')}: the default camera was "
-              f"deployed instead of Q's choice.")
+        if rec.get("sim_selected_success") is not None:
+            v += (f" In the identified twin Q's choice did no better than the default camera "
+                  f"({_check_text(rec, cfg)}): the default camera was deployed instead.")
+        else:
+            v += (f" Q's held-out rank correlation ({'—' if rank is None else f'{rank:.2f}'}) "
+                  f"was below camera_min_rank {cfg.get('camera_min_rank')}: the default camera "
+                  f"was deployed instead of Q's choice.")
     return v
+
+
+def _check_text(rec: dict, cfg: dict) -> str | None:
+    """The camera check's figures (``camera_check.json``'s, as the round's record keeps them)."""
+    sel, dft = rec.get("sim_selected_success"), rec.get("sim_default_success")
+    if sel is None or dft is None:
+        return None
+    return (f"Q's choice {report.pct(sel)} against the default camera's {report.pct(dft)} on "
+            f"{cfg.get('camera_check')} fresh starts")
 
 
 def _settings(summary: dict) -> list[list[Any]]:
     cfg = summary.get("config") or {}
     im = cfg.get("imitation") or {}
     keys = ("rounds", "episodes_per_round", "calibrate", "grasp", "sysid", "demonstrations",
-            "camera", "camera_min_rank", "residual", "eval_episodes", "image_size")
+            "camera", "camera_min_rank", "camera_check", "residual", "eval_episodes", "image_size")
     rows = [[k, json.dumps(cfg.get(k))] for k in keys if k in cfg]
     rows.append(["imitation", json.dumps(im)])
     rows.append(["sensing", json.dumps(cfg.get("sensing") or {})])

@@ -22,7 +22,8 @@ from twinrl.loop.shared import EpisodeLog, collect_round0
 __all__ = ["collect", "record_round0", "round0_poses", "calibrate", "load_camera",
            "identify_system", "load_system", "nominal_episodes", "sysid_config",
            "plan", "imitate", "sense", "load_q_rank", "train_residual", "load_residual",
-           "deployer", "deployed_camera", "deploy"]
+           "deployer", "deployed_camera", "check_camera", "sim_camera_check", "load_deploy_camera",
+           "deploy"]
 
 
 # ------------------------------------------------------------------------------ round 0
@@ -347,7 +348,66 @@ def deployed_camera(config, q_rank: float | None) -> str:
     return "selected" if ok else "default"
 
 
-def deploy(run: RunContext, r: int, rdir: RoundDir, env, q_rank,
+def check_camera(run: RunContext, r: int, rdir: RoundDir, env, q_rank) -> dict[str, Any]:
+    """The deployment's camera -> ``camera_check.json``: Q's choice where Q's held-out rank
+    reaches ``camera_min_rank`` (``deployed_camera``) and, on ``camera_check`` fresh starts in the
+    identified twin, the actor succeeds more often with Q's choice than with the default camera
+    (``check_choice``); else the default camera. Gives ``deploy_camera``."""
+    config, t0 = run.config, time.perf_counter()
+    doc: dict[str, Any] = {"q_rank": q_rank, "camera_min_rank": config.camera_min_rank,
+                           "camera_check": config.camera_check}
+    camera = deployed_camera(config, q_rank)
+    if camera != "selected":
+        rank = "not scored" if q_rank is None else f"{q_rank:.2f}"
+        run.say(f"  [yellow]deploying the default camera[/]: Q's rank correlation on its "
+                f"held-out states ({rank}) is below camera_min_rank {config.camera_min_rank:g}")
+        doc.update(camera=camera, reason="rank")
+    elif config.camera_check:
+        chk = sim_camera_check(run, r, rdir, env)
+        camera = "selected" if chk.pays else "default"
+        doc.update(chk.as_dict(), camera=camera, reason="identified twin")
+        n = config.camera_check
+        verdict = ("deploying Q's choice" if chk.pays else
+                   "[yellow]deploying the default camera[/]: Q's choice does not pay there")
+        run.say(f"  in the identified twin, Q's camera succeeds on {int(chk.selected.sum())}/{n} "
+                f"starts, the default camera on {int(chk.default.sum())}/{n}: {verdict}")
+    else:
+        doc.update(camera=camera, reason="rank")
+    report.write_json(rdir.camera_check, doc)
+    run.prog.mark(f"round{r}/camera_check", deploy_camera=camera,
+                  sim_selected_success=doc.get("selected_success"),
+                  sim_default_success=doc.get("default_success"),
+                  seconds=seconds_so_far(run.prog, r, camera_check=time.perf_counter() - t0))
+    return {"deploy_camera": camera}
+
+
+def sim_camera_check(run: RunContext, r: int, rdir: RoundDir, env):
+    """``check_choice`` of the round's actor and Q on ``camera_check`` fresh starts of ``env``
+    (keys of their own: no start the actor or Q trained on), with a line every few choices."""
+    import jax
+
+    from twinrl.learn.camera_choice import check_choice
+
+    dep = deployer(run.config, env, rdir, False)
+    n = run.config.camera_check
+    keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(run.seed + r), 0xCA3), n)
+    run.say(f"  checking Q's camera choice against the default camera on {n} starts in the "
+            f"identified twin ...")
+    t0, every = time.perf_counter(), max(1, n // 4)
+
+    def tick(i):
+        if (i + 1) % every == 0 and i + 1 < n:
+            run.say(f"    {i + 1}/{n} choices ({time.perf_counter() - t0:.0f} s)")
+    return check_choice(env, dep.q, dep.q_params, dep.actor, dep.actor_params, dep.sensing, keys,
+                        on_choice=tick)
+
+
+def load_deploy_camera(run: RunContext, rdir: RoundDir, **_) -> dict[str, Any]:
+    """The camera ``check_camera`` chose, from ``camera_check.json``."""
+    return {"deploy_camera": json.loads(rdir.camera_check.read_text())["camera"]}
+
+
+def deploy(run: RunContext, r: int, rdir: RoundDir, env, deploy_camera,
            residual_accepted) -> None:
     """``K`` real episodes of the image actor with the chosen camera, recorded as they happen
     (a resumed deployment starts at its first unrecorded episode: episode ``i`` resets with
@@ -360,11 +420,7 @@ def deploy(run: RunContext, r: int, rdir: RoundDir, env, q_rank,
     dep = deployer(config, env, rdir, residual_accepted)
     log = EpisodeLog(run, r, "deploy_partial")
     rows, have = log.rows, len(log)
-    camera = deployed_camera(config, q_rank)
-    if camera != config.camera:
-        rank = "not scored" if q_rank is None else f"{q_rank:.2f}"
-        run.say(f"  [yellow]deploying the default camera[/]: Q's rank correlation on its "
-                f"held-out states ({rank}) is below camera_min_rank {config.camera_min_rank:g}")
+    camera = deploy_camera or config.camera  # None: the check stage is off (not "selected")
     run.say(f"  deploying on the real twin ({K - have} episodes, camera {camera}) ...")
     cfg = DeployConfig(camera=camera, episodes=K)
 

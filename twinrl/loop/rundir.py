@@ -143,6 +143,12 @@ class RoundDir:
         """The Q's training summary (its held-out rank correlation: ``final.rank_corr``)."""
         return self.q / "summary.json"
 
+    @property
+    def camera_check(self) -> Path:
+        """The deployment's camera and why: Q's rank against ``camera_min_rank``, and Q's choice
+        against the default camera in the identified twin (``ArmLoopConfig.camera_check``)."""
+        return self.path / "camera_check.json"
+
 
 class RunDir:
     """A ``twinrl run`` output directory ``OUT`` (see the module docstring for its layout)."""
