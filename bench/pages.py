@@ -387,7 +387,7 @@ def sensing_headline(doc: dict) -> list[list[str]]:
         twins = list(dict.fromkeys(str(r["seed"]) for r in doc.get("per_twin", [])
                                    if r["task"] == x["task"]))
         if mode in by:
-            what = ("the loop's camera (Q's choice where it passes the gate)" if mode == "loop"
+            what = ("the loop's camera (Q's choice where it passes the loop's checks)" if mode == "loop"
                     else "the chosen camera")
             out.append([f"SAM-RL loop: {x['task']}, twin{'s' if len(twins) > 1 else ''} "
                         f"{', '.join(twins)}",
@@ -618,7 +618,10 @@ BENCHES = [
           "success with its 95 % (Wilson) interval, and the selected camera against the "
           "default one on the same starts (exact sign test), per twin and pooled. The loop's "
           "camera is the one `twinrl run` deploys now: Q's choice where Q's held-out rank "
-          "reaches the loop's `camera_min_rank`, else the default camera (the same episodes). "
+          "reaches the loop's `camera_min_rank` and, on 20 fresh starts in the identified twin, "
+          "Q's choice succeeds more often than the default camera (the run's `camera_check` "
+          "stage; runs from before it gain it with `twinrl run --resume`), else the default "
+          "camera (the same episodes). "
           "`--state-actor` and `--model-free-steps` add the state-based oracle and model-free "
           "SAC/TD3 (SAM-RL's Table I comparison).",
           "python bench/sensing.py --tasks needle_threading --run needle_threading=runs/needle "

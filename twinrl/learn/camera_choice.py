@@ -265,7 +265,7 @@ def check_choice(env, q: Network, q_params, actor: Network, actor_params, config
                                              jax.random.fold_in(k, 1), config).coords)
     coords = []
     for i, k in enumerate(keys):
-        coords.append(choose(k))
+        coords.append(choose(k).block_until_ready())  # a progress line means a choice made
         if on_choice is not None:
             on_choice(i)
     coords = jnp.stack(coords)
