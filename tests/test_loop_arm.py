@@ -326,9 +326,16 @@ def test_a_run_started_before_a_setting_existed_resumes_at_its_default(tmp_path)
         check_settings("needle_threading", out, make_config({"image_size": 128}), 0,
                        resume=True)
     saved["config"]["rounds"] = 3
+    saved["config"]["imitation"] = {**saved["config"]["imitation"], "views": 4}
     (out / "loop.json").write_text(json.dumps(saved))
-    with pytest.raises(LoopError, match="other settings"):
+    # the error names the --set arguments that resume it as it ran (a default that changed)
+    with pytest.raises(LoopError, match=r"other settings \(pass --set imitation.views=4 --set "
+                                        r"rounds=3\)"):
         check_settings("needle_threading", out, config, 0, resume=True)
+    fixed = make_config({"rounds": 3, "imitation.views": 4})
+    assert check_settings("needle_threading", out, fixed, 0, resume=True) == out
+    with pytest.raises(LoopError, match="seed 0, not 1"):
+        check_settings("needle_threading", out, fixed, 1, resume=True)
 
 
 def test_qs_choice_is_deployed_only_where_it_beats_the_default_in_the_identified_twin(

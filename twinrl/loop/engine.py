@@ -271,9 +271,11 @@ def check_settings(family: Family, env_name: str, out: Path, config, seed: int,
         if not resume:
             raise LoopError(f"{out} already holds a loop run; pass --resume to continue it or "
                             f"choose a new --out")
-        if _with_defaults(previous, config) != report.to_jsonable(settings):
+        was = _with_defaults(previous, config)
+        if was != report.to_jsonable(settings):
             raise LoopError(f"--resume: {rd.settings} was started with other settings "
-                            f"({previous}); resume with the same ones")
+                            f"({_differences(was, report.to_jsonable(settings))}); resume with "
+                            f"the same ones")
         # the dataset is made after the twin's server has written its secret: data without a
         # secret came from a twin that cannot be rebuilt (a new salt would be another twin)
         if rd.dataset.exists() and not rd.secret.exists():
@@ -282,6 +284,24 @@ def check_settings(family: Family, env_name: str, out: Path, config, seed: int,
     out.mkdir(parents=True, exist_ok=True)
     report.write_json(rd.settings, settings)
     return out
+
+
+def _differences(was: dict, now: dict) -> str:
+    """What a resume would change, as the ``--set`` arguments that keep the run's settings (a
+    default changed since the run started is the usual case), or the task and seed it ran."""
+    out = [f"{k} {was.get(k)!r}, not {now.get(k)!r}" for k in ("env", "seed")
+           if was.get(k) != now.get(k)]
+    a, b = was.get("config") or {}, now.get("config") or {}
+    keep = []
+    for k in sorted(k for k in a if a[k] != b.get(k)):
+        if isinstance(a[k], dict) and isinstance(b.get(k), dict):  # --set FIELD.SUB=VALUE
+            keep += [f"{k}.{j}={json.dumps(v)}" for j, v in sorted(a[k].items())
+                     if b[k].get(j) != v]
+        else:
+            keep.append(f"{k}={json.dumps(a[k])}")
+    if keep:
+        out.append("pass --set " + " --set ".join(keep))
+    return "; ".join(out) or "loop.json differs"
 
 
 def _with_defaults(previous: dict, config) -> dict:
