@@ -1,5 +1,7 @@
 """Imitation (behaviour cloning + DAgger relabelled by trajopt) on a short pendulum swing-up."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -73,6 +75,60 @@ def test_dagger_actor_beats_random_and_relabels_what_it_visits(pendulum_demos, m
     for a, b in zip(jax.tree_util.tree_leaves(seen[1][1]), jax.tree_util.tree_leaves(fitted[1])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert max(m["return"]) >= float(np.mean(rand)) + margin, (m, float(np.mean(rand)))
+
+
+def test_restarts_clone_from_other_keys_and_the_best_on_the_eval_starts_goes_on(
+        pendulum_demos, monkeypatch):
+    """``restarts``: each cloning from its own keys, scored on the same eval starts; the best
+    (success, then return) is the actor returned, and restart 0 is the single cloning's."""
+    env, demos, _ = pendulum_demos
+    cfg = imitation.ImitationConfig(hidden=(32,), fit_steps=150, batch_size=64, dagger_rounds=0,
+                                    eval_episodes=8, restarts=3)
+    fitted = []
+
+    def recording_fit(*a, **kw):
+        fit = make_fit(*a, **kw)
+
+        def recorded(*args):
+            out = fit(*args)
+            fitted.append(out[0])
+            return out
+        return recorded
+
+    make_fit = imitation.make_minibatch_fit
+    monkeypatch.setattr(imitation, "make_minibatch_fit", recording_fit)
+    _, params, m = imitation.train(env, cfg, 0, demos=demos)
+    assert len(fitted) == 3
+    # each restart's actor on the eval starts train scores them on (its key's third split)
+    k_eval = jax.random.split(jax.random.PRNGKey(0), 4)[2]
+    observe, _ = imitation.make_observer(env, cfg)
+
+    def score(p):
+        ep = imitation.actor_episodes(env, observe, lambda o: net.apply(p, o), cfg, k_eval,
+                                      cfg.eval_episodes)
+        return float(np.mean(ep.success)), float(np.mean(ep.rewards.sum(1)))
+    net = imitation.make_network(*_spec(env, cfg))
+    scores = [score(p) for p in fitted]
+    assert len(set(r for _, r in scores)) == 3  # three different clonings, not one thrice
+    best = max(range(3), key=lambda i: (*scores[i], -i))
+    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(fitted[best])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert m["success"][0] == pytest.approx(scores[best][0])
+    assert m["return"][0] == pytest.approx(scores[best][1], rel=1e-5)
+    assert m["clone_success_worst"][0] == pytest.approx(min(s for s, _ in scores))
+    _, one, _ = imitation.train(env, dataclasses.replace(cfg, restarts=1), 0, demos=demos)
+    for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(fitted[0])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="restarts"):
+        imitation.ImitationConfig(restarts=0)
+
+
+def _spec(env, cfg):
+    """The actor network ``train`` builds for ``cfg`` on ``env`` (its spec, action size, config)."""
+    _, spec = imitation.make_observer(env, cfg)
+    return spec, env.action_size, imitation.NetworkConfig(
+        hidden=tuple(cfg.hidden), activation="elu", output="tanh", image_head=cfg.image_head,
+        conv_strides=tuple(cfg.conv_strides))
 
 
 def test_a_plan_is_judged_where_its_episode_ends(pendulum_demos):
