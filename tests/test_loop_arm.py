@@ -258,6 +258,9 @@ def test_the_spatula_stage_runs_dagger_unless_told_otherwise():
     assert (s["dagger_rounds"], s["observation"], "solved_labels" in s) == (0, "pose", False)
     s = imitation_settings(make_config({"imitation.dagger_rounds": 1}), spatula)
     assert s["dagger_rounds"] == 1 and s["solved_labels"] and s["views"] == 8
+    # three clonings on every task unless told otherwise
+    assert s["restarts"] == 3 and imitation_settings(make_config(), needle)["restarts"] == 3
+    assert imitation_settings(make_config({"imitation.restarts": 1}), needle)["restarts"] == 1
 
 
 def test_resuming_a_run_recorded_with_other_images_is_one_line(tmp_path):
