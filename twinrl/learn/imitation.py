@@ -234,16 +234,17 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
     for r in range(int(c.dagger_rounds) + 1):
         key, k_fit, k_visit = jax.random.split(key, 3)
         if r == 0:  # cloning, from each restart's keys; the best on the eval starts goes on
-            tried = []
+            best, scores = None, []  # only the best's data set is kept (images are large)
             for i in range(int(c.restarts)):
                 ks = (k_init, k_demo, k_fit) if i == 0 else jax.random.split(
                     jax.random.fold_in(k_init, i), 3)
-                data, params, opt, losses = clone(*ks)
-                ret, ok = evaluate(params, k_eval)
-                tried.append((float(ok), float(ret), -i, data, params, opt, losses))
-            best = max(tried, key=lambda x: x[:3])  # the first restart on a tie
-            (obs, acts, n, weights), params, opt, losses = best[3:]
-            ret, ok = best[1], best[0]
+                tried = clone(*ks)
+                ret, ok = evaluate(tried[1], k_eval)
+                scores.append((float(ok), float(ret), -i))
+                if best is None or scores[-1] > max(scores[:-1]):  # the first on a tie
+                    best = tried
+            (obs, acts, n, weights), params, opt, losses = best
+            ok, ret = max(scores)[:2]
         else:
             params, opt, losses = fit(params, opt, obs, acts, n, k_fit, weights)
             ret, ok = evaluate(params, k_eval)  # the same fresh states every round
@@ -257,7 +258,7 @@ def train(env, config: ImitationConfig = ImitationConfig(), rng: jax.Array | int
             acts, n, added = put(acts, labels), n + per_round, per_round
         row = log.record(epoch=r, pairs=n - added, loss=loss, success=ok, **{"return": ret},
                          labels=added, labels_solved=solved,
-                         clone_success_worst=min(x[0] for x in tried) if r == 0 else float("nan"))
+                         clone_success_worst=min(x[0] for x in scores) if r == 0 else float("nan"))
         rounds.append((float(ok), float(ret), r, params))
         if round_fn is not None:
             round_fn(r, params)
