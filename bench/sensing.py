@@ -562,7 +562,7 @@ def merge(args) -> int:
             doc = json.loads(path.read_text())
         except (OSError, ValueError) as e:
             raise SystemExit(f"--merge {path}: not a sensing.json ({e})") from None
-        rows += _with_q_rank(doc)
+        rows += _with_run_gate(doc)
         model_free += doc.get("model_free", [])
         sim_rows += doc.get("sim_rows", [])
         commands.append(doc.get("meta", {}).get("command"))
@@ -587,10 +587,10 @@ def merge(args) -> int:
     return 0
 
 
-def _with_q_rank(doc: dict) -> list[dict]:
-    """A sensing.json's rows, each with its loop run's Q rank (``q_rank_corr``): the row's own,
-    else the run's ``summary.json`` if the file was written with ``--run`` and the run is still
-    there."""
+def _with_run_gate(doc: dict) -> list[dict]:
+    """A sensing.json's rows, each with what its loop run's camera gate read (``_run_gate``: Q's
+    rank, the camera check's choice): the row's own, else the run's if the file was written
+    with ``--run`` and the run is still there."""
     import ast
 
     rows = [dict(r) for r in doc.get("rows", [])]
