@@ -171,7 +171,8 @@ def main(argv=None) -> int:
                    help="the Dreamer environment's interpreter (default: $TWINRL_DREAMER_PYTHON)")
     p.add_argument("--merge", nargs="*", type=Path, default=[],
                    help="sensing.json files of earlier invocations (e.g. one per loop run with "
-                        "--run): their episodes analysed together into --out; nothing is run")
+                        "--run): their episodes analysed together into --out; nothing is run. A "
+                        "later file's twins replace those twins' rows from earlier files")
     p.add_argument("--camera-min-rank", type=float, default=None,
                    help="with --merge: the loop's camera gate (ArmLoopConfig.camera_min_rank, "
                         "default the loop's): a twin's 'loop' row is its selected camera where "
@@ -555,17 +556,26 @@ def per_twin(rows: list[dict]) -> list[dict]:
 
 def merge(args) -> int:
     """``--merge``: the rows of several ``sensing.json`` files as one result (pooled tables, the
-    pooled sign test, per-twin figures); each file's command is kept in ``meta.merged``."""
-    rows, model_free, sim_rows, commands = [], [], [], []
+    pooled sign test, per-twin figures). A later file's twin (task, seed) replaces that twin's
+    rows from earlier files, so ``--merge bench/results/sensing.json NEW/sensing.json`` updates
+    one twin; each row keeps the command that measured it (``command``), and
+    ``meta.merged`` lists those of the rows kept. The loop's camera rows are derived anew."""
+    rows, model_free, sim_rows = [], [], []
     for path in args.merge:
         try:
             doc = json.loads(path.read_text())
         except (OSError, ValueError) as e:
             raise SystemExit(f"--merge {path}: not a sensing.json ({e})") from None
-        rows += _with_run_gate(doc)
+        command = doc.get("meta", {}).get("command")
+        new = [{**r, "command": r.get("command") or command} for r in _with_run_gate(doc)
+               if r["mode"] != "loop"]
+        new_sim = [{**r, "command": r.get("command") or command}
+                   for r in doc.get("sim_rows", [])]
+        twins = {(r["task"], r["seed"]) for r in new + new_sim}
+        rows = [r for r in rows if (r["task"], r["seed"]) not in twins] + new
+        sim_rows = [r for r in sim_rows if (r["task"], r["seed"]) not in twins] + new_sim
         model_free += doc.get("model_free", [])
-        sim_rows += doc.get("sim_rows", [])
-        commands.append(doc.get("meta", {}).get("command"))
+    commands = list(dict.fromkeys(r["command"] for r in rows + sim_rows if r.get("command")))
     gate = args.camera_min_rank
     if gate is None:
         from twinrl.loop.arm_config import ArmLoopConfig

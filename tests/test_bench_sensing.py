@@ -121,3 +121,41 @@ def test_merge_names_a_bad_file(tmp_path):
                        env={"PYTHONPATH": f"{ROOT}:{ROOT / 'bench'}", "PATH": "/usr/bin:/bin"})
     assert r.returncode != 0
     assert f"--merge {bad}: not a sensing.json" in r.stderr
+
+
+def test_a_later_file_replaces_its_twins_rows_and_keeps_the_others(tmp_path):
+    """``--merge OLD NEW``: NEW's twin replaces that twin's rows (and its loop row, derived anew)
+    in OLD; OLD's other twins and their commands stay; each row names the command that
+    measured it."""
+    a = _fake(tmp_path / "a.json", 0, {"selected": [1, 1, 1, 1], "default": [1, 0, 0, 0]}, 0.5)
+    b = _fake(tmp_path / "b.json", 1, {"selected": [1, 1, 0, 0], "default": [1, 0, 0, 0]}, 0.5)
+    env = {"PYTHONPATH": f"{ROOT}:{ROOT / 'bench'}", "PATH": "/usr/bin:/bin"}
+
+    def merge(files, out):
+        r = subprocess.run([sys.executable, "bench/sensing.py", "--merge", *map(str, files),
+                            "--out", str(out), "--camera-min-rank", "0.3"], cwd=ROOT,
+                           capture_output=True, text=True, env=env)
+        assert r.returncode == 0, r.stderr[-2000:]
+        return json.loads((out / "sensing.json").read_text())
+
+    first = merge([a, b], tmp_path / "m1")
+    # twin 1 measured again: its Q now ranks below the gate, its default camera solves 3 of 4
+    b2 = _fake(tmp_path / "b2.json", 1, {"selected": [0, 0, 0, 0], "default": [1, 1, 1, 0]},
+               0.1)
+    doc = json.loads(b2.read_text())
+    doc["meta"]["command"] = "run 1 again"
+    b2.write_text(json.dumps(doc))
+    second = merge([tmp_path / "m1" / "sensing.json", b2], tmp_path / "m2")
+    assert second["meta"]["merged"] == ["run 0", "run 1 again"]
+    rows = {(r["seed"], r["mode"]): r for r in second["rows"]}
+    assert len(second["rows"]) == len(first["rows"]) == 6  # 2 twins x (selected, default, loop)
+    assert rows[(0, "selected")] == {**{r["mode"]: r for r in first["rows"]
+                                        if r["seed"] == 0}["selected"]}
+    assert rows[(1, "selected")]["command"] == "run 1 again"
+    assert rows[(1, "default")]["episodes"]["success"] == [1.0, 1.0, 1.0, 0.0]
+    assert rows[(1, "loop")]["deployed_from"] == "default"
+    assert rows[(1, "loop")]["success"] == pytest.approx(0.75)
+    assert rows[(0, "loop")]["deployed_from"] == "selected"
+    pooled = second["paired"][0]
+    # twin 0: +3 starts for Q's choice; twin 1 now -3
+    assert pooled["episodes"] == 8 and pooled["difference"] == pytest.approx(0.0)
