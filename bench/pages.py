@@ -643,7 +643,9 @@ def reproduce(meta: dict, command: str) -> list[str]:
     """The command lines that reproduce a committed result. A result merged from several
     (``meta.merged``, e.g. ``bench/sensing.py --merge``) gets each merged command first; their
     scratch paths become ``DIR0``, ``DIR1``, ... (``--out``). A loop run named ``TASK=/abs/path``
-    (``--run``) becomes ``TASK=RUN0``, ``TASK=RUN1``, ... (a ``twinrl run`` output directory)."""
+    (``--run``) becomes ``TASK=RUN0``, ``TASK=RUN1``, ... (a ``twinrl run`` output directory).
+    The merge itself is shown as the merge of those directories' files, whatever earlier merged
+    file it read."""
     import re
 
     merged = [c for c in meta.get("merged") or [] if c]
@@ -660,7 +662,16 @@ def reproduce(meta: dict, command: str) -> list[str]:
         rename = lambda c: pattern.sub(lambda m: names[m.group(0)], c)  # noqa: E731
     else:
         rename = lambda c: c  # noqa: E731
-    return [rename(c) for c in merged] + [committed_command(rename(main))]
+    main = rename(main)
+    dirs = [names[m.group(1)] for c in merged for m in re.finditer(r"--out(?:=|\s+)(\S+)", c)]
+    files = re.search(r"--merge((?:\s+(?!-)\S+)+)", main)
+    if dirs and files:
+        # a merge that took an earlier merged result (a twin re-measured and merged into the
+        # committed file): from scratch it is the merge of every command's directory's file
+        name = Path(files.group(1).split()[-1]).name
+        main = main.replace(files.group(0), "--merge " + " ".join(
+            f"{d}/{name}" for d in dict.fromkeys(dirs)))
+    return [rename(c) for c in merged] + [committed_command(main)]
 
 
 def provenance(meta: dict) -> str:

@@ -159,3 +159,24 @@ def test_a_later_file_replaces_its_twins_rows_and_keeps_the_others(tmp_path):
     pooled = second["paired"][0]
     # twin 0: +3 starts for Q's choice; twin 1 now -3
     assert pooled["episodes"] == 8 and pooled["difference"] == pytest.approx(0.0)
+
+
+def test_the_benchmarks_page_reproduces_a_merge_into_the_committed_file_from_scratch():
+    """A twin re-measured and merged into the committed result (``--merge
+    bench/results/sensing.json NEW/sensing.json``) is shown as the merge of every measuring
+    command's directory, not of a file the reader does not have."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        import pages
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    meta = {"merged": ["python bench/sensing.py --tasks peg_insertion --run "
+                       "peg_insertion=/tmp/a/loop_0 --out /tmp/a/sens_0",
+                       "python bench/sensing.py --tasks peg_insertion --run "
+                       "peg_insertion=/tmp/b/loop_1 --out /tmp/b/sens_1"],
+            "command": "python bench/sensing.py --merge bench/results/sensing.json "
+                       "/tmp/b/sens_1/sensing.json --out bench/results"}
+    assert pages.reproduce(meta, "") == [
+        "python bench/sensing.py --tasks peg_insertion --run peg_insertion=RUN0 --out DIR0",
+        "python bench/sensing.py --tasks peg_insertion --run peg_insertion=RUN1 --out DIR1",
+        "python bench/sensing.py --merge DIR0/sensing.json DIR1/sensing.json --out bench/results"]
