@@ -560,7 +560,9 @@ def merge(args) -> int:
     rows from earlier files, so ``--merge bench/results/sensing.json NEW/sensing.json`` updates
     one twin; each row keeps the command that measured it (``command``), and
     ``meta.merged`` lists those of the rows kept. The loop's camera rows are derived anew."""
-    rows, model_free, sim_rows = [], [], []
+    by_twin: dict[tuple, list[dict]] = {}  # (task, seed) -> rows; a replaced twin keeps its place
+    sim_by_twin: dict[tuple, list[dict]] = {}
+    model_free = []
     for path in args.merge:
         try:
             doc = json.loads(path.read_text())
@@ -571,10 +573,12 @@ def merge(args) -> int:
                if r["mode"] != "loop"]
         new_sim = [{**r, "command": r.get("command") or command}
                    for r in doc.get("sim_rows", [])]
-        twins = {(r["task"], r["seed"]) for r in new + new_sim}
-        rows = [r for r in rows if (r["task"], r["seed"]) not in twins] + new
-        sim_rows = [r for r in sim_rows if (r["task"], r["seed"]) not in twins] + new_sim
+        for twin in dict.fromkeys((r["task"], r["seed"]) for r in new + new_sim):
+            by_twin[twin] = [r for r in new if (r["task"], r["seed"]) == twin]
+            sim_by_twin[twin] = [r for r in new_sim if (r["task"], r["seed"]) == twin]
         model_free += doc.get("model_free", [])
+    rows = [r for twin in by_twin.values() for r in twin]
+    sim_rows = [r for twin in sim_by_twin.values() for r in twin]
     commands = list(dict.fromkeys(r["command"] for r in rows + sim_rows if r.get("command")))
     gate = args.camera_min_rank
     if gate is None:
