@@ -6,7 +6,7 @@ on the real twin the loop would face (``twinrl run --seed S``: the seed's defaul
 dataset is kept in ``OUT/TASK-S-P/`` and reused), seen from ``P`` mount poses
 (``CameraMount.calibration_poses``; ``--poses 1 5``), then fits the mount's offset
 (``twinrl.real2sim.handeye.calibrate_mount``, the loop's settings: ``--frames`` frames, 150 Adam
-steps, one start) with the tool in the fit and without it (``--variants``), and scores each against the
+steps or ``--steps``, one start) with the tool in the fit and without it (``--variants``), and scores each against the
 twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only). With ``--grasp`` each
 calibration is followed by the loop's identification of the tool's grasp in the hand with that
 camera (``handeye.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre
@@ -84,26 +84,27 @@ def run(args) -> list[dict]:
                                                     episodes=range(args.episodes))
                 at = poses[[f["episode"] % len(poses) for f in frames]]
                 frames = visual.check_frames(frames, env.sim.mj_model.nq)
-                for variant in args.variants:
+                for variant, steps in ((v, n) for v in args.variants for n in args.steps):
+                    cfg = visual.VisualConfig(steps=steps, restarts=1)
                     t0 = time.perf_counter()
-                    mount, _ = calibrate_mount(env, frames, at,
-                                               visual.VisualConfig(steps=150, restarts=1),
-                                               seed + 1, ignore_tool=variant == "tool-out")
+                    mount, _ = calibrate_mount(env, frames, at, cfg, seed + 1,
+                                               ignore_tool=variant == "tool-out")
+                    he_seconds = time.perf_counter() - t0
                     err = evaluation.hand_eye_errors(task, seed, mount,
                                                      secret=d / "eval" / "twin.json")
                     if args.grasp:
                         t1 = time.perf_counter()
-                        g = fit_grasp(env, mount, frames, at,
-                                      visual.VisualConfig(steps=150, restarts=1), seed + 1)
+                        g = fit_grasp(env, mount, frames, at, cfg, seed + 1)
                         err.update(evaluation.grasp_errors(
                             task, seed, g["pos_offset"], g["rot_offset"],
                             secret=d / "eval" / "twin.json"),
                                    grasp_seconds=time.perf_counter() - t1,
                                    grasp_refine=g["refine"])
                     rows.append({"task": task, "seed": seed, "poses": n_poses,
-                                 "variant": variant, "frames": len(frames),
-                                 "seconds": time.perf_counter() - t0, **err})
-                    print(f"  {task} seed {seed}, {n_poses} pose(s), {variant}: "
+                                 "variant": variant, "frames": len(frames), "steps": steps,
+                                 "seconds": time.perf_counter() - t0,
+                                 "hand_eye_seconds": he_seconds, **err})
+                    print(f"  {task} seed {seed}, {n_poses} pose(s), {variant}, {steps} steps: "
                           f"{err['hand_eye_pos_err_mm']:.2f} mm / "
                           f"{err['hand_eye_rot_err_deg']:.3f} deg" + (
                               f"; grasp: tool point {err['grasp_tcp_err_mm']:.2f} mm "
@@ -123,28 +124,32 @@ def main(argv=None) -> int:
                    help="also identify the tool's grasp with each calibrated camera")
     p.add_argument("--episodes", type=int, default=5)
     p.add_argument("--frames", type=int, default=10)
+    p.add_argument("--steps", nargs="+", type=int, default=[150],
+                   help="Adam steps of each fit (the loop's calibration_steps; one value per "
+                        "case)")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
-    if min(args.poses) < 1 or args.episodes < 1 or args.frames < 1:
-        p.error("--poses, --episodes and --frames must be >= 1")
+    if min(args.poses) < 1 or args.episodes < 1 or args.frames < 1 or min(args.steps) < 1:
+        p.error("--poses, --episodes, --frames and --steps must be >= 1")
     args.out.mkdir(parents=True, exist_ok=True)
     rows = run(args)
     write_result(args.out / "hand_eye.json", {"rows": rows}, args)
     print_table("hand-eye calibration against the hidden offset",
-                ["task", "seed", "poses", "tool", "frames", "position (mm)", "rotation (deg)",
-                 "uncalibrated", "seconds"],
+                ["task", "seed", "poses", "tool", "frames", "steps", "position (mm)",
+                 "rotation (deg)", "uncalibrated", "seconds"],
                 [[r["task"], r["seed"], r["poses"], r["variant"].removeprefix("tool-"),
-                  r["frames"], f"{r['hand_eye_pos_err_mm']:.2f}",
+                  r["frames"], r.get("steps", 150), f"{r['hand_eye_pos_err_mm']:.2f}",
                   f"{r['hand_eye_rot_err_deg']:.3f}",
                   f"{r['uncalibrated_pos_err_mm']:.1f} mm / "
-                  f"{r['uncalibrated_rot_err_deg']:.2f} deg", f"{r['seconds']:.0f}"]
+                  f"{r['uncalibrated_rot_err_deg']:.2f} deg",
+                  f"{r.get('hand_eye_seconds', r['seconds']):.0f}"]
                  for r in rows])
     if args.grasp:
         print_table("the tool's grasp in the hand against the hidden one (tool centre point)",
-                    ["task", "seed", "poses", "tool", "fitted (mm)", "nominal (mm)",
+                    ["task", "seed", "poses", "tool", "steps", "fitted (mm)", "nominal (mm)",
                      "origin (mm)", "rotation (deg)", "LM kept", "seconds"],
                     [[r["task"], r["seed"], r["poses"], r["variant"].removeprefix("tool-"),
-                      f"{r['grasp_tcp_err_mm']:.2f}", f"{r['nominal_tcp_err_mm']:.2f}",
+                      r["steps"], f"{r['grasp_tcp_err_mm']:.2f}", f"{r['nominal_tcp_err_mm']:.2f}",
                       f"{r['grasp_pos_err_mm']:.2f}", f"{r['grasp_rot_err_deg']:.2f}",
                       {0: "Adam's", 1: "zero"}.get((r["grasp_refine"] or {}).get("start"), "-"),
                       f"{r['grasp_seconds']:.0f}"] for r in rows])
