@@ -5,8 +5,8 @@ Per task and twin seed: records ``--episodes`` round-0 episodes of the loop's ex
 on the real twin the loop would face (``twinrl run --seed S``: the seed's default salt; the
 dataset is kept in ``OUT/TASK-S-P/`` and reused), seen from ``P`` mount poses
 (``CameraMount.calibration_poses``; ``--poses 1 5``), then fits the mount's offset
-(``twinrl.real2sim.handeye.calibrate_mount``, the loop's settings: ``--frames`` frames, 150 Adam
-steps or ``--steps``, one start) with the tool in the fit and without it (``--variants``), and scores each against the
+(``twinrl.real2sim.handeye.calibrate_mount``, the loop's settings: ``--frames`` frames,
+``ArmLoopConfig.calibration_steps`` Adam steps or ``--steps``, one start) with the tool in the fit and without it (``--variants``), and scores each against the
 twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only). With ``--grasp`` each
 calibration is followed by the loop's identification of the tool's grasp in the hand with that
 camera (``handeye.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre
@@ -124,11 +124,15 @@ def main(argv=None) -> int:
                    help="also identify the tool's grasp with each calibrated camera")
     p.add_argument("--episodes", type=int, default=5)
     p.add_argument("--frames", type=int, default=10)
-    p.add_argument("--steps", nargs="+", type=int, default=[150],
+    p.add_argument("--steps", nargs="+", type=int, default=None,
                    help="Adam steps of each fit (the loop's calibration_steps; one value per "
                         "case)")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
+    if args.steps is None:
+        from twinrl.loop.arm_config import ArmLoopConfig
+
+        args.steps = [ArmLoopConfig.calibration_steps]
     if min(args.poses) < 1 or args.episodes < 1 or args.frames < 1 or min(args.steps) < 1:
         p.error("--poses, --episodes, --frames and --steps must be >= 1")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -138,7 +142,7 @@ def main(argv=None) -> int:
                 ["task", "seed", "poses", "tool", "frames", "steps", "position (mm)",
                  "rotation (deg)", "uncalibrated", "seconds"],
                 [[r["task"], r["seed"], r["poses"], r["variant"].removeprefix("tool-"),
-                  r["frames"], r.get("steps", 150), f"{r['hand_eye_pos_err_mm']:.2f}",
+                  r["frames"], r["steps"], f"{r['hand_eye_pos_err_mm']:.2f}",
                   f"{r['hand_eye_rot_err_deg']:.3f}",
                   f"{r['uncalibrated_pos_err_mm']:.1f} mm / "
                   f"{r['uncalibrated_rot_err_deg']:.2f} deg",

@@ -222,6 +222,27 @@ def arm_sysid_headline(doc: dict) -> list[list[str]]:
     return out
 
 
+def hand_eye_table(doc: dict) -> str:
+    """Per case: the fitted hand-eye offset's error against the hidden one (and the uncalibrated
+    camera's), the tool point's error after the grasp's fit (and the nominal grasp's) where it
+    was run, and each fit's seconds."""
+    rows = []
+    for r in doc["rows"]:
+        grasp = "grasp_tcp_err_mm" in r
+        rows.append([r["task"], r["seed"], r["poses"], r["variant"].removeprefix("tool-"),
+                     r.get("steps", "–"),
+                     f"{r['hand_eye_pos_err_mm']:.2f} mm / {r['hand_eye_rot_err_deg']:.3f} deg",
+                     f"{r['uncalibrated_pos_err_mm']:.1f} mm / "
+                     f"{r['uncalibrated_rot_err_deg']:.2f} deg",
+                     f"{r.get('hand_eye_seconds', r['seconds']):.0f}",
+                     f"{r['grasp_tcp_err_mm']:.2f} mm ({r['nominal_tcp_err_mm']:.2f})"
+                     if grasp else "–",
+                     f"{r['grasp_seconds']:.0f}" if grasp else "–"])
+    return table(["task", "twin", "poses", "tool", "Adam steps", "hand-eye error",
+                  "uncalibrated", "seconds", "tool point error (nominal grasp)",
+                  "grasp seconds"], rows)
+
+
 def generic_table(doc: dict) -> str:
     """Any result: the first list of flat records it holds, as a table of its scalar fields."""
     for key, value in doc.items():
@@ -591,8 +612,9 @@ BENCHES = [
     Bench("hand_eye", "Hand-eye calibration",
           "The arm loop's camera-mount calibration by visual Real2Sim against the hidden "
           "offset, with the tool in the fit and left out, from one mount pose or several; "
-          "`--grasp` adds the tool's grasp in the hand.",
-          "python bench/hand_eye.py --out bench/results"),
+          "`--grasp` adds the tool's grasp in the hand; `--steps` the fits' Adam steps before "
+          "their Levenberg-Marquardt refinement (the loop's `calibration_steps`).",
+          "python bench/hand_eye.py --out bench/results", hand_eye_table),
     Bench("q_rank", "Ranking camera poses",
           "How well a loop's sensing-aware Q ranks camera poses on fresh states of its "
           "identified twin (Spearman's correlation per state across poses, with a bootstrap "
