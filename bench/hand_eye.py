@@ -6,14 +6,16 @@ on the real twin the loop would face (``twinrl run --seed S``: the seed's defaul
 dataset is kept in ``OUT/TASK-S-P/`` and reused), seen from ``P`` mount poses
 (``CameraMount.calibration_poses``; ``--poses 1 5``), then fits the mount's offset
 (``twinrl.real2sim.handeye.calibrate_mount``, the loop's settings: ``--frames`` frames,
-``ArmLoopConfig.calibration_steps`` Adam steps or ``--steps``, one start) with the tool in the fit and without it (``--variants``), and scores each against the
-twin's hidden offset (``twinrl.eval.hand_eye_errors``: evaluation only). With ``--grasp`` each
-calibration is followed by the loop's identification of the tool's grasp in the hand with that
-camera (``handeye.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre
-point's error, mm, against the nominal grasp's); "LM kept" says which refinement won (from Adam's
-result or from the zero offset: ``visual.fit_body_offset``).
+``ArmLoopConfig.calibration_steps`` Adam steps or ``--steps``, one start) with the tool in the
+fit and without it (``--variants``), and scores each against the twin's hidden offset
+(``twinrl.eval.hand_eye_errors``: evaluation only). With ``--grasp`` each calibration is
+followed by the loop's identification of the tool's grasp in the hand with that camera
+(``handeye.fit_grasp``), scored by ``twinrl.eval.grasp_errors`` (the tool centre point's error,
+mm, against the nominal grasp's); "LM kept" says which refinement won (from Adam's result or
+from the zero offset: ``visual.fit_body_offset``).
 
-Prints a table and writes ``OUT/hand_eye.json``. About 3-6 minutes per fit on 2 cores.
+Prints a table and writes ``OUT/hand_eye.json``. About 1-3 minutes per fit on 2 cores at the
+loop's 40 steps.
 
     python bench/hand_eye.py --tasks needle_threading --seeds 0 --out B
     python bench/hand_eye.py --tasks peg_insertion spatula_flipping --seeds 0 1 2 --out B
@@ -153,7 +155,8 @@ def main(argv=None) -> int:
                     ["task", "seed", "poses", "tool", "steps", "fitted (mm)", "nominal (mm)",
                      "origin (mm)", "rotation (deg)", "LM kept", "seconds"],
                     [[r["task"], r["seed"], r["poses"], r["variant"].removeprefix("tool-"),
-                      r["steps"], f"{r['grasp_tcp_err_mm']:.2f}", f"{r['nominal_tcp_err_mm']:.2f}",
+                      r["steps"], f"{r['grasp_tcp_err_mm']:.2f}",
+                      f"{r['nominal_tcp_err_mm']:.2f}",
                       f"{r['grasp_pos_err_mm']:.2f}", f"{r['grasp_rot_err_deg']:.2f}",
                       {0: "Adam's", 1: "zero"}.get((r["grasp_refine"] or {}).get("start"), "-"),
                       f"{r['grasp_seconds']:.0f}"] for r in rows])
