@@ -562,7 +562,7 @@ def merge(args) -> int:
     ``meta.merged`` lists those of the rows kept. The loop's camera rows are derived anew."""
     by_twin: dict[tuple, list[dict]] = {}  # (task, seed) -> rows; a replaced twin keeps its place
     sim_by_twin: dict[tuple, list[dict]] = {}
-    model_free = []
+    model_free: dict[tuple, dict] = {}  # (task, algo, twin) -> row; a later file's replaces
     for path in args.merge:
         try:
             doc = json.loads(path.read_text())
@@ -576,7 +576,9 @@ def merge(args) -> int:
         for twin in dict.fromkeys((r["task"], r["seed"]) for r in new + new_sim):
             by_twin[twin] = [r for r in new if (r["task"], r["seed"]) == twin]
             sim_by_twin[twin] = [r for r in new_sim if (r["task"], r["seed"]) == twin]
-        model_free += doc.get("model_free", [])
+        for r in doc.get("model_free", []):
+            model_free[(r.get("task"), r.get("algo"), r.get("twin_seed"))] = r
+    model_free = list(model_free.values())
     rows = [r for twin in by_twin.values() for r in twin]
     sim_rows = [r for twin in sim_by_twin.values() for r in twin]
     commands = list(dict.fromkeys(r["command"] for r in rows + sim_rows if r.get("command")))

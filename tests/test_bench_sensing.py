@@ -138,12 +138,18 @@ def test_a_later_file_replaces_its_twins_rows_and_keeps_the_others(tmp_path):
         assert r.returncode == 0, r.stderr[-2000:]
         return json.loads((out / "sensing.json").read_text())
 
+    doc = json.loads(b.read_text())
+    doc["model_free"] = [{"task": "needle_threading", "algo": "sac", "twin_seed": 1,
+                          "success": 0.1}]
+    b.write_text(json.dumps(doc))
     first = merge([a, b], tmp_path / "m1")
     # twin 1 measured again: its Q now ranks below the gate, its default camera solves 3 of 4
     b2 = _fake(tmp_path / "b2.json", 1, {"selected": [0, 0, 0, 0], "default": [1, 1, 1, 0]},
                0.1)
     doc = json.loads(b2.read_text())
     doc["meta"]["command"] = "run 1 again"
+    doc["model_free"] = [{"task": "needle_threading", "algo": "sac", "twin_seed": 1,
+                          "success": 0.3}]
     b2.write_text(json.dumps(doc))
     second = merge([tmp_path / "m1" / "sensing.json", b2], tmp_path / "m2")
     assert second["meta"]["merged"] == ["run 0", "run 1 again"]
@@ -156,6 +162,7 @@ def test_a_later_file_replaces_its_twins_rows_and_keeps_the_others(tmp_path):
     assert rows[(1, "loop")]["deployed_from"] == "default"
     assert rows[(1, "loop")]["success"] == pytest.approx(0.75)
     assert rows[(0, "loop")]["deployed_from"] == "selected"
+    assert [r["success"] for r in second["model_free"]] == [0.3]  # replaced, not appended
     pooled = second["paired"][0]
     # twin 0: +3 starts for Q's choice; twin 1 now -3
     assert pooled["episodes"] == 8 and pooled["difference"] == pytest.approx(0.0)
