@@ -4,12 +4,14 @@ console), held back for the first seconds so quick work stays quiet."""
 
 from __future__ import annotations
 
+import os
 import time
 
 __all__ = ["QUIET_FOR", "ProgressLines"]
 
-QUIET_FOR = 2.0
-"""Seconds a command's stage runs before ``ProgressLines`` prints it."""
+QUIET_FOR = float(os.environ.get("TWINRL_PROGRESS_AFTER", "2"))
+"""Seconds a command's stage runs before ``ProgressLines`` prints it (the environment's
+``TWINRL_PROGRESS_AFTER``, 2 unless set; 0 prints every stage, however quick)."""
 
 
 class ProgressLines:

@@ -16,7 +16,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def twinrl(*args, timeout=900):
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # every progress line, however quick the stage (a warm compilation cache makes them quick)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "TWINRL_PROGRESS_AFTER": "0"}
     return subprocess.run([sys.executable, "-m", "twinrl.cli", *args], capture_output=True,
                           text=True, timeout=timeout, cwd=ROOT, env=env)
 
