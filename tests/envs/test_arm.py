@@ -258,6 +258,16 @@ def test_grasp_offset_moves_the_tool_in_the_hand():
     tool = twin.oracle().model.body("tool").id
     np.testing.assert_allclose(twin.oracle().model.body_pos[tool]
                                - ideal.oracle().model.body_pos[tool], [0.003, 0.0, -0.002])
+    # the true tool point is the nominal one without the offset, moved by it (in the tool's
+    # frame, rotated into the world's) with it; the robot's own tip observation does not move
+    for t in (twin, ideal):
+        t.reset(seed=3)
+    (tip, R), (tip0, R0) = twin.true_tool(), ideal.true_tool()
+    q = jnp.asarray(ideal.oracle().qpos, jnp.float32)
+    np.testing.assert_allclose(tip0, np.asarray(envs.make("peg_insertion").tool_point(q)),
+                               atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(tip - tip0), np.hypot(0.003, 0.002), atol=1e-5)
+    np.testing.assert_allclose(R, R0, atol=1e-6)  # a pure translation of the grasp
     # drawn for the arm tasks, whose spec asks for it
     drawn = Perturbation.sample("peg_insertion", 0)
     assert any(drawn.tool_pos_offset) and any(drawn.tool_rot_offset)

@@ -159,6 +159,25 @@ def test_a_plan_is_judged_where_its_episode_ends(pendulum_demos):
     np.testing.assert_array_equal(np.asarray(solved), expected)
 
 
+def test_plans_from_given_start_keys_are_the_optimiser_s_from_those_starts(pendulum_demos):
+    # plans.plan(keys=...): chosen starts (a real twin's, bench/real_failures.py), planned as the
+    # fixture's own trajopt does from them
+    env, demos, returns = pendulum_demos
+
+    class Never(type(env)):
+        def success(self, qpos, qvel):
+            return jnp.zeros((), jnp.float32)
+
+    res = plans.plan(Never(env.config), 99, iterations=30, batch=2, restarts=0,
+                     keys=demos.keys[2:4])
+    assert res["starts"] == 2 and res["optimisations_run"] == 2
+    np.testing.assert_array_equal(res["keys"], demos.keys[2:4])
+    np.testing.assert_allclose(res["plans"], demos.actions[2:4], atol=2e-3)
+    final = jax.vmap(lambda k, a: env.unroll(env.reset(k), a)[1].sum())(
+        jnp.asarray(demos.keys[2:4]), jnp.asarray(res["plans"]))
+    np.testing.assert_allclose(np.asarray(final), np.asarray(returns[2:4]), rtol=1e-3)
+
+
 def test_demonstration_files_are_checked(tmp_path):
     with pytest.raises(FileNotFoundError, match="no demonstration file"):
         imitation.load_demonstrations(tmp_path / "none.npz")

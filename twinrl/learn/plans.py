@@ -83,15 +83,19 @@ def initial_guesses(env, restarts: int) -> list[str]:
 
 def plan(env, starts: int, iterations: int = 20, batch: int = 10, seed: int = 0,
          config: trajopt.TrajoptConfig | None = None, restarts: int = 2,
-         say: Callable[[str], None] | None = None) -> dict:
+         say: Callable[[str], None] | None = None, keys=None) -> dict:
     """Trajectory optimisation of ``env`` from ``starts`` random initial states (reset keys split
-    from ``seed``), ``batch`` at a time: from zero actions, then, for the starts not solved
+    from ``seed``; or from ``reset(keys[i])``, ``starts`` then being ``len(keys)``: chosen starts,
+    a real twin's for one), ``batch`` at a time: from zero actions, then, for the starts not solved
     (``env.success`` at the episode's end), up to ``restarts`` times more from the next of
     ``initial_guesses``. ``config`` defaults to first order, step 0.5, 6 line-search steps.
 
     Returns the statistics (success rate, on the first attempt and in all, which attempt solved
     how many, seconds per solved start, compile seconds, initial and final mean returns) and, under
     ``plans``/``keys``/``success``, the arrays ``save`` writes."""
+    if keys is not None:
+        keys = jnp.asarray(keys, jnp.uint32).reshape(-1, 2)
+        starts = int(keys.shape[0])
     if starts < 1 or batch < 1 or iterations < 1 or restarts < 0:
         raise ValueError(f"plan needs starts, batch, iterations >= 1 and restarts >= 0, got "
                          f"{starts}, {batch}, {iterations}, {restarts}")
@@ -99,7 +103,8 @@ def plan(env, starts: int, iterations: int = 20, batch: int = 10, seed: int = 0,
     say = say or (lambda s: None)
     T = env.episode_length
     batch = min(batch, starts)
-    keys = jax.random.split(jax.random.PRNGKey(seed), starts)
+    if keys is None:
+        keys = jax.random.split(jax.random.PRNGKey(seed), starts)
 
     def one(key, a0):
         s = env.reset(key)

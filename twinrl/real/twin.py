@@ -49,7 +49,7 @@ from twinrl.real.perturbation import Perturbation, rotvec_quat  # noqa: E402
 from twinrl.render.opengl import IMAGE_KINDS, CameraRenderer, render_states  # noqa: E402,F401
 
 __all__ = ["make_real", "RealTwin", "Oracle", "CameraRenderer", "render_episode", "render_states",
-           "IMAGE_KINDS"]
+           "IMAGE_KINDS", "reset_key"]
 
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
@@ -220,7 +220,7 @@ class RealTwin(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        key = jax.random.PRNGKey(int(self.np_random.integers(0, 2**31 - 1)))
+        key = _reset_key(self.np_random)
         qpos, qvel = (np.asarray(x, np.float64) for x in self._initial_state(key))
         options = dict(options or {})
         for name, default in (("qpos", qpos), ("qvel", qvel)):
@@ -345,11 +345,22 @@ class RealTwin(gym.Env):
             raise ValueError(f"task {self.task_name!r} has no success measure")
         jnp = jax.numpy
         q, v = (jnp.asarray(x, jnp.float32) for x in (self._data.qpos, self._data.qvel))
-        tool = self._tool_body
-        if tool < 0 or not hasattr(task, "controller"):
+        tool = self.true_tool()
+        if tool is None:
             return float(self._success(q, v))
+        return float(self._success(q, v, tuple(jnp.asarray(x, jnp.float32) for x in tool)))
+
+    def true_tool(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The true tool point now, ``(position (3,), rotation (3, 3))`` in the world: the
+        controller's tool centre point carried by the real engine's ``tool`` body, the hidden
+        grasp offset included (evaluation only, like ``oracle``; None for a task without a
+        tool)."""
+        task, tool = self.task, self._tool_body
+        if tool < 0 or not hasattr(task, "controller"):
+            return None
         from twinrl.envs.arm.kinematics import forward_kinematics
 
+        jnp = jax.numpy
         frames = []
         for model, d in ((self.task.sim.mj_model, self._scratch[0]), (self._model,
                                                                       self._scratch[1])):
@@ -360,9 +371,7 @@ class RealTwin(gym.Env):
         tip, R = (np.asarray(x, np.float64) for x in forward_kinematics(
             jnp.asarray(self._data.qpos[:7], jnp.float32), task.controller.tcp))
         true_tip = pt + Rt @ (Rn.T @ (tip - pn))  # the nominal point, carried by the true tool
-        true_R = Rt @ Rn.T @ R
-        return float(self._success(q, v, (jnp.asarray(true_tip, jnp.float32),
-                                          jnp.asarray(true_R, jnp.float32))))
+        return true_tip, Rt @ Rn.T @ R
 
     @property
     def mount_coords(self) -> np.ndarray | None:
@@ -414,6 +423,18 @@ class RealTwin(gym.Env):
             qpos=self._data.qpos.copy(),
             qvel=self._data.qvel.copy(),
         )
+
+
+def _reset_key(rng: np.random.Generator) -> jax.Array:
+    return jax.random.PRNGKey(int(rng.integers(0, 2**31 - 1)))
+
+
+def reset_key(seed: int) -> jax.Array:
+    """The key ``RealTwin.reset(seed=seed)`` draws its start from (``task.initial_state(key)``):
+    ``env.reset(reset_key(seed))`` starts a simulator where that real episode starts, for
+    comparing the two from the same state (the start's qpos is the same computation, in float32
+    here and float64 there)."""
+    return _reset_key(np.random.default_rng(int(seed)))
 
 
 # ---------------------------------------------------------------------- recording
