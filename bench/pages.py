@@ -451,6 +451,27 @@ def actor_views_table(doc: dict) -> str:
                   "the others would need (for 90 %)"], rows)
 
 
+def real_failures_table(doc: dict) -> str:
+    """Per loop run: the starts its actor failed in the real twin against those it solved --
+    the actor in the twin from the same starts (its view; the true pose), the real actions
+    replayed in the twin, the expert's plans in the twin and replayed in real."""
+    cell = lambda x: "–" if x is None else f"{100 * x:.0f} %"  # noqa: E731
+    mm = lambda g, k: (f"{g[k + '_xy_mm']:.1f} / {g[k + '_z_mm']:.1f}"  # noqa: E731
+                       if k + "_xy_mm" in g else "–")
+    rows = []
+    for r in doc["rows"]:
+        for g in r["groups"]:
+            rows.append([r["task"], str(r["twin_seed"]), r["camera"],
+                         f"{g['group']} {g['starts']} of {r['episodes']}", cell(g["sim_actor"]),
+                         cell(g["sim_truth"]), cell(g["replay"]),
+                         f"{cell(g['plan_sim'])} / {cell(g['plan_real'])} "
+                         f"({g['plan_real_n']})", mm(g, "real_end"), mm(g, "replay_end")])
+    return table(["task", "twin", "camera", "real starts", "actor in the twin",
+                  "actor in the twin, true pose", "real actions in the twin",
+                  "plans: in the twin / replayed in real (starts)", "real end: xy / z (mm)",
+                  "real actions' end in the twin"], rows)
+
+
 def gradcheck_large_table(doc: dict) -> str:
     rows = [[r["model"], r.get("flags") or "", r.get("status"), r.get("wall_s"),
              *(r.get("timings", {}).get(k) for k in ("trace", "compile", "gradient",
@@ -632,6 +653,19 @@ BENCHES = [
           "90 % overall. `RUNk`: a `twinrl run --env TASK --seed S --out RUNk`, S the twin.",
           "python bench/actor_views.py --run needle_threading=runs/needle --episodes 100 "
           "--out bench/results", actor_views_table),
+    Bench("real_failures", "Where the real failures come from",
+          "A loop run's image actor deployed on its hidden real twin with the loop's camera "
+          "(50 starts, the sensing bench's), its starts split into those it failed and those "
+          "it solved; per group: the same actor in the identified twin from the same starts "
+          "(the camera where the real episode put it; and fed the true pose where it reads a "
+          "fitted one), the real episode's actions replayed open loop in the identified twin, "
+          "and trajectory optimisation in the identified twin (the loop's plan stage) from "
+          "each failed start and as many solved ones, its plans replayed open loop in the "
+          "real twin. The ends are medians of the true peg tip's distance from the hole's axis "
+          "and its height above the hole's top (success: within 16 mm of the axis and below "
+          "-17.5 mm, the tip's lowest point 30 mm down).",
+          "python bench/real_failures.py --run peg_insertion=runs/peg --episodes 50 --plan "
+          "--out bench/results", real_failures_table),
     Bench("sensing", "Active sensing on the real twins",
           "A SAM-RL loop's image actor deployed on the loop's own hidden real twin (`RUNk`: a "
           "`twinrl run --env TASK --seed S --out RUNk`, S the twin, the loop's defaults) with "
