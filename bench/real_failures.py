@@ -258,8 +258,8 @@ def main(argv=None) -> int:
                      "plan in the twin", "plan in real", "real end xy / z (mm)"],
                     [[g["group"], g["starts"], _pct(g["sim_actor"]), _pct(g["sim_truth"]),
                       _pct(g["replay"]), _pct(g["plan_sim"]), _pct(g["plan_real"]),
-                      f"{g.get('real_end_xy_mm', float('nan')):.1f} / "
-                      f"{g.get('real_end_z_mm', float('nan')):.1f}"] for g in r["groups"]])
+                      f"{g['real_end_xy_mm']:.1f} / {g['real_end_z_mm']:.1f}"
+                      if "real_end_xy_mm" in g else "-"] for g in r["groups"]])
     print(f"wrote {args.out / 'real_failures.json'}")
     return 0
 
