@@ -463,11 +463,12 @@ def real_failures_table(doc: dict) -> str:
         for g in r["groups"]:
             rows.append([r["task"], str(r["twin_seed"]), r["camera"],
                          f"{g['group']} {g['starts']} of {r['episodes']}", cell(g["sim_actor"]),
-                         cell(g["sim_truth"]), cell(g["replay"]),
+                         cell(g["sim_truth"]), cell(g["replay"]), cell(g.get("replay_grasp")),
                          f"{cell(g['plan_sim'])} / {cell(g['plan_real'])} "
                          f"({g['plan_real_n']})", mm(g, "real_end"), mm(g, "replay_end")])
     return table(["task", "twin", "camera", "real starts", "actor in the twin",
                   "actor in the twin, true pose", "real actions in the twin",
+                  "... at the true grasp",
                   "plans: in the twin / replayed in real (starts)", "real end: xy / z (mm)",
                   "real actions' end in the twin"], rows)
 
@@ -658,7 +659,8 @@ BENCHES = [
           "(50 starts, the sensing bench's), its starts split into those it failed and those "
           "it solved; per group: the same actor in the identified twin from the same starts "
           "(the camera where the real episode put it; and fed the true pose where it reads a "
-          "fitted one), the real episode's actions replayed open loop in the identified twin, "
+          "fitted one), the real episode's actions replayed open loop in the identified twin "
+          "(and in it with the tool at the real twin's hidden grasp instead of the fitted one), "
           "and trajectory optimisation in the identified twin (the loop's plan stage) from "
           "each failed start and as many solved ones, its plans replayed open loop in the "
           "real twin. The ends are medians of the true peg tip's distance from the hole's axis "

@@ -14,7 +14,9 @@ bench's), per start:
   failure? -- and, for an actor that reads a fitted pose, ``sim truth``: the actor fed the true
   state where it reads that pose (its cloning without its view);
 - ``replay``: the real episode's actions replayed open loop in the identified twin -- does the
-  twin predict the real outcome of the real actions (its physics, its grasp)?
+  twin predict the real outcome of the real actions (its physics, its grasp)? -- and again in
+  the twin holding the tool at the real twin's hidden grasp (``replay_grasp``): how much of a
+  disagreement the fit of the grasp makes;
 - ``plan`` (``--plan``): trajectory optimisation in the identified twin, as the loop's plan stage
   runs it, from each start the actor failed on in the real twin and as many it solved (the
   controls); each plan replayed open loop in the real twin -- can the expert the actor imitates
@@ -108,7 +110,7 @@ def real_episodes(task, run, env, actor, ap, q, qp, cfg, args, summary):
     twin.move_camera(env.mount.default)
     res = dep.run(rec, active.DeployConfig(camera=camera, episodes=args.first + args.episodes),
                   seed=1000 * seed, start=args.first)
-    res["camera"] = camera
+    res["camera"], res["hidden"] = camera, hidden
     return rec.episodes, res, twin
 
 
@@ -130,15 +132,34 @@ def sim_side(env, actor, ap, keys, coords, real_actions) -> dict:
         out["sim_truth"] = np.asarray(jax.jit(
             lambda: held_episodes(env, true_observe, act, keys, coords=coords).success)())
 
-    @jax.jit
-    def replay(k, a):
+    ok, qend = replay(env, keys, real_actions)
+    out["replay"], out["replay_qpos"] = ok, qend
+    return out
+
+
+def replay(env, keys, actions) -> tuple[np.ndarray, np.ndarray]:
+    """``actions`` (N, T, m) open loop in ``env`` from ``reset(keys)``: success, final qpos."""
+    def one(k, a):
         final, _ = env.unroll(env.reset(k), a)
         q, v = final.pipeline_state.qpos, final.pipeline_state.qvel
         return env.success(q, v), q
 
-    ok, qend = jax.vmap(replay)(keys, real_actions)
-    out["replay"], out["replay_qpos"] = np.asarray(ok), np.asarray(qend)
-    return out
+    ok, q = jax.jit(jax.vmap(one))(keys, actions)
+    return np.asarray(ok), np.asarray(q)
+
+
+def true_grasp_env(run: Path, hidden):
+    """The run's identified twin holding its tool at the real twin's hidden grasp (evaluation
+    only): what the twin's replay of the real actions would be with the grasp fitted exactly."""
+    import dataclasses
+
+    from twinrl.envs.system import System, ToolGrasp
+    from twinrl.loop.arm import run_env
+
+    summary = json.loads((run / "summary.json").read_text())
+    system = System.load(run / f"round{summary['final']['round']}" / "system.json")
+    grasp = ToolGrasp(hidden.tool_pos_offset, hidden.tool_rot_offset)
+    return run_env(run, dataclasses.replace(system, tool=grasp))
 
 
 def plan_side(task, env, twin, keys, seeds, config: dict) -> dict:
@@ -184,6 +205,8 @@ def evaluate(task: str, run: Path, args) -> dict:
     if start_gap > 1e-4:
         raise SystemExit(f"{task}: the simulator's starts miss the real ones by {start_gap:.1e}")
     sim = sim_side(env, actor, ap, keys, coords, acts)
+    if any(res["hidden"].tool_pos_offset) or any(res["hidden"].tool_rot_offset):
+        sim["replay_grasp"] = replay(true_grasp_env(run, res["hidden"]), keys, acts)[0]
     real_ok = np.asarray([e["ok"] for e in episodes], float)
     starts = []
     for i, e in enumerate(episodes):
@@ -192,8 +215,9 @@ def evaluate(task: str, run: Path, args) -> dict:
                "sim_actor": bool(sim["sim_actor"][i]), "replay": bool(sim["replay"][i]),
                "replay_end": offsets(env, sim["replay_qpos"][i]),
                "return": float(res["return"][i])}
-        if "sim_truth" in sim:
-            row["sim_truth"] = bool(sim["sim_truth"][i])
+        for k in ("sim_truth", "replay_grasp"):
+            if k in sim:
+                row[k] = bool(sim[k][i])
         starts.append(row)
     if args.plan:
         failed = np.flatnonzero(real_ok == 0)
@@ -220,7 +244,7 @@ def groups(starts: list[dict]) -> list[dict]:
     for name, real in (("failed", False), ("solved", True)):
         rows = [s for s in starts if s["real"] == real]
         g = {"group": name, "starts": len(rows)}
-        for k in ("sim_actor", "sim_truth", "replay", "plan_sim", "plan_real"):
+        for k in ("sim_actor", "sim_truth", "replay", "replay_grasp", "plan_sim", "plan_real"):
             vals = [s[k] for s in rows if k in s]
             g[k] = float(np.mean(vals)) if vals else None
             g[k + "_n"] = len(vals)
@@ -255,9 +279,11 @@ def main(argv=None) -> int:
         print_table(f"{r['task']} twin {r['twin_seed']}: the starts the actor failed in the real "
                     f"twin against those it solved ({r['camera']} camera)",
                     ["starts", "n", "sim actor", "sim, true pose", "real actions in the twin",
-                     "plan in the twin", "plan in real", "real end xy / z (mm)"],
+                     "... at the true grasp", "plan in the twin", "plan in real",
+                     "real end xy / z (mm)"],
                     [[g["group"], g["starts"], _pct(g["sim_actor"]), _pct(g["sim_truth"]),
-                      _pct(g["replay"]), _pct(g["plan_sim"]), _pct(g["plan_real"]),
+                      _pct(g["replay"]), _pct(g["replay_grasp"]), _pct(g["plan_sim"]),
+                      _pct(g["plan_real"]),
                       f"{g['real_end_xy_mm']:.1f} / {g['real_end_z_mm']:.1f}"
                       if "real_end_xy_mm" in g else "-"] for g in r["groups"]])
     print(f"wrote {args.out / 'real_failures.json'}")
