@@ -40,8 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.report import print_table, wilson_interval
-from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
-from q_rank import _pct, load_run, parse_run  # noqa: E402  (bench/q_rank.py: a run's last round)
+from q_rank import _pct, evaluate_runs, load_run  # noqa: E402  (bench/q_rank.py: a run's round)
 
 TARGET = 0.9
 """The issue's success target from random views."""
@@ -130,11 +129,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.episodes < 2 or not 0.0 < args.good <= 1.0:
         raise SystemExit("--episodes must be >= 2 and --good in (0, 1]")
-    runs = [parse_run(item) for item in args.run]
-    rows = []
-    for task, run in runs:
-        rows.append(evaluate(task, run, args))
-        write_result(args.out / "actor_views.json", {"rows": rows}, args)
+    rows = evaluate_runs(args, evaluate, "actor_views.json")
     print_table(f"The image actor in its identified twin, {args.episodes} fresh starts",
                 ["task", "twin", "true state", "random views", "default view",
                  "random views good", "success: good / other", "other views would need"],

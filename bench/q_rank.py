@@ -65,6 +65,17 @@ def parse_run(item: str) -> tuple[str, Path]:
     return task, Path(path)
 
 
+def evaluate_runs(args, evaluate, name: str) -> list[dict]:
+    """``evaluate(task, run, args)`` of each ``--run TASK=DIR`` (all checked first), the rows
+    written to ``args.out / name`` after each run, so a run that fails keeps the others'."""
+    runs = [parse_run(item) for item in args.run]
+    rows = []
+    for task, run in runs:
+        rows.append(evaluate(task, run, args))
+        write_result(args.out / name, {"rows": rows}, args)
+    return rows
+
+
 def load_run(task: str, run: Path):
     """A run's last round: ``(summary, env, actor, actor_params, q, q_params, config)``, the
     env being the task in the round's identified twin and ``config`` Q's ``SensingConfig``."""
@@ -247,10 +258,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"--retest must be in [0, 0.5), got {args.retest}")
     if args.states < 2 or args.cameras < 2 or args.choices < 0:
         raise SystemExit("--states and --cameras must be >= 2, --choices >= 0")
-    rows = []
-    for item in args.run:
-        rows.append(evaluate(*parse_run(item), args))
-        write_result(args.out / "q_rank.json", {"rows": rows}, args)
+    rows = evaluate_runs(args, evaluate, "q_rank.json")
     print_table(f"Q's ranking of camera poses on {args.states} fresh states x {args.cameras} "
                 f"poses (identified twin)",
                 ["task", "twin", "rank per state (95 %)", "loop's (held-out 1/5)", "pooled",

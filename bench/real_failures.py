@@ -42,8 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twinrl.report import print_table
-from benchio import write_result  # noqa: E402  (bench/benchio.py: the results' common meta)
-from q_rank import _pct, load_run, parse_run  # noqa: E402  (bench/q_rank.py: a run's last round)
+from q_rank import _pct, evaluate_runs, load_run  # noqa: E402  (bench/q_rank.py: a run's round)
 
 
 class Recorder:
@@ -270,11 +269,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.episodes < 1 or args.first < 0:
         raise SystemExit("--episodes must be >= 1 and --first >= 0")
-    runs = [parse_run(item) for item in args.run]
-    rows = []
-    for task, run in runs:
-        rows.append(evaluate(task, run, args))
-        write_result(args.out / "real_failures.json", {"rows": rows}, args)
+    rows = evaluate_runs(args, evaluate, "real_failures.json")
     for r in rows:
         print_table(f"{r['task']} twin {r['twin_seed']}: the starts the actor failed in the real "
                     f"twin against those it solved ({r['camera']} camera)",
