@@ -125,16 +125,19 @@ def main(argv=None) -> int:
     p.add_argument("--grasp", action="store_true",
                    help="also identify the tool's grasp with each calibrated camera")
     p.add_argument("--episodes", type=int, default=5)
-    p.add_argument("--frames", type=int, default=10)
+    p.add_argument("--frames", type=int, default=None,
+                   help="round-0 frames each fit uses (the loop's calibration_frames)")
     p.add_argument("--steps", nargs="+", type=int, default=None,
                    help="Adam steps of each fit (the loop's calibration_steps; one value per "
                         "case)")
     p.add_argument("--out", type=Path, default=Path("bench/results"))
     args = p.parse_args(argv)
-    if args.steps is None:
-        from twinrl.loop.arm_config import ArmLoopConfig
+    from twinrl.loop.arm_config import ArmLoopConfig
 
+    if args.steps is None:
         args.steps = [ArmLoopConfig.calibration_steps]
+    if args.frames is None:
+        args.frames = ArmLoopConfig.calibration_frames
     if min(args.poses) < 1 or args.episodes < 1 or args.frames < 1 or min(args.steps) < 1:
         p.error("--poses, --episodes, --frames and --steps must be >= 1")
     args.out.mkdir(parents=True, exist_ok=True)
