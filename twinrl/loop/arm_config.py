@@ -91,8 +91,9 @@ class ArmLoopConfig:
     one on twins 0 / 1, against 2.67 / 3.42 mm: ``bench/hand_eye.py --frames 30 --grasp``; the
     hand-eye offset stays within 0.2-0.4 mm), where the fitted grasp made the twin wrong (needle
     twin 0: 6 of the actor's 8 real failures thread in the twin at the fitted grasp, 2 at the
-    hidden one: ``bench/real_failures.py``). Needle twin 0's loop then solves 50 of 50 real
-    starts with Q's camera (84 % with 10 frames), for ~2 more minutes of the stage."""
+    hidden one: ``bench/real_failures.py``). Needle twins 0 / 1's loops then solve 100 / 94 % of
+    50 real starts with Q's camera (84 / 88 % with 10 frames), for ~2 more minutes of the
+    stage."""
     calibration_steps: int = 40
     """Adam steps of the calibration and of the grasp's fit (``VisualConfig.steps``), before
     their Levenberg-Marquardt refinement, which settles the result: 40 steps and 150 gave the
