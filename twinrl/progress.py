@@ -9,9 +9,20 @@ import time
 
 __all__ = ["QUIET_FOR", "ProgressLines"]
 
-QUIET_FOR = float(os.environ.get("TWINRL_PROGRESS_AFTER", "2"))
+
+def _progress_after(default: float = 2.0) -> float:
+    text = os.environ.get("TWINRL_PROGRESS_AFTER", "")
+    try:
+        value = float(text)
+    except ValueError:
+        return default  # unset, or not a number: the default (progress is no reason to fail)
+    return value if value >= 0 else default
+
+
+QUIET_FOR = _progress_after()
 """Seconds a command's stage runs before ``ProgressLines`` prints it (the environment's
-``TWINRL_PROGRESS_AFTER``, 2 unless set; 0 prints every stage, however quick)."""
+``TWINRL_PROGRESS_AFTER``, 2 unless set to a number >= 0; 0 prints every stage, however
+quick)."""
 
 
 class ProgressLines:
