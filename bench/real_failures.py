@@ -5,12 +5,14 @@ identified twin; its real twin's hidden perturbation from ``DIR/eval/twin.json``
 only), on ``--episodes`` real starts ``reset(seed=1000 * twin + first + i)`` (the sensing
 bench's), per start:
 
-- ``real``: the image actor deployed in the real twin as ``bench/sensing.py`` deploys it, with
-  the loop's camera (``--camera``: the run's deployed camera unless given); its actions are
-  recorded, and where the true tool ends against the target (peg: the tip's horizontal offset
-  from the hole's axis and its height above the hole's top, mm);
-- ``sim actor``: the same actor in the identified twin from the same start (``reset_key``)
-  with the camera where the real episode's first choice put it -- does the twin reproduce the
+- ``real``: the image actor deployed in the real twin as ``bench/sensing.py`` deploys it (with
+  the run's residual policy where its gate accepted one), with the loop's camera (``--camera``:
+  the run's deployed camera unless given); its actions are recorded, and where the true tool
+  ends against the target (peg: the tip's horizontal offset from the hole's axis and its height
+  above the hole's top, mm);
+- ``sim actor``: the same actor (without a residual) in the identified twin from the same
+  start (``reset_key``), the camera where the real episode's first choice put it -- does the twin
+  reproduce the
   failure? -- and, for an actor that reads a fitted pose, ``sim truth``: the actor fed the true
   state where it reads that pose (its cloning without its view);
 - ``replay``: the real episode's actions replayed open loop in the identified twin -- does the
@@ -104,7 +106,13 @@ def real_episodes(task, run, env, actor, ap, q, qp, cfg, args, summary):
     twin = RealTwin(task, seed=seed, perturbation=hidden,
                     width=image_size(env, actor), height=image_size(env, actor))
     rec = Recorder(twin)
-    dep = active.Deployer(env, actor, ap, q=q, q_params=qp, sensing=cfg)
+    correction = None
+    if summary["final"].get("residual_accepted"):  # deployed as the loop deploys it
+        from twinrl.learn.checkpoint import load_policy
+
+        rdir = run / f"round{summary['final']['round']}"
+        correction = active.residual_correction(*load_policy(rdir / "residual")[:2])
+    dep = active.Deployer(env, actor, ap, q=q, q_params=qp, sensing=cfg, residual=correction)
     camera = args.camera or summary["final"].get("deployed_camera") or "default"
     twin.move_camera(env.mount.default)
     res = dep.run(rec, active.DeployConfig(camera=camera, episodes=args.first + args.episodes),
