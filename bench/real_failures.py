@@ -12,9 +12,8 @@ bench's), per start:
   above the hole's top, mm);
 - ``sim actor``: the same actor (without a residual) in the identified twin from the same
   start (``reset_key``), the camera where the real episode's first choice put it -- does the twin
-  reproduce the
-  failure? -- and, for an actor that reads a fitted pose, ``sim truth``: the actor fed the true
-  state where it reads that pose (its cloning without its view);
+  reproduce the failure? -- and, for an actor that reads a fitted pose, ``sim truth``: the actor
+  fed the true state where it reads that pose (its cloning without its view);
 - ``replay``: the real episode's actions replayed open loop in the identified twin -- does the
   twin predict the real outcome of the real actions (its physics, its grasp)? -- and again in
   the twin holding the tool at the real twin's hidden grasp (``replay_grasp``): how much of a
