@@ -168,11 +168,11 @@ def true_grasp_env(run: Path, hidden):
     return run_env(run, dataclasses.replace(system, tool=grasp))
 
 
-def plan_side(task, env, twin, keys, seeds, config: dict) -> dict:
+def plan_side(env, twin, keys, seeds, config: dict) -> dict:
     """Plans from ``keys`` in the identified twin (the loop's plan stage's settings), each
-    replayed open loop in the real twin from its start (``seeds``): success in both."""
+    replayed open loop in the real twin from its start (``seeds``): success in both. ``twin``
+    is the deployment's, its controller already calibrated by ``Deployer.run``."""
     from twinrl.learn import plans
-
     from twinrl.loop.arm_config import ArmLoopConfig
 
     c = ArmLoopConfig()
@@ -180,8 +180,6 @@ def plan_side(task, env, twin, keys, seeds, config: dict) -> dict:
                      min(10, len(keys)),
                      restarts=int(config.get("trajopt_restarts", c.trajopt_restarts)), keys=keys,
                      say=lambda s: print(f"[bench] {s}", flush=True))
-    if hasattr(twin, "calibrate_controller"):  # the robot's controller, as the deployer's
-        twin.calibrate_controller(getattr(env.controller, "joint_speed", None))
     real, ends = [], []
     for s, a in zip(seeds, res["plans"]):
         twin.reset(seed=int(s))
@@ -230,7 +228,7 @@ def evaluate(task: str, run: Path, args) -> dict:
         controls = np.flatnonzero(real_ok > 0)[:max(len(failed), 1)]
         pick = np.concatenate([failed, controls]).astype(int)
         config = json.loads((run / "loop.json").read_text()).get("config") or {}
-        p = plan_side(task, env, twin, keys[pick], [seeds[i] for i in pick], config)
+        p = plan_side(env, twin, keys[pick], [seeds[i] for i in pick], config)
         for j, i in enumerate(pick):
             starts[i].update(plan_sim=bool(p["plan_sim"][j]), plan_real=bool(p["plan_real"][j]),
                              plan_real_end=p["plan_real_end"][j])
